@@ -1,0 +1,235 @@
+"""Configuration: typed dataclass schemas, filled from YAML plus ``key=value`` overrides.
+
+* A schema is a (nested) ``@dataclass``; each field may carry ``metadata={"help": ...}``,
+  which ``--help`` and :func:`describe` print.
+* Sources are applied in order: schema defaults → optional preset dict → YAML file →
+  ``key=value`` overrides (dotted keys for nested sections, values parsed as YAML:
+  ``mapper.vox_size=0.3``, ``edge.depth_limit=inf``, ``names=[a,b]``).
+* An unknown key is an error that names the key and the closest valid one.
+* Values are type-checked against the field annotation (int → float is allowed).
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration problem, with a message that says which key and why."""
+
+
+def _field_names(schema) -> list[str]:
+    return [f.name for f in dataclasses.fields(schema)]
+
+
+def all_keys(schema, prefix: str = "") -> list[str]:
+    """Every dotted key of a schema (sections and leaves)."""
+    out = []
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        k = prefix + f.name
+        out.append(k)
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t):
+            out.extend(all_keys(t, k + "."))
+    return out
+
+
+def _unknown(key: str, schema, prefix: str) -> ConfigError:
+    valid = [prefix + n for n in _field_names(schema)]
+    close = difflib.get_close_matches(prefix + key, valid + all_keys(schema, prefix), n=1, cutoff=0.5)
+    hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(valid)}"
+    return ConfigError(f"unknown config key '{prefix}{key}'{hint}")
+
+
+def _coerce(value: Any, t, key: str):
+    """Check/convert ``value`` to annotation ``t``."""
+    origin = typing.get_origin(t)
+    if t is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(t)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, key)
+            except ConfigError as e:
+                errors.append(str(e))
+        raise ConfigError(f"config key '{key}': {value!r} does not match {t}")
+    if origin in (list, tuple):
+        if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+            raise ConfigError(f"config key '{key}': expected a list, got {value!r}")
+        args = typing.get_args(t)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(args) != len(value):
+                raise ConfigError(f"config key '{key}': expected {len(args)} values, got {len(value)}")
+            return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+        a = args[0] if args else Any
+        seq = [_coerce(v, a, f"{key}[{i}]") for i, v in enumerate(value)]
+        return tuple(seq) if origin is tuple else seq
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"config key '{key}': expected a mapping, got {value!r}")
+        return dict(value)
+    if origin is typing.Literal:
+        if value not in typing.get_args(t):
+            choices = ", ".join(map(repr, typing.get_args(t)))
+            raise ConfigError(f"config key '{key}': {value!r} is not one of {choices}")
+        return value
+    if t is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"config key '{key}': expected true/false, got {value!r}")
+    if t is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+            raise ConfigError(f"config key '{key}': expected an integer, got {value!r}")
+        return value
+    if t is float:
+        if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "-inf", "nan"):
+            return float(value)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"config key '{key}': expected a number, got {value!r}")
+        return float(value)
+    if t is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"config key '{key}': expected a string, got {value!r}")
+        return value
+    if t is Path:
+        if not isinstance(value, (str, Path)):
+            raise ConfigError(f"config key '{key}': expected a path, got {value!r}")
+        return Path(value)
+    if dataclasses.is_dataclass(t):
+        raise ConfigError(f"config key '{key}' is a section; set its keys, e.g. '{key}.<name>=...'")
+    return value
+
+
+def merge(cfg, data: dict, prefix: str = ""):
+    """Return a copy of dataclass instance ``cfg`` with the (nested) dict ``data`` applied."""
+    if data is None:
+        return cfg
+    if not isinstance(data, dict):
+        raise ConfigError(f"config section '{prefix.rstrip('.') or '<root>'}' must be a mapping, got {data!r}")
+    schema = type(cfg)
+    hints = typing.get_type_hints(schema)
+    names = set(_field_names(schema))
+    changes = {}
+    for k, v in data.items():
+        if not isinstance(k, str) or k not in names:
+            raise _unknown(str(k), schema, prefix)
+        t = hints[k]
+        if dataclasses.is_dataclass(t):
+            changes[k] = merge(getattr(cfg, k), v, prefix + k + ".")
+        else:
+            changes[k] = _coerce(v, t, prefix + k)
+    return dataclasses.replace(cfg, **changes)
+
+
+def parse_override(item: str) -> dict:
+    """``"a.b=1.5"`` → ``{"a": {"b": 1.5}}`` (value parsed as YAML)."""
+    if "=" not in item:
+        raise ConfigError(f"override {item!r} is not of the form key=value")
+    key, raw = item.split("=", 1)
+    key = key.strip()
+    if not key:
+        raise ConfigError(f"override {item!r} has an empty key")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() != "" else ""
+    except yaml.YAMLError:
+        value = raw
+    if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "-inf"):
+        value = float(value)
+    out: dict = {}
+    cur = out
+    parts = key.split(".")
+    for p in parts[:-1]:
+        cur = cur.setdefault(p, {})
+    cur[parts[-1]] = value
+    return out
+
+
+def load_yaml(path) -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file not found: {p}")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"config file {p} is not valid YAML: {e}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {p} must hold a mapping at the top level")
+    return data
+
+
+def load_config(schema, path=None, overrides=(), base: dict | None = None):
+    """Build a ``schema`` instance: defaults → ``base`` → YAML ``path`` → ``overrides``."""
+    cfg = schema()
+    if base:
+        cfg = merge(cfg, base)
+    if path:
+        cfg = merge(cfg, load_yaml(path))
+    for item in overrides or ():
+        cfg = merge(cfg, parse_override(item))
+    return cfg
+
+
+def to_dict(cfg) -> dict:
+    """Plain nested dict (YAML-safe: Paths become strings, tuples lists, inf stays float)."""
+    def conv(v):
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, Path):
+            return str(v)
+        if isinstance(v, (list, tuple)):
+            return [conv(x) for x in v]
+        if isinstance(v, dict):
+            return {k: conv(x) for k, x in v.items()}
+        return v
+    return conv(cfg)
+
+
+def describe(schema, prefix: str = "") -> str:
+    """One line per key: ``key = default  -- help``; for ``--help`` epilogs."""
+    lines = []
+    inst = schema()
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        k = prefix + f.name
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t):
+            lines.append(f"[{k}]  {f.metadata.get('help', '')}".rstrip())
+            lines.append(describe(t, k + "."))
+            continue
+        v = getattr(inst, f.name)
+        if isinstance(v, float) and math.isinf(v):
+            v = "inf" if v > 0 else "-inf"
+        lines.append(f"  {k} = {v!r}  -- {f.metadata.get('help', '')}".rstrip(" -"))
+    return "\n".join(lines)
+
+
+def field_(default, help: str, **kw):
+    """Shorthand for a dataclass field with a help text (mutable defaults are copied)."""
+    if isinstance(default, (list, dict, set)):
+        return dataclasses.field(default_factory=lambda d=default: type(d)(d), metadata={"help": help}, **kw)
+    if dataclasses.is_dataclass(default) and not isinstance(default, type):
+        return dataclasses.field(default_factory=lambda d=default: dataclasses.replace(d), metadata={"help": help}, **kw)
+    return dataclasses.field(default=default, metadata={"help": help}, **kw)
+
+
+def section(schema, help: str = ""):
+    """A nested config section field."""
+    return dataclasses.field(default_factory=schema, metadata={"help": help})

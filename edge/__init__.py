@@ -1,0 +1,1 @@
+"""Onboard part: frame sources, image encoders, PCA compression, the edge process."""
