@@ -1,0 +1,240 @@
+"""The feature space a map's features live in, and exact similarity against queries in it.
+
+A :class:`FeatureSpace` describes what the edge stores in each voxel/ray feature and what
+the mapper needs to compare text/image queries with it:
+
+* ``encoder_name``/``encoder_version``: which encoder made the features;
+* ``in_dim``: the encoder's feature dimension (RADIO 768/1024, MiniLM 384);
+* ``pca`` (optional): the centred PCA that compresses ``in_dim -> dim``;
+* ``head`` (optional): the language head (RADIO's SigLIP MLP2) that maps encoder features
+  to the text model's space; applied at query time *after* averaging (brief §4.3);
+* ``text_model``: "minilm-l6" | "siglip" — which text encoder embeds queries.
+
+Its id is ``f"{encoder_name}-{encoder_version}-{pca.content_hash or 'raw'}-{dim}"``; maps
+never mix ids. :meth:`to_body`/:meth:`from_body` give a flat dict of str/int/float/numpy
+values for the wire (``common.wire``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from common.pca import PCA
+from common.text.heads import MLP2, MLP2Config
+
+BODY_VERSION = 1
+
+
+class FeatureSpaceError(ValueError):
+    """A feature-space body or query does not fit (shapes, dims, missing fields)."""
+
+
+@dataclass
+class FeatureSpace:
+    encoder_name: str
+    encoder_version: str
+    in_dim: int
+    text_model: str = "minilm-l6"
+    pca: PCA | None = None
+    head_config: MLP2Config | None = None
+    head_state: dict[str, np.ndarray] | None = None
+    _head_cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        if self.pca is not None and self.pca.in_dim != self.in_dim:
+            raise FeatureSpaceError(f"PCA input dim {self.pca.in_dim} != encoder dim {self.in_dim}")
+        if (self.head_config is None) != (self.head_state is None):
+            raise FeatureSpaceError("language head needs both a config and a state dict")
+        if self.head_config is not None and self.head_config.in_dim != self.in_dim:
+            raise FeatureSpaceError(f"language head input dim {self.head_config.in_dim} != encoder dim {self.in_dim}")
+        for s in (self.encoder_name, self.encoder_version):
+            if not s or any(c.isspace() for c in s):
+                raise FeatureSpaceError(f"encoder name/version must be non-empty without spaces, got {s!r}")
+
+    # ------------------------------------------------------------------ identity
+    @property
+    def dim(self) -> int:
+        """Stored (wire/map) feature dimension."""
+        return self.pca.out_dim if self.pca is not None else self.in_dim
+
+    @property
+    def lang_dim(self) -> int:
+        """Dimension of the language space queries live in."""
+        return self.head_config.out_dim if self.head_config is not None else self.in_dim
+
+    @property
+    def id(self) -> str:
+        h = self.pca.content_hash if self.pca is not None else "raw"
+        return f"{self.encoder_name}-{self.encoder_version}-{h}-{self.dim}"
+
+    @classmethod
+    def for_encoder(cls, encoder, pca: PCA | None = None) -> "FeatureSpace":
+        """Describe an encoder's output (duck-typed: ``name``, ``version``, ``feature_dim``,
+        ``text_model``, optional ``language_head`` MLP2)."""
+        head = getattr(encoder, "language_head", None)
+        hc = hs = None
+        if head is not None:
+            hc = head.cfg
+            hs = {k: v.detach().float().cpu().numpy() for k, v in head.state_dict().items()}
+        return cls(encoder.name, str(encoder.version), int(encoder.feature_dim),
+                   getattr(encoder, "text_model", "minilm-l6"), pca, hc, hs)
+
+    # ------------------------------------------------------------------ wire body
+    def to_body(self) -> dict:
+        """Flat dict: str/int/float values and numpy arrays (``pca.*``, ``head.*`` prefixes)."""
+        b: dict = {"fs_version": BODY_VERSION, "id": self.id, "encoder_name": self.encoder_name,
+                   "encoder_version": self.encoder_version, "in_dim": int(self.in_dim), "dim": int(self.dim),
+                   "text_model": self.text_model, "has_pca": int(self.pca is not None),
+                   "has_head": int(self.head_config is not None)}
+        if self.pca is not None:
+            b["pca.mean"] = self.pca.mean.astype(np.float32)
+            b["pca.basis"] = self.pca.basis.astype(np.float32)
+            b["pca.explained_variance"] = self.pca.explained_variance.astype(np.float64)
+            b["pca.total_variance"] = float(self.pca.total_variance)
+            b["pca.n_samples"] = int(self.pca.n_samples)
+        if self.head_config is not None:
+            for k, v in self.head_config.to_dict().items():
+                b[f"head.cfg.{k}"] = int(v) if isinstance(v, bool) else v
+            for k, v in self.head_state.items():
+                b[f"head.sd.{k}"] = np.ascontiguousarray(v, dtype=np.float32)
+        return b
+
+    @classmethod
+    def from_body(cls, body: dict) -> "FeatureSpace":
+        """Inverse of :meth:`to_body`; validates every shape and the id."""
+        def get(k, types):
+            if k not in body:
+                raise FeatureSpaceError(f"feature-space body lacks field '{k}'")
+            v = body[k]
+            if isinstance(v, np.generic):
+                v = v.item()
+            if not isinstance(v, types) or isinstance(v, bool) and types is not bool:
+                raise FeatureSpaceError(f"feature-space field '{k}' has type {type(v).__name__}")
+            return v
+
+        ver = get("fs_version", int)
+        if ver != BODY_VERSION:
+            raise FeatureSpaceError(f"feature-space body version {ver} not supported (expected {BODY_VERSION})")
+        in_dim, dim = get("in_dim", int), get("dim", int)
+        if in_dim <= 0 or dim <= 0 or dim > in_dim:
+            raise FeatureSpaceError(f"bad dims in feature-space body: in_dim={in_dim}, dim={dim}")
+        pca = None
+        if get("has_pca", int):
+            mean = np.asarray(get("pca.mean", np.ndarray))
+            basis = np.asarray(get("pca.basis", np.ndarray))
+            ev = np.asarray(body.get("pca.explained_variance", np.zeros(dim)))
+            if mean.shape != (in_dim,) or basis.shape != (in_dim, dim) or ev.shape != (dim,):
+                raise FeatureSpaceError(f"PCA shapes in body: mean {mean.shape}, basis {basis.shape}, "
+                                        f"explained_variance {ev.shape}; expected ({in_dim},), ({in_dim}, {dim}), ({dim},)")
+            if not (np.isfinite(mean).all() and np.isfinite(basis).all()):
+                raise FeatureSpaceError("PCA mean/basis in body contain NaN or inf")
+            pca = PCA(mean, basis, ev, float(body.get("pca.total_variance", ev.sum())),
+                      int(body.get("pca.n_samples", 0)))
+        elif dim != in_dim:
+            raise FeatureSpaceError(f"body has no PCA but dim {dim} != in_dim {in_dim}")
+        hc = hs = None
+        if get("has_head", int):
+            cfg = {k[len("head.cfg."):]: (v.item() if isinstance(v, np.generic) else v)
+                   for k, v in body.items() if k.startswith("head.cfg.")}
+            try:
+                hc = MLP2Config.from_dict(cfg)
+            except (ValueError, TypeError) as e:
+                raise FeatureSpaceError(f"bad language head config in body: {e}") from None
+            hs = {k[len("head.sd."):]: np.asarray(v) for k, v in body.items() if k.startswith("head.sd.")}
+            expect = {k: tuple(v.shape) for k, v in MLP2(hc, device="meta").state_dict().items()}
+            got = {k: tuple(v.shape) for k, v in hs.items()}
+            if expect != got:
+                missing = sorted(set(expect) - set(got))
+                extra = sorted(set(got) - set(expect))
+                wrong = sorted(k for k in set(expect) & set(got) if expect[k] != got[k])
+                raise FeatureSpaceError(f"language head tensors do not match its config: missing {missing}, "
+                                        f"unexpected {extra}, wrong shapes {wrong}")
+        fs = cls(get("encoder_name", str), get("encoder_version", str), in_dim,
+                 get("text_model", str), pca, hc, hs)
+        if fs.dim != dim:
+            raise FeatureSpaceError(f"body dim {dim} != PCA output dim {fs.dim}")
+        if "id" in body and body["id"] != fs.id:
+            raise FeatureSpaceError(f"feature-space id in body {body['id']!r} does not match its content ({fs.id!r})")
+        return fs
+
+    # ------------------------------------------------------------------ transforms
+    def compress(self, x):
+        """Encoder-space features → stored features (identity without PCA)."""
+        return self.pca.compress(x) if self.pca is not None else x
+
+    def decompress(self, y):
+        """Stored features → encoder-space features (identity without PCA)."""
+        return self.pca.decompress(y) if self.pca is not None else y
+
+    def language_head(self, device="cpu") -> MLP2 | None:
+        """The head as a module on ``device`` (cached), or None."""
+        if self.head_config is None:
+            return None
+        key = str(device)
+        if key not in self._head_cache:
+            # built outside inference mode so the module also works in autograd-tracked code
+            with torch.inference_mode(False), torch.no_grad():
+                sd = {k: torch.from_numpy(np.array(v, np.float32)) for k, v in self.head_state.items()}
+                head = MLP2.from_state_dict(sd, device=device, cfg=self.head_config)
+            self._head_cache[key] = head.requires_grad_(False)
+        return self._head_cache[key]
+
+    @torch.inference_mode()
+    def to_language(self, y: torch.Tensor, device="cpu") -> torch.Tensor:
+        """Stored features ``(N, dim)`` → language space ``(N, lang_dim)`` (decompress, then head)."""
+        x = torch.as_tensor(self.decompress(torch.as_tensor(y, device=device).float()))
+        head = self.language_head(device)
+        return head(x) if head is not None else x
+
+    @torch.inference_mode()
+    def similarity(self, map_feats, queries, chunk: int = 65536, device="cpu") -> torch.Tensor:
+        """Exact cosine similarity ``(Q, N)`` between language-space ``queries`` ``(Q, lang_dim)``
+        and stored map features ``(N, dim)`` mapped to language space.
+
+        Without a nonlinear head and with PCA, the cosine is computed in PCA space: with
+        ``x = V·y + m``, ``qᵀx = (Vᵀq)ᵀy + qᵀm`` and ``|x|² = |y|² + 2·yᵀ(Vᵀm) + |m|²``
+        (V orthonormal), so no ``N × in_dim`` decompression happens. Rows of zero norm give 0.
+        """
+        dev = torch.device(device)
+        y = torch.as_tensor(map_feats).to(dev, torch.float32)
+        q = torch.as_tensor(queries).to(dev, torch.float32)
+        if y.ndim != 2 or y.shape[1] != self.dim:
+            raise FeatureSpaceError(f"map features must be (N, {self.dim}), got {tuple(y.shape)}")
+        if q.ndim == 1:
+            q = q[None]
+        if q.ndim != 2 or q.shape[1] != self.lang_dim:
+            raise FeatureSpaceError(f"queries must be (Q, {self.lang_dim}) in {self.text_model} space, "
+                                    f"got {tuple(q.shape)}")
+        qn = torch.nn.functional.normalize(q, dim=1)
+        out = torch.empty(q.shape[0], y.shape[0], device=dev)
+        if self.head_config is None and self.pca is not None:
+            m, v = self.pca.torch_basis(dev, torch.float32)
+            m64, v64 = m.double(), v.double()
+            qv = (qn.double() @ v64).float()          # (Q, k)
+            qm = (qn.double() @ m64).float()          # (Q,)
+            vm = (v64.T @ m64).float()                # (k,)
+            mm = float(m64 @ m64)
+            for i in range(0, y.shape[0], chunk):
+                yc = y[i:i + chunk]
+                n2 = (yc * yc).sum(1) + 2.0 * (yc @ vm) + mm
+                inv = torch.where(n2 > 1e-20, n2.clamp_min(1e-20).rsqrt(), torch.zeros_like(n2))
+                out[:, i:i + chunk] = (yc @ qv.T + qm).T * inv
+            return out
+        for i in range(0, y.shape[0], chunk):
+            x = self.to_language(y[i:i + chunk], device=dev)
+            out[:, i:i + chunk] = qn @ torch.nn.functional.normalize(x, dim=1).T
+        return out
+
+    def embed_queries(self, texts: Sequence[str], text_encoder, templates: str = "none") -> torch.Tensor:
+        """Embed query strings with ``text_encoder`` (must match :attr:`text_model`): ``(Q, lang_dim)``."""
+        name = getattr(text_encoder, "name", None)
+        if name != self.text_model:
+            raise FeatureSpaceError(f"feature space {self.id} expects '{self.text_model}' text embeddings, "
+                                    f"got a '{name}' text encoder")
+        q = text_encoder.encode_labels(list(texts), templates=templates)
+        if q.shape[-1] != self.lang_dim:
+            raise FeatureSpaceError(f"text encoder gives {q.shape[-1]}-d embeddings, space needs {self.lang_dim}")
+        return q
