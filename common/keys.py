@@ -1,0 +1,155 @@
+"""The Zenoh key space (DESIGN §3). Pure string building and parsing; no Zenoh import.
+
+All keys live under a configurable prefix (default ``rayfronts``), so several sites or
+experiments can share one Zenoh network::
+
+    <p>/robots/<robot>/frames          edge publishes one frame message per processed frame
+    <p>/robots/<robot>/alive           edge liveliness token
+    <p>/robots/<robot>/feature_space   edge queryable (feature-space id, PCA basis, ...)
+    <p>/mapper/alive                   mapper liveliness token
+    <p>/mapper/query                   mapper queryable: run a query now
+    <p>/mapper/queries/<id>            mapper publishes results of a standing query
+    <p>/mapper/layers/<layer>          mapper publishes voxels / frontiers / rays / ...
+    <p>/mapper/stats                   mapper queryable: counters and timings
+    <p>/mapper/snapshot                mapper queryable: save / describe snapshots
+
+Robot ids, query ids and layer names are single key chunks: ``[A-Za-z0-9_-]{1,64}``
+(no ``/``, no Zenoh wildcards ``*``/``$``, no ``?#`` which Zenoh reserves).
+"""
+from __future__ import annotations
+
+import re
+
+DEFAULT_PREFIX = "rayfronts"
+
+#: one identifier chunk: robot ids, query ids, layer names.
+ID_PATTERN = r"[A-Za-z0-9_-]{1,64}"
+_ID_RE = re.compile(rf"^{ID_PATTERN}$")
+# A prefix is one or more '/'-separated chunks of the same alphabet (dots allowed too).
+_PREFIX_RE = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
+
+
+class InvalidKey(ValueError):
+    """An invalid robot id, query id, layer name or prefix."""
+
+
+def is_valid_id(name: str) -> bool:
+    """True when ``name`` is a valid robot / query / layer id (``[A-Za-z0-9_-]{1,64}``)."""
+    return isinstance(name, str) and _ID_RE.match(name) is not None
+
+
+def check_id(name: str, what: str = "robot id") -> str:
+    """Return ``name`` or raise :class:`InvalidKey` saying what is wrong with it."""
+    if not isinstance(name, str):
+        raise InvalidKey(f"{what} must be a string, got {type(name).__name__}")
+    if not _ID_RE.match(name):
+        raise InvalidKey(f"invalid {what} {name!r}: use 1-64 characters from [A-Za-z0-9_-] "
+                         "(no '/', spaces or Zenoh wildcards)")
+    return name
+
+
+class KeySpace:
+    """Builds and parses the keys of one deployment (``prefix`` default ``rayfronts``)."""
+
+    def __init__(self, prefix: str = DEFAULT_PREFIX):
+        if not isinstance(prefix, str) or not _PREFIX_RE.match(prefix):
+            raise InvalidKey(f"invalid key prefix {prefix!r}: '/'-separated chunks of [A-Za-z0-9_.-], "
+                             "no leading/trailing '/', no wildcards")
+        self.prefix = prefix
+        self._robot_re = re.compile(rf"^{re.escape(prefix)}/robots/({ID_PATTERN})/[A-Za-z0-9_-]+$")
+
+    def __repr__(self) -> str:
+        return f"KeySpace({self.prefix!r})"
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, KeySpace) and other.prefix == self.prefix
+
+    def __hash__(self) -> int:
+        return hash(("KeySpace", self.prefix))
+
+    # ------------------------------------------------------------------ robots
+    def robot_root(self, robot: str) -> str:
+        """``<p>/robots/<robot>`` (the prefix every key of one robot starts with)."""
+        return f"{self.prefix}/robots/{check_id(robot)}"
+
+    def frames(self, robot: str) -> str:
+        return f"{self.robot_root(robot)}/frames"
+
+    @property
+    def frames_all(self) -> str:
+        return f"{self.prefix}/robots/*/frames"
+
+    def alive(self, robot: str) -> str:
+        return f"{self.robot_root(robot)}/alive"
+
+    @property
+    def alive_all(self) -> str:
+        return f"{self.prefix}/robots/*/alive"
+
+    def feature_space(self, robot: str) -> str:
+        return f"{self.robot_root(robot)}/feature_space"
+
+    @property
+    def feature_space_all(self) -> str:
+        return f"{self.prefix}/robots/*/feature_space"
+
+    # ------------------------------------------------------------------ mapper
+    @property
+    def mapper_root(self) -> str:
+        return f"{self.prefix}/mapper"
+
+    @property
+    def mapper_alive(self) -> str:
+        return f"{self.prefix}/mapper/alive"
+
+    @property
+    def mapper_query(self) -> str:
+        return f"{self.prefix}/mapper/query"
+
+    def mapper_queries(self, qid: str) -> str:
+        return f"{self.prefix}/mapper/queries/{check_id(qid, 'query id')}"
+
+    @property
+    def mapper_queries_all(self) -> str:
+        return f"{self.prefix}/mapper/queries/*"
+
+    def layers(self, layer: str) -> str:
+        return f"{self.prefix}/mapper/layers/{check_id(layer, 'layer name')}"
+
+    @property
+    def layers_all(self) -> str:
+        return f"{self.prefix}/mapper/layers/*"
+
+    @property
+    def stats(self) -> str:
+        return f"{self.prefix}/mapper/stats"
+
+    @property
+    def snapshot(self) -> str:
+        return f"{self.prefix}/mapper/snapshot"
+
+    @property
+    def everything(self) -> str:
+        """``<p>/**`` (debug subscribers, ACL rules for the mapper)."""
+        return f"{self.prefix}/**"
+
+    # ------------------------------------------------------------------ parsers
+    def robot_from_key(self, key) -> str | None:
+        """Robot id of a ``<p>/robots/<robot>/<leaf>`` key, else ``None`` (also for invalid ids)."""
+        m = self._robot_re.match(str(key))
+        return m.group(1) if m else None
+
+    def _last_chunk(self, key, root: str) -> str | None:
+        s = str(key)
+        if not s.startswith(root + "/"):
+            return None
+        rest = s[len(root) + 1:]
+        return rest if is_valid_id(rest) else None
+
+    def qid_from_key(self, key) -> str | None:
+        """Query id of a ``<p>/mapper/queries/<id>`` key, else ``None``."""
+        return self._last_chunk(key, f"{self.prefix}/mapper/queries")
+
+    def layer_from_key(self, key) -> str | None:
+        """Layer name of a ``<p>/mapper/layers/<layer>`` key, else ``None``."""
+        return self._last_chunk(key, f"{self.prefix}/mapper/layers")

@@ -1,0 +1,389 @@
+"""Zenoh session helpers shared by every process: config, open/close, signals, CLI flags.
+
+Topology (DESIGN §3): the base station runs a session in ``router`` mode (the mapper or
+``rayfronts router``); robots and laptops are ``client``s that connect to it. Multicast
+scouting is off unless asked for.
+
+How a session config is built (:func:`make_config`), later steps win:
+
+1. the Zenoh JSON5 file ``config_file`` (e.g. one of ``deploy/zenoh/*.json5``; falls back to
+   the ``RAYFRONTS_ZENOH_CONFIG`` environment variable), else Zenoh's defaults;
+2. our keys: ``mode``, ``connect``, ``listen`` (only when set: they replace the file's),
+   multicast scouting, shared memory, lease;
+3. relative TLS / credential paths in the result are resolved against ``certs_dir``
+   (falls back to ``RAYFRONTS_CERTS``, then ``/etc/rayfronts/certs``), so one shipped file
+   serves every machine: each machine's certs dir holds ``ca.pem``, ``cert.pem``, ``key.pem``;
+4. ``acl_file``: a JSON5 ``access_control`` object (from ``deploy/acl/make_acl.py``);
+5. ``extra``: any Zenoh key → JSON value (e.g. ``{"transport/link/tx/lease": 2000}``).
+
+Connecting (:func:`open_session`): a client whose router is not up fails at once inside
+Zenoh, so ``connect_timeout_ms`` is implemented here by retrying, interruptibly (a stop
+event): ``-1`` (default) keeps retrying until the router appears, so an edge can start
+before its base station; ``0`` tries once; ``N > 0`` retries for N ms. Once connected, Zenoh
+itself reconnects a client when the router comes back and re-declares its entities.
+
+Closing: a process that exits with callback subscribers/queryables still declared hangs at
+interpreter exit (Zenoh 1.10 pitfall). Use :class:`SessionGuard` (a context manager that
+undeclares what it tracks and closes the session) and :func:`install_signal_handlers`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import socket
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
+
+from common.config import ConfigError, field_
+from common.keys import DEFAULT_PREFIX
+
+log = logging.getLogger(__name__)
+
+MODES = ("router", "client", "peer")
+DEFAULT_CERTS_DIR = "/etc/rayfronts/certs"
+ENV_CONFIG = "RAYFRONTS_ZENOH_CONFIG"
+ENV_CERTS = "RAYFRONTS_CERTS"
+
+#: config keys holding file paths that are resolved against ``certs_dir`` when relative.
+PATH_KEYS = (
+    "transport/link/tls/root_ca_certificate",
+    "transport/link/tls/listen_private_key",
+    "transport/link/tls/listen_certificate",
+    "transport/link/tls/connect_private_key",
+    "transport/link/tls/connect_certificate",
+    "transport/auth/usrpwd/dictionary_file",
+)
+
+
+class ZenohConnectError(RuntimeError):
+    """The session could not be opened (router unreachable, TLS refused, cancelled)."""
+
+
+@dataclass
+class ZenohConfig:
+    """Zenoh session settings of one process (the ``zenoh`` section of process configs)."""
+
+    prefix: str = field_(DEFAULT_PREFIX, "key-space prefix: all keys live under '<prefix>/...'")
+    mode: str = field_("", "router | client | peer; empty = the config file's mode, else the "
+                           "process default (client for edge/query, router for mapper/router)")
+    connect: list[str] = field_([], "endpoints to connect to, e.g. ['tcp/192.168.1.10:7447'] "
+                                    "(replace the config file's)")
+    listen: list[str] = field_([], "endpoints to listen on, e.g. ['tcp/0.0.0.0:7447'] "
+                                   "(replace the config file's)")
+    config_file: str = field_("", "Zenoh JSON5 config file (e.g. deploy/zenoh/edge-tls.json5); "
+                                  "empty = $RAYFRONTS_ZENOH_CONFIG or Zenoh defaults")
+    certs_dir: str = field_("", "directory that relative TLS/credential paths resolve against "
+                                "(ca.pem, cert.pem, key.pem); empty = $RAYFRONTS_CERTS or "
+                                "/etc/rayfronts/certs")
+    acl_file: str = field_("", "JSON5 access_control block (deploy/acl/make_acl.py) for router mode; "
+                               "empty = none / the config file's")
+    multicast_scouting: bool = field_(False, "UDP multicast discovery (off: explicit endpoints only)")
+    shared_memory: bool | None = field_(None, "shared-memory transport between local processes; "
+                                              "null = Zenoh default (on); false to measure the network")
+    lease_ms: int = field_(0, "link lease in ms (liveliness loss seen after about this long); "
+                              "0 = the file's / Zenoh default (10000)")
+    connect_timeout_ms: int = field_(-1, "client mode: -1 = keep retrying until the router answers "
+                                         "(start order does not matter); 0 = one try; N = retry N ms")
+    connect_retry_s: float = field_(1.0, "client mode: wait between connection attempts (seconds, max)")
+    extra: dict[str, Any] = field_({}, "more Zenoh config keys → JSON values, e.g. "
+                                       "{'transport/link/tx/lease': 2000}; applied last")
+
+
+# --------------------------------------------------------------------------- config
+def _insert(c, key: str, value: Any, source: str) -> None:
+    try:
+        c.insert_json5(key, json.dumps(value))
+    except Exception as e:  # zenoh.ZError: unknown key / wrong type
+        raise ConfigError(f"zenoh config key {key!r} = {value!r} ({source}) rejected: {e}") from None
+
+
+def _read_text(path: str, what: str) -> str:
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise ConfigError(f"{what} not found: {p}")
+    return p.read_text()
+
+
+def load_config_file(path: str):
+    """``zenoh.Config`` from a JSON5 file, with a clear :class:`ConfigError` on problems."""
+    import zenoh
+
+    _read_text(path, "zenoh config file")
+    try:
+        return zenoh.Config.from_file(str(Path(path).expanduser()))
+    except Exception as e:
+        raise ConfigError(f"zenoh config file {path} is invalid: {e}") from None
+
+
+def resolve_certs_dir(cfg: ZenohConfig) -> Path:
+    """The directory relative TLS/credential paths resolve against (see module doc)."""
+    return Path(cfg.certs_dir or os.environ.get(ENV_CERTS) or DEFAULT_CERTS_DIR).expanduser()
+
+
+def make_config(cfg: ZenohConfig, extra: dict[str, Any] | None = None, default_mode: str = "client"):
+    """Build a ``zenoh.Config`` from ``cfg`` (see module doc for the order); raises ConfigError."""
+    import zenoh
+
+    if not isinstance(cfg, ZenohConfig):
+        raise TypeError(f"make_config expects a ZenohConfig, got {type(cfg).__name__}")
+    path = cfg.config_file or os.environ.get(ENV_CONFIG, "")
+    c = load_config_file(path) if path else zenoh.Config()
+    mode = cfg.mode or ("" if path else default_mode)
+    if mode:
+        if mode not in MODES:
+            raise ConfigError(f"zenoh mode {mode!r} is not one of {', '.join(MODES)}")
+        _insert(c, "mode", mode, "mode")
+    for name, eps in (("connect", cfg.connect), ("listen", cfg.listen)):
+        if isinstance(eps, str):
+            eps = [eps]
+        if eps:
+            bad = [e for e in eps if not isinstance(e, str) or "/" not in e]
+            if bad:
+                raise ConfigError(f"zenoh {name} endpoint(s) {bad} are not of the form proto/address "
+                                  "(e.g. tcp/192.168.1.10:7447)")
+            _insert(c, f"{name}/endpoints", list(eps), name)
+    _insert(c, "scouting/multicast/enabled", bool(cfg.multicast_scouting), "multicast_scouting")
+    if cfg.shared_memory is not None:
+        _insert(c, "transport/shared_memory/enabled", bool(cfg.shared_memory), "shared_memory")
+    if cfg.lease_ms:
+        if cfg.lease_ms < 100:
+            raise ConfigError(f"zenoh lease_ms {cfg.lease_ms} is too small (>= 100 ms)")
+        _insert(c, "transport/link/tx/lease", int(cfg.lease_ms), "lease_ms")
+    if cfg.acl_file:
+        text = _read_text(cfg.acl_file, "access-control file")
+        try:
+            c.insert_json5("access_control", text)
+        except Exception as e:
+            raise ConfigError(f"access-control file {cfg.acl_file} rejected by zenoh: {e}") from None
+    for src, kv in (("zenoh.extra", cfg.extra), ("extra", extra)):
+        for k, v in (kv or {}).items():
+            _insert(c, k, v, src)
+    _resolve_paths(c, resolve_certs_dir(cfg))
+    return c
+
+
+def _resolve_paths(c, certs_dir: Path) -> None:
+    for key in PATH_KEYS:
+        v = json.loads(c.get_json(key))
+        if not isinstance(v, str) or not v:
+            continue
+        p = Path(v).expanduser()
+        if not p.is_absolute():
+            p = certs_dir / p
+        if not p.is_file():
+            raise ConfigError(f"zenoh {key}: file not found: {p} (set the certs dir with --certs DIR, "
+                              f"zenoh.certs_dir or ${ENV_CERTS}, or give an absolute path)")
+        c.insert_json5(key, json.dumps(str(p)))
+
+
+def config_mode(c) -> str:
+    """The mode of a built ``zenoh.Config`` (``router``/``client``/``peer``)."""
+    m = json.loads(c.get_json("mode"))
+    return m if isinstance(m, str) else "peer"
+
+
+# --------------------------------------------------------------------------- open / close
+def open_session(cfg, *, stop: threading.Event | None = None, extra: dict[str, Any] | None = None,
+                 default_mode: str = "client"):
+    """Open a ``zenoh.Session``.
+
+    ``cfg`` is a :class:`ZenohConfig` (client mode retries per ``connect_timeout_ms``, and
+    stops early when ``stop`` is set) or an already built ``zenoh.Config`` (one attempt).
+    Raises :class:`ZenohConnectError` when no session could be opened.
+    """
+    import zenoh
+
+    if isinstance(cfg, zenoh.Config):
+        try:
+            return zenoh.open(cfg)
+        except Exception as e:
+            raise ZenohConnectError(f"cannot open zenoh session: {e}") from e
+    zc = make_config(cfg, extra=extra, default_mode=default_mode)
+    retry = config_mode(zc) == "client" and cfg.connect_timeout_ms != 0
+    deadline = None if cfg.connect_timeout_ms < 0 else time.monotonic() + cfg.connect_timeout_ms / 1000
+    wait, warned = 0.1, False
+    while True:
+        try:
+            return zenoh.open(zc)
+        except Exception as e:
+            err = e
+        if not retry or (deadline is not None and time.monotonic() >= deadline):
+            raise ZenohConnectError(f"cannot open zenoh session ({config_mode(zc)} → "
+                                    f"{json.loads(zc.get_json('connect/endpoints'))}): {err}") from err
+        if not warned:
+            log.warning("zenoh: router not reachable yet (%s); retrying", str(err).split(" at ")[0])
+            warned = True
+        wait = min(wait * 2, max(cfg.connect_retry_s, 0.05))
+        if deadline is not None:
+            wait = min(wait, max(deadline - time.monotonic(), 0.0))
+        if stop is not None:
+            if stop.wait(wait):
+                raise ZenohConnectError("cancelled while waiting for the zenoh router")
+        else:
+            time.sleep(wait)
+        zc = make_config(cfg, extra=extra, default_mode=default_mode)  # a Config is consumed by open
+
+
+class SessionGuard:
+    """Owns a session and the entities declared on it; closes everything on exit.
+
+    >>> with SessionGuard(open_session(cfg)) as g:
+    ...     g.add(g.session.declare_subscriber(key, cb))
+    ...     g.add(g.session.liveliness().declare_token(alive))
+
+    ``close()`` undeclares tracked entities in reverse order and closes the session; it is
+    idempotent and never raises (errors are logged), so it is safe in ``finally`` blocks.
+    """
+
+    def __init__(self, session):
+        self.session = session
+        self._entities: list = []
+        self._lock = threading.Lock()
+
+    @classmethod
+    def open(cls, cfg, **kw) -> "SessionGuard":
+        return cls(open_session(cfg, **kw))
+
+    def add(self, entity):
+        """Track ``entity`` (subscriber, queryable, publisher, token, ...) and return it."""
+        with self._lock:
+            self._entities.append(entity)
+        return entity
+
+    @property
+    def closed(self) -> bool:
+        return self.session is None
+
+    def close(self) -> None:
+        with self._lock:
+            ents, self._entities = self._entities, []
+            s, self.session = self.session, None
+        for ent in reversed(ents):
+            try:
+                ent.undeclare()
+            except Exception as e:  # already undeclared / session gone
+                log.debug("undeclare %r: %s", ent, e)
+        if s is not None:
+            try:
+                s.close()
+            except Exception as e:
+                log.warning("closing the zenoh session: %s", e)
+
+    def __enter__(self) -> "SessionGuard":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def install_signal_handlers(stop_event: threading.Event,
+                            signals: tuple = (signal.SIGINT, signal.SIGTERM)) -> Callable[[], None]:
+    """SIGINT/SIGTERM set ``stop_event`` (clean shutdown); a second SIGINT raises
+    KeyboardInterrupt. Returns a function restoring the previous handlers. Outside the main
+    thread it does nothing (Python allows handlers only there)."""
+    if threading.current_thread() is not threading.main_thread():
+        log.debug("install_signal_handlers: not the main thread; skipped")
+        return lambda: None
+    previous = {}
+
+    def handler(signum, frame):
+        if stop_event.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        log.info("received %s; shutting down", signal.Signals(signum).name)
+        stop_event.set()
+
+    for sig in signals:
+        previous[sig] = signal.signal(sig, handler)
+
+    def restore() -> None:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
+
+    return restore
+
+
+# --------------------------------------------------------------------------- helpers
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A currently free TCP port on ``host`` (for tests; racy by nature, but unique per call)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def session_summary(session) -> dict:
+    """zid, connected routers/peers and links of an open session (for logs and ``router``)."""
+    info = session.info
+    out = {"zid": str(info.zid()), "routers": [str(z) for z in info.routers_zid()],
+           "peers": [str(z) for z in info.peers_zid()]}
+    try:
+        out["links"] = [{"zid": str(lk.zid), "src": str(lk.src), "dst": str(lk.dst)} for lk in info.links()]
+    except Exception:  # not in every zenoh build
+        pass
+    return out
+
+
+# --------------------------------------------------------------------------- CLI
+def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode_default_help: str = "client") -> None:
+    """Add the Zenoh options every ``rayfronts`` subcommand accepts (dests ``zenoh_*``)."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--zenoh-config", dest="zenoh_config", metavar="FILE", default=None,
+                   help="Zenoh JSON5 config file (e.g. deploy/zenoh/edge-tls.json5); "
+                        f"default ${ENV_CONFIG} or Zenoh defaults")
+    g.add_argument("--connect", dest="zenoh_connect", metavar="ENDPOINT", action="append", default=None,
+                   help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable; "
+                        "replaces the config file's)")
+    g.add_argument("--listen", dest="zenoh_listen", metavar="ENDPOINT", action="append", default=None,
+                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; replaces the config file's)")
+    g.add_argument("--mode", dest="zenoh_mode", choices=MODES, default=None,
+                   help=f"Zenoh mode (default: the config file's, else {mode_default_help})")
+    g.add_argument("--certs", dest="zenoh_certs", metavar="DIR", default=None,
+                   help=f"directory with ca.pem/cert.pem/key.pem for TLS configs (default ${ENV_CERTS} "
+                        f"or {DEFAULT_CERTS_DIR})")
+    g.add_argument("--acl", dest="zenoh_acl", metavar="FILE", default=None,
+                   help="access_control JSON5 block for router mode (deploy/acl/make_acl.py)")
+    g.add_argument("--zenoh-set", dest="zenoh_set", metavar="KEY=JSON", action="append", default=None,
+                   help="any Zenoh config key, e.g. transport/link/tx/lease=2000 (repeatable; applied last)")
+
+
+def parse_zenoh_set(items) -> dict[str, Any]:
+    """``["a/b=1", "c=\"x\""]`` → ``{"a/b": 1, "c": "x"}`` (values are JSON; bare words are strings)."""
+    out: dict[str, Any] = {}
+    for item in items or ():
+        if "=" not in item:
+            raise ConfigError(f"--zenoh-set {item!r} is not of the form key=json")
+        k, raw = item.split("=", 1)
+        k = k.strip()
+        if not k:
+            raise ConfigError(f"--zenoh-set {item!r} has an empty key")
+        try:
+            out[k] = json.loads(raw)
+        except json.JSONDecodeError:
+            out[k] = raw
+    return out
+
+
+def zenoh_config_from_args(args: argparse.Namespace, base: ZenohConfig | None = None) -> ZenohConfig:
+    """``base`` (default ``ZenohConfig()``) with the command-line options applied on top."""
+    cfg = base if base is not None else ZenohConfig()
+    ch: dict[str, Any] = {}
+    if getattr(args, "zenoh_config", None):
+        ch["config_file"] = args.zenoh_config
+    if getattr(args, "zenoh_connect", None):
+        ch["connect"] = list(args.zenoh_connect)
+    if getattr(args, "zenoh_listen", None):
+        ch["listen"] = list(args.zenoh_listen)
+    if getattr(args, "zenoh_mode", None):
+        ch["mode"] = args.zenoh_mode
+    if getattr(args, "zenoh_certs", None):
+        ch["certs_dir"] = args.zenoh_certs
+    if getattr(args, "zenoh_acl", None):
+        ch["acl_file"] = args.zenoh_acl
+    if getattr(args, "zenoh_set", None):
+        ch["extra"] = {**cfg.extra, **parse_zenoh_set(args.zenoh_set)}
+    return replace(cfg, **ch)
