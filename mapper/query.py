@@ -1,0 +1,116 @@
+"""Open-vocabulary queries against the map's voxel and ray features.
+
+* Similarity: cosine by default (both sides L2-normalised), or a caller-provided
+  ``similarity(feats (N, C) float32, queries (Q, D)) -> (Q, N)`` (e.g. one that decompresses
+  PCA features and applies a language head). Large maps are processed in chunks.
+* ``softmax=True``: softmax across the queries of ``temperature * sim`` (CLIP's 100) per
+  voxel/ray. With a single query this is identically 1; callers should add negatives.
+* ``denoise=t`` (MaskCLIP+ prompt denoising): a query whose maximum value over the **whole**
+  layer (all voxels, resp. all rays — not per chunk) is below ``t`` is disabled: its row is
+  set to 0 and it predicts nothing.
+* Labels: per voxel/ray the arg-max query, ``-1`` where the best value is below
+  ``threshold`` (or every query is disabled).
+* Top-k voxels and rays per query with positions and scores.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+Similarity = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+DEFAULT_CHUNK = 262144
+
+
+def cosine(feats: torch.Tensor, queries: torch.Tensor) -> torch.Tensor:
+    """(Q, N) cosine similarity of float feature rows and query rows."""
+    q = torch.nn.functional.normalize(queries.to(torch.float32), dim=1)
+    f = feats.to(torch.float32)
+    n = torch.linalg.vector_norm(f, dim=1).clamp_min(1e-12)
+    return (q @ f.T) / n
+
+
+def similarity_matrix(feats: torch.Tensor, queries: torch.Tensor, similarity: Similarity | None = None,
+                      chunk: int = DEFAULT_CHUNK) -> torch.Tensor:
+    """(Q, N) similarities computed in chunks of ``chunk`` rows."""
+    sim = similarity or cosine
+    qn = queries.shape[0]
+    n = feats.shape[0]
+    out = torch.empty((qn, n), dtype=torch.float32, device=feats.device)
+    for s in range(0, n, chunk):
+        out[:, s:s + chunk] = sim(feats[s:s + chunk].to(torch.float32), queries).to(torch.float32)
+    return out
+
+
+@dataclass
+class TopK:
+    index: torch.Tensor   # (k,) rows into the layer
+    score: torch.Tensor   # (k,)
+    xyz: torch.Tensor     # (k, 3) voxel centres or ray origins
+    direction: torch.Tensor | None = None  # (k, 3) rays only
+
+
+@dataclass
+class QueryResult:
+    voxel_sim: torch.Tensor            # (Q, N)
+    ray_sim: torch.Tensor              # (Q, R)
+    voxel_labels: torch.Tensor         # (N,) int64, -1 = none
+    ray_labels: torch.Tensor           # (R,) int64, -1 = none
+    top_voxels: list[TopK] = field(default_factory=list)
+    top_rays: list[TopK] = field(default_factory=list)
+    voxel_disabled: torch.Tensor | None = None  # (Q,) bool (prompt denoising)
+    ray_disabled: torch.Tensor | None = None
+
+
+def _post(sim: torch.Tensor, softmax: bool, temperature: float, denoise, threshold):
+    if softmax and sim.numel():
+        sim = torch.softmax(sim * temperature, dim=0)
+    disabled = torch.zeros(sim.shape[0], dtype=torch.bool, device=sim.device)
+    if denoise is not None and sim.shape[1]:
+        disabled = sim.max(dim=1).values < denoise
+        sim = sim.masked_fill(disabled[:, None], 0.0)
+    if sim.shape[1] == 0 or sim.shape[0] == 0:
+        return sim, torch.full((sim.shape[1],), -1, dtype=torch.int64, device=sim.device), disabled
+    best, lab = sim.max(dim=0)
+    bad = disabled[lab]
+    if threshold is not None:
+        bad |= best < threshold
+    lab = torch.where(bad, torch.full_like(lab, -1), lab)
+    return sim, lab, disabled
+
+
+def _topk(sim: torch.Tensor, k: int, xyz: torch.Tensor, dirs: torch.Tensor | None) -> list[TopK]:
+    out = []
+    kk = min(k, sim.shape[1])
+    if kk <= 0:
+        e = torch.empty(0, dtype=torch.int64)
+        return [TopK(e, torch.empty(0), torch.empty((0, 3)), None if dirs is None else torch.empty((0, 3)))
+                for _ in range(sim.shape[0])]
+    sc, ix = torch.topk(sim, kk, dim=1)
+    for q in range(sim.shape[0]):
+        out.append(TopK(ix[q], sc[q], xyz[ix[q]], None if dirs is None else dirs[ix[q]]))
+    return out
+
+
+def run_query(queries: torch.Tensor, voxel_feats: torch.Tensor, voxel_xyz: torch.Tensor,
+              ray_feats: torch.Tensor, ray_origins: torch.Tensor, ray_dirs: torch.Tensor, *,
+              similarity: Similarity | None = None, softmax: bool = False, temperature: float = 100.0,
+              top_k: int = 10, denoise: float | None = None, threshold: float | None = None,
+              chunk: int = DEFAULT_CHUNK) -> QueryResult:
+    """Query both layers (see module docstring). ``queries`` (Q, D) float."""
+    q = torch.as_tensor(queries)
+    if q.ndim == 1:
+        q = q[None]
+    if q.ndim != 2 or q.shape[0] == 0:
+        raise ValueError(f"queries must be a non-empty (Q, D) array, got shape {tuple(q.shape)}")
+    q = q.to(torch.float32).to(voxel_feats.device)
+    if similarity is None and q.shape[1] != voxel_feats.shape[1]:
+        raise ValueError(f"query dim {q.shape[1]} != map feature dim {voxel_feats.shape[1]}; "
+                         "pass a similarity callable that maps between the spaces")
+    vs = similarity_matrix(voxel_feats, q, similarity, chunk)
+    rs = similarity_matrix(ray_feats, q, similarity, chunk)
+    vs, vl, vd = _post(vs, softmax, temperature, denoise, threshold)
+    rs, rl, rd = _post(rs, softmax, temperature, denoise, threshold)
+    return QueryResult(vs, rs, vl, rl, _topk(vs, top_k, voxel_xyz, None), _topk(rs, top_k, ray_origins, ray_dirs),
+                       vd, rd)

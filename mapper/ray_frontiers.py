@@ -1,0 +1,363 @@
+"""Semantic ray frontiers: association of rays to frontiers, angle binning, weighted merge,
+pruning / re-casting and direction inference (paper §III-E, reference brief §2.6-2.8).
+
+Association (paper equation, per ray over its own candidate set): a frontier ``p`` (coarse
+centre, cell size ``beta``) is a candidate of ray ``(o, d)`` when ``t = (p - o)·d > 0``,
+``d_ortho = |p - o - t d| <= beta``, ``d_orig = |p - o| <= max_dist`` (``max_dist =
+ray_range_factor * range``; no limit when the range is unknown) and, with the reference's
+optional rule, ``d_orig >= 2 beta``. Cost ``c = (d_ortho / max_cand d_ortho + d_orig /
+max_cand d_orig) / 2`` (a 0/0 term is 0); the ray takes the candidate of least cost (ties:
+lowest frontier index); weight ``max(1 - c, min_weight)``. Zero-depth mode: every frontier is
+a candidate, cost ``d_orig / max d_orig`` (nearest frontier), no direction test.
+
+Candidates come from a spatial index, never from an R×F matrix: each frontier is
+registered in the 27 coarse cells around its own; each ray is walked through the coarse
+grid up to ``max_dist`` (:mod:`mapper.traversal`) and looks up the cells it touches. Any
+frontier within ``beta`` of the ray's closest point lies in that point's 3×3×3 coarse
+neighbourhood, so the candidate set is exact. Memory O(rays × cells walked + candidates).
+
+Angles on world axes (z up): ``theta = atan2(d_y, d_x)``, ``phi = acos(d_z)`` (degrees).
+Bins: ``n_theta = round(360 / psi)`` bins centred on multiples of ``360 / n_theta`` with
+wrap-around (±180° share a bin), ``n_phi = round(180 / psi)`` bins ``[k, k+1) * 180 / n_phi``;
+``psi >= 360`` gives one bin per frontier (semantic frontiers).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import torch
+
+from common.conventions import voxel_center, voxel_index
+from mapper import keys as K_
+from mapper.traversal import segment_cells
+
+_OFFS = torch.tensor([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], dtype=torch.int64)
+
+
+# --------------------------------------------------------------------------- angles / bins
+def angles_deg(dirs: torch.Tensor) -> torch.Tensor:
+    """(N, 2) (theta, phi) degrees of unit directions (world axes)."""
+    th = torch.rad2deg(torch.atan2(dirs[:, 1], dirs[:, 0]))
+    ph = torch.rad2deg(torch.acos(dirs[:, 2].clamp(-1.0, 1.0)))
+    return torch.stack([th, ph], 1)
+
+
+def bin_counts(psi: float) -> tuple[int, int]:
+    if psi >= 360:
+        return 1, 1
+    return max(1, round(360.0 / psi)), max(1, round(180.0 / psi))
+
+
+def angle_bins(dirs: torch.Tensor, psi: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(theta_bin, phi_bin) int64 per direction (see module docstring)."""
+    nt, npb = bin_counts(psi)
+    if nt == 1 and npb == 1:
+        z = torch.zeros(dirs.shape[0], dtype=torch.int64, device=dirs.device)
+        return z, z.clone()
+    a = angles_deg(dirs.to(torch.float64))
+    tb = torch.remainder(torch.round(a[:, 0] / (360.0 / nt)).to(torch.int64), nt)
+    pb = torch.floor(a[:, 1] / (180.0 / npb)).to(torch.int64).clamp(0, npb - 1)
+    return tb, pb
+
+
+def bin_centre_dirs(tb: torch.Tensor, pb: torch.Tensor, psi: float) -> torch.Tensor:
+    """(N, 3) float32 unit direction of each bin centre."""
+    nt, npb = bin_counts(psi)
+    th = torch.deg2rad(tb.to(torch.float64) * (360.0 / nt))
+    ph = torch.deg2rad((pb.to(torch.float64) + 0.5) * (180.0 / npb))
+    return torch.stack([torch.sin(ph) * torch.cos(th), torch.sin(ph) * torch.sin(th), torch.cos(ph)], 1).to(torch.float32)
+
+
+# --------------------------------------------------------------------------- association
+def _select(ri: torch.Tensor, fi: torch.Tensor, o, d, p, beta, max_dist, reject_close, n_rays):
+    """Filter candidate pairs, per-ray normalised cost, argmin. Returns (rays, frontiers, cost).
+
+    Per pair, in float32 relative to a common base point: ``t = v·d``, ``d_orig² = v·v``,
+    ``d_ortho² = max(v·v - t², 0)`` with ``v = p - o``."""
+    base = torch.round(o.mean(0)) if o.shape[0] else torch.zeros(3, dtype=o.dtype)
+    o32 = (o - base).to(torch.float32)
+    p32 = (p - base).to(torch.float32)
+    d32 = d.to(torch.float32)
+    v = torch.index_select(p32, 0, fi) - torch.index_select(o32, 0, ri)
+    t = (v * torch.index_select(d32, 0, ri)).sum(1)
+    vv = (v * v).sum(1)
+    del v
+    oo = (vv - t * t).clamp_min(0)
+    ok = (t > 0) & (oo <= beta * beta)
+    if max_dist > 0:
+        ok &= vv <= max_dist * max_dist
+    if reject_close:
+        ok &= vv >= 4 * beta * beta
+    ri, fi = ri[ok], fi[ok]
+    return _argmin_cost(ri, fi, (oo[ok].sqrt().to(torch.float64), vv[ok].sqrt().to(torch.float64)), n_rays)
+
+
+def _argmin_cost(ri, fi, terms, n_rays):
+    dev = ri.device
+    cost = torch.zeros(ri.shape[0], dtype=torch.float64, device=dev)
+    for x in terms:
+        mx = torch.zeros(n_rays, dtype=torch.float64, device=dev).scatter_reduce(0, ri, x, "amax", include_self=True)
+        den = mx[ri]
+        cost += torch.where(den > 0, x / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(x))
+    cost /= len(terms)
+    big = torch.full((n_rays,), math.inf, dtype=torch.float64, device=dev)
+    cmin = big.scatter_reduce(0, ri, cost, "amin", include_self=True)
+    at = cost == cmin[ri]
+    fbig = torch.full((n_rays,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
+    fmin = fbig.scatter_reduce(0, ri[at], fi[at], "amin", include_self=True)
+    rays = torch.nonzero(torch.isfinite(cmin)).squeeze(1)
+    return rays, fmin[rays], cmin[rays]
+
+
+def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Tensor, beta: float, *,
+              max_dist: float = -1.0, reject_close: bool = False, zero_depth: bool = False,
+              chunk: int = 1 << 22):
+    """Match rays to coarse frontiers (cells ``frontier_ijk`` (F, 3) of size ``beta``).
+
+    Returns ``(ray_idx (K,), frontier_idx (K,), cost (K,) float64)`` for the rays that found
+    a frontier. Exact same result as :func:`associate_bruteforce`."""
+    dev = origins.device
+    R, F = origins.shape[0], frontier_ijk.shape[0]
+    e = torch.empty(0, dtype=torch.int64, device=dev)
+    if R == 0 or F == 0:
+        return e, e.clone(), torch.empty(0, dtype=torch.float64, device=dev)
+    o = origins.to(torch.float64)
+    d = dirs.to(torch.float64)
+    p = (frontier_ijk.to(torch.float64) + 0.5) * beta
+    if zero_depth:
+        return _nearest(o, p)
+    ray_chunk = 8192  # per-ray results are independent: chunking over rays bounds memory
+    if R > ray_chunk:
+        parts = [associate(origins[s:s + ray_chunk], dirs[s:s + ray_chunk], frontier_ijk, beta, max_dist=max_dist,
+                           reject_close=reject_close, chunk=chunk) for s in range(0, R, ray_chunk)]
+        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, ray_chunk))]),
+                torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
+    # ray length: the distance cutoff, or the farthest frontier-bbox corner
+    if max_dist > 0:
+        L = torch.full((R,), float(max_dist), dtype=torch.float64, device=dev)
+    else:
+        lo, hi = p.min(0).values, p.max(0).values
+        far = torch.maximum((o - lo).abs(), (o - hi).abs())
+        L = far.norm(dim=1)
+    ends = o + d * L[:, None]
+    # dilated frontier table: cell key -> frontier index
+    dil = frontier_ijk.to(torch.int64)[:, None, :] + _OFFS.to(dev)[None]
+    dk = K_.pack(dil.reshape(-1, 3))
+    df = torch.arange(F, device=dev).repeat_interleave(27)
+    order = torch.argsort(dk)
+    dk, df = dk[order], df[order]
+    ri_all, fi_all = [], []
+    # lookup structure for walked cells: dense (start, count) table over the dilated
+    # frontier box when small, else binary search in the sorted dilated keys
+    dil_ijk = K_.unpack(dk)
+    lo_c = frontier_ijk.min(0).values.to(torch.int64) - 1
+    ext = frontier_ijk.max(0).values.to(torch.int64) + 2 - lo_c
+    dense = int(ext.prod()) <= (1 << 24)
+    if dense:
+        loc = dil_ijk - lo_c
+        flat = (loc[:, 0] * ext[1] + loc[:, 1]) * ext[2] + loc[:, 2]
+        uf, cnt_u = torch.unique_consecutive(flat, return_counts=True)
+        tab_start = torch.zeros(int(ext.prod()), dtype=torch.int64, device=dev)
+        tab_cnt = torch.zeros(int(ext.prod()), dtype=torch.int64, device=dev)
+        tab_start[uf] = torch.cumsum(cnt_u, 0) - cnt_u
+        tab_cnt[uf] = cnt_u
+    rid, cells = segment_cells(o, ends, beta, chunk=chunk)
+    if dense:
+        loc = cells - lo_c
+        ins = ((loc >= 0) & (loc < ext)).all(1)
+        rid, loc = rid[ins], loc[ins]
+        flat = (loc[:, 0] * ext[1] + loc[:, 1]) * ext[2] + loc[:, 2]
+        n = tab_cnt[flat]
+        lo_i = tab_start[flat]
+    else:
+        ck = K_.pack(cells)
+        lo_i = torch.searchsorted(dk, ck)
+        n = torch.searchsorted(dk, ck, right=True) - lo_i
+    hit = n > 0
+    rid, lo_i, n = rid[hit], lo_i[hit], n[hit]
+    if rid.numel():
+        pr = torch.repeat_interleave(rid, n)
+        start = torch.cumsum(n, 0) - n
+        pos = torch.arange(int(n.sum()), device=dev) + torch.repeat_interleave(lo_i - start, n)
+        # duplicates (a frontier reached from several walked cells) are harmless: they
+        # carry identical metrics, so maxima, minima and tie-breaks are unchanged
+        ri_all.append(pr)
+        fi_all.append(df[pos])
+    if not ri_all:
+        return e, e.clone(), torch.empty(0, dtype=torch.float64, device=dev)
+    ri, fi = torch.cat(ri_all), torch.cat(fi_all)
+    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R)
+
+
+def _nearest(o: torch.Tensor, p: torch.Tensor):
+    """Zero-depth association: nearest frontier per ray (computed per unique origin)."""
+    uo, inv = torch.unique(o, dim=0, return_inverse=True)
+    best_f = torch.empty(uo.shape[0], dtype=torch.int64, device=o.device)
+    best_c = torch.empty(uo.shape[0], dtype=torch.float64, device=o.device)
+    step = max(1, (1 << 22) // max(1, p.shape[0]))
+    for s in range(0, uo.shape[0], step):
+        dist = torch.cdist(uo[s:s + step], p)
+        mx = dist.max(1, keepdim=True).values
+        c = torch.where(mx > 0, dist / torch.where(mx > 0, mx, torch.ones_like(mx)), torch.zeros_like(dist))
+        cv, ci = c.min(1)
+        best_f[s:s + step], best_c[s:s + step] = ci, cv
+    rays = torch.arange(o.shape[0], device=o.device)
+    return rays, best_f[inv], best_c[inv]
+
+
+def associate_bruteforce(origins, dirs, frontier_ijk, beta, *, max_dist=-1.0, reject_close=False,
+                         zero_depth=False):
+    """O(R×F) reference of :func:`associate` (tests only)."""
+    R, F = origins.shape[0], frontier_ijk.shape[0]
+    o = origins.to(torch.float64)
+    d = dirs.to(torch.float64)
+    p = (frontier_ijk.to(torch.float64) + 0.5) * beta
+    if zero_depth:
+        return _nearest(o, p)
+    ri = torch.arange(R).repeat_interleave(F)
+    fi = torch.arange(F).repeat(R)
+    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R)
+
+
+# --------------------------------------------------------------------------- store
+class RayStore:
+    """Binned semantic rays, sorted by (frontier key, bin id).
+
+    Per bin: frontier key (packed coarse ijk), theta/phi bin, feature = weighted mean
+    (stored in ``feature_dtype``), accumulated weight, weighted sum of unit directions."""
+
+    def __init__(self, beta: float, psi: float, feature_dim: int, feature_dtype=torch.float32, device="cpu"):
+        self.beta = float(beta)
+        self.psi = float(psi)
+        self.dim = int(feature_dim)
+        self.dtype = feature_dtype
+        self.device = torch.device(device)
+        self.nt, self.np_ = bin_counts(psi)
+        dev = self.device
+        self.fkey = torch.empty(0, dtype=torch.int64, device=dev)
+        self.tbin = torch.empty(0, dtype=torch.int64, device=dev)
+        self.pbin = torch.empty(0, dtype=torch.int64, device=dev)
+        self.feat = torch.empty((0, self.dim), dtype=self.dtype, device=dev)
+        self.weight = torch.empty(0, dtype=torch.float32, device=dev)
+        self.dsum = torch.empty((0, 3), dtype=torch.float32, device=dev)
+
+    def __len__(self) -> int:
+        return self.fkey.numel()
+
+    def _fields(self):
+        return ("fkey", "tbin", "pbin", "feat", "weight", "dsum")
+
+    def _take(self, idx) -> None:
+        for f in self._fields():
+            setattr(self, f, getattr(self, f)[idx])
+
+    def prune(self, frontier_keys: torch.Tensor, requeue: bool):
+        """Drop bins whose frontier is gone; return (origins, dirs, feats) of the dropped
+        bins for re-casting when ``requeue`` (origin = old frontier centre, direction = bin
+        centre, feature = bin mean), else None."""
+        alive = torch.isin(self.fkey, frontier_keys)
+        out = None
+        if requeue and not bool(alive.all()):
+            dead = ~alive
+            o = voxel_center(K_.unpack(self.fkey[dead]), self.beta)
+            dd = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
+            out = (o, dd, self.feat[dead].to(torch.float32))
+        self._take(alive)
+        return out
+
+    def merge(self, fkeys: torch.Tensor, frontier_keys_sorted: torch.Tensor, dirs: torch.Tensor,
+              feats: torch.Tensor, w: torch.Tensor) -> None:
+        """Bin new rays (frontier key, unit dir, feature, weight) and fuse by weighted mean."""
+        if fkeys.numel() == 0:
+            return
+        tb, pb = angle_bins(dirs, self.psi)
+        nb = self.nt * self.np_
+        fi_new = K_.lookup(frontier_keys_sorted, fkeys)
+        if bool((fi_new < 0).any()):
+            raise ValueError("ray refers to a frontier that is not in the table")
+        comp_new = fi_new * nb + tb * self.np_ + pb
+        uc, inv = torch.unique(comp_new, return_inverse=True)
+        m = uc.numel()
+        w32 = w.to(torch.float32)
+        sw = torch.zeros(m, dtype=torch.float32, device=self.device).index_add_(0, inv, w32)
+        sf = torch.zeros((m, self.dim), dtype=torch.float32, device=self.device).index_add_(
+            0, inv, feats.to(torch.float32) * w32[:, None])
+        sd = torch.zeros((m, 3), dtype=torch.float32, device=self.device).index_add_(
+            0, inv, dirs.to(torch.float32) * w32[:, None])
+        fi_old = K_.lookup(frontier_keys_sorted, self.fkey)
+        comp_old = fi_old * nb + self.tbin * self.np_ + self.pbin
+        pos = K_.lookup(comp_old, uc)
+        ex = pos >= 0
+        if bool(ex.any()):
+            rows = pos[ex]
+            W0 = self.weight[rows]
+            W1 = W0 + sw[ex]
+            self.feat[rows] = ((self.feat[rows].to(torch.float32) * W0[:, None] + sf[ex]) / W1[:, None]).to(self.dtype)
+            self.weight[rows] = W1
+            self.dsum[rows] = self.dsum[rows] + sd[ex]
+        nw = ~ex
+        if bool(nw.any()):
+            c = uc[nw]
+            fidx = torch.div(c, nb, rounding_mode="floor")
+            rem = c - fidx * nb
+            self.fkey = torch.cat([self.fkey, frontier_keys_sorted[fidx]])
+            self.tbin = torch.cat([self.tbin, torch.div(rem, self.np_, rounding_mode="floor")])
+            self.pbin = torch.cat([self.pbin, rem % self.np_])
+            self.feat = torch.cat([self.feat, (sf[nw] / sw[nw][:, None]).to(self.dtype)])
+            self.weight = torch.cat([self.weight, sw[nw]])
+            self.dsum = torch.cat([self.dsum, sd[nw]])
+            fi_all = K_.lookup(frontier_keys_sorted, self.fkey)
+            self._take(torch.argsort(fi_all * nb + self.tbin * self.np_ + self.pbin))
+
+    # -- views -------------------------------------------------------------------------
+    def origins(self) -> torch.Tensor:
+        return voxel_center(K_.unpack(self.fkey), self.beta)
+
+    def directions(self) -> torch.Tensor:
+        n = self.dsum.norm(dim=1, keepdim=True)
+        bc = bin_centre_dirs(self.tbin, self.pbin, self.psi)
+        return torch.where(n > 1e-12, self.dsum / n.clamp_min(1e-12), bc)
+
+    def set_frontier_directions(self, fkeys: torch.Tensor, dirs: torch.Tensor) -> None:
+        """Overwrite the direction of every bin of frontier ``fkeys[i]`` with ``dirs[i]``."""
+        pos = K_.lookup(fkeys, self.fkey) if fkeys.numel() else torch.full_like(self.fkey, -1)
+        hit = pos >= 0
+        self.dsum[hit] = dirs[pos[hit]].to(torch.float32) * self.weight[hit, None]
+
+    def memory_bytes(self) -> int:
+        return sum(getattr(self, f).numel() * getattr(self, f).element_size() for f in self._fields())
+
+    def state(self) -> dict:
+        return {f: getattr(self, f).clone() for f in self._fields()}
+
+    def load_state(self, st: dict) -> None:
+        for f in self._fields():
+            t = st[f].to(self.device)
+            if f == "feat":
+                t = t.to(self.dtype)
+            setattr(self, f, t)
+
+
+def infer_directions(grid, frontier_keys: torch.Tensor, beta: float, vox: float, scale: str = "coarse") -> torch.Tensor:
+    """Unidirectional baseline: per frontier, ``normalise(sum_n w_n * offset_n)`` over the 26
+    neighbours at offsets ``offset * h`` (h = beta for "coarse", vox for "fine") around the
+    frontier centre, with ``w = +1`` if the occupancy there is unobserved (0) and -1
+    otherwise. A zero sum gives a zero vector (caller keeps the old direction)."""
+    if frontier_keys.numel() == 0:
+        return torch.empty((0, 3), dtype=torch.float32)
+    h = beta if scale == "coarse" else vox
+    offs = _OFFS[(_OFFS != 0).any(1)].to(frontier_keys.device)  # 26
+    c = voxel_center(K_.unpack(frontier_keys), beta).to(torch.float64)
+    pts = c[:, None, :] + offs[None].to(torch.float64) * h
+    vals = torch.as_tensor(grid.query(voxel_index(pts.reshape(-1, 3), vox).cpu())).to(frontier_keys.device)
+    w = torch.where(vals.reshape(-1, 26) == 0, 1.0, -1.0)
+    s = (w[..., None] * offs[None].to(torch.float32)).sum(1)
+    n = s.norm(dim=1, keepdim=True)
+    return torch.where(n > 0, s / n.clamp_min(1e-12), torch.zeros_like(s))
+
+
+def warn_infer_direction(psi: float) -> None:
+    if psi < 360:
+        warnings.warn("infer_direction with angle_bin_size < 360: all bins of a frontier get the same direction",
+                      stacklevel=2)

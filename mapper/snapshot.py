@@ -1,0 +1,131 @@
+"""Map snapshots: one directory with ``manifest.json`` and ``arrays.npz``.
+
+The snapshot holds everything needed to continue exactly where the map stopped: config,
+feature-space id, counters, RNG state, occupancy state (tiles expanded), semantic voxels,
+frontier table, ray bins **and the pending (not yet accumulated) buffers** — nothing is
+flushed, so a loaded map answers the same queries bit for bit and integrates the next
+frames identically. Versioned: an unknown version or a missing file is a
+:class:`SnapshotError` naming it.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from common.config import to_dict, merge
+
+FORMAT = "rayfronts-map"
+VERSION = 1
+
+
+class SnapshotError(RuntimeError):
+    """A snapshot that cannot be read (missing file, unknown format/version, bad content)."""
+
+
+def _np(t) -> np.ndarray:
+    if isinstance(t, torch.Tensor):
+        if t.dtype == torch.float16:
+            return t.cpu().numpy()
+        return t.detach().cpu().numpy()
+    return np.asarray(t)
+
+
+def save_map(m, path) -> Path:
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, np.ndarray] = {}
+    occ = m.occupancy.state()
+    arrays["occ_ijk"] = _np(occ["ijk"]).astype(np.int64)
+    arrays["occ_values"] = _np(occ["values"]).astype(np.int8)
+    for k, v in m.sem.state().items():
+        arrays["sem_" + k] = _np(v)
+    for k, v in m.fronts.state().items():
+        arrays["front_" + k] = _np(v)
+    for k, v in m.ray_store.state().items():
+        arrays["ray_" + k] = _np(v)
+    arrays["rng_state"] = _np(m.generator.get_state())
+    # pending buffers
+    buf_meta = {"occ": len(m._buf_occ), "sem": len(m._buf_sem), "rays": len(m._buf_rays),
+                "prune": len(m._pending_prune)}
+    for i, (a, b) in enumerate(m._buf_occ):
+        arrays[f"buf_occ_{i}_occ"], arrays[f"buf_occ_{i}_free"] = _np(a), _np(b)
+    for i, parts in enumerate(m._buf_sem):
+        for j, x in enumerate(parts):
+            arrays[f"buf_sem_{i}_{j}"] = _np(x)
+    for i, parts in enumerate(m._buf_rays):
+        for j, x in enumerate(parts):
+            arrays[f"buf_rays_{i}_{j}"] = _np(x)
+    for i, x in enumerate(m._pending_prune):
+        arrays[f"buf_prune_{i}"] = _np(x)
+    manifest = {
+        "format": FORMAT, "version": VERSION, "feature_dim": m.feature_dim,
+        "feature_space": m.feature_space, "config": to_dict(m.cfg), "counters": dict(m.counters),
+        "occupancy": {"vox": float(occ["vox"]), "lo": int(occ["lo"]), "hi": int(occ["hi"])},
+        "last_fov_deg": list(m.last_fov_deg), "buffers": buf_meta,
+        "stats": {k: v for k, v in m.stats().items() if k != "timings_ms_total"},
+    }
+    tmp = path / "arrays.npz.tmp"
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    tmp.replace(path / "arrays.npz")
+    (path / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    return path
+
+
+def read_manifest(path) -> dict:
+    path = Path(path)
+    mf = path / "manifest.json"
+    if not mf.is_file():
+        raise SnapshotError(f"snapshot {path} has no manifest.json")
+    try:
+        man = json.loads(mf.read_text())
+    except json.JSONDecodeError as e:
+        raise SnapshotError(f"snapshot manifest {mf} is not valid JSON: {e}") from None
+    if man.get("format") != FORMAT:
+        raise SnapshotError(f"{mf} is not a RayFronts map snapshot (format {man.get('format')!r})")
+    if man.get("version") != VERSION:
+        raise SnapshotError(f"snapshot {path} has format version {man.get('version')!r}; "
+                            f"this build reads version {VERSION}")
+    return man
+
+
+def load_map(path, device="cpu", occupancy_backend: str = "auto"):
+    from mapper.config import MapConfig
+    from mapper.map import RayFrontsMap
+    from mapper.occupancy import from_state
+
+    path = Path(path)
+    man = read_manifest(path)
+    af = path / "arrays.npz"
+    if not af.is_file():
+        raise SnapshotError(f"snapshot {path} has no arrays.npz")
+    try:
+        z = dict(np.load(af))
+    except Exception as e:  # noqa: BLE001 - any read problem is a snapshot problem
+        raise SnapshotError(f"cannot read {af}: {e}") from None
+    cfg = merge(MapConfig(), man["config"])
+    m = RayFrontsMap(cfg, man["feature_dim"], man["feature_space"], device=device,
+                     occupancy_backend=occupancy_backend)
+
+    def T(name):
+        if name not in z:
+            raise SnapshotError(f"snapshot {path} lacks array {name!r}")
+        return torch.from_numpy(z[name]).to(device)
+
+    occ = dict(man["occupancy"], ijk=z["occ_ijk"], values=z["occ_values"])
+    m.occupancy = from_state(occ, backend=occupancy_backend)
+    m.sem.load_state({k: T("sem_" + k) for k in ("keys", "rgb", "feat", "count")})
+    m.fronts.load_state({k: T("front_" + k) for k in ("keys", "counts")})
+    m.ray_store.load_state({k: T("ray_" + k) for k in m.ray_store._fields()})
+    m.generator.set_state(torch.from_numpy(z["rng_state"]))
+    m.counters = dict(man["counters"])
+    m.last_fov_deg = tuple(man["last_fov_deg"])
+    b = man["buffers"]
+    m._buf_occ = [(T(f"buf_occ_{i}_occ"), T(f"buf_occ_{i}_free")) for i in range(b["occ"])]
+    m._buf_sem = [tuple(T(f"buf_sem_{i}_{j}") for j in range(4)) for i in range(b["sem"])]
+    m._buf_rays = [tuple(T(f"buf_rays_{i}_{j}") for j in range(3)) for i in range(b["rays"])]
+    m._pending_prune = [T(f"buf_prune_{i}") for i in range(b["prune"])]
+    return m
