@@ -1,0 +1,442 @@
+"""The edge process: source → encoder → PCA compression → frame message → Zenoh.
+
+Threads:
+
+* the main (pipeline) thread reads the source, encodes, compresses and serialises frame
+  ``n+1`` while
+* the publisher thread sends frame ``n`` with ``CongestionControl.BLOCK``. They meet in a
+  one-slot :class:`LatestSlot`: a newer frame replaces an unsent older one (counted as
+  ``replaced``), so the encoder never waits on the network and a slow link drops whole old
+  frames, never fragments of new ones (DESIGN §3).
+* a connector thread opens the Zenoh session (client mode retries until the base station
+  answers) and declares the liveliness token ``robots/<robot>/alive`` and the
+  ``robots/<robot>/feature_space`` queryable. Zenoh re-establishes a lost link by itself.
+
+The edge imports neither rerun nor the mapper.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from common.config import field_, section
+from common.zenoh_session import ZenohConfig
+from edge.encoders.config import EncoderConfig
+from edge.sources.config import SourceConfig
+
+log = logging.getLogger("rayfronts.edge")
+
+
+# ------------------------------------------------------------------------- config
+@dataclass
+class PcaSection:
+    basis: str = field_("", "PCA basis file (from `rayfronts edge fit-pca`); empty = fit online over the first frames")
+    fit_frames: int = field_(8, "frames used to fit the basis online when no basis file is given")
+    out_dim: int = field_(100, "PCA output dimension (features per pixel on the wire); 0 = no PCA")
+    pixels_per_frame: int = field_(4096, "feature vectors sampled per frame for the online fit")
+    save_fitted: str = field_("", "write the online-fitted basis to this file (reuse it with pca.basis)")
+
+
+@dataclass
+class PublishSection:
+    rate_hz: float = field_(-1.0, "frames per second to pace the source; 0 = as fast as possible; "
+                                  "-1 = auto (10 Hz for the synthetic world, as fast as possible for datasets)")
+    loop: bool = field_(False, "restart the source when it ends")
+    max_frames: int = field_(0, "stop after this many frames (0 = until the source ends)")
+    block_wait_s: float = field_(30.0, "how long a blocked put may wait before Zenoh closes the link "
+                                       "(transport/link/tx/queue/congestion_control/block/wait_before_close)")
+    linger_s: float = field_(1.0, "after the source ends, keep serving the feature space this long so the "
+                                  "last frames can be fetched/mapped")
+    connect_retry_s: float = field_(0.5, "retry period after a failed session open")
+
+
+@dataclass
+class RecordingSection:
+    dir: str = field_("", "record exactly what is sent to this directory (common.recording); empty = off")
+    overwrite: bool = field_(False, "replace an existing recording in dir")
+
+
+@dataclass
+class EdgeConfig:
+    """Configuration of ``rayfronts edge``."""
+
+    robot: str = field_("", "robot id ([A-Za-z0-9_-]+) naming the Zenoh keys and stamped on frames; "
+                            "empty = source.robot")
+    source: SourceConfig = section(SourceConfig, "where frames come from")
+    encoder: EncoderConfig = section(EncoderConfig, "the image encoder (encoder.device = torch device)")
+    pca: PcaSection = section(PcaSection, "PCA compression of the dense features")
+    zenoh: ZenohConfig = section(ZenohConfig, "Zenoh session (the edge is normally a client)")
+    publish: PublishSection = section(PublishSection, "publishing and pacing")
+    recording: RecordingSection = section(RecordingSection, "optional recording of what was sent")
+
+
+def edge_config_schema():
+    """The ``EdgeConfig`` dataclass."""
+    return EdgeConfig
+
+
+# ---------------------------------------------------------------------- one slot
+class LatestSlot:
+    """A one-slot queue holding only the newest item; ``put`` never blocks.
+
+    A put over an item nobody took yet replaces it and counts in ``replaced``."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._item: Any = None
+        self._closed = False
+        self.replaced = 0
+        self.put_count = 0
+
+    def put(self, item) -> None:
+        with self._cond:
+            if self._item is not None:
+                self.replaced += 1
+            self._item = item
+            self.put_count += 1
+            self._cond.notify_all()
+
+    def get(self, timeout: float | None = None):
+        """The newest item, or None after ``timeout`` / once closed and empty."""
+        with self._cond:
+            end = None if timeout is None else time.monotonic() + timeout
+            while self._item is None and not self._closed:
+                rem = None if end is None else end - time.monotonic()
+                if rem is not None and rem <= 0:
+                    return None
+                self._cond.wait(rem)
+            item, self._item = self._item, None
+            self._cond.notify_all()
+            return item
+
+    def wait_empty(self, timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: self._item is None, timeout)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def pending(self) -> bool:
+        return self._item is not None
+
+
+# ------------------------------------------------------------------ compression
+def compress_features(pca, feats) -> np.ndarray:
+    """(C, h, w) encoder features → (D, h, w) float16 PCA coefficients (``pca=None``: cast only)."""
+    import torch
+
+    f = feats if isinstance(feats, torch.Tensor) else torch.as_tensor(np.asarray(feats))
+    c, h, w = f.shape
+    if pca is None:
+        return f.to(torch.float16).cpu().numpy()
+    flat = f.reshape(c, h * w).T.to(torch.float32)
+    z = pca.compress(flat)
+    z = z if isinstance(z, torch.Tensor) else torch.as_tensor(np.asarray(z))
+    return z.T.reshape(-1, h, w).to(torch.float16).cpu().numpy()
+
+
+# ---------------------------------------------------------------------- runtime
+@dataclass
+class EdgeStats:
+    frames_read: int = 0
+    frames_encoded: int = 0
+    frames_sent: int = 0
+    frames_replaced: int = 0
+    bytes_sent: int = 0
+    put_errors: int = 0
+    encode_ms_last: float = 0.0
+    put_ms_last: float = 0.0
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class EdgeRuntime:
+    """Runs the edge pipeline until the source ends or ``stop`` is set.
+
+    ``frames`` (optional) replaces the configured source (tests, benchmarks);
+    ``on_sent(frame, nbytes, t_put)`` is called by the publisher thread after each put."""
+
+    def __init__(self, cfg, stop: threading.Event | None = None, frames: Iterable | None = None,
+                 class_names: list[str] | None = None,
+                 on_sent: Callable[[Any, int, float], None] | None = None):
+        if not cfg.robot:
+            cfg = dataclasses.replace(cfg, robot=cfg.source.robot)
+        self.cfg = cfg
+        self.stop = stop or threading.Event()
+        self._frames = frames
+        self._class_names = class_names
+        self.on_sent = on_sent
+        self.stats = EdgeStats()
+        self.slot = LatestSlot()
+        self.session = None
+        self._publisher = None
+        self._token = None
+        self._queryable = None
+        self._connected = threading.Event()
+        self._fs_reply: bytes | None = None
+        self._fs_lock = threading.Lock()
+        self.feature_space = None
+        self.keys = None
+        self._recorder = None
+        self._threads: list[threading.Thread] = []
+
+    # ---------------------------------------------------------------- zenoh side
+    def _connect_loop(self) -> None:
+        import zenoh
+
+        from common.keys import KeySpace
+        from common.zenoh_session import open_session
+
+        self.keys = KeySpace(self.cfg.zenoh.prefix)
+        extra = {"transport/link/tx/queue/congestion_control/block/wait_before_close":
+                 int(self.cfg.publish.block_wait_s * 1e6)}
+        while not self.stop.is_set():
+            try:  # client mode: retries until the base station answers (start order is free)
+                s = open_session(self.cfg.zenoh, stop=self.stop, extra=extra, default_mode="client")
+            except Exception as e:
+                if self.stop.is_set():
+                    return
+                log.warning("cannot open the zenoh session (%s); retrying", e)
+                self.stop.wait(self.cfg.publish.connect_retry_s)
+                continue
+            robot = self.cfg.robot
+            try:
+                self._publisher = s.declare_publisher(
+                    self.keys.frames(robot),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.DATA, express=False)
+                self._queryable = s.declare_queryable(self.keys.feature_space(robot), self._on_feature_space)
+                self._token = s.liveliness().declare_token(self.keys.alive(robot))
+            except Exception:
+                s.close()
+                raise
+            self.session = s
+            if self.stop.is_set():  # closed while we were connecting
+                self._close_session()
+                return
+            log.info("edge %s connected (zid %s)", robot, s.zid())
+            self._connected.set()
+            return
+
+    def _on_feature_space(self, query) -> None:
+        from common.messages import encode_error
+
+        try:
+            with self._fs_lock:
+                reply = self._fs_reply
+            payload = reply if reply is not None else encode_error("feature space not ready (PCA being fitted)")
+            query.reply(query.key_expr, payload)
+        except Exception as e:  # never raise out of a callback
+            log.warning("feature_space reply failed: %s", e)
+
+    def _publish_loop(self) -> None:
+        while True:
+            item = self.slot.get(timeout=0.2)
+            if item is None:
+                if self.stop.is_set() and not self.slot.pending:
+                    return
+                continue
+            frame, data = item
+            while not self._connected.wait(0.2):
+                if self.stop.is_set():
+                    return
+            t0 = time.time()
+            try:
+                self._publisher.put(data)
+            except Exception as e:
+                self.stats.put_errors += 1
+                log.warning("put failed: %s", e)
+                continue
+            self.stats.put_ms_last = (time.time() - t0) * 1e3
+            self.stats.frames_sent += 1
+            self.stats.bytes_sent += len(data)
+            if self._recorder is not None:
+                try:
+                    self._recorder.write_encoded(data)  # exactly the bytes that were sent
+                except Exception as e:
+                    log.error("recording failed, disabled: %s", e)
+                    self._recorder = None
+            if self.on_sent is not None:
+                self.on_sent(frame, len(data), t0)
+
+    # -------------------------------------------------------------- pipeline side
+    def _open_source(self):
+        if self._frames is not None:
+            return self._frames, self._class_names
+        from edge.sources import open_source
+
+        src = open_source(self.cfg.source)
+        return src, list(getattr(src, "class_names", None) or []) or None
+
+    def _rate(self) -> float:
+        r = self.cfg.publish.rate_hz
+        if r >= 0:
+            return r
+        return 10.0 if getattr(self.cfg.source, "kind", "") == "synthetic" else 0.0
+
+    def _iter_frames(self):
+        n = 0
+        while not self.stop.is_set():
+            src, names = self._open_source()
+            got = False
+            for fr in src:
+                got = True
+                yield fr, names
+                n += 1
+                if self.stop.is_set() or (self.cfg.publish.max_frames and n >= self.cfg.publish.max_frames):
+                    return
+            if not self.cfg.publish.loop or not got or self._frames is not None:
+                return
+
+    def _build_feature_space(self, encoder, pca):
+        from common.feature_space import FeatureSpace
+        from common.messages import encode_feature_space
+
+        fs = FeatureSpace.for_encoder(encoder, pca)
+        self.feature_space = fs
+        with self._fs_lock:
+            self._fs_reply = encode_feature_space(self.cfg.robot, fs.to_body())
+        log.info("feature space %s (dim %d)", fs.id, fs.dim)
+        return fs
+
+    def run(self) -> int:
+        """Run to the end of the source (or ``stop``); returns a process exit code."""
+        import torch
+
+        from common.pca import PCA
+        from common.wire import encode_frame
+        from edge.encoders import make_encoder
+
+        cfg = self.cfg
+        conn = threading.Thread(target=self._connect_loop, name="edge-connect", daemon=True)
+        pub = threading.Thread(target=self._publish_loop, name="edge-publisher", daemon=True)
+        conn.start()
+        pub.start()
+        self._threads = [conn, pub]
+        if cfg.recording.dir:
+            from common.recording import RecordingWriter
+
+            self._recorder = RecordingWriter(Path(cfg.recording.dir), robot=cfg.robot, source=cfg.source.kind,
+                                             overwrite=cfg.recording.overwrite)
+        encoder = None
+        pca = None
+        fs = None
+        pending: list = []  # frames held while fitting PCA online
+        fitter = None
+        rate = self._rate()
+        next_t = time.monotonic()
+        seq = 0
+        try:
+            for fr, names in self._iter_frames():
+                self.stats.frames_read += 1
+                if encoder is None:
+                    encoder = make_encoder(cfg.encoder, class_names=names)
+                    if cfg.pca.out_dim <= 0:
+                        fs = self._build_feature_space(encoder, None)
+                    elif cfg.pca.basis:
+                        pca = PCA.load(cfg.pca.basis)
+                        fs = self._build_feature_space(encoder, pca)
+                    else:
+                        from common.pca import OnlinePCAFitter
+
+                        log.warning("no PCA basis file given: fitting PCA-%d online over the first %d frames "
+                                    "(frames are held until then; give pca.basis for a fixed, shared basis)",
+                                    cfg.pca.out_dim, cfg.pca.fit_frames)
+                        fitter = OnlinePCAFitter(cfg.pca.out_dim, max(1, cfg.pca.fit_frames),
+                                                 cfg.pca.pixels_per_frame)
+                t0 = time.perf_counter()
+                with torch.inference_mode():
+                    feats = encoder.encode(fr.rgb, labels=fr.labels)
+                    gfeat = None
+                    if hasattr(encoder, "encode_global"):
+                        try:
+                            gfeat = encoder.encode_global(fr.rgb, fr.labels)
+                        except Exception:
+                            gfeat = None
+                self.stats.frames_encoded += 1
+                if fs is None:  # online PCA fit
+                    pending.append((fr, feats, gfeat))
+                    if not fitter.add(feats):
+                        continue
+                    pca = fitter.fit()
+                    if cfg.pca.save_fitted:
+                        pca.save(cfg.pca.save_fitted)
+                    fs = self._build_feature_space(encoder, pca)
+                    todo, pending = pending, []
+                else:
+                    todo = [(fr, feats, gfeat)]
+                for fr_i, feats_i, g_i in todo:
+                    out = dataclasses.replace(
+                        fr_i, robot=cfg.robot, seq=seq, features=compress_features(pca, feats_i),
+                        feature_space=fs.id,
+                        global_feature=None if g_i is None else compress_features(
+                            pca, torch.as_tensor(g_i).reshape(-1, 1, 1)).reshape(-1))
+                    out.meta = {**(out.meta or {}), "t_send": time.time()}
+                    data = encode_frame(out)
+                    self.stats.encode_ms_last = (time.perf_counter() - t0) * 1e3
+                    seq += 1
+                    if rate > 0:
+                        next_t += 1.0 / rate
+                        delay = next_t - time.monotonic()
+                        if delay > 0:
+                            if self.stop.wait(delay):
+                                break
+                        else:
+                            next_t = time.monotonic()
+                    if len(todo) > 1:  # backlog held during the PCA fit: hand it over without replacing
+                        while self.slot.pending and not self.stop.is_set():
+                            self.slot.wait_empty(0.2)
+                    self.slot.put((out, data))
+                    self.stats.frames_replaced = self.slot.replaced
+                if self.stop.is_set():
+                    break
+            # drain: let the publisher send the last frame, then linger for late feature-space gets
+            end = time.monotonic() + 30.0
+            while self.slot.pending and not self.stop.is_set() and time.monotonic() < end:
+                time.sleep(0.05)
+            if not self.stop.is_set():
+                self.stop.wait(cfg.publish.linger_s)
+        finally:
+            self.close()
+        self.stats.frames_replaced = self.slot.replaced
+        log.info("edge %s done: %s", cfg.robot, self.stats.as_dict())
+        return 0
+
+    def close(self) -> None:
+        """Stop the threads and close the Zenoh session (idempotent; never hangs)."""
+        self.stop.set()
+        self.slot.close()
+        for t in self._threads:
+            t.join(timeout=5.0)
+        if self._recorder is not None:
+            try:
+                self._recorder.close()
+            except Exception as e:
+                log.error("closing the recording failed: %s", e)
+            self._recorder = None
+        self._close_session()
+
+    def _close_session(self) -> None:
+        s, self.session = self.session, None
+        if s is not None:
+            for ent in (self._token, self._queryable, self._publisher):
+                try:
+                    if ent is not None:
+                        ent.undeclare()
+                except Exception:
+                    pass
+            try:
+                s.close()
+            except Exception:
+                pass

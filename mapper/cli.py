@@ -1,0 +1,91 @@
+"""``rayfronts mapper``: the base-station process (see :mod:`mapper.service`)."""
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+
+HELP = "the base-station process: map, queries, layers, snapshots, rerun"
+DESCRIPTION = """The base-station process. Subscribes to every robot's frames, keeps one shared
+RayFronts map, answers queries (rayfronts query / query_client.Client), publishes map layers
+and standing-query results, saves and restores snapshots, logs to rerun.
+
+Configuration: --config FILE (YAML) plus trailing key=value overrides, e.g.
+  rayfronts mapper preset=online map.vox_size=0.5 snapshots.dir=/var/lib/rayfronts
+By default the mapper opens its Zenoh session in router mode (it is the base station's
+router); give --mode client --connect ENDPOINT to use a separate router."""
+
+log = logging.getLogger("rayfronts.mapper")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from common.config import describe
+    from common.zenoh_session import add_zenoh_arguments
+    from mapper.service_config import mapper_config_schema
+
+    parser.add_argument("overrides", nargs=argparse.REMAINDER, metavar="KEY=VALUE",
+                        help="config overrides (keys below); options may follow them")
+    _options(parser)
+    parser.epilog = "config keys:\n" + describe(mapper_config_schema())
+
+
+def _options(parser, suppress: bool = False) -> None:
+    from common.zenoh_session import add_zenoh_arguments
+
+    parser.add_argument("--config", metavar="FILE", default=None, help="YAML config file (MapperConfig)")
+    parser.add_argument("--rerun", metavar="FILE", default=None, help="write a rerun recording here (rerun.file)")
+    parser.add_argument("--serve-grpc", action="store_true", help="serve the rerun stream over gRPC (rerun.serve_grpc)")
+    parser.add_argument("--snapshots", metavar="DIR", default=None, help="snapshot directory (snapshots.dir)")
+    parser.add_argument("--device", default=None, help="torch device (device)")
+    add_zenoh_arguments(parser, mode_default_help="router")
+    if suppress:
+        for a in parser._actions:
+            a.default = argparse.SUPPRESS
+
+
+def split_items(args: argparse.Namespace, items: list[str]) -> list[str]:
+    """Parse options written after the overrides onto ``args``; return the ``key=value`` items."""
+    p = argparse.ArgumentParser(add_help=False)
+    _options(p, suppress=True)
+    ns, rest = p.parse_known_args(items)
+    for k, v in vars(ns).items():
+        setattr(args, k, v)
+    bad = [r for r in rest if r.startswith("-")]
+    if bad:
+        from common.config import ConfigError
+
+        raise ConfigError(f"unknown option(s) {bad}")
+    return rest
+
+
+def build_config(args):
+    import dataclasses
+
+    from common.zenoh_session import zenoh_config_from_args
+    from mapper.service_config import load_mapper_config
+
+    ov = split_items(args, list(args.overrides or []))
+    cfg = load_mapper_config(args.config, ov)
+    ch = {"zenoh": zenoh_config_from_args(args, cfg.zenoh)}
+    if args.device:
+        ch["device"] = args.device
+    cfg = dataclasses.replace(cfg, **ch)
+    if args.rerun or args.serve_grpc:
+        cfg = dataclasses.replace(cfg, rerun=dataclasses.replace(
+            cfg.rerun, file=args.rerun or cfg.rerun.file, serve_grpc=bool(args.serve_grpc) or cfg.rerun.serve_grpc))
+    if args.snapshots:
+        cfg = dataclasses.replace(cfg, snapshots=dataclasses.replace(cfg.snapshots, dir=args.snapshots))
+    return cfg
+
+
+def run(args: argparse.Namespace) -> int:
+    from common.zenoh_session import install_signal_handlers
+    from mapper.service import MapperService
+
+    cfg = build_config(args)
+    stop = threading.Event()
+    restore = install_signal_handlers(stop)
+    try:
+        return MapperService(cfg, stop).run()
+    finally:
+        restore()

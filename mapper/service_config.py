@@ -1,0 +1,99 @@
+"""Configuration of ``rayfronts mapper`` (:class:`MapperConfig`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from common.config import field_, section
+from common.zenoh_session import ZenohConfig
+from mapper.config import MapConfig
+
+
+@dataclass
+class QueueSection:
+    per_robot: int = field_(8, "frames buffered per robot; when full the OLDEST frame is dropped (counted)")
+    hold_unknown_space: bool = field_(True, "hold frames of a robot whose feature space is not known yet "
+                                            "(else reject them)")
+    max_message_mb: float = field_(64.0, "frame messages larger than this are rejected")
+
+
+@dataclass
+class LayersSection:
+    rate_hz: float = field_(1.0, "map layers (voxels, frontiers, rays, occupancy) publish rate; 0 = off")
+    max_voxels: int = field_(200_000, "voxels layer is subsampled to at most this many points")
+    max_rays: int = field_(50_000, "rays layer is subsampled to at most this many rays")
+
+
+@dataclass
+class QuerySection:
+    standing_rate_hz: float = field_(1.0, "standing queries are re-run at most this often after map updates")
+    cluster_candidates: int = field_(2000, "top voxels considered when grouping voxel hits into clusters")
+    cluster_rel_score: float = field_(0.9, "only voxels scoring >= this fraction of the best (after min-max "
+                                           "normalisation over the map) are clustered")
+    search_range_m: float = field_(200.0, "cones of ray hits are cut at this distance when computing the "
+                                          "search volume (m)")
+    search_rays: int = field_(10, "top rays whose cones make up the search volume")
+    search_cell_m: float = field_(2.0, "grid cell size used to measure the union of cones (m)")
+
+
+@dataclass
+class SnapshotSection:
+    dir: str = field_("", "snapshot directory (empty = no snapshots)")
+    period_s: float = field_(0.0, "save a snapshot this often (s), when the map changed; 0 = only on request")
+    restore: bool = field_(True, "restore the latest snapshot in dir on start")
+    keep: int = field_(2, "snapshots kept (older ones are deleted)")
+    on_exit: bool = field_(True, "save a snapshot on clean shutdown")
+
+
+@dataclass
+class RerunSection:
+    file: str = field_("", "write a rerun recording (.rrd) here; empty = off")
+    serve_grpc: bool = field_(False, "serve the recording over gRPC for a remote viewer")
+    grpc_port: int = field_(9876, "gRPC port of the rerun server")
+    every_n_frames: int = field_(1, "log camera/rgb/depth every n-th frame per robot")
+    app_id: str = field_("rayfronts", "rerun application id")
+
+
+@dataclass
+class MapperConfig:
+    """Configuration of ``rayfronts mapper``."""
+
+    preset: str = field_("default", "map preset under the map section (default, online, throughput, offline)")
+    map: MapConfig = section(MapConfig, "RayFronts map parameters (mapper.config.MapConfig)")
+    device: str = field_("cpu", "torch device of the map and the text encoder (cpu, cuda, cuda:1)")
+    occupancy_backend: str = field_("auto", "occupancy grid: auto (OpenVDB if built, else torch), vdb, torch")
+    text_model_dir: str = field_("", "directory of the text model when the feature space needs one on disk")
+    zenoh: ZenohConfig = section(ZenohConfig, "Zenoh session (router mode = this process is the base station router)")
+    queues: QueueSection = section(QueueSection, "per-robot input queues")
+    layers: LayersSection = section(LayersSection, "map layers published for viewers and planners")
+    query: QuerySection = section(QuerySection, "queries and standing queries")
+    snapshots: SnapshotSection = section(SnapshotSection, "snapshots (atomic) and restore on start")
+    rerun: RerunSection = section(RerunSection, "rerun logging")
+
+
+def mapper_config_schema():
+    return MapperConfig
+
+
+def load_mapper_config(path=None, overrides=()):
+    """Defaults → preset (from ``preset=`` in the file or overrides) → YAML → overrides."""
+    from common.config import load_config, merge, parse_override, load_yaml
+    from mapper.config import PRESETS
+
+    schema = mapper_config_schema()
+    preset = "default"
+    data = load_yaml(path) if path else {}
+    if isinstance(data.get("preset"), str):
+        preset = data["preset"]
+    for item in overrides or ():
+        d = parse_override(item)
+        if isinstance(d.get("preset"), str):
+            preset = d["preset"]
+    if preset not in PRESETS:
+        from common.config import ConfigError
+
+        raise ConfigError(f"unknown map preset {preset!r}; one of {', '.join(PRESETS)}")
+    base = {"map": dict(PRESETS[preset])}
+    cfg = load_config(schema, path, overrides, base=base)
+    if hasattr(cfg.map, "validate"):
+        cfg.map.validate()
+    return cfg

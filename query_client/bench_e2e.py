@@ -1,0 +1,224 @@
+"""``rayfronts bench e2e``: the whole chain over loopback Zenoh on the synthetic world.
+
+Measures, in one run:
+
+* ``encoder_fps``: the edge pipeline alone in this process (label encoder → PCA →
+  ``encode_frame``), no network;
+* ``e2e_fps``: frames integrated per second by a ``rayfronts mapper`` process fed by a
+  ``rayfronts edge`` process through a ``rayfronts router`` (first to last integration),
+  and ``e2e_vs_encoder`` = their ratio;
+* ``latency_ms``: edge hand-off to the publisher → integrated in the map (p50 / p95; both
+  processes share this host's clock);
+* ``bytes_per_frame``: frame message size on the wire (mean / max), seen by a subscriber;
+* ``query_rtt_ms``: query round trip from a client (embedding query: no text encoding) on
+  a map of ``--query-voxels`` voxels, restored into a mapper from a snapshot written here.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HELP = "end-to-end edge -> mapper throughput, latency, bytes per frame, query round trip"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--frames", type=int, default=40, help="frames streamed end to end (default 40)")
+    parser.add_argument("--resolution", default="224x224", help="frame size HxW (default 224x224)")
+    parser.add_argument("--pca-dim", type=int, default=100, help="PCA dimension on the wire (default 100)")
+    parser.add_argument("--label-stride", type=int, default=16,
+                        help="label encoder cell size in px (default 16 = the RADIO patch size, so the feature "
+                             "map has the size NARADIO would send)")
+    parser.add_argument("--rate", type=float, default=0.0,
+                        help="edge publish rate in Hz (0 = as fast as possible: throughput; the latency then "
+                             "includes queueing at the mapper; give a rate below e2e_fps for unloaded latency)")
+    parser.add_argument("--preset", default="throughput", help="mapper preset (default throughput)")
+    parser.add_argument("--query-voxels", type=int, default=1_000_000, help="voxels of the query map (default 1M)")
+    parser.add_argument("--queries", type=int, default=10, help="query round trips to time (default 10)")
+    parser.add_argument("--shm", action="store_true", help="keep Zenoh shared memory on (default off: network path)")
+    parser.add_argument("--workdir", type=Path, default=None, help="keep logs and snapshots here")
+
+
+def _pct(a) -> dict:
+    a = np.asarray(a, float)
+    if a.size == 0:
+        return {}
+    return {"p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95)), "mean": float(a.mean()),
+            "n": int(a.size)}
+
+
+def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, stride: int) -> tuple[float, dict]:
+    import dataclasses
+
+    import torch
+
+    from common.pca import OnlinePCAFitter
+    from common.wire import encode_frame
+    from edge.encoders import EncoderConfig, make_encoder
+    from edge.runtime import compress_features
+    from edge.sources import SourceConfig, open_source
+
+    src = open_source(SourceConfig(kind="synthetic", n_frames=n, resolution=res, depth_limit=20.0))
+    frames = list(src)
+    enc = make_encoder(EncoderConfig(kind="label", label_stride=stride), class_names=src.class_names)
+    fit = OnlinePCAFitter(pca_dim, max_frames=min(8, len(frames)))
+    for f in frames[:8]:
+        with torch.inference_mode():
+            fit.add(enc.encode(f.rgb, labels=f.labels))
+    pca = fit.fit()
+    pca.save(pca_path)
+    sizes = []
+    t0 = time.perf_counter()
+    for f in frames:
+        with torch.inference_mode():
+            x = enc.encode(f.rgb, labels=f.labels)
+        out = dataclasses.replace(f, features=compress_features(pca, x), feature_space="bench")
+        sizes.append(len(encode_frame(out)))
+    dt = time.perf_counter() - t0
+    return len(frames) / dt, {"mean": float(np.mean(sizes)), "max": int(np.max(sizes))}
+
+
+def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str) -> np.ndarray:
+    """A mapper snapshot holding ``n_vox`` random semantic voxels; returns a query embedding."""
+    import torch
+
+    from common.feature_space import FeatureSpace
+    from common.messages import encode_feature_space
+    from common.pca import PCA
+    from mapper.service import write_snapshot
+    from mapper.service_config import load_mapper_config
+    from mapper.service_map import create_map
+
+    cfg = load_mapper_config(None, [f"preset={preset}", "map.vox_size=0.5"])
+    pca = PCA.load(pca_path)
+    fs = FeatureSpace("label", "bench", pca.in_dim, pca=pca)
+    m = create_map(cfg, fs)
+    g = torch.Generator().manual_seed(0)
+    side = int(np.ceil(n_vox ** (1 / 3)))
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n_vox]
+    xyz = (ijk.float() + 0.5) * 0.5
+    for a in range(0, n_vox, 250_000):
+        b = min(n_vox, a + 250_000)
+        m.sem.fuse(xyz[a:b], torch.rand((b - a, 3), generator=g), torch.randn((b - a, pca.out_dim), generator=g))
+    assert len(m.sem) == n_vox
+    write_snapshot(root, m, encode_feature_space("bench", fs.to_body()), {"frames_mapped": 0, "robots": {}})
+    return np.random.default_rng(0).standard_normal(pca.in_dim).astype(np.float32)
+
+
+def run(args: argparse.Namespace) -> dict:
+    from common.zenoh_session import ZenohConfig, free_tcp_port
+    from query_client.client import Client
+    from query_client.demo import zenoh_env
+
+    work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="rayfronts-bench-e2e-"))
+    work.mkdir(parents=True, exist_ok=True)
+    pca_path = work / "pca.npz"
+    shm = "true" if args.shm else "false"
+    out: dict = {"machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
+                 "settings": {"frames": args.frames, "resolution": args.resolution, "pca_dim": args.pca_dim,
+                              "preset": args.preset, "shared_memory": args.shm, "label_stride": args.label_stride,
+                              "rate_hz": args.rate}}
+    enc_fps, sizes_local = _encoder_alone(args.resolution, args.pca_dim, args.frames, pca_path, args.label_stride)
+    out["bytes_per_frame_local"] = sizes_local
+    out["encoder_fps"] = enc_fps
+    env = zenoh_env()
+    procs = []
+
+    def start(name, *a):
+        f = open(work / f"{name}.log", "wb")
+        p = subprocess.Popen([sys.executable, "-m", "common.cli", *a], stdout=f, stderr=subprocess.STDOUT, env=env)
+        procs.append((p, f))
+        return p
+
+    def stop_all():
+        import signal
+
+        for p, f in reversed(procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(60)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+            f.close()
+        procs.clear()
+
+    import zenoh
+
+    try:
+        # ---------------------------------------------------------------- streaming
+        ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+        zs = f"transport/shared_memory/enabled={shm}"
+        start("router", "router", "--listen", ep, "--zenoh-set", zs)
+        start("mapper", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs, f"preset={args.preset}",
+              "map.depth_limit=20", "queues.per_robot=100000", "layers.rate_hz=0")
+        zc = ZenohConfig(connect=[ep], connect_timeout_ms=60_000, shared_memory=args.shm)
+        sizes = []
+        with Client(zc, timeout=30.0) as c:
+            sub = c.session.declare_subscriber(c.keys.frames_all, lambda s: sizes.append(len(s.payload.to_bytes())))
+            edge = start("edge", "edge", "--connect", ep, "--zenoh-set", zs, "--rate", str(args.rate), "robot=bench",
+                         f"encoder.label_stride={args.label_stride}",
+                         f"source.n_frames={args.frames}", f"source.resolution={args.resolution}",
+                         "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}")
+            end = time.monotonic() + 600
+            st = None
+            while time.monotonic() < end:
+                time.sleep(0.5)
+                try:
+                    st = c.stats(timeout=5.0)
+                except Exception:
+                    continue
+                if edge.poll() is not None and sum(st["queues"].values()) == 0 and st["frames"]["mapped"] > 0:
+                    break
+            sub.undeclare()
+        fr = st["frames"]
+        span = (st["last_mapped_at"] or 0) - (st["first_mapped_at"] or 0)
+        out["e2e_frames_mapped"] = fr["mapped"]
+        out["e2e_dropped"] = fr["dropped"]
+        out["e2e_fps"] = (fr["mapped"] - 1) / span if span > 0 else None
+        out["e2e_vs_encoder"] = out["e2e_fps"] / enc_fps if out["e2e_fps"] else None
+        out["latency_ms"] = {k: st["timings"]["latency_ms"].get(k) for k in ("p50", "p95", "max")}
+        out["integrate_ms"] = {k: st["timings"]["integrate_ms"].get(k) for k in ("p50", "p95")}
+        out["bytes_per_frame"] = {"mean": float(np.mean(sizes)) if sizes else None,
+                                  "max": int(np.max(sizes)) if sizes else None, "n": len(sizes),
+                                  "target_max": 100_000}
+        stop_all()
+        # ---------------------------------------------------------------- queries on a big map
+        snaps = work / "snaps"
+        t0 = time.perf_counter()
+        emb = _big_snapshot(snaps, args.query_voxels, pca_path, args.preset)
+        out["query_map_build_s"] = time.perf_counter() - t0
+        ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+        start("mapper_q", "mapper", "--mode", "router", "--listen", ep, "--zenoh-set", zs, f"preset={args.preset}",
+              f"snapshots.dir={snaps}", "snapshots.on_exit=false", "layers.rate_hz=0")
+        with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000, shared_memory=args.shm), timeout=120.0) as c:
+            st = None
+            end = time.monotonic() + 300
+            while time.monotonic() < end:
+                try:
+                    st = c.stats(timeout=10.0)
+                    break
+                except Exception:
+                    time.sleep(1.0)
+            out["query_map_voxels"] = st["map"]["n_voxels"]
+            rtts, server = [], []
+            c.query(embedding=emb, top_k=10, timeout=120.0)  # warm-up
+            for _ in range(args.queries):
+                t = time.perf_counter()
+                r = c.query(embedding=emb, top_k=10, timeout=120.0)
+                rtts.append((time.perf_counter() - t) * 1e3)
+                server.append(r.timings.get("total", 0.0))
+            out["query_rtt_ms"] = _pct(rtts)
+            out["query_server_ms"] = _pct(server)
+    finally:
+        stop_all()
+    out["workdir"] = str(work)
+    return out

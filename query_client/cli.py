@@ -1,0 +1,145 @@
+"""``rayfronts query "water tower"``: operator queries (one-shot or ``--watch``)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import threading
+
+HELP = "operator queries (one-shot or --watch)"
+DESCRIPTION = """Send an open-vocabulary query to the mapper and print the best answers:
+voxel clusters (position, size, score) inside the mapped range, semantic rays (origin,
+direction, score) beyond it, and the search volume their cones span.
+
+  rayfronts query "water tower" --connect tcp/BASE:7447
+  rayfronts query --image door.jpg --top-k 3 --json
+  rayfronts query "vehicle" --watch            # standing query, prints each refresh
+  rayfronts query "chimney" --rerun out.rrd    # also view the answer in rerun"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from common.zenoh_session import add_zenoh_arguments
+
+    parser.add_argument("text", nargs="?", default=None, help="the query text (omit with --image / --stats)")
+    parser.add_argument("--image", metavar="PATH", default=None, help="query with an image file (JPEG/PNG)")
+    parser.add_argument("--top-k", type=int, default=5, help="answers per kind (clusters, rays), default 5")
+    parser.add_argument("--watch", action="store_true", help="standing query: print each refresh until Ctrl-C")
+    parser.add_argument("--json", action="store_true", help="print the full result as JSON")
+    parser.add_argument("--softmax", action="store_true", help="scores as softmax against generic negatives")
+    parser.add_argument("--stats", action="store_true", help="print the mapper's stats instead of querying")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the mapper (default 10)")
+    parser.add_argument("--prefix", default=None, help="key-space prefix (default rayfronts)")
+    parser.add_argument("--rerun", metavar="FILE", default=None, help="write the answer to a rerun file")
+    parser.add_argument("--rerun-connect", metavar="URL", default=None,
+                        help="send the answer to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
+    add_zenoh_arguments(parser, mode_default_help="client")
+
+
+def format_result(r, top_k: int = 5) -> str:
+    lines = [f"query {r.query!r}  ({r.frames_mapped} frames mapped, {r.timings.get('total', 0.0):.0f} ms)"]
+    if len(r.cluster_xyz):
+        lines.append("  voxel clusters (in range):")
+        lines.append("    #  score     x        y        z     voxels  size (m)")
+        for i in range(min(top_k, len(r.cluster_xyz))):
+            x, y, z = r.cluster_xyz[i]
+            ex = r.cluster_extent[i]
+            lines.append(f"   {i + 1:2d}  {r.cluster_score[i]:.4f} {x:8.2f} {y:8.2f} {z:8.2f} {int(r.cluster_size[i]):6d}"
+                         f"  {ex[0]:.1f}x{ex[1]:.1f}x{ex[2]:.1f}")
+    else:
+        lines.append("  no voxel answers")
+    if len(r.ray_origin):
+        lines.append("  rays (beyond range):")
+        lines.append("    #  score     origin (x, y, z)            direction (x, y, z)")
+        for i in range(min(top_k, len(r.ray_origin))):
+            o, d = r.ray_origin[i], r.ray_direction[i]
+            lines.append(f"   {i + 1:2d}  {r.ray_score[i]:.4f}  ({o[0]:7.2f}, {o[1]:7.2f}, {o[2]:6.2f})"
+                         f"   ({d[0]:+.3f}, {d[1]:+.3f}, {d[2]:+.3f})")
+        lines.append(f"  search volume of the best rays' cones: {r.search_volume_m3:,.0f} m³")
+    else:
+        lines.append("  no ray answers")
+    return "\n".join(lines)
+
+
+def log_result_rerun(r, file: str | None = None, url: str | None = None, layers: dict | None = None) -> None:
+    """Log a query answer (and optionally map layers) to a rerun file or viewer."""
+    import numpy as np
+    import rerun as rr
+
+    rec = rr.RecordingStream("rayfronts_query")
+    if file:
+        rec.save(file)
+    if url:
+        rec.connect_grpc(url)
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    if layers and "voxels" in layers:
+        v = layers["voxels"]
+        rec.log("world/map/voxels", rr.Points3D(v["xyz"], colors=v["rgb"]))
+    base = "world/query"
+    if len(r.cluster_xyz):
+        rec.log(f"{base}/clusters", rr.Boxes3D(centers=r.cluster_xyz, half_sizes=np.asarray(r.cluster_extent) / 2,
+                                               labels=[f"{r.query} {s:.3f}" for s in r.cluster_score]))
+    if len(r.ray_origin):
+        rec.log(f"{base}/rays", rr.Arrows3D(origins=r.ray_origin, vectors=np.asarray(r.ray_direction) * 20.0,
+                                            labels=[f"{s:.3f}" for s in r.ray_score]))
+    rec.flush()
+    rec.disconnect()
+
+
+def run(args: argparse.Namespace) -> int:
+    from common.zenoh_session import zenoh_config_from_args, ZenohConfig
+    from query_client.client import Client, QueryError
+
+    if args.text is None and args.image is None and not args.stats:
+        print("rayfronts query: give a text, --image PATH or --stats", file=sys.stderr)
+        return 2
+    zc = zenoh_config_from_args(args, ZenohConfig(connect_timeout_ms=int(args.timeout * 1000)))
+    try:
+        client = Client(zc, prefix=args.prefix, timeout=args.timeout)
+    except Exception as e:
+        print(f"rayfronts query: cannot connect: {e}", file=sys.stderr)
+        return 1
+    with client:
+        try:
+            if args.stats:
+                print(json.dumps(client.stats(), indent=2, default=str))
+                return 0
+            if args.watch:
+                stop = threading.Event()
+                from common.zenoh_session import install_signal_handlers
+
+                restore = install_signal_handlers(stop)
+
+                def show(r):
+                    print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
+
+                try:
+                    h = client.watch(args.text, show, image=_read(args.image), top_k=args.top_k)
+                    while not stop.wait(0.5):
+                        pass
+                    h.cancel()
+                finally:
+                    restore()
+                return 0
+            r = client.query(args.text, image=_read(args.image), top_k=args.top_k, softmax=args.softmax)
+        except QueryError as e:
+            print(f"rayfronts query: {e}", file=sys.stderr)
+            return 1
+        if args.json:
+            print(json.dumps(r.to_dict(), indent=2))
+        else:
+            print(format_result(r, args.top_k))
+        if args.rerun or args.rerun_connect:
+            layers = {}
+            try:
+                layers["voxels"] = client.layer("voxels")[0]
+            except Exception:
+                pass
+            log_result_rerun(r, args.rerun, args.rerun_connect, layers)
+    return 0
+
+
+def _read(path):
+    if path is None:
+        return None
+    with open(path, "rb") as f:
+        return f.read()

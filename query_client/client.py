@@ -1,0 +1,222 @@
+"""Python API of the operator side (and of planners): ``query_client.Client``.
+
+>>> from query_client import Client
+>>> with Client(connect="tcp/base:7447") as c:
+...     r = c.query("water tower", top_k=5)
+...     r.cluster_xyz, r.cluster_score, r.ray_origin, r.ray_direction, r.search_volume_m3
+...     h = c.watch("vehicle", lambda res: print(res.cluster_xyz[:1]))
+...     ...; h.cancel()
+
+All positions are metres in the mapper's world frame (z up). Errors from the mapper raise
+:class:`QueryError`; no mapper answering raises :class:`MapperUnavailable`.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import uuid
+from typing import Callable
+
+import numpy as np
+
+from common.messages import (
+    MessageError, QueryRequest, QueryResult, decode_layer, decode_query_result, decode_snapshot_reply,
+    decode_stats, encode_query_request, encode_snapshot_request,
+)
+
+log = logging.getLogger("rayfronts.query_client")
+
+__all__ = ["Client", "QueryResult", "QueryError", "MapperUnavailable", "WatchHandle"]
+
+
+class QueryError(RuntimeError):
+    """The mapper answered with an error (the text is the mapper's)."""
+
+
+class MapperUnavailable(QueryError):
+    """No mapper answered within the timeout."""
+
+
+class WatchHandle:
+    """A standing query; ``cancel()`` (or leaving the ``with`` block) stops it."""
+
+    def __init__(self, client: "Client", qid: str, sub):
+        self.client, self.id, self._sub = client, qid, sub
+        self.active = True
+
+    def cancel(self) -> None:
+        if not self.active:
+            return
+        self.active = False
+        try:
+            self._sub.undeclare()
+        except Exception:
+            pass
+        try:
+            self.client._get_one(self.client.keys.mapper_query,
+                                 encode_query_request(QueryRequest(cancel=True, id=self.id)), 2.0)
+        except Exception as e:
+            log.debug("cancel standing query %s: %s", self.id, e)
+        self.client._watches.discard(self)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.cancel()
+
+
+class Client:
+    """A Zenoh client of the mapper. ``zenoh_cfg`` (a ``ZenohConfig``) or ``connect``
+    (endpoint string or list) say where the router is; ``prefix`` the key space."""
+
+    def __init__(self, zenoh_cfg=None, *, connect: str | list[str] | None = None, prefix: str | None = None,
+                 timeout: float = 10.0, connect_timeout_ms: int = 10_000):
+        import dataclasses
+
+        from common.keys import KeySpace
+        from common.zenoh_session import ZenohConfig, open_session
+
+        cfg = zenoh_cfg if zenoh_cfg is not None else ZenohConfig(connect_timeout_ms=connect_timeout_ms)
+        ch = {}
+        if connect is not None:
+            ch["connect"] = [connect] if isinstance(connect, str) else list(connect)
+        if prefix is not None:
+            ch["prefix"] = prefix
+        cfg = dataclasses.replace(cfg, **ch)
+        self.cfg = cfg
+        self.keys = KeySpace(cfg.prefix)
+        self.timeout = timeout
+        self.session = open_session(cfg, default_mode="client")
+        self._watches: set[WatchHandle] = set()
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ plumbing
+    def _get_one(self, key: str, payload: bytes | None, timeout: float | None) -> bytes:
+        import zenoh
+
+        kw = {"timeout": float(timeout or self.timeout), "consolidation": zenoh.ConsolidationMode.NONE}
+        if payload is not None:
+            kw["payload"] = payload
+        errs = []
+        for r in self.session.get(key, **kw):
+            if r.ok is not None:
+                return r.ok.payload.to_bytes()
+            errs.append(r.err.payload.to_string() if r.err is not None else "?")
+        if errs:
+            raise MapperUnavailable(f"no answer on {key}: {'; '.join(errs)}")
+        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable?)")
+
+    # ------------------------------------------------------------------ queries
+    def query(self, text: str | None = None, image: bytes | str | None = None, top_k: int = 10,
+              timeout: float | None = None, *, embedding: np.ndarray | None = None,
+              softmax: bool = False) -> QueryResult:
+        """Run one query now. ``image`` = encoded image bytes or a file path."""
+        if isinstance(image, str):
+            with open(image, "rb") as f:
+                image = f.read()
+        req = QueryRequest(text=text, image=image, embedding=embedding, top_k=int(top_k), softmax=softmax)
+        data = self._get_one(self.keys.mapper_query, encode_query_request(req), timeout)
+        try:
+            return decode_query_result(data)
+        except MessageError as e:
+            raise QueryError(str(e)) from None
+
+    def watch(self, text: str | None, callback: Callable[[QueryResult], None], *, image: bytes | None = None,
+              top_k: int = 10, qid: str | None = None, timeout: float | None = None) -> WatchHandle:
+        """Register a standing query: ``callback(QueryResult)`` runs now and on each refresh
+        (on a Zenoh thread; keep it short)."""
+        qid = qid or "q" + uuid.uuid4().hex[:12]
+
+        def on_sample(sample):
+            try:
+                callback(decode_query_result(sample.payload.to_bytes()))
+            except Exception as e:  # never raise out of a zenoh callback
+                log.warning("standing query %s: %s", qid, e)
+
+        sub = self.session.declare_subscriber(self.keys.mapper_queries(qid), on_sample)
+        handle = WatchHandle(self, qid, sub)
+        self._watches.add(handle)
+        try:
+            req = QueryRequest(text=text, image=image, top_k=int(top_k), standing=True, id=qid)
+            first = decode_query_result(self._get_one(self.keys.mapper_query, encode_query_request(req), timeout))
+        except Exception:
+            handle.cancel()
+            raise
+        try:
+            callback(first)
+        except Exception as e:
+            log.warning("standing query %s callback: %s", qid, e)
+        return handle
+
+    # ------------------------------------------------------------------ map state
+    def stats(self, timeout: float | None = None) -> dict:
+        return decode_stats(self._get_one(self.keys.stats, None, timeout))
+
+    def snapshot(self, save: bool = False, timeout: float | None = None) -> dict:
+        """Describe the last snapshot, or (``save=True``) make one now."""
+        data = self._get_one(self.keys.snapshot, encode_snapshot_request("save" if save else "describe"),
+                             timeout or max(self.timeout, 60.0))
+        try:
+            return decode_snapshot_reply(data)
+        except MessageError as e:
+            raise QueryError(str(e)) from None
+
+    def layer(self, name: str, timeout: float | None = None) -> tuple[dict, dict]:
+        """Current arrays and meta of a map layer (voxels, frontiers, rays, occupancy)."""
+        try:
+            _, arrays, meta = decode_layer(self._get_one(self.keys.layers(name), None, timeout))
+        except MessageError as e:
+            raise QueryError(str(e)) from None
+        return {k: np.array(v) for k, v in arrays.items()}, meta
+
+    def frontiers(self, timeout: float | None = None) -> np.ndarray:
+        """(F, 3) frontier positions (metres)."""
+        return self.layer("frontiers", timeout)[0]["xyz"]
+
+    def ray_fronts(self, text: str | None = None, top_k: int = 1000, timeout: float | None = None):
+        """Semantic ray frontiers: ``(origins (R,3), unit directions (R,3), scores (R,) or None)``.
+
+        Without ``text`` all rays of the layer (subsampled by the mapper's layer limit) and no
+        scores; with ``text`` the ``top_k`` rays best matching it with their scores."""
+        if text is None:
+            a = self.layer("rays", timeout)[0]
+            return a["origin"], a["direction"], None
+        r = self.query(text, top_k=top_k, timeout=timeout)
+        return r.ray_origin, r.ray_direction, r.ray_score
+
+    def robots(self, timeout: float = 2.0) -> list[str]:
+        """Robots whose edge is alive now (liveliness)."""
+        out = []
+        for r in self.session.liveliness().get(self.keys.alive_all, timeout=timeout):
+            if r.ok is not None:
+                name = self.keys.robot_from_key(str(r.ok.key_expr))
+                if name:
+                    out.append(name)
+        return sorted(set(out))
+
+    def mapper_alive(self, timeout: float = 2.0) -> bool:
+        return any(r.ok is not None for r in self.session.liveliness().get(self.keys.mapper_alive, timeout=timeout))
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self) -> None:
+        for h in list(self._watches):
+            h.cancel()
+        s, self.session = self.session, None
+        if s is not None:
+            try:
+                s.close()
+            except Exception:
+                pass
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass

@@ -1,0 +1,293 @@
+"""Robustness of the distributed runtime with real processes over loopback Zenoh.
+
+Each test starts ``rayfronts mapper`` (router mode, the base station) and ``rayfronts edge``
+processes (client mode) and talks to them with ``query_client.Client``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.zenoh_session import ZenohConfig, free_tcp_port
+from query_client.demo import zenoh_env
+
+ROOT = Path(__file__).resolve().parents[1]
+RES = "96x128"
+FAST_MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0",
+            "rerun.file=", "snapshots.on_exit=false"]
+
+
+def _cmd(*args):
+    return [sys.executable, "-m", "common.cli", *args]
+
+
+class Proc:
+    def __init__(self, name, args, logdir: Path):
+        self.name = name
+        self.log = open(logdir / f"{name}.log", "ab")
+        self.p = subprocess.Popen(_cmd(*args), stdout=self.log, stderr=subprocess.STDOUT, env=zenoh_env(),
+                                  cwd=str(ROOT))
+
+    def stop(self, sig=signal.SIGINT, timeout=30.0) -> int:
+        if self.p.poll() is None:
+            self.p.send_signal(sig)
+            try:
+                self.p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+                raise AssertionError(f"{self.name} did not exit within {timeout} s after {sig!r}")
+        self.log.close()
+        return self.p.returncode
+
+
+@pytest.fixture
+def procs():
+    started: list[Proc] = []
+    yield started
+    for p in reversed(started):
+        if p.p.poll() is None:
+            p.p.kill()
+            p.p.wait()
+
+
+@pytest.fixture(scope="module")
+def pca_file(tmp_path_factory):
+    """A fixed PCA basis (``rayfronts edge fit-pca``) so restarted edges share one feature space."""
+    out = tmp_path_factory.mktemp("pca") / "pca.npz"
+    r = subprocess.run(_cmd("edge", "fit-pca", "--out", str(out), "--frames", "4", f"source.resolution={RES}",
+                            "source.n_frames=40", "pca.out_dim=16"),
+                       env=zenoh_env(), cwd=str(ROOT), capture_output=True, timeout=120)
+    assert r.returncode == 0, r.stderr.decode()[-2000:]
+    assert out.is_file()
+    return out
+
+
+def edge_args(ep, pca, robot="r1", frames=40, rate=5.0, extra=()):
+    return ["edge", "--connect", ep, "--rate", str(rate), f"robot={robot}", f"source.resolution={RES}",
+            f"source.n_frames={frames}", "source.depth_limit=20", f"pca.basis={pca}", "pca.out_dim=16", *extra]
+
+
+def mapper_args(ep, extra=()):
+    return ["mapper", "--mode", "router", "--listen", ep, *FAST_MAP, *extra]
+
+
+def client(ep):
+    from query_client import Client
+
+    return Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0)
+
+
+def wait_for(fn, timeout=60.0, every=0.2, what="condition"):
+    end = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < end:
+        try:
+            last = fn()
+            if last:
+                return last
+        except Exception as e:  # mapper not up yet etc.
+            last = e
+        time.sleep(every)
+    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
+
+
+def mapped(c, robot=None) -> int:
+    st = c.stats(timeout=5.0)
+    return st["robots"].get(robot, {}).get("mapped", 0) if robot else st["frames"]["mapped"]
+
+
+# --------------------------------------------------------------------------- tests
+@pytest.mark.timeout(180)
+def test_edge_sigkill_robot_gone_and_restart(tmp_path, procs, pca_file):
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    procs.append(Proc("mapper", mapper_args(ep), tmp_path))
+    edge = Proc("edge", edge_args(ep, pca_file, frames=200, rate=4.0, extra=["publish.loop=true"]), tmp_path)
+    procs.append(edge)
+    with client(ep) as c:
+        wait_for(lambda: mapped(c, "r1") >= 3, 120, what="3 frames mapped")
+        assert c.robots() == ["r1"]
+        # a standing query refreshes as the map grows
+        seen = []
+        h = c.watch("car", lambda r: seen.append(r.frames_mapped), top_k=3)
+        wait_for(lambda: len(seen) >= 2 and seen[-1] > seen[0], 60, what="standing query refreshes")
+        h.cancel()
+        assert h.id not in c.stats()["standing_queries"]
+        # the command line client
+        q = subprocess.run(_cmd("query", "car", "--json", "--top-k", "2", "--connect", ep), env=zenoh_env(),
+                           cwd=str(ROOT), capture_output=True, text=True, timeout=60)
+        assert q.returncode == 0, q.stderr[-1500:]
+        assert json.loads(q.stdout)["query"] == "car"
+        edge.p.kill()
+        t_kill = time.time()
+        st = wait_for(lambda: (lambda s: s if not s["robots"]["r1"]["present"] else None)(c.stats()), 10,
+                      every=0.05, what="robot gone")
+        gone_after = st["robots"]["r1"]["gone_at"] - t_kill
+        assert gone_after <= 2.0, f"robot reported gone {gone_after:.2f} s after SIGKILL"
+        # the mapper keeps serving queries (once it flushed what it buffered)
+        wait_for(lambda: (lambda s: s["flushed_version"] == s["map_version"])(c.stats()), 30, what="flush")
+        r = c.query("car", top_k=3)
+        assert len(r.voxel_xyz) > 0
+        n_before = mapped(c, "r1")
+        procs.append(Proc("edge2", edge_args(ep, pca_file, frames=200, rate=4.0), tmp_path))
+        wait_for(lambda: c.stats()["robots"]["r1"]["present"], 60, what="robot back")
+        wait_for(lambda: mapped(c, "r1") >= n_before + 3, 120, what="map growing again")
+        st = c.stats()
+        assert st["frames"]["rejected_total"] == 0, st["frames"]["rejected"]
+    for p in reversed(procs):
+        if p.p.poll() is None:
+            assert p.stop() == 0, f"{p.name} exited uncleanly"
+
+
+@pytest.mark.timeout(240)
+def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pca_file):
+    import zenoh
+
+    from common.frame import Frame
+    from common.recording import RecordingReader
+    from common.wire import decode_frame, encode_frame, encode_message
+    from mapper.service_config import load_mapper_config
+    from mapper.service_map import create_map, flush, integrate, layer_arrays
+    from common.feature_space import FeatureSpace
+
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    procs.append(Proc("mapper", mapper_args(ep, ["queues.per_robot=100000", "layers.max_voxels=100000000"]), tmp_path))
+    rec = tmp_path / "rec"
+    with client(ep) as c:
+        wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
+        procs.append(Proc("edge", edge_args(ep, pca_file, frames=12, rate=2.0, extra=[f"recording.dir={rec}"]),
+                          tmp_path))
+        # flood the same key while the good edge runs (once its first frame arrived)
+        wait_for(lambda: c.stats()["frames"]["received"] >= 1, 120, every=0.05, what="first good frame")
+        ok = encode_frame(Frame("r1", 0, 0.0, np.eye(4), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]),
+                                np.ones((48, 64), np.float32), np.zeros((48, 64, 3), np.uint8),
+                                features=np.zeros((16, 6, 8), np.float16), feature_space="x"))
+        rng = np.random.default_rng(0)
+        bad_pose = bytearray(ok)
+        kinds = [
+            lambda i: rng.bytes(int(rng.integers(0, 64))),                       # garbage
+            lambda i: ok[: int(rng.integers(1, len(ok) - 1))],                   # truncated
+            lambda i: encode_message("rayfronts.frame", 1, {"robot": "r1"}),     # missing fields
+            lambda i: encode_message("rayfronts.frame", 7, {"robot": "r1"}),     # wrong version
+            lambda i: encode_message("not.a.frame", 1, {}),                      # wrong schema
+            lambda i: encode_frame(Frame("r2", 0, 0.0, np.eye(4), np.eye(3) * 50 + np.diag([0, 0, -49]),
+                                         np.ones((4, 4), np.float32), np.zeros((4, 4, 3), np.uint8),
+                                         features=np.zeros((16, 2, 2), np.float16))),  # wrong robot for key
+        ]
+        s = zenoh.open(_zcfg(ep))
+        try:
+            pub = s.declare_publisher("rayfronts/robots/r1/frames", congestion_control=zenoh.CongestionControl.BLOCK)
+            for i in range(10_000):
+                pub.put(bytes(kinds[i % len(kinds)](i)))
+            pub.undeclare()
+        finally:
+            s.close()
+        edge = procs[-1]
+        edge.p.wait(180)
+        assert edge.p.returncode == 0
+        st = wait_for(lambda: (lambda s: s if s["frames"]["mapped"] == 12 and s["flushed_version"] == s["map_version"]
+                               else None)(c.stats()), 120, what="12 good frames mapped and flushed")
+        assert st["frames"]["rejected_total"] == 10_000, st["frames"]["rejected"]
+        assert len(st["frames"]["rejected"]) >= 4   # counted by reason
+        assert st["robots"]["r1"]["mapped"] == 12
+        vox_remote, _ = c.layer("voxels")
+        rays_remote, _ = c.layer("rays")
+        stats_remote = st["map"]
+    # the same good frames, mapped in-process
+    reader = RecordingReader(rec)
+    assert len(reader) == 12
+    from common.pca import PCA
+
+    cfg = load_mapper_config(None, FAST_MAP)
+    pca = PCA.load(pca_file)
+    frames = [decode_frame(reader.read_bytes(i)) for i in range(len(reader))]
+    fs = FeatureSpace("label", "x", pca.in_dim, pca=pca)
+    m = create_map(cfg, fs)
+    for f in frames:
+        integrate(m, f)
+    flush(m)
+    vox_local, _ = layer_arrays(m, "voxels", type(cfg.layers)(max_voxels=10 ** 9, max_rays=10 ** 9))
+    o_local, _ = layer_arrays(m, "rays", type(cfg.layers)(max_voxels=10 ** 9, max_rays=10 ** 9))
+    assert stats_remote["n_voxels"] == len(vox_local["xyz"]) == len(vox_remote["xyz"])
+    assert stats_remote["n_rays"] == len(o_local["origin"])
+    order_r = np.lexsort(vox_remote["xyz"].T)
+    order_l = np.lexsort(vox_local["xyz"].T)
+    np.testing.assert_array_equal(vox_remote["xyz"][order_r], vox_local["xyz"][order_l])
+    np.testing.assert_array_equal(vox_remote["rgb"][order_r], vox_local["rgb"][order_l])
+    mp = procs[0]
+    assert mp.p.poll() is None, "mapper died"
+    assert mp.stop() == 0
+
+
+def _zcfg(ep):
+    import json
+
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", '"client"')
+    c.insert_json5("connect/endpoints", json.dumps([ep]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    return c
+
+
+@pytest.mark.timeout(180)
+def test_fast_edge_bounded_queue_counts_drops(tmp_path, procs, pca_file):
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    procs.append(Proc("mapper", mapper_args(ep, ["queues.per_robot=2"]), tmp_path))
+    with client(ep) as c:
+        wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
+        edge = Proc("edge", edge_args(ep, pca_file, frames=60, rate=0.0), tmp_path)
+        procs.append(edge)
+        edge.p.wait(150)
+        assert edge.p.returncode == 0
+        st = wait_for(lambda: (lambda s: s if s["queues"].get("r1", 1) == 0 else None)(c.stats()), 60,
+                      what="queue drained")
+        fr = st["frames"]
+        assert fr["dropped"] > 0, fr
+        assert fr["received"] == fr["mapped"] + fr["dropped"] + fr["rejected_total"], fr
+        assert max(st["queues"].values()) <= 2
+        # latency is bounded by the queue: at most (queue + 1) integrations plus transport
+        lat, integ = st["timings"]["latency_ms"], st["timings"]["integrate_ms"]
+        assert lat["max"] <= (2 + 2) * integ["max"] + 10_000, (lat, integ)
+        assert st.get("rss_mb", 0) < 4000
+    assert procs[0].stop() == 0
+
+
+@pytest.mark.timeout(240)
+def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, pca_file):
+    snaps = tmp_path / "snaps"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    m1 = Proc("mapper1", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=2"]), tmp_path)
+    procs.append(m1)
+    edge = Proc("edge", edge_args(ep, pca_file, frames=400, rate=3.0, extra=["publish.loop=true"]), tmp_path)
+    procs.append(edge)
+    with client(ep) as c:
+        wait_for(lambda: c.snapshot().get("frames_mapped", 0) >= 4, 150, what="a periodic snapshot of >= 4 frames")
+        m1.p.kill()   # no clean shutdown: only the periodic snapshot survives
+        m1.p.wait()
+    latest = (snaps / "LATEST").read_text().strip()
+    import json as _json
+
+    saved = _json.loads((snaps / latest / "meta.json").read_text())["frames_mapped"]
+    assert saved >= 4
+    m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0"]), tmp_path)
+    procs.append(m2)
+    with client(ep) as c:
+        st = wait_for(lambda: c.stats(), 60, what="restarted mapper")
+        assert st["snapshot"].get("restored") is True
+        assert st["frames"]["mapped"] >= saved            # at most the frames since the snapshot are lost
+        # the same edge process reconnects by itself and the map keeps growing
+        wait_for(lambda: c.stats()["robots"]["r1"]["received"] >= 3, 90, what="edge reconnected")
+        wait_for(lambda: c.stats()["frames"]["mapped"] >= saved + 3, 90, what="map growing after restore")
+        assert edge.p.poll() is None
+    assert edge.stop() == 0
+    assert m2.stop() == 0
