@@ -5,7 +5,7 @@ import pytest
 
 from query_client.demo import DemoConfig, done_criteria, run_demo, summary_table
 
-MAIN = ("water tower", "vehicle", "chimney", "tree")
+MAIN = ("water tower", "vehicle", "chimney", "radio tower", "tree")
 
 
 @pytest.mark.timeout(400)
@@ -22,6 +22,8 @@ def test_demo_results_and_recording(tmp_path):
     by = {q["query"]: q for q in data["queries"]}
     assert by["vehicle"]["class"] == "car" and by["water tower"]["class"] == "water tower"
     assert not by["water tower"]["in_range"] and by["vehicle"]["in_range"]
+    assert by["radio tower"]["class"] == "radio tower" and not by["radio tower"]["in_range"]
+    assert by["chimney"]["in_range"] and by["tree"]["in_range"]
     main = {"queries": [by[q] for q in MAIN], "frames": data["frames"], "seconds": data["seconds"]}
     assert done_criteria(main, cfg.vox_size) == [], summary_table(data, cfg.vox_size)
     assert all(v == 0 for v in res["exit_codes"].values()), res["exit_codes"]

@@ -220,9 +220,11 @@ def generate_parts(seed: int = 0, preset: str = "default") -> tuple[list[Part], 
     legs = [Cylinder(wx + dx, wy + dy, 0.0, 24.0, 0.4) for dx in (-4.5, 4.5) for dy in (-4.5, 4.5)]
     add("water tower", legs + [Cylinder(wx, wy, 24.0, 32.0, 7.0), Cone(wx, wy, 32.0, 35.0, 7.3, 0.0)])
     # Radio tower: east, near the north street's line of sight.
-    rx, ry = ax + rng.uniform(170, 220), ay + rng.uniform(-15, 30)
-    add("radio tower", [Cone(rx, ry, 0.0, 50.0, 2.2, 0.35), Cylinder(rx, ry, 50.0, 58.0, 0.18),
-                        Sphere((rx, ry, 58.3), 0.5)])
+    # A lattice mast is modelled as its solid envelope (wide base), so it stays visible at
+    # low resolution and 1/16-resolution features.
+    rx, ry = ax + rng.uniform(125, 150), ay + rng.uniform(-15, 30)
+    add("radio tower", [Cone(rx, ry, 0.0, 55.0, 5.0, 0.6), Cylinder(rx, ry, 55.0, 62.0, 0.3),
+                        Sphere((rx, ry, 62.4), 0.6)])
     # Factory chimney with its factory: north.
     fx, fy = rng.uniform(-30, 30), ay + rng.uniform(170, 210)
     add("chimney", [Cone(fx, fy, 0.0, 48.0, 3.2, 2.0)], (170, 70, 55), name="chimney_factory")
