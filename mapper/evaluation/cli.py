@@ -1,0 +1,158 @@
+"""``rayfronts eval``: the paper's benchmarks.
+
+    rayfronts eval srchvol --source synthetic --seed 0 --frames 300 --depth-limit 0,10,20 --out runs/sv
+    rayfronts eval semseg  --source tartanair --source-path /data/tartanair --scene Factory --out runs/ss
+    rayfronts eval report  runs/sv runs/ss --out results.md
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+HELP = "the paper's benchmarks (search volume; 3D semantic segmentation) and a results page"
+DESCRIPTION = """Benchmarks of the paper, run on this machine:
+
+  srchvol  online search-volume benchmark (Table I): SCV, Recall, SCVR and mIoU AUCs per
+           method (RayFronts, Semantic Poses, Semantic Voxels, Spherical / Unidirectional
+           Semantic Frontiers) and depth limit; writes summary.json, table.md, steps.csv/json,
+           plots/*.png.
+  semseg   offline zero-shot 3D semantic segmentation (Tables II/III): mIoU, f-mIoU, Acc with and
+           without background classes; writes summary.json.
+  report   collect run directories into one Markdown page.
+
+srchvol/semseg take --config FILE and trailing key=value overrides of their config (keys
+listed with 'rayfronts eval srchvol --help')."""
+
+log = logging.getLogger("rayfronts.eval")
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", metavar="FILE", default=None, help="YAML config file")
+    p.add_argument("--source", default=None, help="source kind: synthetic | replica | scannet | tartanair | recording")
+    p.add_argument("--source-path", default=None, help="dataset root / scene directory (source.path)")
+    p.add_argument("--scene", default=None, help="dataset scene (source.scene)")
+    p.add_argument("--sequence", default=None, help="TartanAir trajectory, e.g. P0000 (source.sequence)")
+    p.add_argument("--seed", type=int, default=None, help="synthetic world seed (source.seed)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (synthetic n_frames / max_frames)")
+    p.add_argument("--resolution", default=None, help="frame size HxW (source.resolution)")
+    p.add_argument("--frame-skip", type=int, default=None, help="keep every (n+1)-th frame (source.frame_skip)")
+    p.add_argument("--vox", type=float, default=None, help="voxel size in metres")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from common.config import describe
+
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    from mapper.evaluation.semseg import SemsegConfig
+    from mapper.evaluation.srchvol import ALL_METHODS, SrchvolConfig
+
+    sv = sub.add_parser("srchvol", help="online search-volume benchmark (Table I)",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        epilog="config keys:\n" + describe(SrchvolConfig))
+    _common(sv)
+    sv.add_argument("--depth-limit", action="append", default=None, metavar="D",
+                    help="depth limit(s) in metres, repeatable or comma list (default 0,10,20)")
+    sv.add_argument("--methods", default=None, help=f"comma list of methods (default all: {','.join(ALL_METHODS)})")
+    sv.add_argument("--every", type=int, default=None, help="evaluate every K frames (default 10)")
+    sv.add_argument("--preset", default=None, help="map preset (default 'online')")
+    sv.add_argument("--cone-shape", choices=["true", "reference"], default=None,
+                    help="true cones (default) or the reference's hexagonal pyramids (to reproduce the paper)")
+
+    ss = sub.add_parser("semseg", help="offline 3D semantic segmentation (Tables II/III)",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        epilog="config keys:\n" + describe(SemsegConfig))
+    _common(ss)
+    ss.add_argument("--k", type=int, default=None, help="kNN alignment k (0 = exact grid; default 5)")
+
+    rp = sub.add_parser("report", help="collect run directories into one Markdown page")
+    rp.add_argument("runs", nargs="+", metavar="RUN_DIR", help="srchvol / semseg output directories")
+    rp.add_argument("--out", required=True, metavar="FILE.md", help="Markdown file to write (plots are linked relatively)")
+    rp.add_argument("--title", default="RayFronts benchmark results", help="page title")
+
+
+def _source_overrides(args) -> dict:
+    s = {}
+    if args.source is not None:
+        s["kind"] = args.source
+    if args.source_path is not None:
+        s["path"] = args.source_path
+    if args.scene is not None:
+        s["scene"] = args.scene
+    if args.sequence is not None:
+        s["sequence"] = args.sequence
+    if args.seed is not None:
+        s["seed"] = args.seed
+    if args.resolution is not None:
+        s["resolution"] = args.resolution
+    if args.frame_skip is not None:
+        s["frame_skip"] = args.frame_skip
+    if args.frames is not None:
+        kind = args.source or "synthetic"
+        s["n_frames" if kind == "synthetic" else "max_frames"] = args.frames
+    return s
+
+
+def build_config(args):
+    """The action's config from --config, the options and the key=value overrides."""
+    from common.config import load_config, merge
+    from mapper.evaluation.semseg import SemsegConfig
+    from mapper.evaluation.srchvol import SrchvolConfig
+
+    schema = SrchvolConfig if args.action == "srchvol" else SemsegConfig
+    cfg = load_config(schema, args.config, ())
+    data: dict = {}
+    src = _source_overrides(args)
+    if src:
+        data["source"] = src
+    if args.vox is not None:
+        data["vox"] = args.vox
+    if args.no_progress:
+        data["progress"] = False
+    if args.action == "srchvol":
+        if args.depth_limit:
+            data["depth_limits"] = [float(x) for a in args.depth_limit for x in a.split(",") if x.strip()]
+        if args.methods:
+            data["methods"] = [m.strip() for m in args.methods.split(",") if m.strip()]
+        if args.every is not None:
+            data["every"] = args.every
+        if args.preset is not None:
+            data["preset"] = args.preset
+        if args.cone_shape is not None:
+            data["cone_shape"] = args.cone_shape
+    else:
+        if args.k is not None:
+            data["k"] = args.k
+    cfg = merge(cfg, data)
+    from common.config import parse_override
+    for item in args.overrides or ():
+        cfg = merge(cfg, parse_override(item))
+    return cfg.validate()
+
+
+def run(args: argparse.Namespace) -> int:
+    from common.config import ConfigError
+
+    try:
+        if args.action == "report":
+            from mapper.evaluation.report import write_report
+            path = write_report(args.runs, args.out, title=args.title)
+            print(f"wrote {path}")
+            return 0
+        cfg = build_config(args)
+        if args.action == "srchvol":
+            from mapper.evaluation.srchvol import run_srchvol
+            run_srchvol(cfg, args.out)
+            print((__import__("pathlib").Path(args.out) / "table.md").read_text())
+        else:
+            from mapper.evaluation.semseg import run_semseg
+            import json
+            s = run_semseg(cfg, args.out)
+            print(json.dumps({k: v for k, v in s.items() if k != "per_class"}, indent=2))
+        return 0
+    except (ConfigError, ValueError, FileNotFoundError) as e:
+        print(f"rayfronts eval {args.action}: {e}", file=sys.stderr)
+        return 2

@@ -1,0 +1,461 @@
+"""Online search-volume benchmark (paper §IV-A, Table I; reference brief §6.2).
+
+For every depth limit and method a :class:`mapper.map.RayFrontsMap` is fed the same frames
+(read / rendered and encoded once). Every ``every`` frames and at the end, per GT class:
+
+1. observed = the method's active occupancy voxels; unobserved = scene-volume voxels not
+   observed (GT: :func:`mapper.evaluation.data.ground_truth`);
+2. ray labels: softmax over all class names (temperature), prompt denoising over the
+   whole ray set, prediction threshold; rays labelled 0 (the "none"/sky class) ignored;
+3. search volume of class c: per unobserved voxel, how many of c's shapes hold it —
+   true cones of ``cone_half_angle`` (default max FoV / 2) or the reference's hexagonal
+   pyramids (``cone_shape=reference``), balls for Spherical Semantic Frontiers — normalised
+   by the max count and thresholded (> ``srchvol_thresh``); a class without rays predicts
+   the whole unobserved volume (``default_prediction``);
+4. TP/FP/FN, SCV, Recall, SCVR (:mod:`mapper.evaluation.metrics`), observed-region IoU of
+   the semantic voxels (exact grid or kNN alignment) and the observed fraction of the
+   class (stopping rule).
+
+AUCs: per class over time until > ``stop_frac`` of its GT voxels are observed, mean over
+classes (then over scenes in the report). Semantic Voxels is evaluated on the RayFronts
+map with its rays dropped when ``share_maps`` (RayFronts differs from it only by casting
+rays; the voxel and occupancy layers are identical — tested), which saves one map.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from common.config import ConfigError, field_, section, to_dict
+from edge.encoders.config import EncoderConfig
+from edge.sources.config import SourceConfig
+from mapper.evaluation import metrics as M
+from mapper.evaluation import shapes as S
+from mapper.evaluation.data import GroundTruth, ground_truth, load_frames, pack
+
+log = logging.getLogger("rayfronts.eval")
+
+ALL_METHODS = ["rayfronts", "semantic_poses", "semantic_voxels", "spherical_semfronts", "unidirectional_semfronts"]
+METHOD_TITLES = {
+    "rayfronts": "RayFronts",
+    "semantic_poses": "Sem Poses",
+    "semantic_voxels": "Sem Voxels",
+    "spherical_semfronts": "Spherical Sem Fronts",
+    "unidirectional_semfronts": "Unidirectional Sem Fronts",
+}
+METRIC_KEYS = ("miou_auc", "scv_auc", "recall_auc", "scvr_auc")
+
+
+def _default_source() -> SourceConfig:
+    return SourceConfig(kind="synthetic", resolution="96x96", n_frames=300, hfov=90.0)
+
+
+@dataclass
+class SrchvolConfig:
+    source: SourceConfig = field_(_default_source(), "frame source (edge.sources keys)")
+    encoder: EncoderConfig = section(EncoderConfig, "image encoder (label encoder by default)")
+    map: dict = field_({"max_rays_per_frame": 1000},
+                       "MapConfig overrides for every method, e.g. map.fronti_subsampling=5 (default: the "
+                       "CPU scaling of the online preset, 1000 rays per frame as the authors' own fallback)")
+    preset: str = field_("online", "map preset (mapper.config.PRESETS); 'online' = the paper's online table")
+    depth_limits: list[float] = field_([0.0, 10.0, 20.0], "simulated depth ranges (m); 0 = no depth")
+    methods: list[str] = field_(list(ALL_METHODS), "methods to evaluate (mapper.config.METHODS names)")
+    vox: float = field_(1.0, "voxel size (m) of maps and GT")
+    every: int = field_(10, "evaluate every this many frames (and after the last)")
+    gt_range: float = field_(50.0, "GT pass: depth beyond this is out of range (reference: 50 m TartanAir cutoff)")
+    gt_frame_stride: int = field_(2, "GT pass uses every n-th frame")
+    gt_pixel_stride: int = field_(2, "GT pass uses every n-th pixel (row and column)")
+    scene_volume: Literal["observed", "bbox"] = field_(
+        "observed", "scene volume: voxels the full-range GT pass observes, or its whole bounding box")
+    cone_shape: Literal["true", "reference"] = field_(
+        "true", "ray search shape: true cones of cone_half_angle, or the reference's hexagonal pyramids (brief §6.2)")
+    cone_half_angle: float = field_(-1.0, "cone half-angle alpha (deg); <0 = max(FoV)/2 of the camera")
+    temperature: float = field_(100.0, "softmax temperature over class similarities")
+    denoise: float = field_(0.5, "prompt denoising threshold (whole ray/voxel set)")
+    pred_thresh: float = field_(0.1, "no prediction below this softmax value")
+    srchvol_thresh: float = field_(0.05, "normalised count threshold of a search volume (> thresh)")
+    default_prediction: bool = field_(True, "a class without evidence predicts the whole unobserved volume")
+    stop_frac: float = field_(0.5, "AUC stopping rule: a class stops once more than this fraction is observed")
+    align_k: int = field_(0, "observed mIoU alignment: 0 = exact voxel grid, k > 0 = kNN majority")
+    share_maps: bool = field_(True, "evaluate Semantic Voxels on the RayFronts map without its rays (identical layers)")
+    ray_erosion_scale: bool = field_(True, "scale the preset's ray_erosion (px at 640 wide) to the image width")
+    occupancy_backend: str = field_("auto", "occupancy backend: auto | vdb | torch")
+    device: str = field_("cpu", "torch device of the maps")
+    plots: bool = field_(True, "write SCVR-over-time PNG plots")
+    progress: bool = field_(True, "tqdm progress bars")
+
+    def validate(self) -> "SrchvolConfig":
+        from mapper.config import METHODS, PRESETS
+        bad = [m for m in self.methods if m not in ALL_METHODS]
+        if bad:
+            raise ConfigError(f"unknown method(s) {bad}; choose from {ALL_METHODS}")
+        if not self.methods:
+            raise ConfigError("methods must not be empty")
+        if self.preset not in PRESETS:
+            raise ConfigError(f"unknown preset {self.preset!r}; choose one of {sorted(PRESETS)}")
+        if any(not d >= 0 for d in self.depth_limits) or not self.depth_limits:
+            raise ConfigError(f"depth_limits must be a non-empty list of numbers >= 0, got {self.depth_limits}")
+        if self.vox <= 0 or self.every < 1 or self.gt_range <= 0:
+            raise ConfigError("need vox > 0, every >= 1 and gt_range > 0")
+        assert set(ALL_METHODS) <= set(METHODS) | {"rayfronts"}
+        return self
+
+
+def applicable(method: str, depth: float) -> bool:
+    """Table I: Semantic Poses only without depth; Sem Voxels and semantic frontiers only with."""
+    if depth <= 0:
+        return method in ("rayfronts", "semantic_poses")
+    return method != "semantic_poses"
+
+
+def method_map_config(cfg: SrchvolConfig, method: str, depth: float, width: int):
+    from mapper.config import map_config
+
+    over = dict(cfg.map)
+    over["vox_size"] = cfg.vox
+    over["depth_limit"] = float(depth)
+    if cfg.ray_erosion_scale and "ray_erosion" not in cfg.map:
+        from mapper.config import PRESETS
+        base = PRESETS[cfg.preset].get("ray_erosion", 4)
+        over["ray_erosion"] = int(round(base * width / 640))
+    name = method
+    if method == "rayfronts" and depth <= 0:
+        name = "rayfronts_zero_depth"
+    mc = map_config(cfg.preset, None, name)
+    from common.config import merge
+    return merge(mc, over).validate()
+
+
+# ----------------------------------------------------------------------------- per-step scoring
+@dataclass
+class Snapshot:
+    observed_keys: np.ndarray          # sorted packed keys of observed voxels
+    ray_origins: np.ndarray            # (R, 3)
+    ray_dirs: np.ndarray               # (R, 3)
+    ray_labels: np.ndarray             # (R,) class id, 0 = none
+    voxel_xyz: np.ndarray              # (N, 3)
+    voxel_labels: np.ndarray           # (N,) class id, 0 = none
+
+
+def snapshot(rmap, text: torch.Tensor, cfg: SrchvolConfig, with_rays: bool = True) -> Snapshot:
+    """Observed set and labelled voxels/rays of a map (query: softmax over ``text`` rows,
+    denoising over the whole layer, threshold; label = class id, 0 = none/sky)."""
+    ijk, _ = rmap.occupancy.active()
+    ok = np.sort(pack(ijk.numpy())) if ijk.shape[0] else np.empty(0, np.int64)
+    res = rmap.query(text, softmax=True, temperature=cfg.temperature, top_k=0, denoise=cfg.denoise,
+                     threshold=cfg.pred_thresh)
+    vl = res.voxel_labels.cpu().numpy().astype(np.int64)
+    vl = np.where(vl < 0, 0, vl)
+    rl = rmap.rays()
+    if with_rays and rl.origins.shape[0]:
+        lab = res.ray_labels.cpu().numpy().astype(np.int64)
+        lab = np.where(lab < 0, 0, lab)
+        o, d = rl.origins.cpu().numpy().astype(np.float64), rl.directions.cpu().numpy().astype(np.float64)
+    else:
+        lab, o, d = np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3))
+    return Snapshot(ok, o, d, lab, rmap.sem.xyz().cpu().numpy().astype(np.float64), vl)
+
+
+def search_volumes(snap: Snapshot, method: str, unobs_xyz: np.ndarray, classes, cfg: SrchvolConfig,
+                   half_angle: float, beta: float) -> dict[int, np.ndarray]:
+    """{class: bool mask over the unobserved voxels} for classes with at least one ray."""
+    out: dict[int, np.ndarray] = {}
+    if not snap.ray_labels.size or not unobs_xyz.shape[0]:
+        return out
+    spherical = method == "spherical_semfronts"
+    if spherical:
+        uo, inv = np.unique(np.round(snap.ray_origins, 6), axis=0, return_inverse=True)
+        radii = S.SV.frontier_ball_radii(torch.as_tensor(uo), beta).numpy()[inv.reshape(-1)]
+    for c in classes:
+        sel = snap.ray_labels == c
+        if not sel.any():
+            continue
+        if spherical:
+            cnt = S.ball_counts(unobs_xyz, snap.ray_origins[sel], radii[sel])
+        elif cfg.cone_shape == "reference":
+            s = beta / cfg.vox
+            cnt = S.reference_cone_counts(unobs_xyz, snap.ray_origins[sel], snap.ray_dirs[sel], cfg.vox, s, half_angle)
+        else:
+            cnt = S.cone_counts(unobs_xyz, snap.ray_origins[sel], snap.ray_dirs[sel], half_angle)
+        out[int(c)] = M.normalized_count_mask(cnt.numpy(), cfg.srchvol_thresh)
+    return out
+
+
+def _member(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
+    """(V,) bool: ``keys`` found in the ascending ``sorted_keys``."""
+    if sorted_keys.size == 0:
+        return np.zeros(keys.shape, dtype=bool)
+    pos = np.searchsorted(sorted_keys, keys).clip(max=sorted_keys.size - 1)
+    return sorted_keys[pos] == keys
+
+
+def score_step(snap: Snapshot, gt: GroundTruth, method: str, classes, cfg: SrchvolConfig, half_angle: float,
+               beta: float, gt_counts: np.ndarray) -> list[dict]:
+    """Rows (one per GT class) of the step's metrics."""
+    obs = _member(gt.keys, snap.observed_keys)
+    un = ~obs
+    centres = gt.centres()
+    unobs_xyz = centres[un]
+    gt_un = gt.labels[un]
+    masks = search_volumes(snap, method, unobs_xyz, classes, cfg, half_angle, beta)
+    sv = M.srchvol_metrics(masks, gt_un, classes, cfg.default_prediction)
+    # observed region: semantic-voxel labels vs GT
+    g_obs = gt.labels[obs]
+    g_obs = np.where(g_obs < 0, 0, g_obs)
+    pred = M.knn_align(centres[obs], snap.voxel_xyz, snap.voxel_labels, cfg.align_k, gt.vox)
+    keep = gt.labels[obs] != M.IGNORE
+    ious = M.observed_iou(g_obs[keep], pred[keep], classes)
+    rows = []
+    for c in classes:
+        n_c = int(gt_counts[c])
+        n_obs = int((g_obs == c).sum())
+        r = dict(class_id=int(c), class_name=gt.class_names[c], gt_count=n_c,
+                 observed_frac=n_obs / n_c if n_c else float("nan"), iou=ious[c],
+                 n_rays=int((snap.ray_labels == c).sum()), evidence=int(c) in masks,
+                 n_unobserved=int(un.sum()))
+        r.update(sv[c])
+        rows.append(r)
+    return rows
+
+
+def summarize(rows: list[dict], stop: float) -> dict:
+    """AUCs of one (depth, method): ``{miou_auc, scv_auc, recall_auc, scvr_auc}``; the mIoU
+    AUC of a method that localised nothing (no defined IoU) is 0."""
+    rr = [dict(r, **{"class": r["class_id"]}) for r in rows]
+    out = {}
+    for key, m in (("miou_auc", "iou"), ("scv_auc", "scv"), ("recall_auc", "recall"), ("scvr_auc", "scvr")):
+        v = M.auc_table(rr, m, stop)
+        if key == "miou_auc" and not math.isfinite(v):
+            v = 0.0
+        out[key] = v
+    return out
+
+
+# ----------------------------------------------------------------------------- run
+def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
+    """Run the benchmark; write CSV/JSON rows, summary.json, table.md and plots into
+    ``out_dir``. Returns ``{depth_key: {method: {metric: value}}}`` (values in [0, 1] or
+    ``None`` for N/A)."""
+    cfg.validate()
+    from edge.encoders import make_encoder
+    from mapper.map import RayFrontsMap
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    torch.manual_seed(0)
+    frames, src = load_frames(cfg.source, progress=cfg.progress, world=world)
+    if cfg.source.kind == "synthetic" and world is None:
+        world = getattr(src, "world", None)
+    class_names = list(src.class_names or [])
+    if not class_names:
+        raise ValueError("the source has no class names; the search-volume benchmark needs GT labels")
+    t_load = time.perf_counter()
+    gt = ground_truth(frames, class_names, cfg.vox, cfg.gt_range, world=world, frame_stride=cfg.gt_frame_stride,
+                      pixel_stride=cfg.gt_pixel_stride, scene_volume=cfg.scene_volume,
+                      occupancy_backend=cfg.occupancy_backend, progress=cfg.progress)
+    t_gt = time.perf_counter()
+    gt_counts = gt.class_counts()
+    classes = [c for c in range(1, len(class_names)) if gt_counts[c] > 0]
+    enc = make_encoder(cfg.encoder, class_names)
+    text = _class_text(enc, class_names)
+    H, W = frames[0].depth.shape
+    K0 = frames[0].intrinsics
+    fov = (math.degrees(2 * math.atan(0.5 * W / K0[0, 0])), math.degrees(2 * math.atan(0.5 * H / K0[1, 1])))
+    half_angle = cfg.cone_half_angle if cfg.cone_half_angle > 0 else max(fov) / 2
+
+    # maps: (depth, method) -> map; "semantic_voxels" may share the rayfronts map
+    maps: dict[tuple[float, str], object] = {}
+    evals: list[tuple[float, str, tuple[float, str], bool]] = []   # (depth, method, map key, with rays)
+    for d in cfg.depth_limits:
+        for m in cfg.methods:
+            if not applicable(m, d):
+                continue
+            if m == "semantic_voxels" and cfg.share_maps and "rayfronts" in cfg.methods:
+                evals.append((d, m, (d, "rayfronts"), False))
+                continue
+            mc = method_map_config(cfg, m, d, W)
+            maps[(d, m)] = RayFrontsMap(mc, enc.feature_dim, enc.name, device=cfg.device,
+                                        occupancy_backend=cfg.occupancy_backend)
+            evals.append((d, m, (d, m), m != "semantic_voxels"))
+    rows: dict[tuple[float, str], list[dict]] = {(d, m): [] for d, m, _, _ in evals}
+    n = len(frames)
+    steps = sorted(set(list(range(cfg.every, n + 1, cfg.every)) + [n]))
+    it = enumerate(frames)
+    if cfg.progress:
+        from tqdm import tqdm
+        it = tqdm(it, total=n, desc="search volume", unit="frame")
+    t_map = t_score = 0.0
+    for i, f in it:
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            feats = enc.encode(f.rgb, f.labels)
+            gfeat = enc.encode_global(f.rgb, f.labels)
+        for rmap in maps.values():
+            rmap.integrate(f.pose, f.intrinsics, f.depth, f.rgb, feats, gfeat)
+        step = i + 1
+        if step == n:
+            for rmap in maps.values():
+                rmap.flush()
+        t1 = time.perf_counter()
+        t_map += t1 - t0
+        if step in steps:
+            snaps = {}
+            for d, m, key, with_rays in evals:
+                if (key, with_rays) not in snaps:
+                    snaps[(key, with_rays)] = snapshot(maps[key], text, cfg, with_rays)
+                rmap = maps[key]
+                for r in score_step(snaps[(key, with_rays)], gt, m, classes, cfg, half_angle, rmap.cfg.beta, gt_counts):
+                    r.update(step=step, depth_limit=d, method=m)
+                    rows[(d, m)].append(r)
+            t_score += time.perf_counter() - t1
+    t_end = time.perf_counter()
+
+    summary: dict[str, dict] = {}
+    for d in cfg.depth_limits:
+        dk = depth_key(d)
+        summary[dk] = {}
+        for m in cfg.methods:
+            summary[dk][m] = summarize(rows[(d, m)], cfg.stop_frac) if (d, m) in rows else None
+    info = dict(
+        config=to_dict(cfg), class_names=class_names, classes_evaluated=[class_names[c] for c in classes],
+        gt_class_voxels={class_names[c]: int(gt_counts[c]) for c in classes}, scene_volume_voxels=int(len(gt.keys)),
+        frames=n, resolution=[H, W], fov_deg=list(fov), cone_half_angle_deg=half_angle, encoder=enc.name,
+        encoder_version=getattr(enc, "version", ""), text_model=getattr(enc, "text_model", ""),
+        source=getattr(src, "name", cfg.source.kind), steps=steps,
+        map_configs={f"{d:g}m/{m}": to_dict(maps[(d, m)].cfg) for (d, m) in maps},
+        timings_s=dict(load=t_load - t_start, ground_truth=t_gt - t_load, mapping=t_map, scoring=t_score,
+                       total=t_end - t_start),
+    )
+    write_outputs(out, rows, summary, info, cfg)
+    return summary
+
+
+def depth_key(d: float) -> str:
+    return f"{d:g}m"
+
+
+def _class_text(enc, class_names) -> torch.Tensor:
+    """(K, C) text embeddings of the class names in the encoder's text space."""
+    table = getattr(enc, "table", None)
+    if table is not None and getattr(enc, "class_names", None) == list(class_names):
+        return table.to(torch.float32)
+    from common.text_encoders import make_text_encoder
+    te = make_text_encoder(enc.text_model)
+    t = te.encode(list(class_names)).to(torch.float32)
+    head = getattr(enc, "language_head", None)
+    if head is not None:
+        raise NotImplementedError("encoders with a language head: pass a similarity callable (not wired in eval yet)")
+    return t
+
+
+# ----------------------------------------------------------------------------- outputs
+def _json_safe(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    if isinstance(v, (np.floating,)):
+        return _json_safe(float(v))
+    if isinstance(v, np.bool_):
+        return bool(v)
+    return v
+
+
+ROW_FIELDS = ["depth_limit", "method", "step", "class_id", "class_name", "gt_count", "observed_frac", "n_unobserved",
+              "n_rays", "evidence", "tp", "fp", "fn", "tn", "vol", "scv", "recall", "scvr", "iou"]
+
+
+def write_outputs(out: Path, rows: dict, summary: dict, info: dict, cfg: SrchvolConfig) -> None:
+    import csv
+
+    allrows = [r for (d, m), rs in rows.items() for r in rs]
+    with open(out / "steps.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=ROW_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        for r in allrows:
+            w.writerow({k: r.get(k) for k in ROW_FIELDS})
+    (out / "steps.json").write_text(json.dumps(_json_safe(allrows)))
+    single = len(cfg.depth_limits) == 1
+    top = summary[depth_key(cfg.depth_limits[0])] if single else summary
+    (out / "summary.json").write_text(json.dumps(_json_safe(top), indent=2))
+    (out / "run_info.json").write_text(json.dumps(_json_safe(dict(info, kind="srchvol")), indent=2))
+    (out / "table.md").write_text(table_markdown(summary, cfg.methods, [depth_key(d) for d in cfg.depth_limits]))
+    if cfg.plots:
+        plot_scvr(out, rows, cfg)
+
+
+def table_markdown(summary: dict, methods, depth_keys) -> str:
+    """Table I layout: one row per method, (mIoU, SCV, Recall, SCVR) AUCs in % per depth."""
+    cols = ["mIoU", "SCV", "Recall", "SCVR"]
+    keys = ["miou_auc", "scv_auc", "recall_auc", "scvr_auc"]
+    head = "| Method | " + " | ".join(f"{dk} {c} (%)" for dk in depth_keys for c in cols) + " |"
+    sep = "|---|" + "---:|" * (len(cols) * len(depth_keys))
+    lines = [head, sep]
+    best = {}
+    for dk in depth_keys:
+        vals = [(summary[dk].get(m) or {}).get("scvr_auc") for m in methods]
+        fin = [v for v in vals if v is not None and math.isfinite(v)]
+        best[dk] = max(fin) if fin else None
+    for m in methods:
+        cells = []
+        for dk in depth_keys:
+            s = summary[dk].get(m)
+            for k in keys:
+                if s is None:
+                    cells.append("--")
+                    continue
+                v = s[k]
+                txt = "nan" if v is None or not math.isfinite(v) else f"{100 * v:.2f}"
+                if k == "scvr_auc" and best[dk] is not None and v is not None and math.isfinite(v) and v == best[dk] and v > 0:
+                    txt = f"**{txt}**"
+                cells.append(txt)
+        lines.append(f"| {METHOD_TITLES.get(m, m)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_scvr(out: Path, rows: dict, cfg: SrchvolConfig) -> list[Path]:
+    """One PNG per (method, depth): class-mean SCVR (bold) and per-class SCVR over frames."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pdir = out / "plots"
+    pdir.mkdir(exist_ok=True)
+    paths = []
+    for (d, m), rs in rows.items():
+        if not rs:
+            continue
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        by: dict[str, list] = {}
+        for r in rs:
+            by.setdefault(r["class_name"], []).append((r["step"], r["scvr"]))
+        steps = sorted({r["step"] for r in rs})
+        for name, pts in sorted(by.items()):
+            pts.sort()
+            ax.plot([p[0] for p in pts], [100 * p[1] for p in pts], lw=0.8, alpha=0.6, label=name)
+        mean = [np.nanmean([r["scvr"] for r in rs if r["step"] == s] or [np.nan]) for s in steps]
+        ax.plot(steps, [100 * v for v in mean], "k-", lw=2.2, label="class mean")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("SCVR (%)")
+        ax.set_title(f"{METHOD_TITLES.get(m, m)} — depth {d:g} m")
+        ax.legend(fontsize=6, ncol=2, loc="upper right")
+        fig.tight_layout()
+        p = pdir / f"scvr_{m}_{depth_key(d)}.png"
+        fig.savefig(p, dpi=90)
+        plt.close(fig)
+        paths.append(p)
+    return paths
