@@ -2,7 +2,10 @@
 
 Frames are rendered up front (not timed) at the preset's resolution (throughput 224×224,
 online 640×640) with random 100-dim features at 1/16 resolution (float16, as on the wire);
-then every frame goes through :meth:`RayFrontsMap.integrate` and a final flush.
+then every frame goes through :meth:`RayFrontsMap.integrate` and a final flush. The JSON
+records whether the C++ kernels ran (``--no-kernels`` forces the torch paths) and the
+machine's load average before the timed part (the numbers are only comparable at similar
+load). Peak RSS includes the pre-rendered frames (``rss_after_render_mb``).
 """
 from __future__ import annotations
 
@@ -27,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch CPU threads (default 1; more threads on a shared 2-core box slow torch down)")
     parser.add_argument("--trajectory", choices=["ground", "drone"], default="ground", help="camera trajectory")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE", help="map config overrides")
+    parser.add_argument("--no-kernels", action="store_true",
+                        help="use the pure-torch paths instead of the C++ kernels (mapper._rfkernels); same results")
 
 
 def _rss_mb() -> float:
@@ -37,8 +42,11 @@ def run(args: argparse.Namespace) -> dict:
     import numpy as np
     import torch
 
+    import os
+
     from common.config import parse_override
     from common.world import World
+    from mapper import kernels
     from mapper.config import map_config
     from mapper.map import RayFrontsMap
     from mapper.occupancy import backend_name
@@ -64,23 +72,31 @@ def run(args: argparse.Namespace) -> dict:
                        torch.randn(args.feature_dim, fh, fw, generator=g).to(torch.float16)))
     render_s = time.perf_counter() - t
     rss_before = _rss_mb()
-    m = RayFrontsMap(cfg, args.feature_dim, "bench", occupancy_backend=args.backend)
-    stages: dict[str, float] = {}
-    t0 = time.perf_counter()
-    for p, d, rgb, f in frames:
-        for k, v in m.integrate(p, K, d, rgb, f).items():
-            stages[k] = stages.get(k, 0.0) + v
-    t1 = time.perf_counter()
-    m.flush()
-    t2 = time.perf_counter()
-    q = torch.randn(4, args.feature_dim)
-    m.query(q)
-    t3 = time.perf_counter()
+    load_before = os.getloadavg()
+    old_kernels = kernels.set_enabled(kernels.enabled() and not args.no_kernels)
+    try:
+        m = RayFrontsMap(cfg, args.feature_dim, "bench", occupancy_backend=args.backend)
+        stages: dict[str, float] = {}
+        t0 = time.perf_counter()
+        for p, d, rgb, f in frames:
+            for k, v in m.integrate(p, K, d, rgb, f).items():
+                stages[k] = stages.get(k, 0.0) + v
+        t1 = time.perf_counter()
+        m.flush()
+        t2 = time.perf_counter()
+        q = torch.randn(4, args.feature_dim)
+        m.query(q)
+        t3 = time.perf_counter()
+        used_kernels = kernels.enabled()
+    finally:
+        kernels.set_enabled(old_kernels)
     st = m.stats()
     n = len(frames)
     return {
         "target": "mapper", "preset": args.preset, "resolution_hw": list(hw), "frames": n,
         "backend": backend_name(args.backend), "threads": torch.get_num_threads(),
+        "kernels": used_kernels, "kernels_available": kernels.available(),
+        "load_avg_1_5_15": [round(x, 2) for x in load_before],
         "depth_limit": args.depth_limit, "feature_dim": args.feature_dim,
         "frames_per_s": round(n / (t1 - t0), 2), "ms_per_frame": round(1e3 * (t1 - t0) / n, 2),
         "flush_ms": round(1e3 * (t2 - t1), 2), "query_ms_4q": round(1e3 * (t3 - t2), 2),

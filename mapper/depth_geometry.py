@@ -18,6 +18,10 @@ RDF camera axes, K at depth resolution, planar depth in metres with ``NaN`` = ig
   subsampled to ``max_rays``; unit world directions.
 
 Budgets use a caller-provided seeded ``torch.Generator`` (or confidence, descending).
+
+Hot loops (surface samples + de-duplication, free-space traversal, the sampling matrix of
+:func:`aggregate_samples`) run in the optional C++ kernels (:mod:`mapper.kernels`) with the
+same arithmetic as the torch code here, so results are identical with or without them.
 """
 from __future__ import annotations
 
@@ -27,6 +31,7 @@ import numpy as np
 import torch
 
 from common.conventions import voxel_index
+from mapper import kernels as KN
 from mapper import keys as K_
 from mapper.traversal import crossing_counts, unique_cells
 
@@ -62,20 +67,25 @@ def pixel_directions(K: torch.Tensor, pose: torch.Tensor, h: int, w: int) -> tor
 def erode_out_of_range(mask: torch.Tensor, r: int) -> torch.Tensor:
     """Keep pixels whose whole (2r+1)² window is ``True``; outside the image counts as True.
 
-    O(H·W) with an integral image of the *complement*."""
+    O(H·W): window counts of the *complement*, separably (row prefix sums, then column
+    prefix sums), with whole-row / whole-column gathers only."""
     if r <= 0:
         return mask.clone()
     h, w = mask.shape
+    dev = mask.device
     bad = (~mask).to(torch.int32)
-    ii = torch.zeros((h + 1, w + 1), dtype=torch.int32, device=mask.device)
-    ii[1:, 1:] = bad.cumsum(0).cumsum(1)
-    rows = torch.arange(h, device=mask.device)
-    cols = torch.arange(w, device=mask.device)
-    r0 = (rows - r).clamp(min=0)[:, None]
-    r1 = (rows + r + 1).clamp(max=h)[:, None]
-    c0 = (cols - r).clamp(min=0)[None, :]
-    c1 = (cols + r + 1).clamp(max=w)[None, :]
-    s = ii[r1, c1] - ii[r0, c1] - ii[r1, c0] + ii[r0, c0]
+    cs = torch.zeros((h, w + 1), dtype=torch.int32, device=dev)
+    torch.cumsum(bad, 1, out=cs[:, 1:])
+    cols = torch.arange(w, device=dev)
+    c0 = (cols - r).clamp(min=0)
+    c1 = (cols + r + 1).clamp(max=w)
+    row_win = cs.index_select(1, c1) - cs.index_select(1, c0)        # (h, w) bad count per row window
+    rs = torch.zeros((h + 1, w), dtype=torch.int32, device=dev)
+    torch.cumsum(row_win, 0, out=rs[1:])
+    rows = torch.arange(h, device=dev)
+    r0 = (rows - r).clamp(min=0)
+    r1 = (rows + r + 1).clamp(max=h)
+    s = rs.index_select(0, r1) - rs.index_select(0, r0)
     return mask & (s == 0)
 
 
@@ -123,15 +133,20 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
     # occupied samples
     occ_pix = _select(torch.nonzero(finite).squeeze(1), max_pts, generator, conf)
     if occ_pix.numel():
-        z = flat[occ_pix].to(torch.float64)
-        pts = origin + D[occ_pix] * z[:, None]
         offs = (torch.arange(occ_thickness, dtype=torch.float64, device=dev) - (occ_thickness - 1) / 2) * (vox / 2)
-        zs = z[:, None] + offs[None, :]
-        samples = origin + D[occ_pix][:, None, :] * zs[..., None]
-        samples = samples[zs > 0]
-        occ_ijk = K_.unpack(torch.unique(K_.pack(voxel_index(samples, vox))))  # 1-D unique: fast
+        if KN.enabled(D, flat):  # same float64 operations in C++, hashed de-duplication
+            pts, okeys = KN.surface_samples(origin, D, flat, occ_pix, offs, vox)
+        else:
+            z = flat[occ_pix].to(torch.float64)
+            Dp = D[occ_pix]
+            pts = (origin + Dp * z[:, None]).to(torch.float32)
+            zs = z[:, None] + offs[None, :]
+            samples = origin + Dp[:, None, :] * zs[..., None]
+            samples = samples[zs > 0]
+            okeys = torch.unique(K_.pack(voxel_index(samples, vox)))  # 1-D unique: fast
+        occ_ijk = K_.unpack(okeys)
     else:
-        pts = torch.empty((0, 3), dtype=torch.float64, device=dev)
+        pts = torch.empty((0, 3), dtype=torch.float32, device=dev)
         occ_ijk = torch.empty((0, 3), dtype=torch.int64, device=dev)
 
     # free space by exact traversal
@@ -188,7 +203,7 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
     else:
         rpix = torch.empty(0, dtype=torch.int64, device=dev)
         dirs = torch.empty((0, 3), dtype=torch.float32, device=dev)
-    return FrameGeometry(origin, occ_ijk, free_ijk, pts.to(torch.float32), occ_pix, dirs, rpix)
+    return FrameGeometry(origin, occ_ijk, free_ijk, pts, occ_pix, dirs, rpix)
 
 
 def sample_image(img: torch.Tensor, pix: torch.Tensor, hw: tuple[int, int], mode: str = "bilinear") -> torch.Tensor:
@@ -201,6 +216,8 @@ def sample_image(img: torch.Tensor, pix: torch.Tensor, hw: tuple[int, int], mode
     C, h, w = img.shape
     idx, wt = _corners(pix, hw, h, w, mode)
     tab = img.reshape(C, h * w).T  # (h*w, C) view
+    if h * w <= idx.numel():  # small map: one contiguous float32 copy, then row gathers (same values)
+        tab = tab.to(torch.float32).contiguous()
     out = tab[idx[:, 0]].to(torch.float32) * wt[:, :1]
     for k in range(1, idx.shape[1]):
         out += tab[idx[:, k]].to(torch.float32) * wt[:, k:k + 1]
@@ -241,18 +258,12 @@ def aggregate_samples(img: torch.Tensor, pix: torch.Tensor, hw: tuple[int, int],
     (point, corner) weights, so the C-channel work is proportional to the non-zeros of A
     (few per voxel when features are coarser than depth), not to P·C."""
     C, h, w = img.shape
-    idx, wt = _corners(pix, hw, h, w, mode)
-    tab = img.reshape(C, h * w).T
-    flat_pairs = group[:, None] * (h * w) + idx
-    if n_groups * h * w <= max_dense:
-        A = torch.bincount(flat_pairs.reshape(-1), weights=wt.reshape(-1), minlength=n_groups * h * w)
-        nz = torch.nonzero(A).squeeze(1)
-        gw = A[nz].to(torch.float32)
+    # non-zeros of A (C++ kernel when available, else a dense bincount when A is small)
+    if KN.enabled(pix, group):
+        g, src, gw = KN.sample_pairs(group, pix, hw, h, w, mode, n_groups)
     else:
-        nz, inv = torch.unique(flat_pairs.reshape(-1), return_inverse=True)
-        gw = torch.zeros(nz.numel(), dtype=torch.float32, device=pix.device).index_add_(0, inv, wt.reshape(-1))
-    g = torch.div(nz, h * w, rounding_mode="floor")
-    src = nz - g * (h * w)
+        idx, wt = _corners(pix, hw, h, w, mode)
+        g, src, gw = KN.group_pairs(group, idx, wt, n_groups, h * w, max_dense)
     out = torch.zeros((n_groups, C), dtype=torch.float32, device=pix.device)
-    out.index_add_(0, g, tab[src].to(torch.float32) * gw[:, None])
+    out.index_add_(0, g, img.reshape(C, h * w).T[src].to(torch.float32) * gw[:, None])
     return out

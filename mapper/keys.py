@@ -18,12 +18,18 @@ def pack(ijk: torch.Tensor) -> torch.Tensor:
     """(N, 3) int → (N,) int64 keys. Raises ``ValueError`` for indices out of range."""
     ijk = ijk.to(torch.int64)
     if ijk.numel():
-        lo, hi = int(ijk.min()), int(ijk.max())
-        if lo < -OFFSET or hi >= OFFSET:
-            raise ValueError(f"cell index {lo if lo < -OFFSET else hi} outside the packable range "
-                             f"[-{OFFSET}, {OFFSET}); coordinates too far from the origin for this voxel size")
+        lo, hi = torch.aminmax(ijk)
+        check_range(int(lo), int(hi))
     s = ijk + OFFSET
     return (s[:, 0] << (2 * BITS)) | (s[:, 1] << BITS) | s[:, 2]
+
+
+def check_range(lo: int, hi: int) -> None:
+    """Raise ``ValueError`` unless every index in ``[lo, hi]`` is packable (an empty range,
+    ``lo > hi``, passes)."""
+    if lo <= hi and (lo < -OFFSET or hi >= OFFSET):
+        raise ValueError(f"cell index {lo if lo < -OFFSET else hi} outside the packable range "
+                         f"[-{OFFSET}, {OFFSET}); coordinates too far from the origin for this voxel size")
 
 
 def unpack(keys: torch.Tensor) -> torch.Tensor:

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from common.conventions import is_rigid, sanitize_depth, voxel_center, voxel_index
+from mapper import kernels as KN
 from mapper import keys as K_
 from mapper.config import MapConfig
 from mapper.depth_geometry import aggregate_samples, frame_geometry, sample_image
@@ -186,8 +187,8 @@ class RayFrontsMap:
         # semantic points: pre-aggregate per voxel (sum of rgb / feature, count)
         sem_feat_src = feats is not None or (cfg.global_encoding and gfeat is not None)
         if pts.shape[0] and sem_feat_src:
-            vk = K_.pack(voxel_index(pts.to(torch.float64), cfg.vox_size))
-            uk, inv, cnt = torch.unique(vk, return_inverse=True, return_counts=True)
+            vk = KN.voxel_keys(pts, cfg.vox_size)
+            uk, inv, cnt = KN.unique_keys(vk)
             n = uk.numel()
             if cfg.global_encoding and gfeat is not None:
                 fs = cnt.to(torch.float32)[:, None] * gfeat[None]

@@ -15,6 +15,10 @@ registered in the 27 coarse cells around its own; each ray is walked through the
 grid up to ``max_dist`` (:mod:`mapper.traversal`) and looks up the cells it touches. Any
 frontier within ``beta`` of the ray's closest point lies in that point's 3×3×3 coarse
 neighbourhood, so the candidate set is exact. Memory O(rays × cells walked + candidates).
+With the C++ kernels (:mod:`mapper.kernels`) the walk, the pair test and the per-ray argmin
+run in C++ on blocks of coarse cells (a hash of blocks listing the frontiers within one
+cell of them), with the same float32 / float64 arithmetic, so both paths give identical
+results; the pair metrics use one base point for all rays of a call.
 
 Angles on world axes (z up): ``theta = atan2(d_y, d_x)``, ``phi = acos(d_z)`` (degrees).
 Bins: ``n_theta = round(360 / psi)`` bins centred on multiples of ``360 / n_theta`` with
@@ -29,9 +33,11 @@ import warnings
 import torch
 
 from common.conventions import voxel_center, voxel_index
+from mapper import kernels as KN
 from mapper import keys as K_
 from mapper.traversal import segment_cells
 
+KERNEL_RAY_CHUNK = 1 << 15  # rays per kernel call in associate(): bounds the candidate-pair memory
 _OFFS = torch.tensor([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], dtype=torch.int64)
 
 
@@ -70,12 +76,18 @@ def bin_centre_dirs(tb: torch.Tensor, pb: torch.Tensor, psi: float) -> torch.Ten
 
 
 # --------------------------------------------------------------------------- association
-def _select(ri: torch.Tensor, fi: torch.Tensor, o, d, p, beta, max_dist, reject_close, n_rays):
+def _base(o: torch.Tensor) -> torch.Tensor:
+    """Common base point of the float32 pair metrics: the rounded mean ray origin."""
+    return torch.round(o.mean(0)) if o.shape[0] else torch.zeros(3, dtype=o.dtype, device=o.device)
+
+
+def _select(ri: torch.Tensor, fi: torch.Tensor, o, d, p, beta, max_dist, reject_close, n_rays, base=None):
     """Filter candidate pairs, per-ray normalised cost, argmin. Returns (rays, frontiers, cost).
 
-    Per pair, in float32 relative to a common base point: ``t = v·d``, ``d_orig² = v·v``,
-    ``d_ortho² = max(v·v - t², 0)`` with ``v = p - o``."""
-    base = torch.round(o.mean(0)) if o.shape[0] else torch.zeros(3, dtype=o.dtype)
+    Per pair, in float32 relative to a common base point (:func:`_base` of all rays):
+    ``t = v·d``, ``d_orig² = v·v``, ``d_ortho² = max(v·v - t², 0)`` with ``v = p - o``."""
+    if base is None:
+        base = _base(o)
     o32 = (o - base).to(torch.float32)
     p32 = (p - base).to(torch.float32)
     d32 = d.to(torch.float32)
@@ -112,11 +124,13 @@ def _argmin_cost(ri, fi, terms, n_rays):
 
 def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Tensor, beta: float, *,
               max_dist: float = -1.0, reject_close: bool = False, zero_depth: bool = False,
-              chunk: int = 1 << 22):
+              chunk: int = 1 << 22, block: int = 4, _base_pt: torch.Tensor | None = None):
     """Match rays to coarse frontiers (cells ``frontier_ijk`` (F, 3) of size ``beta``).
 
     Returns ``(ray_idx (K,), frontier_idx (K,), cost (K,) float64)`` for the rays that found
-    a frontier. Exact same result as :func:`associate_bruteforce`."""
+    a frontier. Exact same result as :func:`associate_bruteforce`. Candidates come from the
+    C++ kernel (:mod:`mapper.kernels`, blocks of ``block``³ coarse cells) when available,
+    else from the torch walk below; the exact test and cost are the same torch code."""
     dev = origins.device
     R, F = origins.shape[0], frontier_ijk.shape[0]
     e = torch.empty(0, dtype=torch.int64, device=dev)
@@ -127,12 +141,7 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     p = (frontier_ijk.to(torch.float64) + 0.5) * beta
     if zero_depth:
         return _nearest(o, p)
-    ray_chunk = 8192  # per-ray results are independent: chunking over rays bounds memory
-    if R > ray_chunk:
-        parts = [associate(origins[s:s + ray_chunk], dirs[s:s + ray_chunk], frontier_ijk, beta, max_dist=max_dist,
-                           reject_close=reject_close, chunk=chunk) for s in range(0, R, ray_chunk)]
-        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, ray_chunk))]),
-                torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
+    base = _base(o) if _base_pt is None else _base_pt
     # ray length: the distance cutoff, or the farthest frontier-bbox corner
     if max_dist > 0:
         L = torch.full((R,), float(max_dist), dtype=torch.float64, device=dev)
@@ -140,6 +149,20 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
         lo, hi = p.min(0).values, p.max(0).values
         far = torch.maximum((o - lo).abs(), (o - hi).abs())
         L = far.norm(dim=1)
+    if KN.enabled(o, d, frontier_ijk):
+        step = KERNEL_RAY_CHUNK
+        parts = [KN.associate_rays(o[s:s + step], d[s:s + step], L[s:s + step], frontier_ijk, beta, base,
+                                   max_dist, reject_close, block) for s in range(0, R, step)]
+        if len(parts) == 1:
+            return parts[0]
+        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, step))]),
+                torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
+    ray_chunk = 8192  # per-ray results are independent: chunking over rays bounds memory
+    if R > ray_chunk:
+        parts = [associate(origins[s:s + ray_chunk], dirs[s:s + ray_chunk], frontier_ijk, beta, max_dist=max_dist,
+                           reject_close=reject_close, chunk=chunk, _base_pt=base) for s in range(0, R, ray_chunk)]
+        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, ray_chunk))]),
+                torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
     ends = o + d * L[:, None]
     # dilated frontier table: cell key -> frontier index
     dil = frontier_ijk.to(torch.int64)[:, None, :] + _OFFS.to(dev)[None]
@@ -153,23 +176,23 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     dil_ijk = K_.unpack(dk)
     lo_c = frontier_ijk.min(0).values.to(torch.int64) - 1
     ext = frontier_ijk.max(0).values.to(torch.int64) + 2 - lo_c
-    dense = int(ext.prod()) <= (1 << 24)
+    dense = int(ext.prod()) <= (1 << 22)  # two int32 tables of at most 16 MiB each
     if dense:
         loc = dil_ijk - lo_c
         flat = (loc[:, 0] * ext[1] + loc[:, 1]) * ext[2] + loc[:, 2]
         uf, cnt_u = torch.unique_consecutive(flat, return_counts=True)
-        tab_start = torch.zeros(int(ext.prod()), dtype=torch.int64, device=dev)
-        tab_cnt = torch.zeros(int(ext.prod()), dtype=torch.int64, device=dev)
-        tab_start[uf] = torch.cumsum(cnt_u, 0) - cnt_u
-        tab_cnt[uf] = cnt_u
+        tab_start = torch.zeros(int(ext.prod()), dtype=torch.int32, device=dev)
+        tab_cnt = torch.zeros(int(ext.prod()), dtype=torch.int32, device=dev)
+        tab_start[uf] = (torch.cumsum(cnt_u, 0) - cnt_u).to(torch.int32)
+        tab_cnt[uf] = cnt_u.to(torch.int32)
     rid, cells = segment_cells(o, ends, beta, chunk=chunk)
     if dense:
         loc = cells - lo_c
         ins = ((loc >= 0) & (loc < ext)).all(1)
         rid, loc = rid[ins], loc[ins]
         flat = (loc[:, 0] * ext[1] + loc[:, 1]) * ext[2] + loc[:, 2]
-        n = tab_cnt[flat]
-        lo_i = tab_start[flat]
+        n = tab_cnt[flat].to(torch.int64)
+        lo_i = tab_start[flat].to(torch.int64)
     else:
         ck = K_.pack(cells)
         lo_i = torch.searchsorted(dk, ck)
@@ -187,7 +210,7 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     if not ri_all:
         return e, e.clone(), torch.empty(0, dtype=torch.float64, device=dev)
     ri, fi = torch.cat(ri_all), torch.cat(fi_all)
-    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R)
+    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, base)
 
 
 def _nearest(o: torch.Tensor, p: torch.Tensor):

@@ -1,0 +1,274 @@
+"""C++ kernels (mapper._rfkernels) vs their torch twins vs independent brute force.
+
+Every kernel-backed function is run twice, with the kernels enabled and disabled
+(:func:`mapper.kernels.disabled`), and the results must be identical (``torch.equal``);
+where an independent reference exists (brute-force association, slab traversal, dense
+unique), both are compared with it too. Without the extension the kernel runs are skipped
+and the torch paths are still checked against the references.
+"""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from common.conventions import sanitize_depth, voxel_index
+from common.geometry import intrinsics_from_fov, look_at
+from mapper import kernels as KN
+from mapper import keys as K_
+from mapper.config import map_config
+from mapper.depth_geometry import aggregate_samples, erode_out_of_range, frame_geometry, sample_image
+from mapper.map import RayFrontsMap
+from mapper.ray_frontiers import associate, associate_bruteforce
+from mapper.traversal import segment_cells, unique_cells
+
+needs_kernels = pytest.mark.skipif(not KN.available(), reason=f"mapper._rfkernels not built: {KN.IMPORT_ERROR}")
+
+
+def both(fn):
+    """(kernel result, torch result) of ``fn()``; kernel result is None without the module."""
+    k = fn() if KN.available() else None
+    with KN.disabled():
+        t = fn()
+    return k, t
+
+
+def assert_same(a, b):
+    if a is None:
+        return
+    if isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert torch.equal(a, b)
+        return
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert_same(x, y)
+
+
+def test_switch_and_env():
+    assert KN.enabled() == (KN.available() and KN._enabled)
+    with KN.disabled():
+        assert not KN.enabled()
+    old = KN.set_enabled(True)
+    assert KN.set_enabled(old) is True
+
+
+# ------------------------------------------------------------------------- association
+def _rays(seed, n_rays, n_front, spread, far=5.0):
+    g = torch.Generator().manual_seed(seed)
+    fr = torch.unique(torch.randint(-spread, spread, (n_front, 3), generator=g), dim=0)
+    o = (torch.rand(n_rays, 3, generator=g, dtype=torch.float64) - 0.5) * 2 * far
+    o[: n_rays // 2] = o[0]
+    d = torch.nn.functional.normalize(torch.randn(n_rays, 3, generator=g, dtype=torch.float64), dim=1)
+    # axis-aligned and planar directions (zero components), origins on cell boundaries
+    d[1:40:3] = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    d[2:40:3] = torch.nn.functional.normalize(torch.tensor([[0.0, -1.0, 1.0]], dtype=torch.float64), dim=1)
+    o[3:40:3] = torch.round(o[3:40:3])
+    return o, d, fr
+
+
+@pytest.mark.parametrize("seed,beta,max_dist,close,block", [
+    (0, 1.0, -1.0, False, 4), (1, 1.2, 15.0, False, 1), (2, 0.5, 8.0, True, 2), (3, 2.0, -1.0, True, 7),
+    (4, 0.3, 6.0, False, 3)])
+def test_associate_kernel_torch_bruteforce(seed, beta, max_dist, close, block):
+    o, d, fr = _rays(seed, 400, 600, 14)
+    k, t = both(lambda: associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, block=block))
+    ref = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close)
+    assert t[0].numel() > 20
+    assert_same(k, t)
+    assert_same(t, ref)
+
+
+def test_associate_far_from_origin_and_float32_rays():
+    # world coordinates ~ 3 km from the origin: the float32 metrics are relative to a base
+    o, d, fr = _rays(5, 300, 500, 12)
+    shift = torch.tensor([2500, -3100, 40])
+    fr = fr + shift
+    o = o + shift.to(torch.float64) * 1.0
+    k, t = both(lambda: associate(o, d.to(torch.float32), fr, 1.0, max_dist=20.0))
+    ref = associate_bruteforce(o, d.to(torch.float32), fr, 1.0, max_dist=20.0)
+    assert t[0].numel() > 20
+    assert_same(k, t)
+    assert_same(t, ref)
+
+
+def test_associate_many_rays_uses_one_base_point(monkeypatch):
+    # more rays than the torch path's ray chunk (8192) and the kernel's (set to 2500): all
+    # chunks share the base point, so the result is the brute force's exactly
+    import mapper.ray_frontiers as RF
+    monkeypatch.setattr(RF, "KERNEL_RAY_CHUNK", 2500)
+    o, d, fr = _rays(6, 9000, 300, 8, far=3.0)
+    o[:4500] += torch.tensor([30.0, 0, 0], dtype=torch.float64)
+    fr = torch.cat([fr, fr + torch.tensor([25, 0, 0])])
+    k, t = both(lambda: associate(o, d, fr, 1.0, max_dist=12.0))
+    ref = associate_bruteforce(o, d, fr, 1.0, max_dist=12.0)
+    assert t[0].numel() > 1000
+    assert_same(k, t)
+    assert_same(t, ref)
+
+
+def test_associate_degenerate_inputs():
+    o, d, fr = _rays(7, 10, 20, 4)
+    e = torch.empty((0, 3), dtype=torch.int64)
+    for args in ((o[:0], d[:0], fr), (o, d, e)):
+        k, t = both(lambda: associate(*args, 1.0, max_dist=5.0))
+        assert t[0].numel() == 0
+        assert_same(k, t)
+    # a single frontier straight ahead: cost 0.5 (ortho term 0, distance term 1)
+    fr1 = torch.tensor([[3, 0, 0]])
+    o1 = torch.tensor([[0.5, 0.5, 0.5]], dtype=torch.float64)
+    d1 = torch.tensor([[1.0, 0, 0]], dtype=torch.float64)
+    k, t = both(lambda: associate(o1, d1, fr1, 1.0))
+    assert t[1].tolist() == [0] and float(t[2][0]) == 0.5
+    assert_same(k, t)
+
+
+# ------------------------------------------------------------------------- keys / unique
+@needs_kernels
+def test_unique_keys_matches_torch_unique():
+    g = torch.Generator().manual_seed(0)
+    for n, hi in ((0, 5), (1, 5), (1000, 7), (50000, 1 << 40), (20000, 30000)):
+        x = torch.randint(-hi, hi, (n,), generator=g)
+        a = KN.unique_keys(x)
+        b = torch.unique(x, sorted=True, return_inverse=True, return_counts=True)
+        assert_same(a, tuple(b))
+
+
+def test_voxel_keys_and_range_errors():
+    g = torch.Generator().manual_seed(1)
+    x = (torch.rand(5000, 3, generator=g, dtype=torch.float64) - 0.5) * 200
+    x[:100] = torch.round(x[:100] / 0.3) * 0.3  # on (or next to) voxel boundaries
+    for xx in (x, x.to(torch.float32)):
+        k, t = both(lambda: KN.voxel_keys(xx, 0.3))
+        assert torch.equal(t, K_.pack(voxel_index(xx.to(torch.float64), 0.3)))
+        assert_same(k, t)
+    far = torch.tensor([[4e6, 0.0, 0.0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match="packable range"):
+        KN.voxel_keys(far, 1.0)
+    with KN.disabled(), pytest.raises(ValueError, match="packable range"):
+        KN.voxel_keys(far, 1.0)
+
+
+# ------------------------------------------------------------------------- traversal
+def test_unique_cells_kernel_torch_dense_sparse():
+    rng = np.random.default_rng(2)
+    o = torch.tensor(rng.uniform(-1, 1, (120, 3)))
+    o[:60] = o[0]
+    e = o + torch.tensor(rng.normal(size=(120, 3)) * 6)
+    e[:20] = torch.round(e[:20] * 2) / 2  # ends on cell boundaries (0.5 m cells)
+    e[20:40, 2] = o[20:40, 2]              # planar segments
+    excl = torch.tensor(rng.uniform(size=120) < 0.5)
+    for chunk in (397, 1 << 22):
+        k, t = both(lambda: unique_cells(o, e, 0.5, exclude_end=excl, chunk=chunk))
+        with KN.disabled():
+            sparse = unique_cells(o, e, 0.5, exclude_end=excl, chunk=chunk, max_dense=0)
+        assert_same(k, t)
+        assert torch.equal(t, sparse)
+        # independent: union of the per-segment pairs
+        rid, c = segment_cells(o, e, 0.5, exclude_end=excl, chunk=chunk)
+        ref = K_.unpack(torch.unique(K_.pack(c)))
+        assert torch.equal(t, ref)
+
+
+# ------------------------------------------------------------------------- frame geometry
+def _world_frames(n, hw, seed=0):
+    world_mod = pytest.importorskip("common.world")
+    w = world_mod.World.generate(seed)
+    poses = w.trajectory("ground", n, seed=seed)
+    K = w.camera(hw, 90.0)
+    out = []
+    for p in poses:
+        r = w.render(p, K, hw)
+        out.append((p, K, r.depth.astype(np.float32), r.rgb))
+    return out
+
+
+@pytest.mark.parametrize("vox,thick,stride,budgets", [(1.0, 2, -1, False), (0.3, 1, 1, True), (0.1, 3, 2, False)])
+def test_frame_geometry_kernel_equals_torch(vox, thick, stride, budgets):
+    for pose, K, depth, _ in _world_frames(3, (72, 96)):
+        d = sanitize_depth(torch.as_tensor(depth), 20.0)
+        kw = dict(max_depth_sensing=20.0, occ_thickness=thick, ray_erosion=3, free_stride=stride)
+        if budgets:
+            kw.update(max_pts=500, max_empty_pts=800, max_rays=50)
+        k, t = both(lambda: frame_geometry(pose, K, d, vox, generator=torch.Generator().manual_seed(3), **kw))
+        assert t.occ_ijk.shape[0] > 10 and t.free_ijk.shape[0] > 10
+        if k is not None:
+            for f in ("origin", "occ_ijk", "free_ijk", "pts_xyz", "pts_pix", "ray_dirs", "ray_pix"):
+                assert torch.equal(getattr(k, f), getattr(t, f)), f
+
+
+def test_erosion_random_masks_vs_pooling():
+    g = torch.Generator().manual_seed(4)
+    for h, w, r in ((40, 56, 3), (17, 9, 6), (64, 64, 32), (5, 7, 1)):
+        m = torch.rand(h, w, generator=g) < 0.95
+        m[: h // 3] = True
+        pad = torch.ones(h + 2 * r, w + 2 * r, dtype=torch.bool)
+        pad[r:r + h, r:r + w] = m
+        ref = torch.nn.functional.max_pool2d((~pad).float()[None, None], 2 * r + 1, stride=1)[0, 0] == 0
+        assert torch.equal(erode_out_of_range(m, r), ref)
+
+
+# ------------------------------------------------------------------------- feature sampling
+@pytest.mark.parametrize("src_hw,dtype,mode", [((5, 7), torch.float16, "bilinear"), ((5, 7), torch.float32, "nearest"),
+                                               ((30, 40), torch.float32, "bilinear"), ((30, 40), torch.float32, "nearest"),
+                                               ((12, 40), torch.float32, "bilinear")])
+def test_aggregate_kernel_torch_and_reference(src_hw, dtype, mode):
+    g = torch.Generator().manual_seed(5)
+    H, W = 30, 40
+    img = torch.randn(6, *src_hw, generator=g).to(dtype)
+    pix = torch.randperm(H * W, generator=g)[:900]
+    grp = torch.randint(0, 37, (900,), generator=g)
+    k, t = both(lambda: aggregate_samples(img, pix, (H, W), grp, 37, mode))
+    assert_same(k, t)
+    ref = torch.zeros(37, 6).index_add_(0, grp, sample_image(img, pix, (H, W), mode))
+    torch.testing.assert_close(t, ref, atol=1e-4, rtol=1e-4)
+    if mode == "bilinear":
+        up = torch.nn.functional.interpolate(img.float()[None], size=(H, W), mode="bilinear", align_corners=False)[0]
+        ref2 = torch.zeros(37, 6).index_add_(0, grp, up.reshape(6, -1).T[pix])
+        torch.testing.assert_close(t, ref2, atol=1e-4, rtol=1e-4)
+    with KN.disabled():
+        sparse = aggregate_samples(img, pix, (H, W), grp, 37, mode, max_dense=0)
+    torch.testing.assert_close(sparse, t, atol=1e-5, rtol=1e-5)
+
+
+@needs_kernels
+def test_kernel_bad_inputs_raise():
+    from mapper import _rfkernels as R
+    with pytest.raises(IndexError):
+        R.sample_pairs(np.array([0, 5]), np.array([0, 1]), 4, 4, 2, 2, False, 3)  # group 5 >= 3
+    with pytest.raises(IndexError):
+        R.sample_pairs(np.array([0, 1]), np.array([0, 16]), 4, 4, 2, 2, False, 3)  # pixel 16 >= 4*4
+    with pytest.raises(ValueError):
+        R.associate_rays(np.zeros((2, 3)), np.zeros((1, 3)), np.zeros(2), np.zeros((1, 3), np.int64), 1.0, 4,
+                         np.zeros(3), -1.0, False)
+
+
+# ------------------------------------------------------------------------- whole map
+def test_map_kernel_equals_torch_end_to_end():
+    frames = _world_frames(12, (48, 64), seed=2)
+    cfg = map_config("online", dict(vox_size=0.5, vox_accum_period=2, ray_accum_period=3, ray_accum_phase=1,
+                                    max_rays_per_frame=300, ray_erosion=2, fronti_subsampling_min_fronti=2))
+    g = torch.Generator().manual_seed(0)
+    feats = [torch.randn(5, 6, 8, generator=g).to(torch.float16) for _ in frames]
+
+    def run():
+        m = RayFrontsMap(cfg, 5, "t")
+        for (p, K, d, rgb), f in zip(frames, feats):
+            m.integrate(p, K, d, rgb, f)
+        m.flush()
+        return m
+
+    k, t = both(run)
+    st = t.stats()
+    assert st["n_voxels"] > 100 and st["n_frontiers"] > 0 and st["n_rays"] > 0
+    if k is not None:
+        a, b = k.voxels(), t.voxels()
+        for f in ("xyz", "rgb", "features", "counts"):
+            assert torch.equal(getattr(a, f), getattr(b, f)), f
+        assert torch.equal(k.frontiers().keys, t.frontiers().keys)
+        ra, rb = k.rays(), t.rays()
+        for f in ("origins", "directions", "features", "weights", "frontier_keys"):
+            assert torch.equal(getattr(ra, f), getattr(rb, f)), f
+        sa, sb = k.occupancy.active(), t.occupancy.active()
+        assert torch.equal(sa[0], sb[0]) and torch.equal(sa[1], sb[1])
+    assert math.isfinite(float(t.rays().weights.sum()))
