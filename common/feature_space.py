@@ -123,9 +123,11 @@ class FeatureSpace:
             raise FeatureSpaceError(f"bad dims in feature-space body: in_dim={in_dim}, dim={dim}")
         pca = None
         if get("has_pca", int):
-            mean = np.asarray(get("pca.mean", np.ndarray))
-            basis = np.asarray(get("pca.basis", np.ndarray))
-            ev = np.asarray(body.get("pca.explained_variance", np.zeros(dim)))
+            # decoded arrays are read-only views of the message: own writable copies, so torch
+            # can wrap them (torch.from_numpy warns on non-writable arrays)
+            mean = np.array(get("pca.mean", np.ndarray), dtype=np.float32)
+            basis = np.array(get("pca.basis", np.ndarray), dtype=np.float32)
+            ev = np.array(body.get("pca.explained_variance", np.zeros(dim)), dtype=np.float64)
             if mean.shape != (in_dim,) or basis.shape != (in_dim, dim) or ev.shape != (dim,):
                 raise FeatureSpaceError(f"PCA shapes in body: mean {mean.shape}, basis {basis.shape}, "
                                         f"explained_variance {ev.shape}; expected ({in_dim},), ({in_dim}, {dim}), ({dim},)")
@@ -143,7 +145,7 @@ class FeatureSpace:
                 hc = MLP2Config.from_dict(cfg)
             except (ValueError, TypeError) as e:
                 raise FeatureSpaceError(f"bad language head config in body: {e}") from None
-            hs = {k[len("head.sd."):]: np.asarray(v) for k, v in body.items() if k.startswith("head.sd.")}
+            hs = {k[len("head.sd."):]: np.array(v) for k, v in body.items() if k.startswith("head.sd.")}
             expect = {k: tuple(v.shape) for k, v in MLP2(hc, device="meta").state_dict().items()}
             got = {k: tuple(v.shape) for k, v in hs.items()}
             if expect != got:
@@ -228,6 +230,57 @@ class FeatureSpace:
             out[:, i:i + chunk] = qn @ torch.nn.functional.normalize(x, dim=1).T
         return out
 
+    @torch.inference_mode()
+    def prepare(self, map_feats, device="cpu", chunk: int = 65536, workspace: torch.Tensor | None = None,
+                max_cache_bytes: int = 1 << 28) -> "PreparedFeatures":
+        """Map features ``(N, dim)`` prepared for many queries: what does not depend on the
+        query is computed once, so :meth:`PreparedFeatures.similarity` equals
+        :meth:`similarity` (same cosine, float32) at the cost of one ``(N×dim)·(dim×Q)``
+        matmul and two passes over the ``(N, Q)`` result.
+
+        * no language head: ``Y`` = the features as float32 (row-major ``(N, dim)``,
+          ``4·dim·N`` bytes: ``map_feats`` itself when it already is contiguous float32 on
+          ``device`` — it must then not change while the result is used —, else a copy into
+          ``workspace``, a flat float32 tensor from an earlier :meth:`PreparedFeatures.storage`,
+          when big enough) and ``s = 1/|x|``
+          (0 for zero rows) with ``|x|² = |y|² + 2·yᵀ(Vᵀm) + |m|²``; a query is
+          ``(Y·(Vᵀq̂) + q̂ᵀm)·s``.
+        * with a head: the normalised language-space features are cached when they take at
+          most ``max_cache_bytes``, else each query maps the stored features in chunks.
+        """
+        dev = torch.device(device)
+        y = torch.as_tensor(map_feats)
+        if y.ndim != 2 or y.shape[1] != self.dim:
+            raise FeatureSpaceError(f"map features must be (N, {self.dim}), got {tuple(y.shape)}")
+        n = y.shape[0]
+        if self.head_config is None:
+            need = n * self.dim
+            if y.dtype == torch.float32 and y.device == dev and y.is_contiguous() and workspace is None:
+                flat = y.view(-1)
+            elif workspace is not None and workspace.dtype == torch.float32 and workspace.device == dev \
+                    and workspace.numel() >= need:
+                flat = workspace
+            else:
+                flat = torch.empty(max(need, 1), dtype=torch.float32, device=dev)
+            y32 = flat[:need].view(n, self.dim)
+            if y32.data_ptr() != y.data_ptr() or y.dtype != torch.float32:
+                y32.copy_(y)
+            n2 = torch.linalg.vector_norm(y32, dim=1).square_()
+            if self.pca is not None:
+                m, v = self.pca.torch_basis(dev, torch.float32)
+                vm = (v.double().T @ m.double()).float()       # (k,)  Vᵀm
+                n2.addmv_(y32, vm, alpha=2.0)                   # |V·y + m|² (V orthonormal)
+                n2 += float(m.double() @ m.double())
+            inv = torch.where(n2 > 1e-20, n2.clamp_min(1e-20).rsqrt(), torch.zeros_like(n2))
+            return PreparedFeatures(self, dev, n, y32, inv, flat)
+        if n * self.lang_dim * 4 <= max_cache_bytes:
+            lang = torch.empty((n, self.lang_dim), dtype=torch.float32, device=dev)
+            for i in range(0, n, chunk):
+                x = self.to_language(y[i:i + chunk], device=dev)
+                lang[i:i + chunk] = torch.nn.functional.normalize(x, dim=1)
+            return PreparedFeatures(self, dev, n, lang, None, None)
+        return PreparedFeatures(self, dev, n, None, None, None, raw=y)
+
     def embed_queries(self, texts: Sequence[str], text_encoder, templates: str = "none") -> torch.Tensor:
         """Embed query strings with ``text_encoder`` (must match :attr:`text_model`): ``(Q, lang_dim)``."""
         name = getattr(text_encoder, "name", None)
@@ -238,3 +291,52 @@ class FeatureSpace:
         if q.shape[-1] != self.lang_dim:
             raise FeatureSpaceError(f"text encoder gives {q.shape[-1]}-d embeddings, space needs {self.lang_dim}")
         return q
+
+
+class PreparedFeatures:
+    """Map features of one :class:`FeatureSpace` prepared for repeated queries (see
+    :meth:`FeatureSpace.prepare`). Read-only after construction; ``len()`` = N."""
+
+    def __init__(self, space: FeatureSpace, device: torch.device, n: int, feats: torch.Tensor | None,
+                 inv_norm: torch.Tensor | None, storage: torch.Tensor | None, raw: torch.Tensor | None = None):
+        self.space, self.device, self.n = space, device, int(n)
+        self._y, self._inv, self._storage, self._raw = feats, inv_norm, storage, raw
+
+    def __len__(self) -> int:
+        return self.n
+
+    def storage(self) -> torch.Tensor | None:
+        """The flat float32 buffer behind the prepared features (pass as ``workspace``)."""
+        return self._storage
+
+    @torch.inference_mode()
+    def similarity(self, queries) -> torch.Tensor:
+        """``(Q, N)`` float32 cosine of language-space ``queries`` ``(Q, lang_dim)`` with the
+        prepared features (equal to :meth:`FeatureSpace.similarity` up to float32 rounding;
+        may be a transposed view)."""
+        fs = self.space
+        q = torch.as_tensor(queries).to(self.device, torch.float32)
+        if q.ndim == 1:
+            q = q[None]
+        if q.ndim != 2 or q.shape[1] != fs.lang_dim:
+            raise FeatureSpaceError(f"queries must be (Q, {fs.lang_dim}) in {fs.text_model} space, "
+                                    f"got {tuple(q.shape)}")
+        if self._y is None:
+            return fs.similarity(self._raw, q, device=self.device)
+        qn = torch.nn.functional.normalize(q, dim=1)
+        if self.n == 0:
+            return torch.zeros((q.shape[0], 0), dtype=torch.float32, device=self.device)
+        qm = None
+        if self._inv is not None and fs.pca is not None:
+            m, v = fs.pca.torch_basis(self.device, torch.float32)
+            q64 = qn.double()
+            qn, qm = (q64 @ v.double()).float(), (q64 @ m.double()).float()   # Vᵀq̂ (Q, k), q̂ᵀm (Q,)
+        if qn.shape[0] == 1:
+            out = torch.mv(self._y, qn[0])[:, None]                           # (N, 1)
+        else:
+            out = self._y @ qn.T                                              # (N, Q)
+        if qm is not None:
+            out += qm
+        if self._inv is not None:
+            out *= self._inv[:, None]
+        return out.T

@@ -15,7 +15,17 @@ Data path::
 Nothing raised in a callback escapes it; nothing malformed reaches the map. Frames of a
 robot whose feature space is unknown are held in its queue until a ``get`` on
 ``robots/<robot>/feature_space`` answers; frames whose feature space differs from the
-map's are rejected (maps never mix spaces). All map access holds one lock.
+map's are rejected (maps never mix spaces).
+
+Locking: ``lock`` (the map lock) guards the map and its feature space; ``qlock`` the robot
+table and queues; ``query_lock`` serialises queries (one-shot and standing), always taken
+*before* ``lock``. A query holds the map lock only to copy the arrays it reads into a
+:class:`mapper.service_map.QuerySnapshot` (an O(N·dim) memcpy into reused buffers, once per
+map generation — ``map_gen`` bumps on every integrate, flush, create and restore); it
+scores, clusters and measures outside the lock, so mapping goes on meanwhile. A query waits
+at most ``query.lock_timeout_s`` for the map lock (held while one frame is integrated);
+after that it is answered from the last snapshot (``timings.stale = 1``, ``frames_mapped``
+says which map state). Standing queries run on their own thread, not the mapping thread.
 """
 from __future__ import annotations
 
@@ -124,6 +134,10 @@ class MapperService:
         self.stop = stop or threading.Event()
         self.lock = threading.RLock()          # map + feature space
         self.qlock = threading.Lock()          # robot table + queues
+        self.query_lock = threading.Lock()     # serialises queries; taken before `lock`
+        self.map_gen = 0                       # bumps on every change of the map (under `lock`)
+        self._qsnap = None                     # QuerySnapshot of the last query
+        self._standing_due = threading.Event()
         self.map = None
         self.space = None                      # FeatureSpace of the map
         self.space_reply: bytes | None = None  # its envelope (for snapshots)
@@ -180,7 +194,8 @@ class MapperService:
         except Exception:
             self.close()
             raise
-        for name, fn in (("mapper-map", self._map_loop), ("mapper-space", self._space_loop)):
+        for name, fn in (("mapper-map", self._map_loop), ("mapper-space", self._space_loop),
+                         ("mapper-standing", self._standing_loop)):
             t = threading.Thread(target=fn, name=name, daemon=True)
             t.start()
             self._threads.append(t)
@@ -202,6 +217,7 @@ class MapperService:
         self._closed = True
         self.stop.set()
         self._wake.set()
+        self._standing_due.set()
         for t in self._threads:
             t.join(timeout=30.0)
         for e in reversed(self._entities):
@@ -367,6 +383,7 @@ class MapperService:
         from mapper.service_map import create_map
 
         self.map = create_map(self.cfg, fs)
+        self.map_gen += 1
         self.space = fs
         self.space_reply = envelope
         log.info("map created in feature space %s (dim %d)", fs.id, fs.dim)
@@ -428,7 +445,10 @@ class MapperService:
                     with self.lock:
                         from mapper.service_map import integrate
 
-                        integrate(self.map, frame, self.cfg.device)
+                        try:
+                            integrate(self.map, frame, self.cfg.device)
+                        finally:
+                            self.map_gen += 1
                         self.version += 1
                 except Exception as e:
                     log.exception("integrating frame %s/%d failed", st.name, frame.seq)
@@ -460,7 +480,7 @@ class MapperService:
             if (self.standing and self.version != standing_version and qcfg.standing_rate_hz > 0
                     and now - last_standing >= 1.0 / qcfg.standing_rate_hz):
                 last_standing, standing_version = now, self.version
-                self._run_standing()
+                self._standing_due.set()
             lcfg = self.cfg.layers
             if (lcfg.rate_hz > 0 and self.version != layers_version and now - last_layers >= 1.0 / lcfg.rate_hz
                     and (item is None or now - last_layers >= 5.0 / lcfg.rate_hz)):
@@ -484,6 +504,7 @@ class MapperService:
                 flush(self.map)
             except Exception as e:
                 self._warn("flush", "map flush failed: %s", e)
+            self.map_gen += 1
             self.flushed_version = v
 
     # ================================================================ layers
@@ -536,15 +557,49 @@ class MapperService:
             log.warning("layer query failed: %s", e)
 
     # =============================================================== queries
-    def run_query(self, req: QueryRequest):
-        from mapper.service_map import answer_query
+    def _snapshot(self, timings: dict):
+        """The QuerySnapshot of the current map generation (caller holds ``query_lock``)."""
+        from mapper.service_map import QuerySnapshot
 
-        t0 = time.perf_counter()
-        with self.lock:
+        snap = self._qsnap
+        if snap is not None and snap.gen == self.map_gen:
+            return snap
+        fresh = QuerySnapshot() if snap is None else snap
+        m = self.map
+        if m is not None:
+            fresh.reserve(m)                      # allocations outside the lock (size hint)
+        t = time.perf_counter()
+        got = self.lock.acquire(timeout=max(0.0, float(self.cfg.query.lock_timeout_s)))
+        if not got and snap is None:
+            got = self.lock.acquire()            # nothing to fall back on: wait for the frame
+        timings["lock_wait"] = (time.perf_counter() - t) * 1e3
+        if not got:
+            timings["stale"] = 1.0
+            return snap
+        try:
             if self.map is None:
                 raise MessageError("the map is empty (no frames mapped yet)")
-            res = answer_query(self.map, self.space, req, self.cfg.query, device=self.cfg.device)
-            res.frames_mapped = self.mapped
+            if snap is None or snap.gen != self.map_gen:
+                snap = fresh.take(self.map, self.map_gen, self.mapped)
+                self._qsnap = snap
+                timings["snapshot"] = snap.take_ms
+        finally:
+            self.lock.release()
+        return snap
+
+    def run_query(self, req: QueryRequest):
+        from mapper.service_map import answer_snapshot
+
+        t0 = time.perf_counter()
+        if self.map is None:
+            raise MessageError("the map is empty (no frames mapped yet)")
+        with self.query_lock:
+            timings: dict = {}
+            snap = self._snapshot(timings)
+            res = answer_snapshot(snap, self.space, req, self.cfg.query, device=self.cfg.device,
+                                  model_dir=self.cfg.text_model_dir)
+            res.frames_mapped = snap.frames_mapped
+        res.timings.update(timings)
         res.stamp = time.time()
         res.timings["total"] = (time.perf_counter() - t0) * 1e3
         self.timings["query_ms"].add(res.timings["total"])
@@ -581,6 +636,16 @@ class MapperService:
             query.reply(query.key_expr, payload)
         except Exception as e:
             log.warning("query callback: %s", e)
+
+    def _standing_loop(self) -> None:
+        """Re-runs standing queries when the mapping thread says the map changed."""
+        while not self.stop.is_set():
+            if not self._standing_due.wait(0.5):
+                continue
+            self._standing_due.clear()
+            if self.stop.is_set():
+                return
+            self._run_standing()
 
     def _run_standing(self) -> None:
         for qid, req in list(self.standing.items()):
@@ -661,6 +726,7 @@ class MapperService:
             _, body = decode_feature_space(envelope)
             fs = FeatureSpace.from_body(body)
             self.map = load_map(path / "map", self.cfg, fs)
+            self.map_gen += 1
         except Exception as e:
             log.error("cannot restore snapshot %s: %s (starting empty)", path, e)
             self.map = None

@@ -32,7 +32,12 @@ class QuerySection:
     search_range_m: float = field_(200.0, "cones of ray hits are cut at this distance when computing the "
                                           "search volume (m)")
     search_rays: int = field_(10, "top rays whose cones make up the search volume")
-    search_cell_m: float = field_(2.0, "grid cell size used to measure the union of cones (m)")
+    search_cell_m: float = field_(2.0, "finest spacing of the sample lattice that measures the union of cones (m)")
+    search_samples: int = field_(100_000, "sample points (all cones together) that measure the search volume; caps "
+                                          "its cost (exact for one cone, disjoint or identical cones)")
+    lock_timeout_s: float = field_(0.25, "a query waits at most this long for the map lock (held while a frame is "
+                                         "integrated); after that it is answered from the last map snapshot, whose "
+                                         "frames_mapped the result carries")
 
 
 @dataclass

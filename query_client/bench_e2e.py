@@ -11,7 +11,13 @@ Measures, in one run:
   processes share this host's clock);
 * ``bytes_per_frame``: frame message size on the wire (mean / max), seen by a subscriber;
 * ``query_rtt_ms``: query round trip from a client (embedding query: no text encoding) on
-  a map of ``--query-voxels`` voxels, restored into a mapper from a snapshot written here.
+  a map of ``--query-voxels`` voxels and ``--query-rays`` ray bins, restored into a mapper
+  from a snapshot written here (the first query, which copies the map and prepares its
+  features, is a warm-up and not timed); ``query_server_ms`` the mapper's own time and
+  ``query_server_stages_ms`` its stages for the last query.
+
+``--only query`` runs just the query part (a random orthonormal PCA basis stands in for the
+fitted one: the cost depends on the sizes only); ``--only stream`` just the streaming part.
 """
 from __future__ import annotations
 
@@ -41,7 +47,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "includes queueing at the mapper; give a rate below e2e_fps for unloaded latency)")
     parser.add_argument("--preset", default="throughput", help="mapper preset (default throughput)")
     parser.add_argument("--query-voxels", type=int, default=1_000_000, help="voxels of the query map (default 1M)")
+    parser.add_argument("--query-rays", type=int, default=10_000,
+                        help="semantic ray bins of the query map (default 10k; they are scored and the best "
+                             "rays' cones make up the search volume)")
     parser.add_argument("--queries", type=int, default=10, help="query round trips to time (default 10)")
+    parser.add_argument("--only", choices=("all", "stream", "query"), default="all",
+                        help="run only the streaming part (encoder, e2e fps, latency, bytes) or only the "
+                             "query-latency part (a random PCA basis stands in for the fitted one); default all")
     parser.add_argument("--shm", action="store_true", help="keep Zenoh shared memory on (default off: network path)")
     parser.add_argument("--workdir", type=Path, default=None, help="keep logs and snapshots here")
 
@@ -85,8 +97,19 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, stride: int) 
     return len(frames) / dt, {"mean": float(np.mean(sizes)), "max": int(np.max(sizes))}
 
 
-def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str) -> np.ndarray:
-    """A mapper snapshot holding ``n_vox`` random semantic voxels; returns a query embedding."""
+def _random_pca(path: Path, in_dim: int, out_dim: int) -> None:
+    """A random orthonormal PCA basis (``--only query``: no encoder run needed)."""
+    from common.pca import PCA
+
+    rng = np.random.default_rng(0)
+    basis = np.linalg.qr(rng.standard_normal((in_dim, out_dim)))[0].astype(np.float32)
+    PCA(rng.standard_normal(in_dim).astype(np.float32) * 0.1, basis, np.ones(out_dim)).save(path)
+
+
+def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: int = 0) -> np.ndarray:
+    """A mapper snapshot holding ``n_vox`` random semantic voxels (a cube of 0.5 m voxels)
+    and ``n_rays`` random ray bins (one per frontier, random unit directions); returns a
+    query embedding."""
     import torch
 
     from common.feature_space import FeatureSpace
@@ -108,13 +131,20 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str) -> np.nda
         b = min(n_vox, a + 250_000)
         m.sem.fuse(xyz[a:b], torch.rand((b - a, 3), generator=g), torch.randn((b - a, pca.out_dim), generator=g))
     assert len(m.sem) == n_vox
+    if n_rays > 0:
+        from mapper import keys as K_
+
+        fk = torch.unique(K_.pack(torch.randint(-400, 400, (n_rays, 3), generator=g)))
+        r = fk.numel()
+        z = torch.zeros(r, dtype=torch.int64)
+        m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(),
+                                "feat": torch.randn((r, pca.out_dim), generator=g), "weight": torch.ones(r),
+                                "dsum": torch.nn.functional.normalize(torch.randn((r, 3), generator=g), dim=1)})
     write_snapshot(root, m, encode_feature_space("bench", fs.to_body()), {"frames_mapped": 0, "robots": {}})
     return np.random.default_rng(0).standard_normal(pca.in_dim).astype(np.float32)
 
 
 def run(args: argparse.Namespace) -> dict:
-    from common.zenoh_session import ZenohConfig, free_tcp_port
-    from query_client.client import Client
     from query_client.demo import zenoh_env
 
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="rayfronts-bench-e2e-"))
@@ -124,10 +154,8 @@ def run(args: argparse.Namespace) -> dict:
     out: dict = {"machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
                  "settings": {"frames": args.frames, "resolution": args.resolution, "pca_dim": args.pca_dim,
                               "preset": args.preset, "shared_memory": args.shm, "label_stride": args.label_stride,
-                              "rate_hz": args.rate}}
-    enc_fps, sizes_local = _encoder_alone(args.resolution, args.pca_dim, args.frames, pca_path, args.label_stride)
-    out["bytes_per_frame_local"] = sizes_local
-    out["encoder_fps"] = enc_fps
+                              "rate_hz": args.rate, "only": args.only, "query_voxels": args.query_voxels,
+                              "query_rays": args.query_rays}}
     env = zenoh_env()
     procs = []
 
@@ -151,74 +179,97 @@ def run(args: argparse.Namespace) -> dict:
             f.close()
         procs.clear()
 
-    import zenoh
-
     try:
-        # ---------------------------------------------------------------- streaming
-        ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-        zs = f"transport/shared_memory/enabled={shm}"
-        start("router", "router", "--listen", ep, "--zenoh-set", zs)
-        start("mapper", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs, f"preset={args.preset}",
-              "map.depth_limit=20", "queues.per_robot=100000", "layers.rate_hz=0")
-        zc = ZenohConfig(connect=[ep], connect_timeout_ms=60_000, shared_memory=args.shm)
-        sizes = []
-        with Client(zc, timeout=30.0) as c:
-            sub = c.session.declare_subscriber(c.keys.frames_all, lambda s: sizes.append(len(s.payload.to_bytes())))
-            edge = start("edge", "edge", "--connect", ep, "--zenoh-set", zs, "--rate", str(args.rate), "robot=bench",
-                         f"encoder.label_stride={args.label_stride}",
-                         f"source.n_frames={args.frames}", f"source.resolution={args.resolution}",
-                         "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}")
-            end = time.monotonic() + 600
-            st = None
-            while time.monotonic() < end:
-                time.sleep(0.5)
-                try:
-                    st = c.stats(timeout=5.0)
-                except Exception:
-                    continue
-                if edge.poll() is not None and sum(st["queues"].values()) == 0 and st["frames"]["mapped"] > 0:
-                    break
-            sub.undeclare()
-        fr = st["frames"]
-        span = (st["last_mapped_at"] or 0) - (st["first_mapped_at"] or 0)
-        out["e2e_frames_mapped"] = fr["mapped"]
-        out["e2e_dropped"] = fr["dropped"]
-        out["e2e_fps"] = (fr["mapped"] - 1) / span if span > 0 else None
-        out["e2e_vs_encoder"] = out["e2e_fps"] / enc_fps if out["e2e_fps"] else None
-        out["latency_ms"] = {k: st["timings"]["latency_ms"].get(k) for k in ("p50", "p95", "max")}
-        out["integrate_ms"] = {k: st["timings"]["integrate_ms"].get(k) for k in ("p50", "p95")}
-        out["bytes_per_frame"] = {"mean": float(np.mean(sizes)) if sizes else None,
-                                  "max": int(np.max(sizes)) if sizes else None, "n": len(sizes),
-                                  "target_max": 100_000}
-        stop_all()
-        # ---------------------------------------------------------------- queries on a big map
-        snaps = work / "snaps"
-        t0 = time.perf_counter()
-        emb = _big_snapshot(snaps, args.query_voxels, pca_path, args.preset)
-        out["query_map_build_s"] = time.perf_counter() - t0
-        ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-        start("mapper_q", "mapper", "--mode", "router", "--listen", ep, "--zenoh-set", zs, f"preset={args.preset}",
-              f"snapshots.dir={snaps}", "snapshots.on_exit=false", "layers.rate_hz=0")
-        with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000, shared_memory=args.shm), timeout=120.0) as c:
-            st = None
-            end = time.monotonic() + 300
-            while time.monotonic() < end:
-                try:
-                    st = c.stats(timeout=10.0)
-                    break
-                except Exception:
-                    time.sleep(1.0)
-            out["query_map_voxels"] = st["map"]["n_voxels"]
-            rtts, server = [], []
-            c.query(embedding=emb, top_k=10, timeout=120.0)  # warm-up
-            for _ in range(args.queries):
-                t = time.perf_counter()
-                r = c.query(embedding=emb, top_k=10, timeout=120.0)
-                rtts.append((time.perf_counter() - t) * 1e3)
-                server.append(r.timings.get("total", 0.0))
-            out["query_rtt_ms"] = _pct(rtts)
-            out["query_server_ms"] = _pct(server)
+        if args.only != "query":
+            _stream(args, out, work, pca_path, shm, start, stop_all)
+        else:
+            _random_pca(pca_path, 384, args.pca_dim)
+        if args.only != "stream":
+            _queries(args, out, work, pca_path, shm, start)
     finally:
         stop_all()
     out["workdir"] = str(work)
     return out
+
+
+def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_all) -> None:
+    from common.zenoh_session import ZenohConfig, free_tcp_port
+    from query_client.client import Client
+
+    enc_fps, sizes_local = _encoder_alone(args.resolution, args.pca_dim, args.frames, pca_path, args.label_stride)
+    out["bytes_per_frame_local"] = sizes_local
+    out["encoder_fps"] = enc_fps
+    zs = f"transport/shared_memory/enabled={shm}"
+    # ---------------------------------------------------------------- streaming
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    start("router", "router", "--listen", ep, "--zenoh-set", zs)
+    start("mapper", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs, f"preset={args.preset}",
+          "map.depth_limit=20", "queues.per_robot=100000", "layers.rate_hz=0")
+    zc = ZenohConfig(connect=[ep], connect_timeout_ms=60_000, shared_memory=args.shm)
+    sizes = []
+    with Client(zc, timeout=30.0) as c:
+        sub = c.session.declare_subscriber(c.keys.frames_all, lambda s: sizes.append(len(s.payload.to_bytes())))
+        edge = start("edge", "edge", "--connect", ep, "--zenoh-set", zs, "--rate", str(args.rate), "robot=bench",
+                     f"encoder.label_stride={args.label_stride}",
+                     f"source.n_frames={args.frames}", f"source.resolution={args.resolution}",
+                     "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}")
+        end = time.monotonic() + 600
+        st = None
+        while time.monotonic() < end:
+            time.sleep(0.5)
+            try:
+                st = c.stats(timeout=5.0)
+            except Exception:
+                continue
+            if edge.poll() is not None and sum(st["queues"].values()) == 0 and st["frames"]["mapped"] > 0:
+                break
+        sub.undeclare()
+    fr = st["frames"]
+    span = (st["last_mapped_at"] or 0) - (st["first_mapped_at"] or 0)
+    out["e2e_frames_mapped"] = fr["mapped"]
+    out["e2e_dropped"] = fr["dropped"]
+    out["e2e_fps"] = (fr["mapped"] - 1) / span if span > 0 else None
+    out["e2e_vs_encoder"] = out["e2e_fps"] / enc_fps if out["e2e_fps"] else None
+    out["latency_ms"] = {k: st["timings"]["latency_ms"].get(k) for k in ("p50", "p95", "max")}
+    out["integrate_ms"] = {k: st["timings"]["integrate_ms"].get(k) for k in ("p50", "p95")}
+    out["bytes_per_frame"] = {"mean": float(np.mean(sizes)) if sizes else None,
+                              "max": int(np.max(sizes)) if sizes else None, "n": len(sizes),
+                              "target_max": 100_000}
+    stop_all()
+
+
+def _queries(args, out: dict, work: Path, pca_path: Path, shm: str, start) -> None:
+    from common.zenoh_session import ZenohConfig, free_tcp_port
+    from query_client.client import Client
+
+    # ---------------------------------------------------------------- queries on a big map
+    zs = f"transport/shared_memory/enabled={shm}"
+    snaps = work / "snaps"
+    t0 = time.perf_counter()
+    emb = _big_snapshot(snaps, args.query_voxels, pca_path, args.preset, args.query_rays)
+    out["query_map_build_s"] = time.perf_counter() - t0
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    start("mapper_q", "mapper", "--mode", "router", "--listen", ep, "--zenoh-set", zs, f"preset={args.preset}",
+          f"snapshots.dir={snaps}", "snapshots.on_exit=false", "layers.rate_hz=0")
+    with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000, shared_memory=args.shm), timeout=120.0) as c:
+        st = None
+        end = time.monotonic() + 300
+        while time.monotonic() < end:
+            try:
+                st = c.stats(timeout=10.0)
+                break
+            except Exception:
+                time.sleep(1.0)
+        out["query_map_voxels"] = st["map"]["n_voxels"]
+        out["query_map_rays"] = st["map"]["n_rays"]
+        rtts, server = [], []
+        c.query(embedding=emb, top_k=10, timeout=120.0)  # warm-up
+        for _ in range(args.queries):
+            t = time.perf_counter()
+            r = c.query(embedding=emb, top_k=10, timeout=120.0)
+            rtts.append((time.perf_counter() - t) * 1e3)
+            server.append(r.timings.get("total", 0.0))
+        out["query_rtt_ms"] = _pct(rtts)
+        out["query_server_ms"] = _pct(server)
+        out["query_server_stages_ms"] = {k: float(v) for k, v in r.timings.items()}
+        out["query_mapper_rss_mb"] = c.stats(timeout=10.0).get("rss_mb")

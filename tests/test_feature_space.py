@@ -116,3 +116,22 @@ def test_embed_queries_checks_text_model():
     assert fs.embed_queries(["a", "b"], Fake()).shape == (2, 32)
     with pytest.raises(FeatureSpaceError, match="siglip"):
         FeatureSpace("naradio", "1", 32, "siglip").embed_queries(["a"], Fake())
+
+
+def test_from_decoded_message_has_writable_arrays_and_no_torch_warning():
+    import warnings
+
+    from common.messages import decode_feature_space, encode_feature_space
+
+    p, X = _pca()
+    hc, hs = _head()
+    fs = FeatureSpace("naradio", "v1", 32, "siglip", p, hc, hs)
+    _, body = decode_feature_space(encode_feature_space("r1", fs.to_body()))
+    assert not body["pca.basis"].flags.writeable          # the wire hands out read-only views
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = FeatureSpace.from_body(body)
+        assert back.pca.basis.flags.writeable and back.pca.mean.flags.writeable
+        y = torch.from_numpy(p.compress(X[:20].astype(np.float32)))
+        torch.testing.assert_close(back.to_language(y), fs.to_language(y))
+        torch.testing.assert_close(back.similarity(y, torch.randn(2, 12)).shape, torch.Size([2, 20]))
