@@ -434,8 +434,9 @@ class MapperService:
             if item is None:
                 self._wake.wait(0.05)
                 self._wake.clear()
-                if (self.map is not None and self.version != self.flushed_version
-                        and time.monotonic() - idle_since > 0.3):
+                idle_s = self.cfg.queues.idle_flush_s
+                if (self.map is not None and self.version != self.flushed_version and idle_s > 0
+                        and time.monotonic() - idle_since > idle_s):
                     self._flush()
             else:
                 idle_since = time.monotonic()

@@ -14,6 +14,9 @@ class QueueSection:
     hold_unknown_space: bool = field_(True, "hold frames of a robot whose feature space is not known yet "
                                             "(else reject them)")
     max_message_mb: float = field_(64.0, "frame messages larger than this are rejected")
+    idle_flush_s: float = field_(2.0, "when no frame arrived for this long (s), integrate what the map still buffers "
+                                      "(accumulation periods) so queries see every frame; 0 = never. Keep it above "
+                                      "the robots' frame interval, or the accumulation periods lose their meaning")
 
 
 @dataclass

@@ -159,7 +159,10 @@ def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pc
     from common.feature_space import FeatureSpace
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    procs.append(Proc("mapper", mapper_args(ep, ["queues.per_robot=100000", "layers.max_voxels=100000000"]), tmp_path))
+    procs.append(Proc("mapper", mapper_args(ep, ["queues.per_robot=100000", "layers.max_voxels=100000000",
+                                                  # no flush between the 2 Hz frames: the local reference
+                                                  # map below is flushed once, at the end
+                                                  "queues.idle_flush_s=4"]), tmp_path))
     rec = tmp_path / "rec"
     with client(ep) as c:
         wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
