@@ -9,7 +9,9 @@
    threshold (below → 0 = no prediction).
 3. GT voxels: the synthetic world's exact ``voxel_labels`` of the voxels the GT pass
    observes as occupied, or for datasets the majority of the fused one-hot GT label images
-   (label 0 = unlabelled, not evaluated) at the same voxel size.
+   (label 0 = unlabelled, not evaluated) at the same voxel size, or — for sources without
+   label images (NICE-SLAM Replica) — an external labelled point cloud (``gt_points``,
+   :mod:`mapper.evaluation.gt_points`) voxelised by majority vote.
 4. Align (exact grid, ``k = 0``, or kNN majority, default ``k = 5``) and score mIoU, f-mIoU,
    Acc with and without the background classes.
 """
@@ -29,6 +31,7 @@ from edge.encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
 from mapper.evaluation import metrics as M
 from mapper.evaluation.data import load_frames, pack, subsample_frame
+from mapper.evaluation.language import eval_language
 from mapper.evaluation.srchvol import _json_safe
 
 BACKGROUND = ["wall", "floor", "ceiling", "door", "window", "background", "otherprop", "otherstructure",
@@ -52,6 +55,15 @@ class SemsegConfig:
     denoise: float = field_(0.5, "prompt denoising threshold over the whole map")
     pred_thresh: float = field_(0.1, "no prediction below this softmax value")
     background: list[str] = field_(list(BACKGROUND), "class names treated as background ('without background' columns)")
+    text_model_dir: str = field_("", "text model directory for the class names (SigLIP for NARADIO; default "
+                                     "<encoder.model_dir or $RAYFRONTS_MODEL_DIR>/siglip_text)")
+    gt_points: str = field_("", "external GT: labelled points (.npz with xyz (N,3), labels (N,) [, class_names]; or "
+                                ".ply with x, y, z and an integer vertex property gt_label_field) in the source's "
+                                "world frame, voxelised by majority vote; needed where frames carry no labels "
+                                "(NICE-SLAM Replica)")
+    gt_label_field: str = field_("label", "vertex property of a .ply gt_points file holding the class id")
+    class_names: list[str] = field_([], "class names (index = class id) where the source gives none; a gt_points "
+                                        ".npz may carry them instead")
     occupancy_backend: str = field_("auto", "occupancy backend: auto | vdb | torch")
     device: str = field_("cpu", "torch device")
     progress: bool = field_(True, "tqdm progress bars")
@@ -62,26 +74,14 @@ class SemsegConfig:
         return self
 
 
-def class_text(enc, class_names, templates: bool) -> torch.Tensor:
-    """(K, C) class-name embeddings in the encoder's text space."""
-    if not templates and getattr(enc, "table", None) is not None and getattr(enc, "class_names", None) == list(class_names):
-        return enc.table.to(torch.float32)
-    from common.text_encoders import IMAGENET_TEMPLATES, make_text_encoder
-
-    te = getattr(enc, "text", None) or make_text_encoder(enc.text_model)
-    names = list(class_names)
-    if not templates:
-        return te.encode(names).to(torch.float32)
-    out = []
-    for n in names:
-        e = te.encode([t.format(n) for t in IMAGENET_TEMPLATES]).to(torch.float32)
-        e = torch.nn.functional.normalize(e, dim=1).mean(0)
-        out.append(torch.nn.functional.normalize(e, dim=0))
-    return torch.stack(out)
+def class_text(enc, class_names, templates: bool, model_dir: str = "") -> torch.Tensor:
+    """(K, D) class-name embeddings in the encoder's language space (raw names, or the mean
+    of the 80 ImageNet prompt templates); see :mod:`mapper.evaluation.language`."""
+    return eval_language(enc, class_names, templates, model_dir).text
 
 
 def predict_labels(feats: torch.Tensor, text: torch.Tensor, temperature: float = 100.0, denoise: float = 0.5,
-                   thresh: float = 0.1) -> np.ndarray:
+                   thresh: float = 0.1, similarity=None) -> np.ndarray:
     """(N,) class id per feature row: argmax of softmax(temperature·cos) over the classes,
     classes whose maximum probability over **all** rows is < ``denoise`` disabled, 0 where
     the best probability is < ``thresh`` (class 0 itself is a valid prediction only if it
@@ -92,8 +92,8 @@ def predict_labels(feats: torch.Tensor, text: torch.Tensor, temperature: float =
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     empty = torch.empty((0, feats.shape[1]))
-    res = run_query(text, feats, torch.zeros((n, 3)), empty, torch.empty((0, 3)), torch.empty((0, 3)), softmax=True,
-                    temperature=temperature, top_k=0, denoise=denoise, threshold=thresh)
+    res = run_query(text, feats, torch.zeros((n, 3)), empty, torch.empty((0, 3)), torch.empty((0, 3)),
+                    similarity=similarity, softmax=True, temperature=temperature, top_k=0, denoise=denoise, threshold=thresh)
     lab = res.voxel_labels.cpu().numpy().astype(np.int64)
     return np.where(lab < 0, 0, lab)
 
@@ -124,11 +124,23 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
     frames, src = load_frames(cfg.source, progress=False, world=world)
     if cfg.source.kind == "synthetic" and world is None:
         world = getattr(src, "world", None)
-    names = list(src.class_names or [])
+    ext = None
+    if cfg.gt_points:
+        from mapper.evaluation.gt_points import load_labelled_points
+        ext = load_labelled_points(cfg.gt_points, cfg.gt_label_field)
+    if ext is None and any(f.labels is None for f in frames):
+        raise ValueError(f"source {getattr(src, 'name', cfg.source.kind)!r} gives frames without GT labels; "
+                         "pass external GT with gt_points=FILE")
+    names = list(cfg.class_names or src.class_names or (ext[2] if ext is not None else None) or [])
     if not names:
-        raise ValueError("the source has no class names; semantic segmentation needs GT labels")
-    enc = make_encoder(cfg.encoder, names)
-    text = class_text(enc, names, cfg.templates)
+        raise ValueError("no class names: the source gives none; set class_names or use a gt_points .npz "
+                         "with class_names")
+    if ext is not None and ext[1].size and ext[1].max() >= len(names):
+        raise ValueError(f"GT point labels go up to {int(ext[1].max())} but there are only {len(names)} class names")
+    if cfg.encoder.kind == "label" and any(f.labels is None for f in frames):
+        raise ValueError("the label encoder needs frames with GT labels; use encoder.kind=naradio")
+    enc = make_encoder(cfg.encoder, names, device=cfg.device)
+    lang = eval_language(enc, names, cfg.templates, cfg.text_model_dir, device=cfg.device)
     over = dict(vox_size=cfg.vox, depth_limit=float(cfg.depth_range), semantic_rays=False,
                 occ_pruning_period=-1, sem_pruning_period=-1)
     over.update(cfg.map)
@@ -144,21 +156,25 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
         from tqdm import tqdm
         it = tqdm(frames, desc="semseg", unit="frame")
     for f in it:
-        if f.labels is None:
-            raise ValueError("semseg needs frames with GT labels")
         with torch.inference_mode():
             feats = enc.encode(f.rgb, f.labels) if cfg.encoder.kind == "label" else enc.encode(f.rgb)
         pmap.integrate(f.pose, f.intrinsics, f.depth, f.rgb, feats, None)
+        if ext is not None:
+            continue
         onehot = torch.nn.functional.one_hot(torch.as_tensor(f.labels.astype(np.int64)).clamp(0, nc - 1), nc)
         gmap.integrate(f.pose, f.intrinsics, f.depth, None, onehot.permute(2, 0, 1).to(torch.float32), None)
     pmap.flush()
     gmap.flush()
     t_map = time.perf_counter()
     pv = pmap.voxels()
-    pred = predict_labels(pv.features.to(torch.float32), text, cfg.temperature, cfg.denoise, cfg.pred_thresh)
+    pred = predict_labels(pv.features.to(torch.float32), lang.text, cfg.temperature, cfg.denoise, cfg.pred_thresh,
+                          lang.similarity)
     gv = gmap.voxels()
     gxyz = gv.xyz.numpy().astype(np.float64)
-    if world is not None:
+    if ext is not None:
+        from mapper.evaluation.gt_points import voxelize_labels
+        gxyz, glab = voxelize_labels(ext[0], ext[1], cfg.vox)
+    elif world is not None:
         gijk = np.floor(gxyz / cfg.vox).astype(np.int64)
         glab = world.voxel_labels(gijk, cfg.vox).astype(np.int64)
     else:
@@ -166,7 +182,8 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
     aligned = M.knn_align(gxyz, pv.xyz.numpy().astype(np.float64), pred, cfg.k, cfg.vox)
     summary = scores_with_without_bg(glab, aligned, names, cfg.background)
     t_end = time.perf_counter()
-    info = dict(kind="semseg", config=to_dict(cfg), class_names=names, encoder=enc.name,
+    info = dict(kind="semseg", config=to_dict(cfg), class_names=names, encoder=enc.name, text_model=lang.text_model,
+                language_head=lang.similarity is not None, gt="points" if ext is not None else "frames",
                 encoder_version=getattr(enc, "version", ""), source=getattr(src, "name", cfg.source.kind),
                 frames=len(frames), resolution=list(frames[0].depth.shape), n_pred_voxels=int(len(pred)),
                 n_gt_voxels=int((glab > 0).sum()), map_config=to_dict(mc),
