@@ -12,6 +12,12 @@ Threads:
   answers) and declares the liveliness token ``robots/<robot>/alive`` and the
   ``robots/<robot>/feature_space`` queryable. Zenoh re-establishes a lost link by itself.
 
+torch runs with ``cfg.threads`` intra-op threads (auto: 1 for the label encoder or a GPU
+encoder, whose CPU work is small ops where extra threads only spin against the other
+processes; torch's default for a CPU encoder). Each frame's meta carries ``t_send`` (wall
+clock at hand-off, for the mapper's latency) and ``cpu_s`` (this process's CPU time, for
+the mapper's per-robot edge CPU per frame).
+
 The edge imports neither rerun nor the mapper.
 """
 from __future__ import annotations
@@ -69,6 +75,10 @@ class EdgeConfig:
 
     robot: str = field_("", "robot id ([A-Za-z0-9_-]+) naming the Zenoh keys and stamped on frames; "
                             "empty = source.robot")
+    threads: int = field_(0, "torch CPU threads of the edge process (intra-op, process-wide); 0 = auto: 1 when "
+                             "the encoder is the label encoder or runs on a GPU (torch then only does small glue "
+                             "ops on the CPU, and more threads fight the other processes for the cores), else "
+                             "torch's default (all cores, for a CPU encoder)")
     source: SourceConfig = section(SourceConfig, "where frames come from")
     encoder: EncoderConfig = section(EncoderConfig, "the image encoder (encoder.device = torch device)")
     pca: PcaSection = section(PcaSection, "PCA compression of the dense features")
@@ -80,6 +90,22 @@ class EdgeConfig:
 def edge_config_schema():
     """The ``EdgeConfig`` dataclass."""
     return EdgeConfig
+
+
+def resolve_threads(cfg) -> int:
+    """The edge's torch thread count for ``cfg.threads`` (see ``EdgeConfig.threads``); 0
+    means leave torch's default."""
+    n = int(getattr(cfg, "threads", 0))
+    if n < 0:
+        from common.config import ConfigError
+
+        raise ConfigError(f"threads must be >= 0 (0 = auto), got {n}")
+    if n > 0:
+        return n
+    enc = cfg.encoder
+    if enc.kind == "label" or not str(enc.device).startswith("cpu"):
+        return 1
+    return 0
 
 
 # ---------------------------------------------------------------------- one slot
@@ -319,6 +345,9 @@ class EdgeRuntime:
         from edge.encoders import make_encoder
 
         cfg = self.cfg
+        n_threads = resolve_threads(cfg)
+        if n_threads and torch.get_num_threads() != n_threads:
+            torch.set_num_threads(n_threads)
         conn = threading.Thread(target=self._connect_loop, name="edge-connect", daemon=True)
         pub = threading.Thread(target=self._publish_loop, name="edge-publisher", daemon=True)
         conn.start()
@@ -382,7 +411,9 @@ class EdgeRuntime:
                         feature_space=fs.id,
                         global_feature=None if g_i is None else compress_features(
                             pca, torch.as_tensor(g_i).reshape(-1, 1, 1)).reshape(-1))
-                    out.meta = {**(out.meta or {}), "t_send": time.time()}
+                    # t_send: hand-off wall clock (latency); cpu_s: this process's CPU time so far
+                    # (the mapper reports the edge's CPU per frame from it)
+                    out.meta = {**(out.meta or {}), "t_send": time.time(), "cpu_s": time.process_time()}
                     data = encode_frame(out)
                     self.stats.encode_ms_last = (time.perf_counter() - t0) * 1e3
                     seq += 1

@@ -26,6 +26,17 @@ scores, clusters and measures outside the lock, so mapping goes on meanwhile. A 
 at most ``query.lock_timeout_s`` for the map lock (held while one frame is integrated);
 after that it is answered from the last snapshot (``timings.stale = 1``, ``frames_mapped``
 says which map state). Standing queries run on their own thread, not the mapping thread.
+
+Threads and CPU: every thread waits on its own event (the mapping thread's ``_wake`` is set
+by each frame; the feature-space thread's ``_space_wake`` only when a robot needs its space
+fetched), so no thread polls while frames queue — a polling Python thread takes the GIL
+from the mapping thread at every one of the map's small torch calls. torch runs with
+``cfg.threads`` intra-op threads in the mapping thread (auto: 1 on small machines, see
+:func:`mapper.service_config.resolve_threads`) and ``cfg.query.threads`` in a query (auto:
+all CPUs; scoring is one big matrix product). ``stats()`` reports the map thread's CPU per
+integration (``timings.integrate_cpu_ms``), the process CPU from the first to the last
+integration (``cpu_s.mapping``) and, per robot, the edge's CPU per frame from the ``cpu_s``
+its frames carry in their meta (``edge_cpu_ms_per_frame``).
 """
 from __future__ import annotations
 
@@ -97,13 +108,20 @@ class RobotState:
     space_ok: bool = False           # space known and equal to the map's
     space_error: str = ""
     fetch_after: float = 0.0
+    fetch_started: float = -1e9      # monotonic start of the last feature-space get
     last_seq: int = -1
+    edge_cpu: tuple | None = None    # (first, last) edge process CPU s (frame meta ``cpu_s``) of mapped frames
+    edge_cpu_frames: int = 0         # mapped frames between them
 
     def as_dict(self) -> dict:
-        return {"received": self.received, "mapped": self.mapped, "dropped": self.dropped,
-                "rejected": dict(self.rejected), "queue": len(self.queue), "present": self.present,
-                "seen_at": self.seen_at, "gone_at": self.gone_at, "feature_space": self.feature_space,
-                "space_ok": self.space_ok, "space_error": self.space_error, "last_seq": self.last_seq}
+        d = {"received": self.received, "mapped": self.mapped, "dropped": self.dropped,
+             "rejected": dict(self.rejected), "queue": len(self.queue), "present": self.present,
+             "seen_at": self.seen_at, "gone_at": self.gone_at, "feature_space": self.feature_space,
+             "space_ok": self.space_ok, "space_error": self.space_error, "last_seq": self.last_seq}
+        if self.edge_cpu is not None and self.edge_cpu_frames > 0:
+            # the robot's edge process CPU per frame, over its mapped frames (frame meta cpu_s)
+            d["edge_cpu_ms_per_frame"] = (self.edge_cpu[1] - self.edge_cpu[0]) * 1e3 / self.edge_cpu_frames
+        return d
 
 
 class _Pct:
@@ -120,7 +138,7 @@ class _Pct:
             return {"n": 0}
         a = np.fromiter(self._d, float)
         return {"n": int(a.size), "p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95)),
-                "max": float(a.max()), "last": float(a[-1])}
+                "max": float(a.max()), "mean": float(a.mean()), "last": float(a[-1])}
 
 
 class MapperService:
@@ -140,6 +158,7 @@ class MapperService:
         self._standing_due = threading.Event()
         self.map = None
         self.space = None                      # FeatureSpace of the map
+        self._space_id: tuple = (None, "")     # (space, its id): FeatureSpace.id hashes the PCA basis
         self.space_reply: bytes | None = None  # its envelope (for snapshots)
         self.robots: dict[str, RobotState] = {}
         self.rejected: collections.Counter = collections.Counter()
@@ -151,7 +170,9 @@ class MapperService:
         self.flushed_version = 0               # version at the last map.flush()
         self.first_mapped_at: float | None = None
         self.last_mapped_at: float | None = None
-        self.timings = {"integrate_ms": _Pct(), "latency_ms": _Pct(), "query_ms": _Pct(), "decode_ms": _Pct()}
+        self._cpu_mapped: list[float] = []      # process CPU s at the first and the last integration
+        self.timings = {"integrate_ms": _Pct(), "integrate_cpu_ms": _Pct(), "latency_ms": _Pct(),
+                        "query_ms": _Pct(), "decode_ms": _Pct()}
         self.standing: dict[str, QueryRequest] = {}
         self.last_snapshot: dict = {}
         self._snap_version = -1
@@ -161,17 +182,31 @@ class MapperService:
         self.keys = None
         self._entities: list = []
         self._threads: list[threading.Thread] = []
-        self._wake = threading.Event()
+        self._wake = threading.Event()        # mapping thread: a frame or a robot changed
+        self._space_wake = threading.Event()  # feature-space thread: a robot needs its space (re)fetched
         self.rerun = None
         self._rr_count: collections.Counter = collections.Counter()
         self._closed = False
+
+    @property
+    def space_id(self) -> str:
+        """Id of the map's feature space ("" before the map exists), computed once per space."""
+        fs = self.space
+        if fs is None:
+            return ""
+        if self._space_id[0] is not fs:
+            self._space_id = (fs, fs.id)
+        return self._space_id[1]
 
     # ================================================================== lifecycle
     def start(self) -> "MapperService":
         from common.keys import KeySpace
         from common.zenoh_session import open_session
+        from mapper.service_config import resolve_query_threads
 
         self.keys = KeySpace(self.cfg.zenoh.prefix)
+        log.info("torch threads: %d (mapping), %d (queries)", self._set_threads(),
+                 resolve_query_threads(self.cfg.query.threads))
         if self.cfg.snapshots.dir and self.cfg.snapshots.restore:
             self._restore()
         if self.cfg.rerun.file or self.cfg.rerun.serve_grpc:
@@ -202,6 +237,23 @@ class MapperService:
         log.info("mapper up (zid %s, prefix %r)", s.zid(), self.cfg.zenoh.prefix)
         return self
 
+    def _set_threads(self, query: bool = False) -> int:
+        """Set the calling thread's torch intra-op threads: ``cfg.query.threads`` for a query,
+        else ``cfg.threads`` (mapping thread, process default). torch keeps the OpenMP count
+        per thread once a thread has run parallel work (MKL's count is process-wide: the
+        last caller's)."""
+        import torch
+
+        from mapper.service_config import resolve_query_threads, resolve_threads
+
+        if query:
+            n = resolve_query_threads(int(getattr(self.cfg.query, "threads", 0)))
+        else:
+            n = resolve_threads(int(getattr(self.cfg, "threads", 0)))
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
+        return n
+
     def run(self) -> int:
         self.start()
         try:
@@ -217,6 +269,7 @@ class MapperService:
         self._closed = True
         self.stop.set()
         self._wake.set()
+        self._space_wake.set()
         self._standing_due.set()
         for t in self._threads:
             t.join(timeout=30.0)
@@ -255,6 +308,7 @@ class MapperService:
             self.robots[name] = st
             st.seen_at = time.time()
             self._wake.set()
+            self._space_wake.set()
         return st
 
     def _reject(self, robot: str | None, reason: str, detail: str) -> None:
@@ -293,11 +347,18 @@ class MapperService:
                     st.fetch_after = 0.0
                     st.space_ok = False
                     st.feature_space = ""
-                    self._wake.set()
+                    self._space_wake.set()
                 if len(st.queue) == st.queue.maxlen:
                     st.dropped += 1
                     self.dropped += 1
                 st.queue.append((frame, time.time()))
+                if not st.space_ok and not st.space_error:
+                    # frames flow, so the edge's space is ready: fetch now rather than at the
+                    # retry period (at most every 0.2 s), else frames pile up meanwhile
+                    now = time.monotonic()
+                    if st.fetch_after > now and now - st.fetch_started > 0.2:
+                        st.fetch_after = 0.0
+                        self._space_wake.set()
             self._wake.set()
         except Exception as e:  # never raise out of a callback
             self._reject(key_robot, "internal", repr(e))
@@ -319,13 +380,17 @@ class MapperService:
                     st.present, st.gone_at = False, time.time()
                     log.info("robot %s gone", robot)
             self._wake.set()
+            self._space_wake.set()
         except Exception as e:
             log.warning("liveliness callback: %s", e)
 
     # ====================================================== feature spaces
     def _space_loop(self) -> None:
+        # its own event: the mapping thread's one is set by every frame and stays set while
+        # frames are queued, which would turn this loop into a GIL-holding busy spin
         while not self.stop.is_set():
-            self._wake.wait(0.5)
+            self._space_wake.wait(0.5)
+            self._space_wake.clear()
             now = time.monotonic()
             with self.qlock:
                 todo = [st.name for st in self.robots.values()
@@ -339,6 +404,7 @@ class MapperService:
         from common.feature_space import FeatureSpace
 
         st = self.robots[robot]
+        st.fetch_started = time.monotonic()
         try:
             replies = list(self.session.get(self.keys.feature_space(robot), timeout=3.0))
         except Exception as e:
@@ -365,16 +431,17 @@ class MapperService:
             st.fetch_after = time.monotonic() + 5.0
             self._warn(f"{robot}:space", "feature space of %s is invalid: %s", robot, e)
             return
+        fs_id = fs.id
         with self.lock:
             if self.map is None:
                 self._create_map(fs, encode_feature_space(robot, body))
-            ok = fs.id == self.space.id
+            ok = fs_id == self.space_id
         with self.qlock:
-            st.feature_space = fs.id
+            st.feature_space = fs_id
             st.space_ok = ok
-            st.space_error = "" if ok else f"robot space {fs.id} differs from the map's {self.space.id}"
+            st.space_error = "" if ok else f"robot space {fs_id} differs from the map's {self.space_id}"
         if ok:
-            log.info("robot %s feature space %s", robot, fs.id)
+            log.info("robot %s feature space %s", robot, fs_id)
             self._wake.set()
         else:
             log.error("robot %s: %s; its frames are rejected", robot, st.space_error)
@@ -423,6 +490,7 @@ class MapperService:
         return None
 
     def _map_loop(self) -> None:
+        self._set_threads()
         last_layers = 0.0
         last_standing = 0.0
         last_snap = time.monotonic()
@@ -442,6 +510,7 @@ class MapperService:
                 idle_since = time.monotonic()
                 st, frame, t_recv = item
                 t0 = time.perf_counter()
+                c0 = time.thread_time()
                 try:
                     with self.lock:
                         from mapper.service_map import integrate
@@ -457,16 +526,25 @@ class MapperService:
                     continue
                 dt = (time.perf_counter() - t0) * 1e3
                 self.timings["integrate_ms"].add(dt)
+                self.timings["integrate_cpu_ms"].add((time.thread_time() - c0) * 1e3)
                 t_send = frame.meta.get("t_send") if isinstance(frame.meta, dict) else None
                 if isinstance(t_send, (int, float)):
                     self.timings["latency_ms"].add((time.time() - t_send) * 1e3)
                 now_w = time.time()
                 self.first_mapped_at = self.first_mapped_at or now_w
                 self.last_mapped_at = now_w
+                cpu = time.process_time()
+                self._cpu_mapped = [self._cpu_mapped[0] if self._cpu_mapped else cpu, cpu]
+                e_cpu = frame.meta.get("cpu_s") if isinstance(frame.meta, dict) else None
                 with self.qlock:
                     st.mapped += 1
                     st.last_seq = frame.seq
                     self.mapped += 1
+                    if isinstance(e_cpu, (int, float)) and not isinstance(e_cpu, bool):
+                        if st.edge_cpu is None or e_cpu < st.edge_cpu[1]:   # first, or the edge restarted
+                            st.edge_cpu, st.edge_cpu_frames = (float(e_cpu), float(e_cpu)), 0
+                        else:
+                            st.edge_cpu, st.edge_cpu_frames = (st.edge_cpu[0], float(e_cpu)), st.edge_cpu_frames + 1
                 if self.rerun is not None:
                     self._rr_count[st.name] += 1
                     if (self._rr_count[st.name] - 1) % max(1, self.cfg.rerun.every_n_frames) == 0:
@@ -595,6 +673,7 @@ class MapperService:
         if self.map is None:
             raise MessageError("the map is empty (no frames mapped yet)")
         with self.query_lock:
+            self._set_threads(query=True)
             timings: dict = {}
             snap = self._snapshot(timings)
             res = answer_snapshot(snap, self.space, req, self.cfg.query, device=self.cfg.device,
@@ -667,11 +746,14 @@ class MapperService:
             "frames": frames, "robots": robots,
             "queues": {n: r["queue"] for n, r in robots.items()},
             "timings": {k: v.summary() for k, v in self.timings.items()},
-            "feature_space": self.space.id if self.space is not None else "",
+            "feature_space": self.space_id,
             "uptime_s": time.time() - self.started, "standing_queries": sorted(self.standing),
             "snapshot": dict(self.last_snapshot), "map_version": self.version,
             "flushed_version": self.flushed_version,
             "first_mapped_at": self.first_mapped_at, "last_mapped_at": self.last_mapped_at,
+            # process CPU (all threads) from the first to the last integration, and in total
+            "cpu_s": {"mapping": (self._cpu_mapped[1] - self._cpu_mapped[0]) if self._cpu_mapped else 0.0,
+                      "process": time.process_time()},
         }
         try:
             import psutil

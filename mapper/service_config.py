@@ -1,6 +1,7 @@
 """Configuration of ``rayfronts mapper`` (:class:`MapperConfig`)."""
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 from common.config import field_, section
@@ -38,6 +39,8 @@ class QuerySection:
     search_cell_m: float = field_(2.0, "finest spacing of the sample lattice that measures the union of cones (m)")
     search_samples: int = field_(100_000, "sample points (all cones together) that measure the search volume; caps "
                                           "its cost (exact for one cone, disjoint or identical cones)")
+    threads: int = field_(0, "torch CPU threads of a query's computations (scoring N voxels is one big matrix "
+                             "product); 0 = auto: the CPUs this process may use, at most 16")
     lock_timeout_s: float = field_(0.25, "a query waits at most this long for the map lock (held while a frame is "
                                          "integrated); after that it is answered from the last map snapshot, whose "
                                          "frames_mapped the result carries")
@@ -70,12 +73,48 @@ class MapperConfig:
     device: str = field_("cpu", "torch device of the map and the text encoder (cpu, cuda, cuda:1)")
     occupancy_backend: str = field_("auto", "occupancy grid: auto (OpenVDB if built, else torch), vdb, torch")
     text_model_dir: str = field_("", "directory of the text model when the feature space needs one on disk")
+    threads: int = field_(0, "torch CPU threads of the mapping thread (and the process default); 0 = auto: 1 "
+                             "on machines with <= 4 cores (a frame's tensors are small: more threads only fight "
+                             "the edge/router processes and the Zenoh threads for the cores), else half the "
+                             "cores, at most 8. Queries use query.threads")
     zenoh: ZenohConfig = section(ZenohConfig, "Zenoh session (router mode = this process is the base station router)")
     queues: QueueSection = section(QueueSection, "per-robot input queues")
     layers: LayersSection = section(LayersSection, "map layers published for viewers and planners")
     query: QuerySection = section(QuerySection, "queries and standing queries")
     snapshots: SnapshotSection = section(SnapshotSection, "snapshots (atomic) and restore on start")
     rerun: RerunSection = section(RerunSection, "rerun logging")
+
+
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _check_threads(threads: int, key: str) -> None:
+    if threads < 0:
+        from common.config import ConfigError
+
+        raise ConfigError(f"{key} must be >= 0 (0 = auto), got {threads}")
+
+
+def resolve_threads(threads: int, cpu_count: int | None = None) -> int:
+    """Torch threads of the mapping thread for config value ``threads`` (``MapperConfig.threads``;
+    ``cpu_count`` defaults to the CPUs this process may use)."""
+    _check_threads(threads, "threads")
+    if threads > 0:
+        return int(threads)
+    n = cpu_count if cpu_count is not None else _cpus()
+    return 1 if n <= 4 else min(8, n // 2)
+
+
+def resolve_query_threads(threads: int, cpu_count: int | None = None) -> int:
+    """Torch threads of a query for config value ``query.threads``."""
+    _check_threads(threads, "query.threads")
+    if threads > 0:
+        return int(threads)
+    return max(1, min(16, cpu_count if cpu_count is not None else _cpus()))
 
 
 def mapper_config_schema():

@@ -3,10 +3,20 @@
 Measures, in one run:
 
 * ``encoder_fps``: the edge pipeline alone in this process (label encoder → PCA →
-  ``encode_frame``), no network;
+  ``encode_frame``), no network, with the edge's torch thread count (``EdgeConfig.threads``);
+  ``edge_alone_fps`` the same plus reading the source (rendering the synthetic world), i.e.
+  all the per-frame work of the edge process;
 * ``e2e_fps``: frames integrated per second by a ``rayfronts mapper`` process fed by a
   ``rayfronts edge`` process through a ``rayfronts router`` (first to last integration),
-  and ``e2e_vs_encoder`` = their ratio;
+  and ``e2e_vs_encoder`` / ``e2e_vs_edge_alone`` its ratios to the above;
+* ``cpu_ms_per_frame``: CPU time (all threads) per frame of the encoder alone, the edge
+  alone, and, while streaming, of the edge, mapper and router processes (edge: from the
+  ``cpu_s`` its frames carry; mapper: first to last integration; router: from the edge's
+  start to the end). The processes share this host's cores: ``e2e_fps_own_cores`` =
+  1000 / the largest of edge and mapper CPU ms per frame estimates the rate with a core
+  (or more) per process, as on a robot + base station (the mapper's map thread is serial:
+  ``mapper_map_fps_cpu_bound`` = 1000 / its mean integrate CPU ms, the mapper's limit
+  when the Zenoh/decode threads have another core);
 * ``latency_ms``: edge hand-off to the publisher → integrated in the map (p50 / p95; both
   processes share this host's clock);
 * ``bytes_per_frame``: frame message size on the wire (mean / max), seen by a subscriber;
@@ -23,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -54,6 +65,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--only", choices=("all", "stream", "query"), default="all",
                         help="run only the streaming part (encoder, e2e fps, latency, bytes) or only the "
                              "query-latency part (a random PCA basis stands in for the fitted one); default all")
+    parser.add_argument("--layers-hz", type=float, default=0.0,
+                        help="mapper layers publish rate while streaming (default 0 = off; the service's own "
+                             "default is 1 Hz)")
+    parser.add_argument("--mapper-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="extra mapper config override (repeatable), e.g. threads=2")
+    parser.add_argument("--edge-set", action="append", default=[], metavar="KEY=VALUE",
+                        help="extra edge config override (repeatable), e.g. threads=2")
     parser.add_argument("--shm", action="store_true", help="keep Zenoh shared memory on (default off: network path)")
     parser.add_argument("--workdir", type=Path, default=None, help="keep logs and snapshots here")
 
@@ -66,35 +84,57 @@ def _pct(a) -> dict:
             "n": int(a.size)}
 
 
-def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, stride: int) -> tuple[float, dict]:
+def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, stride: int, edge_set=()) -> dict:
+    """The edge's per-frame work in this process, no network: ``encoder_fps`` (encoder →
+    PCA → ``encode_frame``, as the edge does it: with ``encode_global`` and the frame meta),
+    ``source_ms`` (reading = rendering a frame), ``edge_alone_fps`` (both), CPU ms per
+    frame, and the local message sizes. Runs with the edge's torch thread count (``edge_set``:
+    the edge's extra config overrides)."""
     import dataclasses
 
     import torch
 
     from common.pca import OnlinePCAFitter
     from common.wire import encode_frame
-    from edge.encoders import EncoderConfig, make_encoder
-    from edge.runtime import compress_features
+    from common.config import load_config
+    from edge.encoders import make_encoder
+    from edge.runtime import EdgeConfig, compress_features, resolve_threads
     from edge.sources import SourceConfig, open_source
 
-    src = open_source(SourceConfig(kind="synthetic", n_frames=n, resolution=res, depth_limit=20.0))
-    frames = list(src)
-    enc = make_encoder(EncoderConfig(kind="label", label_stride=stride), class_names=src.class_names)
-    fit = OnlinePCAFitter(pca_dim, max_frames=min(8, len(frames)))
-    for f in frames[:8]:
-        with torch.inference_mode():
-            fit.add(enc.encode(f.rgb, labels=f.labels))
-    pca = fit.fit()
-    pca.save(pca_path)
-    sizes = []
-    t0 = time.perf_counter()
-    for f in frames:
-        with torch.inference_mode():
-            x = enc.encode(f.rgb, labels=f.labels)
-        out = dataclasses.replace(f, features=compress_features(pca, x), feature_space="bench")
-        sizes.append(len(encode_frame(out)))
-    dt = time.perf_counter() - t0
-    return len(frames) / dt, {"mean": float(np.mean(sizes)), "max": int(np.max(sizes))}
+    ecfg_all = load_config(EdgeConfig, None, ["encoder.kind=label", f"encoder.label_stride={stride}", *edge_set])
+    ecfg = ecfg_all.encoder
+    threads = resolve_threads(ecfg_all) or torch.get_num_threads()
+    old_threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        src = open_source(SourceConfig(kind="synthetic", n_frames=n, resolution=res, depth_limit=20.0))
+        t0, c0 = time.perf_counter(), time.process_time()
+        frames = list(src)
+        src_s, src_cpu = time.perf_counter() - t0, time.process_time() - c0
+        enc = make_encoder(ecfg, class_names=src.class_names)
+        fit = OnlinePCAFitter(pca_dim, max_frames=min(8, len(frames)))
+        for f in frames[:8]:
+            with torch.inference_mode():
+                fit.add(enc.encode(f.rgb, labels=f.labels))
+        pca = fit.fit()
+        pca.save(pca_path)
+        sizes = []
+        t0, c0 = time.perf_counter(), time.process_time()
+        for f in frames:
+            with torch.inference_mode():
+                x = enc.encode(f.rgb, labels=f.labels)
+                g = enc.encode_global(f.rgb, f.labels)
+            out = dataclasses.replace(f, features=compress_features(pca, x), feature_space="bench",
+                                      global_feature=compress_features(pca, g.reshape(-1, 1, 1)).reshape(-1))
+            out.meta = {**(out.meta or {}), "t_send": time.time(), "cpu_s": time.process_time()}
+            sizes.append(len(encode_frame(out)))
+        dt, cpu = time.perf_counter() - t0, time.process_time() - c0
+    finally:
+        torch.set_num_threads(old_threads)
+    k = len(frames)
+    return {"encoder_fps": k / dt, "edge_alone_fps": k / (dt + src_s), "source_ms": 1e3 * src_s / k,
+            "threads": threads, "cpu_ms": {"encoder_alone": 1e3 * cpu / k, "edge_alone": 1e3 * (cpu + src_cpu) / k},
+            "sizes": {"mean": float(np.mean(sizes)), "max": int(np.max(sizes))}}
 
 
 def _random_pca(path: Path, in_dim: int, out_dim: int) -> None:
@@ -155,7 +195,9 @@ def run(args: argparse.Namespace) -> dict:
                  "settings": {"frames": args.frames, "resolution": args.resolution, "pca_dim": args.pca_dim,
                               "preset": args.preset, "shared_memory": args.shm, "label_stride": args.label_stride,
                               "rate_hz": args.rate, "only": args.only, "query_voxels": args.query_voxels,
-                              "query_rays": args.query_rays}}
+                              "query_rays": args.query_rays, "layers_hz": args.layers_hz,
+                              "mapper_set": list(args.mapper_set), "edge_set": list(args.edge_set)},
+                 "load_avg_1_5_15_start": [round(x, 2) for x in os.getloadavg()]}
     env = zenoh_env()
     procs = []
 
@@ -196,23 +238,30 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from query_client.client import Client
 
-    enc_fps, sizes_local = _encoder_alone(args.resolution, args.pca_dim, args.frames, pca_path, args.label_stride)
-    out["bytes_per_frame_local"] = sizes_local
+    alone = _encoder_alone(args.resolution, args.pca_dim, args.frames, pca_path, args.label_stride, args.edge_set)
+    enc_fps = alone["encoder_fps"]
+    out["bytes_per_frame_local"] = alone["sizes"]
     out["encoder_fps"] = enc_fps
+    out["edge_alone_fps"] = alone["edge_alone_fps"]
+    out["source_ms_per_frame"] = alone["source_ms"]
+    out["edge_torch_threads"] = alone["threads"]
+    cpu_ms = dict(alone["cpu_ms"])
     zs = f"transport/shared_memory/enabled={shm}"
     # ---------------------------------------------------------------- streaming
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    start("router", "router", "--listen", ep, "--zenoh-set", zs)
+    router = start("router", "router", "--listen", ep, "--zenoh-set", zs)
     start("mapper", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs, f"preset={args.preset}",
-          "map.depth_limit=20", "queues.per_robot=100000", "layers.rate_hz=0")
+          "map.depth_limit=20", "queues.per_robot=100000", f"layers.rate_hz={args.layers_hz}", *args.mapper_set)
     zc = ZenohConfig(connect=[ep], connect_timeout_ms=60_000, shared_memory=args.shm)
     sizes = []
     with Client(zc, timeout=30.0) as c:
         sub = c.session.declare_subscriber(c.keys.frames_all, lambda s: sizes.append(len(s.payload.to_bytes())))
+        router_cpu0 = _cpu_s(router)
         edge = start("edge", "edge", "--connect", ep, "--zenoh-set", zs, "--rate", str(args.rate), "robot=bench",
                      f"encoder.label_stride={args.label_stride}",
                      f"source.n_frames={args.frames}", f"source.resolution={args.resolution}",
-                     "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}")
+                     "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}",
+                     *args.edge_set)
         end = time.monotonic() + 600
         st = None
         while time.monotonic() < end:
@@ -223,6 +272,7 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
                 continue
             if edge.poll() is not None and sum(st["queues"].values()) == 0 and st["frames"]["mapped"] > 0:
                 break
+        router_cpu1 = _cpu_s(router)
         sub.undeclare()
     fr = st["frames"]
     span = (st["last_mapped_at"] or 0) - (st["first_mapped_at"] or 0)
@@ -230,12 +280,39 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
     out["e2e_dropped"] = fr["dropped"]
     out["e2e_fps"] = (fr["mapped"] - 1) / span if span > 0 else None
     out["e2e_vs_encoder"] = out["e2e_fps"] / enc_fps if out["e2e_fps"] else None
+    out["e2e_vs_edge_alone"] = out["e2e_fps"] / alone["edge_alone_fps"] if out["e2e_fps"] else None
     out["latency_ms"] = {k: st["timings"]["latency_ms"].get(k) for k in ("p50", "p95", "max")}
-    out["integrate_ms"] = {k: st["timings"]["integrate_ms"].get(k) for k in ("p50", "p95")}
+    out["integrate_ms"] = {k: st["timings"]["integrate_ms"].get(k) for k in ("p50", "p95", "mean")}
+    out["integrate_cpu_ms"] = {k: st["timings"].get("integrate_cpu_ms", {}).get(k) for k in ("p50", "p95", "mean")}
+    out["decode_ms"] = {k: st["timings"].get("decode_ms", {}).get(k) for k in ("p50", "mean")}
+    robot = st["robots"].get("bench", {})
+    cpu_ms["edge"] = robot.get("edge_cpu_ms_per_frame")
+    mapping = st.get("cpu_s", {}).get("mapping")
+    cpu_ms["mapper"] = 1e3 * mapping / (fr["mapped"] - 1) if mapping and fr["mapped"] > 1 else None
+    cpu_ms["router"] = (1e3 * (router_cpu1 - router_cpu0) / fr["mapped"]
+                        if router_cpu0 is not None and router_cpu1 is not None and fr["mapped"] else None)
+    out["cpu_ms_per_frame"] = cpu_ms
+    worst = max((v for v in (cpu_ms["edge"], cpu_ms["mapper"]) if v), default=None)
+    out["e2e_fps_own_cores"] = 1e3 / worst if worst else None
+    out["e2e_own_cores_vs_encoder"] = out["e2e_fps_own_cores"] / enc_fps if worst else None
+    map_cpu = out["integrate_cpu_ms"].get("mean")
+    out["mapper_map_fps_cpu_bound"] = 1e3 / map_cpu if map_cpu else None
+    out["load_avg_1_5_15"] = [round(x, 2) for x in os.getloadavg()]
     out["bytes_per_frame"] = {"mean": float(np.mean(sizes)) if sizes else None,
                               "max": int(np.max(sizes)) if sizes else None, "n": len(sizes),
                               "target_max": 100_000}
     stop_all()
+
+
+def _cpu_s(p) -> float | None:
+    """CPU seconds (user + system, all threads) of a running child process."""
+    try:
+        import psutil
+
+        t = psutil.Process(p.pid).cpu_times()
+        return float(t.user + t.system)
+    except Exception:
+        return None
 
 
 def _queries(args, out: dict, work: Path, pca_path: Path, shm: str, start) -> None:
@@ -250,7 +327,7 @@ def _queries(args, out: dict, work: Path, pca_path: Path, shm: str, start) -> No
     out["query_map_build_s"] = time.perf_counter() - t0
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     start("mapper_q", "mapper", "--mode", "router", "--listen", ep, "--zenoh-set", zs, f"preset={args.preset}",
-          f"snapshots.dir={snaps}", "snapshots.on_exit=false", "layers.rate_hz=0")
+          f"snapshots.dir={snaps}", "snapshots.on_exit=false", "layers.rate_hz=0", *args.mapper_set)
     with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000, shared_memory=args.shm), timeout=120.0) as c:
         st = None
         end = time.monotonic() + 300
