@@ -44,6 +44,23 @@ _FALLBACK_HELP = {
 }
 
 
+def split_trailing_options(args: argparse.Namespace, items: list[str], add_options) -> list[str]:
+    """argparse stops at the first positional ``key=value`` item: parse the options written
+    after the items onto ``args`` (``add_options(parser, suppress=True)`` declares them) and
+    return the remaining ``key=value`` overrides. Unknown options are a ConfigError."""
+    p = argparse.ArgumentParser(add_help=False)
+    add_options(p, suppress=True)
+    ns, rest = p.parse_known_args(items)
+    for k, v in vars(ns).items():
+        setattr(args, k, v)
+    bad = [r for r in rest if r.startswith("-")]
+    if bad:
+        from common.config import ConfigError
+
+        raise ConfigError(f"unknown option(s) {bad}")
+    return rest
+
+
 class _Unavailable:
     def __init__(self, name: str, err: Exception):
         self.HELP = f"{_FALLBACK_HELP.get(name, '')} [unavailable: {err}]"

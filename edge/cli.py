@@ -7,6 +7,8 @@ import dataclasses
 import logging
 import threading
 
+from common.cli import split_trailing_options
+
 HELP = "the onboard process: source -> encoder -> PCA -> Zenoh (and `edge fit-pca`)"
 DESCRIPTION = """The onboard process: reads posed RGB-D frames from a source, encodes them,
 compresses the features with PCA and publishes one frame message per frame on
@@ -53,22 +55,6 @@ def _options(parser, suppress: bool = False) -> None:
             a.default = argparse.SUPPRESS
 
 
-def split_items(args: argparse.Namespace, items: list[str]) -> list[str]:
-    """Options written after the positional items (argparse stops at the first positional):
-    parse them onto ``args`` and return the remaining ``key=value`` items."""
-    p = argparse.ArgumentParser(add_help=False)
-    _options(p, suppress=True)
-    ns, rest = p.parse_known_args(items)
-    for k, v in vars(ns).items():
-        setattr(args, k, v)
-    bad = [r for r in rest if r.startswith("-")]
-    if bad:
-        from common.config import ConfigError
-
-        raise ConfigError(f"unknown option(s) {bad}")
-    return rest
-
-
 def build_config(args, overrides):
     from common.config import load_config
     from common.zenoh_session import zenoh_config_from_args
@@ -98,7 +84,7 @@ def build_config(args, overrides):
 def run(args: argparse.Namespace) -> int:
     from common.config import ConfigError
 
-    items = split_items(args, list(args.items or []))
+    items = split_trailing_options(args, list(args.items or []), _options)
     action = None
     if items and "=" not in items[0]:
         action = items.pop(0)

@@ -386,13 +386,8 @@ class EdgeRuntime:
                                                  cfg.pca.pixels_per_frame)
                 t0 = time.perf_counter()
                 with torch.inference_mode():
-                    feats = encoder.encode(fr.rgb, labels=fr.labels)
-                    gfeat = None
-                    if hasattr(encoder, "encode_global"):
-                        try:
-                            gfeat = encoder.encode_global(fr.rgb, fr.labels)
-                        except Exception:
-                            gfeat = None
+                    # one forward pass gives the dense map and the image-level vector
+                    feats, gfeat = encoder.encode_with_global(fr.rgb, fr.labels)
                 self.stats.frames_encoded += 1
                 if fs is None:  # online PCA fit
                     pending.append((fr, feats, gfeat))

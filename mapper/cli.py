@@ -5,6 +5,8 @@ import argparse
 import logging
 import threading
 
+from common.cli import split_trailing_options
+
 HELP = "the base-station process: map, queries, layers, snapshots, rerun"
 DESCRIPTION = """The base-station process. Subscribes to every robot's frames, keeps one shared
 RayFronts map, answers queries (rayfronts query / query_client.Client), publishes map layers
@@ -43,28 +45,13 @@ def _options(parser, suppress: bool = False) -> None:
             a.default = argparse.SUPPRESS
 
 
-def split_items(args: argparse.Namespace, items: list[str]) -> list[str]:
-    """Parse options written after the overrides onto ``args``; return the ``key=value`` items."""
-    p = argparse.ArgumentParser(add_help=False)
-    _options(p, suppress=True)
-    ns, rest = p.parse_known_args(items)
-    for k, v in vars(ns).items():
-        setattr(args, k, v)
-    bad = [r for r in rest if r.startswith("-")]
-    if bad:
-        from common.config import ConfigError
-
-        raise ConfigError(f"unknown option(s) {bad}")
-    return rest
-
-
 def build_config(args):
     import dataclasses
 
     from common.zenoh_session import zenoh_config_from_args
     from mapper.service_config import load_mapper_config
 
-    ov = split_items(args, list(args.overrides or []))
+    ov = split_trailing_options(args, list(args.overrides or []), _options)
     cfg = load_mapper_config(args.config, ov)
     ch = {"zenoh": zenoh_config_from_args(args, cfg.zenoh)}
     if args.device:
