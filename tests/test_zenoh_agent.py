@@ -12,6 +12,8 @@ query), ``token`` / ``untoken``, ``received`` (what a subscriber got, optionally
 """
 from __future__ import annotations
 
+import pytest
+
 import json
 import os
 import signal
@@ -305,3 +307,15 @@ def get_replies(agent: Agent, key: str, tries: int = 50, **kw) -> list[dict]:
 
 if __name__ == "__main__":
     sys.exit(_child(json.loads(sys.argv[1])))
+
+
+@pytest.fixture
+def closer():
+    """Collects agents/routers and closes them (reverse order) whatever happens."""
+    items: list = []
+    yield items
+    for it in reversed(items):
+        try:
+            it.close() if isinstance(it, Agent) else it.stop()
+        except Exception:
+            pass

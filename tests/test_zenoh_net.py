@@ -18,23 +18,11 @@ pytest.importorskip("zenoh")
 
 from common.keys import KeySpace  # noqa: E402
 from common.zenoh_session import free_tcp_port  # noqa: E402
-from test_zenoh_agent import Agent, Router, await_route, get_replies, lget_keys  # noqa: E402
+from test_zenoh_agent import Agent, Router, await_route, closer, get_replies, lget_keys  # noqa: E402,F401
 
 ROOT = Path(__file__).resolve().parents[1]
 K = KeySpace()
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture
-def closer():
-    """Collects agents/routers and closes them (reverse order) whatever happens."""
-    items: list = []
-    yield items
-    for it in reversed(items):
-        try:
-            it.close() if isinstance(it, Agent) else it.stop()
-        except Exception:
-            pass
 
 
 def _client(closer, port, name, **kw):

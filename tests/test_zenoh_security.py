@@ -20,7 +20,7 @@ pytest.importorskip("zenoh")
 
 from common.keys import KeySpace  # noqa: E402
 from common.zenoh_session import free_tcp_port  # noqa: E402
-from test_zenoh_agent import Agent, Router, await_route, get_replies, lget_keys  # noqa: E402
+from test_zenoh_agent import Agent, Router, await_route, closer, get_replies, lget_keys  # noqa: E402,F401
 
 ROOT = Path(__file__).resolve().parents[1]
 ZDIR = ROOT / "deploy" / "zenoh"
@@ -46,17 +46,6 @@ def other_ca(tmp_path_factory) -> Path:
     subprocess.run(["bash", str(MAKE_CERTS), "-o", str(out), "--robot", "r1", "--no-acl"],
                    check=True, capture_output=True, timeout=60)
     return out
-
-
-@pytest.fixture
-def closer():
-    items: list = []
-    yield items
-    for it in reversed(items):
-        try:
-            it.close() if isinstance(it, Agent) else it.stop()
-        except Exception:
-            pass
 
 
 def _tls_client(closer, port, name, certs_dir, cfg="edge-tls.json5", **kw) -> Agent:
