@@ -74,22 +74,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     rp.add_argument("--title", default="RayFronts benchmark results", help="page title")
 
 
+#: command-line option -> SourceConfig key
+_SOURCE_OPTIONS = {"source": "kind", "source_path": "path", "scene": "scene", "sequence": "sequence",
+                   "seed": "seed", "resolution": "resolution", "frame_skip": "frame_skip"}
+
+
 def _source_overrides(args) -> dict:
-    s = {}
-    if args.source is not None:
-        s["kind"] = args.source
-    if args.source_path is not None:
-        s["path"] = args.source_path
-    if args.scene is not None:
-        s["scene"] = args.scene
-    if args.sequence is not None:
-        s["sequence"] = args.sequence
-    if args.seed is not None:
-        s["seed"] = args.seed
-    if args.resolution is not None:
-        s["resolution"] = args.resolution
-    if args.frame_skip is not None:
-        s["frame_skip"] = args.frame_skip
+    s = {key: getattr(args, opt) for opt, key in _SOURCE_OPTIONS.items() if getattr(args, opt) is not None}
     if args.frames is not None:
         kind = args.source or "synthetic"
         s["n_frames" if kind == "synthetic" else "max_frames"] = args.frames
