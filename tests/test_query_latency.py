@@ -17,6 +17,7 @@ from common.pca import PCA
 from common.text.heads import MLP2, MLP2Config
 from mapper import keys as K_
 from mapper.service_map import QuerySnapshot, answer_snapshot, cone_union_volume, create_map, top_stable
+from test_runtime import _bfs_components  # the brute-force 26-neighbour oracle
 
 
 def _pca(d=32, k=8, seed=0):
@@ -123,25 +124,6 @@ def _map(n_side=14, n_rays=300, seed=0):
     return m, fs, cfg, X
 
 
-def _components(ijk):
-    idx = {tuple(v): i for i, v in enumerate(ijk.tolist())}
-    lab = -np.ones(len(ijk), int)
-    c = 0
-    for i in range(len(ijk)):
-        if lab[i] >= 0:
-            continue
-        stack, lab[i] = [i], c
-        while stack:
-            j = stack.pop()
-            for off in np.ndindex(3, 3, 3):
-                k = idx.get(tuple(ijk[j] + np.array(off) - 1))
-                if k is not None and lab[k] < 0:
-                    lab[k] = c
-                    stack.append(k)
-        c += 1
-    return lab
-
-
 def test_answer_snapshot_matches_bruteforce():
     m, fs, cfg, X = _map()
     qcfg = cfg.query
@@ -158,7 +140,7 @@ def test_answer_snapshot_matches_bruteforce():
     cand = order[:300]
     keep = cand[vs[cand] >= vs.min() + qcfg.cluster_rel_score * (vs[cand[0]] - vs.min())]
     ijk = K_.unpack(keys[torch.from_numpy(keep)]).numpy()
-    lab = _components(ijk)
+    lab = _bfs_components(ijk)
     best = np.array([vs[keep][lab == c].max() for c in range(lab.max() + 1)])
     cl = np.argsort(-best, kind="stable")[:5]
     np.testing.assert_allclose(res.cluster_score, best[cl], atol=1e-5)
