@@ -7,7 +7,7 @@ import dataclasses
 import logging
 import threading
 
-from common.cli import split_trailing_options
+from common.cli_options import split_trailing_options
 
 HELP = "the onboard process: source -> encoder -> PCA -> Zenoh (and `edge fit-pca`)"
 DESCRIPTION = """The onboard process: reads posed RGB-D frames from a source, encodes them,

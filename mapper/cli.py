@@ -5,7 +5,7 @@ import argparse
 import logging
 import threading
 
-from common.cli import split_trailing_options
+from common.cli_options import split_trailing_options
 
 HELP = "the base-station process: map, queries, layers, snapshots, rerun"
 DESCRIPTION = """The base-station process. Subscribes to every robot's frames, keeps one shared

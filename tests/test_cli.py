@@ -4,11 +4,11 @@ import sys
 
 import pytest
 
-from common.cli import SUBCOMMANDS
+from apps.cli import SUBCOMMANDS
 
 
 def _run(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "apps.cli", *args], capture_output=True, text=True,
                           timeout=timeout)
 
 

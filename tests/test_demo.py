@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from query_client.demo import DemoConfig, done_criteria, run_demo, summary_table
+from apps.demo import DemoConfig, done_criteria, run_demo, summary_table
 
 MAIN = ("water tower", "vehicle", "chimney", "radio tower", "tree")
 

@@ -147,7 +147,7 @@ def test_systemd_units_run_real_subcommands(unit, sub):
         assert var in env, f"{unit}: {var} not in rayfronts.env.example"
     argv = shlex.split(re.sub(r"\$\{(\w+)\}", lambda m: env[m.group(1)], exec_start))
     assert argv[0].endswith("/bin/rayfronts") and argv[1] == sub
-    from common.cli import build_parser
+    from apps.cli import build_parser
 
     try:
         parser = build_parser(sub)

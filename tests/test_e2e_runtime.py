@@ -131,7 +131,7 @@ def test_bench_e2e_stream_small(tmp_path):
     """The streaming half of ``rayfronts bench e2e`` on 6 small frames: every frame mapped,
     none dropped, sizes seen on the wire = the local encoding's, CPU per frame reported for
     every process (the edge's from the frames' ``cpu_s``, the mapper's own)."""
-    from query_client import bench_e2e
+    from apps.bench import e2e as bench_e2e
 
     p = argparse.ArgumentParser()
     bench_e2e.add_arguments(p)

@@ -66,7 +66,7 @@ def test_language_plumbing(models):
     averaging (independently: head(mean) vs the similarity callable)."""
     from common.text.siglip import SiglipText
     from edge.encoders import EncoderConfig, make_encoder
-    from mapper.evaluation.language import eval_language, text_model_dir
+    from apps.evaluation.language import eval_language, text_model_dir
 
     enc = make_encoder(EncoderConfig(**_enc_cfg(models)))
     names = ["car", "tree", "wall"]
@@ -93,7 +93,7 @@ def test_language_plumbing(models):
 
 def test_language_dim_mismatch(models, tmp_path):
     from edge.encoders import EncoderConfig, make_encoder
-    from mapper.evaluation.language import eval_language
+    from apps.evaluation.language import eval_language
 
     enc = make_encoder(EncoderConfig(**_enc_cfg(models)))
     other = tmp_path / "other"
@@ -110,7 +110,7 @@ def test_language_dim_mismatch(models, tmp_path):
 
 
 def test_srchvol_naradio(models, world, tmp_path):
-    from mapper.evaluation.srchvol import ALL_METHODS, SrchvolConfig, applicable, run_srchvol
+    from apps.evaluation.srchvol import ALL_METHODS, SrchvolConfig, applicable, run_srchvol
 
     cfg = merge(SrchvolConfig(), dict(source=dict(n_frames=8, resolution="48x48"), every=4, depth_limits=[0.0, 10.0],
                                       gt_range=20.0, progress=False, plots=False, encoder=_enc_cfg(models),
@@ -133,7 +133,7 @@ def test_srchvol_naradio(models, world, tmp_path):
 
 
 def test_semseg_naradio_synthetic(models, world, tmp_path):
-    from mapper.evaluation.semseg import SemsegConfig, run_semseg
+    from apps.evaluation.semseg import SemsegConfig, run_semseg
 
     cfg = merge(SemsegConfig(), dict(source=dict(n_frames=4, resolution="48x64"), vox=0.5, depth_range=20.0,
                                      progress=False, encoder=_enc_cfg(models), text_model_dir=models["siglip"]))
@@ -210,8 +210,8 @@ def _write_replica(root, n=5):
 
 
 def _cli(argv):
-    from common.cli import build_parser
-    from mapper.evaluation import cli
+    from apps.cli import build_parser
+    from apps.evaluation import cli
     args = build_parser("eval").parse_args(["eval", "semseg", "--no-progress", *argv])
     return cli.run(args)
 
@@ -245,7 +245,7 @@ def _write_ply(path, xyz, labels, binary):
 
 
 def test_semseg_cli_replica_external_gt(tmp_path, models):
-    from mapper.evaluation.gt_points import load_labelled_points
+    from apps.evaluation.gt_points import load_labelled_points
 
     root, xyz, labels = _write_replica(tmp_path / "replica")
     names = ["none", "wall", "painting"]
@@ -280,7 +280,7 @@ def test_semseg_cli_replica_external_gt(tmp_path, models):
 
 
 def test_voxelize_majority_and_bad_files(tmp_path):
-    from mapper.evaluation.gt_points import load_labelled_points, voxelize_labels
+    from apps.evaluation.gt_points import load_labelled_points, voxelize_labels
 
     xyz = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3], [1.5, 0.1, 0.1], [1.6, 0.1, 0.1],
                     [2.5, 0, 0], [-0.5, 0, 0]])

@@ -10,8 +10,8 @@ import torch
 
 from common.config import merge
 from common.world import World
-from mapper.evaluation.semseg import SemsegConfig, run_semseg
-from mapper.evaluation.srchvol import ALL_METHODS, SrchvolConfig, run_srchvol
+from apps.evaluation.semseg import SemsegConfig, run_semseg
+from apps.evaluation.srchvol import ALL_METHODS, SrchvolConfig, run_srchvol
 
 torch.set_num_threads(2)
 
@@ -82,7 +82,7 @@ def test_shared_semantic_voxels_equal_separate_map(world):
     """Semantic Voxels evaluated on the RayFronts map (share_maps) is exact: the separate
     semantic_voxels map has the same voxels and occupancy."""
     from edge.encoders import EncoderConfig, make_encoder
-    from mapper.evaluation.srchvol import method_map_config
+    from apps.evaluation.srchvol import method_map_config
     from mapper.map import RayFrontsMap
 
     cfg = SrchvolConfig()
@@ -167,8 +167,8 @@ def test_semseg_tartanair_fixture(tmp_path, world):
 
 
 def test_report_and_cli(sv_run, tmp_path, world):
-    from common.cli import build_parser
-    from mapper.evaluation import cli
+    from apps.cli import build_parser
+    from apps.evaluation import cli
 
     out, _ = sv_run
     ss = tmp_path / "ss"

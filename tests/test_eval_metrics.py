@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.evaluation import metrics as M
-from mapper.evaluation import shapes as S
+from apps.evaluation import metrics as M
+from apps.evaluation import shapes as S
 
 
 # ----------------------------------------------------------------------------- search volume
@@ -88,7 +88,7 @@ def test_semseg_scores_hand_case():
 
 
 def test_semseg_background_split():
-    from mapper.evaluation.semseg import scores_with_without_bg
+    from apps.evaluation.semseg import scores_with_without_bg
     names = ["sky", "car", "road", "tree"]
     gt = np.array([1, 1, 2, 2, 3])
     pred = np.array([1, 2, 2, 2, 3])

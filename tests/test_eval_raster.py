@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from common.config import merge
-from mapper.evaluation import raster as RA
-from mapper.evaluation import shapes as S
+from apps.evaluation import raster as RA
+from apps.evaluation import shapes as S
 
 torch.set_num_threads(2)
 
@@ -77,7 +77,7 @@ def world():
 @pytest.mark.parametrize("shape", ["true", "reference"])
 def test_run_raster_equals_blocks(tmp_path, world, shape):
     """Whole benchmark, both counting paths: every step row (TP/FP/FN/TN …) is identical."""
-    from mapper.evaluation.srchvol import SrchvolConfig, run_srchvol
+    from apps.evaluation.srchvol import SrchvolConfig, run_srchvol
 
     out = {}
     for scoring in ("raster", "blocks"):
@@ -93,7 +93,7 @@ def test_run_raster_equals_blocks(tmp_path, world, shape):
 
 
 def test_wide_cones_fall_back_to_blocks(tmp_path, world):
-    from mapper.evaluation.srchvol import SrchvolConfig, run_srchvol
+    from apps.evaluation.srchvol import SrchvolConfig, run_srchvol
 
     cfg = merge(SrchvolConfig(), dict(source=dict(n_frames=6, resolution="32x32"), every=6, depth_limits=[10.0],
                                       gt_range=20.0, progress=False, plots=False, cone_half_angle=100.0,

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from common.zenoh_session import ZenohConfig, free_tcp_port
-from query_client.demo import zenoh_env
+from apps.demo import zenoh_env
 
 ROOT = Path(__file__).resolve().parents[1]
 RES = "96x128"
@@ -26,7 +26,7 @@ FAST_MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "laye
 
 
 def _cmd(*args):
-    return [sys.executable, "-m", "common.cli", *args]
+    return [sys.executable, "-m", "apps.cli", *args]
 
 
 class Proc:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from query_client.demo import zenoh_env
+from apps.demo import zenoh_env
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -85,7 +85,7 @@ def test_three_namespaces_no_shm(netns, tmp_path):
     a, b, c = netns
     env = zenoh_env()
     pca = tmp_path / "pca.npz"
-    r = subprocess.run([sys.executable, "-m", "common.cli", "edge", "fit-pca", "--out", str(pca), "--frames", "3",
+    r = subprocess.run([sys.executable, "-m", "apps.cli", "edge", "fit-pca", "--out", str(pca), "--frames", "3",
                         "source.resolution=96x128", "source.n_frames=20", "pca.out_dim=16"],
                        env=env, cwd=str(ROOT), capture_output=True, timeout=120)
     assert r.returncode == 0, r.stderr.decode()[-1500:]
@@ -95,7 +95,7 @@ def test_three_namespaces_no_shm(netns, tmp_path):
     def spawn(ns, name, args):
         f = open(tmp_path / f"{name}.log", "wb")
         logs.append(f)
-        return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "common.cli", *args],
+        return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "apps.cli", *args],
                                 stdout=f, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
 
     mapper = spawn(b, "mapper", ["mapper", "--mode", "router", "--listen", "tcp/0.0.0.0:7447", *shm,

@@ -85,7 +85,7 @@ def test_reject_reason_codes():
 
 
 def test_cli_help_lists_every_config_key(capsys):
-    from common.cli import main
+    from apps.cli import main
     from common.config import all_keys
     from edge.runtime import EdgeConfig
     from mapper.service_config import MapperConfig

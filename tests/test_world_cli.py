@@ -6,7 +6,7 @@ import argparse
 import numpy as np
 import pytest
 
-from common.cli import main
+from apps.cli import main
 from common.world import World
 
 
@@ -66,7 +66,7 @@ def test_rayfronts_world_rejects_bad_options(tmp_path, capsys):
 
 
 def test_bench_world_reports_fps():
-    from common.world import bench
+    from apps.bench import world as bench
 
     res = bench.run(argparse.Namespace(frames=2, seed=0, preset="ground", hfov=90.0))
     assert res["fps_224x224"] > 0 and res["fps_640x480"] > 0

@@ -242,11 +242,11 @@ class Agent:
 
 
 class Router:
-    """``python -m common.cli router`` as a child process."""
+    """``python -m apps.cli router`` as a child process."""
 
     def __init__(self, *args: str, argv_prefix: tuple[str, ...] = ()):
         env = dict(os.environ, PYTHONPATH=str(ROOT), RUST_LOG="error")
-        self.proc = subprocess.Popen([*argv_prefix, sys.executable, "-m", "common.cli", "router", *args,
+        self.proc = subprocess.Popen([*argv_prefix, sys.executable, "-m", "apps.cli", "router", *args,
                                       "--zenoh-set", "transport/shared_memory/enabled=false"],
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                                      cwd=str(ROOT))

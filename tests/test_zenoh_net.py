@@ -90,10 +90,10 @@ def test_router_sigint_exit_code_zero(closer):
 
 def test_router_rejects_bad_options():
     env = dict(os.environ, PYTHONPATH=str(ROOT), RUST_LOG="error")
-    r = subprocess.run([sys.executable, "-m", "common.cli", "router", "--listen", "127.0.0.1:7447"],
+    r = subprocess.run([sys.executable, "-m", "apps.cli", "router", "--listen", "127.0.0.1:7447"],
                        capture_output=True, text=True, env=env, cwd=str(ROOT), timeout=60)
     assert r.returncode == 2 and "proto/address" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "common.cli", "router", "--zenoh-config", "/nonexistent.json5"],
+    r = subprocess.run([sys.executable, "-m", "apps.cli", "router", "--zenoh-config", "/nonexistent.json5"],
                        capture_output=True, text=True, env=env, cwd=str(ROOT), timeout=60)
     assert r.returncode == 2 and "not found" in r.stderr
 

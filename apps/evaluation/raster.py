@@ -15,7 +15,7 @@ Cost: O(shapes × rows) closed-form work + O(grid) instead of O(Σ voxels inside
 shapes), e.g. ~1,000 cones over a 220×185×52 grid in well under a second.
 
 Conventions: voxel ``ijk`` has its centre at ``(ijk + 0.5) · vox`` (metres, float64, the
-formula of :meth:`mapper.evaluation.data.GroundTruth.centres`); counts are int64.
+formula of :meth:`apps.evaluation.data.GroundTruth.centres`); counts are int64.
 """
 from __future__ import annotations
 
@@ -340,7 +340,7 @@ def _pad(grid: RowGrid) -> float:
 
 def cone_counts(grid: RowGrid, origins, dirs, half_angle_deg: float, cells=None) -> np.ndarray:
     """Counts of true cones (apex ``origins``, axes ``dirs``, infinite) — equal to
-    :func:`mapper.evaluation.shapes.cone_counts` on the voxel centres. A cone whose axis makes
+    :func:`apps.evaluation.shapes.cone_counts` on the voxel centres. A cone whose axis makes
     the angle α with the row axis (a generator along the rows, e.g. (1, 1, 0)/√2 at 45°) is
     rasterised along another axis."""
     o = torch.as_tensor(origins).to(torch.float64).reshape(-1, 3)
@@ -365,7 +365,7 @@ def cone_counts(grid: RowGrid, origins, dirs, half_angle_deg: float, cells=None)
 
 
 def ball_counts(grid: RowGrid, centres, radii, cells=None) -> np.ndarray:
-    """Counts of balls — equal to :func:`mapper.evaluation.shapes.ball_counts` on the voxel centres."""
+    """Counts of balls — equal to :func:`apps.evaluation.shapes.ball_counts` on the voxel centres."""
     c = torch.as_tensor(centres).to(torch.float64).reshape(-1, 3)
     r = torch.as_tensor(radii, dtype=torch.float64).reshape(-1)
     if r.numel() == 1 and c.shape[0] != 1:
@@ -380,9 +380,9 @@ def ball_counts(grid: RowGrid, centres, radii, cells=None) -> np.ndarray:
 
 def reference_cone_counts(grid: RowGrid, origins, dirs, subsampling: float, half_angle_deg: float,
                           num_segs: int = 6, cells=None) -> np.ndarray:
-    """Counts of the reference's hexagonal pyramids (:mod:`mapper.evaluation.shapes`) — equal to
-    :func:`mapper.evaluation.shapes.reference_cone_counts` on the voxel centres."""
-    from mapper.evaluation.shapes import reference_pyramid_tests, rotation_z_to
+    """Counts of the reference's hexagonal pyramids (:mod:`apps.evaluation.shapes`) — equal to
+    :func:`apps.evaluation.shapes.reference_cone_counts` on the voxel centres."""
+    from apps.evaluation.shapes import reference_pyramid_tests, rotation_z_to
 
     vox = grid.vox
     o = torch.as_tensor(origins).to(torch.float64).reshape(-1, 3)

@@ -185,7 +185,7 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: i
 
 
 def run(args: argparse.Namespace) -> dict:
-    from query_client.demo import zenoh_env
+    from apps.demo import zenoh_env
 
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="rayfronts-bench-e2e-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -203,7 +203,7 @@ def run(args: argparse.Namespace) -> dict:
 
     def start(name, *a):
         f = open(work / f"{name}.log", "wb")
-        p = subprocess.Popen([sys.executable, "-m", "common.cli", *a], stdout=f, stderr=subprocess.STDOUT, env=env)
+        p = subprocess.Popen([sys.executable, "-m", "apps.cli", *a], stdout=f, stderr=subprocess.STDOUT, env=env)
         procs.append((p, f))
         return p
 

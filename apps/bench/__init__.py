@@ -1,6 +1,7 @@
 """``rayfronts bench TARGET``: benchmarks that print (and optionally write) JSON.
 
-Targets are resolved lazily like the subcommands (``common`` imports no other part).
+Targets are resolved lazily like the subcommands, so a missing optional part only
+disables its own target.
 Each target module provides ``add_arguments(parser)`` and ``run(args) -> dict``; this
 module prints the dict as JSON and writes it to ``--json FILE`` when given.
 """
@@ -15,10 +16,10 @@ from pathlib import Path
 HELP = "throughput / latency / memory benchmarks (JSON output)"
 
 TARGETS = {
-    "world": "common.world.bench",
-    "mapper": "mapper.bench",
-    "encoder": "edge.bench",
-    "e2e": "query_client.bench_e2e",
+    "world": "apps.bench.world",
+    "mapper": "apps.bench.mapper",
+    "encoder": "apps.bench.encoder",
+    "e2e": "apps.bench.e2e",
 }
 
 

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from common.frame import Frame
-from mapper.evaluation.metrics import EMPTY, IGNORE
+from apps.evaluation.metrics import EMPTY, IGNORE
 
 
 @dataclass

@@ -11,7 +11,7 @@
    observes as occupied, or for datasets the majority of the fused one-hot GT label images
    (label 0 = unlabelled, not evaluated) at the same voxel size, or — for sources without
    label images (NICE-SLAM Replica) — an external labelled point cloud (``gt_points``,
-   :mod:`mapper.evaluation.gt_points`) voxelised by majority vote.
+   :mod:`apps.evaluation.gt_points`) voxelised by majority vote.
 4. Align (exact grid, ``k = 0``, or kNN majority, default ``k = 5``) and score mIoU, f-mIoU,
    Acc with and without the background classes.
 """
@@ -29,10 +29,10 @@ import torch
 from common.config import ConfigError, field_, section, to_dict
 from edge.encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
-from mapper.evaluation import metrics as M
-from mapper.evaluation.data import load_frames, pack, subsample_frame
-from mapper.evaluation.language import eval_language
-from mapper.evaluation.srchvol import _json_safe
+from apps.evaluation import metrics as M
+from apps.evaluation.data import load_frames, pack, subsample_frame
+from apps.evaluation.language import eval_language
+from apps.evaluation.srchvol import _json_safe
 
 BACKGROUND = ["wall", "floor", "ceiling", "door", "window", "background", "otherprop", "otherstructure",
               "otherfurniture", "sky", "ground", "road"]
@@ -76,7 +76,7 @@ class SemsegConfig:
 
 def class_text(enc, class_names, templates: bool, model_dir: str = "") -> torch.Tensor:
     """(K, D) class-name embeddings in the encoder's language space (raw names, or the mean
-    of the 80 ImageNet prompt templates); see :mod:`mapper.evaluation.language`."""
+    of the 80 ImageNet prompt templates); see :mod:`apps.evaluation.language`."""
     return eval_language(enc, class_names, templates, model_dir).text
 
 
@@ -126,7 +126,7 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
         world = getattr(src, "world", None)
     ext = None
     if cfg.gt_points:
-        from mapper.evaluation.gt_points import load_labelled_points
+        from apps.evaluation.gt_points import load_labelled_points
         ext = load_labelled_points(cfg.gt_points, cfg.gt_label_field)
     if ext is None and any(f.labels is None for f in frames):
         raise ValueError(f"source {getattr(src, 'name', cfg.source.kind)!r} gives frames without GT labels; "
@@ -172,7 +172,7 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
     gv = gmap.voxels()
     gxyz = gv.xyz.numpy().astype(np.float64)
     if ext is not None:
-        from mapper.evaluation.gt_points import voxelize_labels
+        from apps.evaluation.gt_points import voxelize_labels
         gxyz, glab = voxelize_labels(ext[0], ext[1], cfg.vox)
     elif world is not None:
         gijk = np.floor(gxyz / cfg.vox).astype(np.int64)

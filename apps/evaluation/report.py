@@ -26,7 +26,7 @@ def _mean(vals):
 
 def write_report(run_dirs, out_file, title: str = "RayFronts benchmark results") -> Path:
     """Write the Markdown page ``out_file`` for ``run_dirs``; return its path."""
-    from mapper.evaluation.semseg import semseg_table
+    from apps.evaluation.semseg import semseg_table
 
     out = Path(out_file)
     out.parent.mkdir(parents=True, exist_ok=True)

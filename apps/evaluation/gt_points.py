@@ -108,7 +108,7 @@ def voxelize_labels(xyz: np.ndarray, labels: np.ndarray, vox: float) -> tuple[np
     """Voxels holding labelled points (label > 0) and their majority label (ties → the
     smallest id): ``(centres (M, 3) float64, labels (M,) int64)``, voxel = ``floor(xyz / vox)``."""
     from common.conventions import voxel_index
-    from mapper.evaluation.data import pack
+    from apps.evaluation.data import pack
 
     keep = (labels > 0) & np.isfinite(xyz).all(1)
     xyz, labels = xyz[keep], labels[keep]

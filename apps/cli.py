@@ -1,8 +1,8 @@
 """The ``rayfronts`` command: one entry point, one subcommand per job (DESIGN §5).
 
-Each subcommand lives in the part that owns it and is resolved lazily by module name, so
-``common`` imports none of the other parts and a robot with only the edge installed can
-still run ``rayfronts edge``. A subcommand module provides::
+This is an application (``apps``), above the roles: each subcommand lives in the part
+that owns it and is resolved lazily by module name, so a robot with only the edge installed
+can still run ``rayfronts edge`` and a laptop with only the client ``rayfronts query``. A subcommand module provides::
 
     HELP = "one line for the overview"
     def add_arguments(parser: argparse.ArgumentParser) -> None: ...
@@ -20,14 +20,14 @@ import sys
 
 #: subcommand -> module implementing it (imported only when that subcommand runs).
 SUBCOMMANDS: dict[str, str] = {
-    "demo": "query_client.demo",
+    "demo": "apps.demo",
     "edge": "edge.cli",
     "mapper": "mapper.cli",
     "query": "query_client.cli",
     "router": "common.router",
     "world": "common.world.cli",
-    "bench": "common.bench",
-    "eval": "mapper.evaluation.cli",
+    "bench": "apps.bench",
+    "eval": "apps.evaluation.cli",
     "models": "edge.models_cli",
 }
 
@@ -42,23 +42,6 @@ _FALLBACK_HELP = {
     "eval": "the paper's benchmarks (search volume; 3D semantic segmentation)",
     "models": "prepare model directories (download/convert on a machine with internet)",
 }
-
-
-def split_trailing_options(args: argparse.Namespace, items: list[str], add_options) -> list[str]:
-    """argparse stops at the first positional ``key=value`` item: parse the options written
-    after the items onto ``args`` (``add_options(parser, suppress=True)`` declares them) and
-    return the remaining ``key=value`` overrides. Unknown options are a ConfigError."""
-    p = argparse.ArgumentParser(add_help=False)
-    add_options(p, suppress=True)
-    ns, rest = p.parse_known_args(items)
-    for k, v in vars(ns).items():
-        setattr(args, k, v)
-    bad = [r for r in rest if r.startswith("-")]
-    if bad:
-        from common.config import ConfigError
-
-        raise ConfigError(f"unknown option(s) {bad}")
-    return rest
 
 
 class _Unavailable:

@@ -47,8 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from common.config import describe
 
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    from mapper.evaluation.semseg import SemsegConfig
-    from mapper.evaluation.srchvol import ALL_METHODS, SrchvolConfig
+    from apps.evaluation.semseg import SemsegConfig
+    from apps.evaluation.srchvol import ALL_METHODS, SrchvolConfig
 
     sv = sub.add_parser("srchvol", help="online search-volume benchmark (Table I)",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -90,8 +90,8 @@ def _source_overrides(args) -> dict:
 def build_config(args):
     """The action's config from --config, the options and the key=value overrides."""
     from common.config import load_config, merge
-    from mapper.evaluation.semseg import SemsegConfig
-    from mapper.evaluation.srchvol import SrchvolConfig
+    from apps.evaluation.semseg import SemsegConfig
+    from apps.evaluation.srchvol import SrchvolConfig
 
     schema = SrchvolConfig if args.action == "srchvol" else SemsegConfig
     cfg = load_config(schema, args.config, ())
@@ -129,17 +129,17 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         if args.action == "report":
-            from mapper.evaluation.report import write_report
+            from apps.evaluation.report import write_report
             path = write_report(args.runs, args.out, title=args.title)
             print(f"wrote {path}")
             return 0
         cfg = build_config(args)
         if args.action == "srchvol":
-            from mapper.evaluation.srchvol import run_srchvol
+            from apps.evaluation.srchvol import run_srchvol
             run_srchvol(cfg, args.out)
             print((__import__("pathlib").Path(args.out) / "table.md").read_text())
         else:
-            from mapper.evaluation.semseg import run_semseg
+            from apps.evaluation.semseg import run_semseg
             import json
             s = run_semseg(cfg, args.out)
             print(json.dumps({k: v for k, v in s.items() if k != "per_class"}, indent=2))

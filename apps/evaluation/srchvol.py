@@ -4,7 +4,7 @@ For every depth limit and method a :class:`mapper.map.RayFrontsMap` is fed the s
 (read / rendered and encoded once). Every ``every`` frames and at the end, per GT class:
 
 1. observed = the method's active occupancy voxels; unobserved = scene-volume voxels not
-   observed (GT: :func:`mapper.evaluation.data.ground_truth`);
+   observed (GT: :func:`apps.evaluation.data.ground_truth`);
 2. ray labels: softmax over all class names (temperature), prompt denoising over the
    whole ray set, prediction threshold; rays labelled 0 (the "none"/sky class) ignored;
 3. search volume of class c: per unobserved voxel, how many of c's shapes hold it —
@@ -12,9 +12,9 @@ For every depth limit and method a :class:`mapper.map.RayFrontsMap` is fed the s
    pyramids (``cone_shape=reference``), balls for Spherical Semantic Frontiers — normalised
    by the max count and thresholded (> ``srchvol_thresh``); a class without rays predicts
    the whole unobserved volume (``default_prediction``). Counts come from the exact row
-   rasteriser (:mod:`mapper.evaluation.raster`, ``scoring=raster``) — identical to the
+   rasteriser (:mod:`apps.evaluation.raster`, ``scoring=raster``) — identical to the
    block-test path (``scoring=blocks``), ~10–50× faster;
-4. TP/FP/FN, SCV, Recall, SCVR (:mod:`mapper.evaluation.metrics`), observed-region IoU of
+4. TP/FP/FN, SCV, Recall, SCVR (:mod:`apps.evaluation.metrics`), observed-region IoU of
    the semantic voxels (exact grid or kNN alignment) and the observed fraction of the
    class (stopping rule).
 
@@ -24,7 +24,7 @@ map with its rays dropped when ``share_maps`` (RayFronts differs from it only by
 rays; the voxel and occupancy layers are identical — tested), which saves one map.
 
 Encoders with a language head (NARADIO): voxel/ray features stay in encoder space and are
-compared through the head at query time (:mod:`mapper.evaluation.language`); class names
+compared through the head at query time (:mod:`apps.evaluation.language`); class names
 are embedded by the SigLIP text tower (``text_model_dir``); Semantic Poses maps the
 image-level (already language-space) features.
 """
@@ -45,11 +45,11 @@ import torch
 from common.config import ConfigError, field_, section, to_dict
 from edge.encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
-from mapper.evaluation import metrics as M
-from mapper.evaluation import raster as R
-from mapper.evaluation import shapes as S
-from mapper.evaluation.data import GroundTruth, ground_truth, load_frames, pack
-from mapper.evaluation.language import eval_language
+from apps.evaluation import metrics as M
+from apps.evaluation import raster as R
+from apps.evaluation import shapes as S
+from apps.evaluation.data import GroundTruth, ground_truth, load_frames, pack
+from apps.evaluation.language import eval_language
 
 log = logging.getLogger("rayfronts.eval")
 
