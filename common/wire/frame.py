@@ -1,0 +1,369 @@
+"""The frame message ``rayfronts.frame`` v1 (DESIGN §4): :func:`encode_frame` / :func:`decode_frame`.
+
+Part of the ``common.wire`` package (module map in ``common/wire/__init__.py``). Built on the
+generic envelope (:mod:`common.wire.envelope`); image payloads go through
+:mod:`common.wire.images`. A new frame field goes in :func:`encode_frame` (header list in its
+docstring, encode), :func:`_decode_frame_body` (validate) and :class:`common.frame.Frame`.
+"""
+from __future__ import annotations
+
+import math
+import re
+from typing import Any
+
+import numpy as np
+
+from common.conventions import is_rigid
+from common.frame import Frame
+from common.wire.envelope import DEFAULT_LIMITS, WireError, WireLimits, _tname, decode_message, encode_message
+from common.wire.fields import _as_array, _bytes_array, _enc_err, _err, _image_spec, _nd, _req, _shape
+from common.wire.images import (
+    _decode_depth,
+    _decode_rgb,
+    _encode_depth,
+    _encode_rgb,
+    _png_decode,
+    _png_encode,
+)
+
+FRAME_SCHEMA = "rayfronts.frame"
+FRAME_VERSION = 1
+
+_ROBOT_RE = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def validate_robot_id(robot: Any, limits: WireLimits | None = None) -> str:
+    """Return ``robot`` if it matches ``[A-Za-z0-9_-]{1,max_robot_id_len}``, else raise WireError."""
+    lim = limits or DEFAULT_LIMITS
+    if type(robot) is not str:
+        raise WireError(f"robot: expected str, got {_tname(robot)}")
+    if not 1 <= len(robot) <= lim.max_robot_id_len or not _ROBOT_RE.fullmatch(robot):
+        raise WireError(
+            f"robot: id {robot!r:.80} must match [A-Za-z0-9_-]{{1,{lim.max_robot_id_len}}}"
+        )
+    return robot
+
+
+
+def _encode_f16(x: Any, field: str, ndim: int) -> np.ndarray:
+    a = _as_array(x, field)
+    if a.ndim != ndim or a.dtype.kind not in "fiu" or 0 in a.shape:
+        raise _enc_err(field, f"expected a non-empty {ndim}-D float array, got shape {a.shape} dtype {a.dtype}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        a16 = np.ascontiguousarray(a, dtype="<f2")
+    if not np.isfinite(a16).all():
+        raise _enc_err(field, "non-finite values (after conversion to float16, |x| must be <= 65504)")
+    return a16
+
+
+def _encode_meta(meta: Any) -> dict:
+    if meta is None:
+        return {}
+    if not isinstance(meta, dict):
+        raise _enc_err("meta", f"expected a dict, got {_tname(meta)}")
+    out = {}
+    for k, v in meta.items():
+        if type(k) is not str:
+            raise _enc_err("meta", f"key {k!r} is not a str")
+        if isinstance(v, np.generic):
+            v = v.item()
+        if not (v is None or isinstance(v, (bool, int, float, str))):
+            raise _enc_err(f"meta.{k}", f"values must be None/bool/int/float/str, got {_tname(v)}")
+        out[k] = v
+    return out
+
+
+def encode_frame(
+    frame: Frame,
+    *,
+    jpeg_quality: int = 90,
+    depth_codec: str = "auto",
+    rgb_codec: str = "jpeg",
+) -> bytes:
+    """Encode a :class:`~common.frame.Frame` as a ``rayfronts.frame`` v1 message.
+
+    Header fields (arrays out of band):
+
+    ``robot`` str · ``seq`` int ≥ 0 · ``stamp`` float s · ``pose`` <f8 (4,4) · ``intrinsics``
+    <f8 (3,3) · ``feature_space`` str · ``meta`` map str → None/bool/int/float/str ·
+    ``features`` <f2 (C,h,w) or nil · ``global_feature`` <f2 (C,) or nil ·
+    ``depth`` {codec, shape [H,W], data} · ``rgb`` {codec, shape [H',W',3], data} ·
+    ``labels`` {codec "png16", data} or nil · ``confidence`` {codec "png8", data} or nil.
+
+    Depth codecs (``depth_codec``):
+
+    * ``"png16mm"``: 16-bit PNG (level 1) of millimetres; 0 = NaN, 65535 = +inf; finite
+      values rounded to the nearest mm and clipped to [1, 65534] mm (≤ 0.5 mm error up to
+      65.534 m, ≤ 1 mm below 1 mm).
+    * ``"f32"``: zlib-compressed float32, lossless for every value.
+    * ``"f16"``: float16, explicitly lossy (finite values > 65504 m become +inf).
+    * ``"auto"``: ``png16mm`` if every finite depth ≤ 65.534 m, else ``f32``.
+
+    With every codec, −inf and values ≤ 0 are stored as NaN ("no measurement").
+
+    RGB: ``"jpeg"`` (``jpeg_quality``) or ``"raw"`` (lossless, zero-copy on decode).
+    Features / global feature: cast to float16 (must stay finite). Labels: ints in
+    [0, 65535], lossless 16-bit PNG. Confidence: NaN → 0, clipped to [0, 1], quantised to
+    uint8 ``round(c·255)`` (8-bit PNG); decoded as ``q / 255`` (error ≤ 1/510).
+
+    Raises :class:`WireError` (message prefixed ``cannot encode frame: <field>``) if the frame
+    breaks the contract (bad robot id, non-rigid pose, mismatched shapes, ...).
+    """
+    if not isinstance(frame, Frame):
+        raise WireError(f"cannot encode frame: expected a common.frame.Frame, got {_tname(frame)}")
+    try:
+        validate_robot_id(frame.robot)
+    except WireError as e:
+        raise WireError(f"cannot encode frame: {e}") from None
+    seq = frame.seq
+    if isinstance(seq, np.integer):
+        seq = int(seq)
+    if type(seq) is not int or seq < 0 or seq >= 1 << 64:
+        raise _enc_err("seq", f"expected an int in [0, 2**64), got {seq!r}")
+    try:
+        stamp = float(frame.stamp)
+    except (TypeError, ValueError):
+        raise _enc_err("stamp", f"expected a float, got {_tname(frame.stamp)}") from None
+    if isinstance(frame.stamp, bool) or not math.isfinite(stamp):
+        raise _enc_err("stamp", f"expected a finite float, got {frame.stamp!r}")
+    pose = _as_array(frame.pose, "pose")
+    if pose.shape != (4, 4) or pose.dtype.kind not in "fiu":
+        raise _enc_err("pose", f"expected a (4, 4) float array, got shape {pose.shape} dtype {pose.dtype}")
+    pose = np.ascontiguousarray(pose, dtype="<f8")
+    if not is_rigid(pose):
+        raise _enc_err("pose", "not a finite rigid transform (proper rotation, last row 0 0 0 1)")
+    K = _as_array(frame.intrinsics, "intrinsics")
+    if K.shape != (3, 3) or K.dtype.kind not in "fiu":
+        raise _enc_err("intrinsics", f"expected a (3, 3) float array, got shape {K.shape} dtype {K.dtype}")
+    K = np.ascontiguousarray(K, dtype="<f8")
+    _check_intrinsics(K, _enc_err)
+
+    depth = _encode_depth(frame.depth, depth_codec)
+    h, w = depth["shape"]
+    rgb = _encode_rgb(frame.rgb, rgb_codec, jpeg_quality)
+
+    features = None
+    if frame.features is not None:
+        features = _encode_f16(frame.features, "features", 3)
+        c, fh, fw = features.shape
+        if fh > h or fw > w:
+            raise _enc_err("features", f"feature map {fh}x{fw} is larger than the depth image {h}x{w}")
+    global_feature = None
+    if frame.global_feature is not None:
+        global_feature = _encode_f16(frame.global_feature, "global_feature", 1)
+        if features is not None and global_feature.shape[0] != features.shape[0]:
+            raise _enc_err(
+                "global_feature",
+                f"length {global_feature.shape[0]} != feature channels {features.shape[0]}",
+            )
+
+    labels = None
+    if frame.labels is not None:
+        lab = _as_array(frame.labels, "labels")
+        if lab.shape != (h, w) or lab.dtype.kind not in "biu":
+            raise _enc_err("labels", f"expected an ({h}, {w}) int array, got shape {lab.shape} dtype {lab.dtype}")
+        if lab.size and (int(lab.min()) < 0 or int(lab.max()) > 65535):
+            raise _enc_err("labels", f"values must be in [0, 65535], got [{lab.min()}, {lab.max()}]")
+        labels = {
+            "codec": "png16",
+            "data": _png_encode(lab.astype(np.uint16), "labels"),
+        }
+
+    confidence = None
+    if frame.confidence is not None:
+        conf = _as_array(frame.confidence, "confidence")
+        if conf.shape != (h, w) or conf.dtype.kind not in "fiub":
+            raise _enc_err(
+                "confidence", f"expected an ({h}, {w}) float array, got shape {conf.shape} dtype {conf.dtype}"
+            )
+        q = np.nan_to_num(conf.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+        q = np.rint(np.clip(q, 0.0, 1.0) * 255.0).astype(np.uint8)
+        confidence = {
+            "codec": "png8",
+            "data": _png_encode(q, "confidence"),
+        }
+
+    fs = frame.feature_space if frame.feature_space is not None else ""
+    if type(fs) is not str:
+        raise _enc_err("feature_space", f"expected str, got {_tname(fs)}")
+
+    # Refuse what a decoder with the default limits would reject, rather than send it.
+    lim = DEFAULT_LIMITS
+    meta = _encode_meta(frame.meta)
+    for field, npix in (("depth", h * w), ("rgb", rgb["shape"][0] * rgb["shape"][1])):
+        if npix > lim.max_pixels:
+            raise _enc_err(field, f"{npix} pixels is over the wire limit {lim.max_pixels}")
+    for field, arr in (("features", features), ("global_feature", global_feature)):
+        if arr is not None and arr.shape[0] > lim.max_channels:
+            raise _enc_err(field, f"{arr.shape[0]} channels is over the wire limit {lim.max_channels}")
+    if len(fs) > lim.max_string_len:
+        raise _enc_err("feature_space", f"{len(fs)} chars is over the wire limit {lim.max_string_len}")
+    try:
+        _decode_meta(meta, lim)
+    except WireError as e:
+        raise WireError(f"cannot encode {e}") from None
+
+    body = {
+        "robot": frame.robot,
+        "seq": seq,
+        "stamp": stamp,
+        "pose": pose,
+        "intrinsics": K,
+        "depth": depth,
+        "rgb": rgb,
+        "features": features,
+        "feature_space": fs,
+        "labels": labels,
+        "confidence": confidence,
+        "global_feature": global_feature,
+        "meta": meta,
+    }
+    return encode_message(FRAME_SCHEMA, FRAME_VERSION, body)
+
+
+# ---- frame decoding -------------------------------------------------------------------
+
+def _check_intrinsics(K: np.ndarray, err) -> None:
+    if not np.isfinite(K).all():
+        raise err("intrinsics", "not finite")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise err("intrinsics", f"fx and fy must be > 0, got fx={K[0, 0]} fy={K[1, 1]}")
+    if abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9 or abs(K[2, 2] - 1.0) > 1e-9 or abs(K[1, 0]) > 1e-9:
+        raise err("intrinsics", f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}")
+
+
+
+def _f16_finite(a: np.ndarray) -> bool:
+    # exponent bits all ones <=> inf or NaN; integer ops are faster than isfinite on f16
+    return not ((a.view(np.uint16) & 0x7C00) == 0x7C00).any()
+
+
+def _decode_meta(meta: Any, lim: WireLimits) -> dict:
+    if meta is None:
+        return {}
+    if type(meta) is not dict:
+        raise _err("meta", f"expected a map, got {_tname(meta)}")
+    if len(meta) > lim.max_meta_items:
+        raise _err("meta", f"{len(meta)} entries is over the limit {lim.max_meta_items}")
+    for k, v in meta.items():
+        if len(k) > lim.max_string_len:
+            raise _err("meta", f"key of {len(k)} chars is over the limit {lim.max_string_len}")
+        if not (v is None or type(v) in (bool, int, float, str)):
+            raise _err(f"meta.{k:.50}", f"values must be None/bool/int/float/str, got {_tname(v)}")
+        if type(v) is str and len(v) > lim.max_string_len:
+            raise _err(f"meta.{k:.50}", f"string of {len(v)} chars is over the limit {lim.max_string_len}")
+    return meta
+
+
+def decode_frame(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> Frame:
+    """Decode and validate a ``rayfronts.frame`` v1 message (see :func:`encode_frame`).
+
+    Returns a :class:`Frame` whose fields satisfy the frame contract: depth float32 (H, W)
+    with NaN / +inf / positive values, rgb (H', W', 3) uint8 RGB, features (C, h, w) float16
+    finite with h ≤ H and w ≤ W, labels int32 (H, W), confidence float32 (H, W) in [0, 1],
+    global_feature float16 (C,), pose float64 rigid, intrinsics float64.
+    ``features``, ``global_feature`` and raw RGB are zero-copy read-only views of ``data``;
+    the other arrays are fresh. Raises :class:`WireError` for anything malformed.
+    """
+    lim = limits or DEFAULT_LIMITS
+    _, _, b = decode_message(data, schema=FRAME_SCHEMA, v=FRAME_VERSION, limits=lim)
+    try:
+        return _decode_frame_body(b, lim)
+    except WireError:
+        raise
+    except Exception as e:  # safety net: nothing but WireError leaves a decoder
+        raise WireError(f"frame: malformed ({type(e).__name__}: {e})") from e
+
+
+def _decode_frame_body(b: dict, lim: WireLimits) -> Frame:
+    robot = _req(b, "robot")
+    try:
+        validate_robot_id(robot, lim)
+    except WireError as e:
+        raise WireError(f"frame.{e}") from None
+    seq = _req(b, "seq")
+    if type(seq) is not int or seq < 0:
+        raise _err("seq", f"expected an int >= 0, got {seq!r:.50}")
+    stamp = _req(b, "stamp")
+    if type(stamp) not in (float, int) or not math.isfinite(stamp):
+        raise _err("stamp", f"expected a finite float, got {stamp!r:.50}")
+    pose = _nd(_req(b, "pose"), "pose", "<f8", 2)
+    if pose.shape != (4, 4):
+        raise _err("pose", f"expected shape (4, 4), got {pose.shape}")
+    with np.errstate(all="ignore"):  # huge finite entries overflow r @ r.T: not rigid either
+        rigid = is_rigid(pose)
+    if not rigid:
+        raise _err("pose", "not a finite rigid transform (proper rotation, last row 0 0 0 1)")
+    K = _nd(_req(b, "intrinsics"), "intrinsics", "<f8", 2)
+    if K.shape != (3, 3):
+        raise _err("intrinsics", f"expected shape (3, 3), got {K.shape}")
+    _check_intrinsics(K, _err)
+    fs = b.get("feature_space", "")
+    if fs is None:
+        fs = ""
+    if type(fs) is not str or len(fs) > lim.max_string_len:
+        raise _err("feature_space", f"expected a str of at most {lim.max_string_len} chars, got {_tname(fs)}")
+    meta = _decode_meta(b.get("meta"), lim)
+
+    features = b.get("features")
+    if features is not None:
+        features = _nd(features, "features", "<f2", 3)
+        c = features.shape[0]
+        if not 1 <= c <= lim.max_channels:
+            raise _err("features", f"{c} channels, expected 1..{lim.max_channels}")
+    gf = b.get("global_feature")
+    if gf is not None:
+        gf = _nd(gf, "global_feature", "<f2", 1)
+        if not 1 <= gf.shape[0] <= lim.max_channels:
+            raise _err("global_feature", f"length {gf.shape[0]}, expected 1..{lim.max_channels}")
+        if features is not None and gf.shape[0] != features.shape[0]:
+            raise _err("global_feature", f"length {gf.shape[0]} != feature channels {features.shape[0]}")
+        if not _f16_finite(gf):
+            raise _err("global_feature", "holds NaN or inf")
+
+    # Cheap checks on the declared sizes come before any image decoding.
+    dspec = b.get("depth")
+    if type(dspec) is dict and "shape" in dspec:
+        h, w = _shape(dspec["shape"], "depth.shape", 2, lim)
+        if features is not None:
+            _, fh, fw = features.shape
+            if not (1 <= fh <= h and 1 <= fw <= w):
+                raise _err("features", f"feature map {fh}x{fw} must be non-empty and at most the depth size {h}x{w}")
+    if features is not None and not _f16_finite(features):
+        raise _err("features", "holds NaN or inf")
+
+    depth = _decode_depth(b, lim)
+    hw = depth.shape
+    rgb = _decode_rgb(b, lim)
+
+    labels = b.get("labels")
+    if labels is not None:
+        spec = _image_spec(b, "labels", ("codec", "data"))
+        if spec["codec"] != "png16":
+            raise _err("labels.codec", f"unknown codec {spec['codec']!r:.50} (known: png16)")
+        labels = _png_decode(_bytes_array(spec["data"], "labels.data"), "labels.data", hw, np.uint16)
+        labels = labels.astype(np.int32)
+    conf = b.get("confidence")
+    if conf is not None:
+        spec = _image_spec(b, "confidence", ("codec", "data"))
+        if spec["codec"] != "png8":
+            raise _err("confidence.codec", f"unknown codec {spec['codec']!r:.50} (known: png8)")
+        q = _png_decode(_bytes_array(spec["data"], "confidence.data"), "confidence.data", hw, np.uint8)
+        conf = q.astype(np.float32)
+        conf /= np.float32(255.0)
+
+    return Frame(
+        robot=robot,
+        seq=seq,
+        stamp=float(stamp),
+        pose=pose.copy(),
+        intrinsics=K.copy(),
+        depth=depth,
+        rgb=rgb,
+        features=features,
+        feature_space=fs,
+        labels=labels,
+        confidence=conf,
+        global_feature=gf,
+        meta=meta,
+    )
