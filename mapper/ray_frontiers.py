@@ -277,14 +277,18 @@ class RayStore:
 
     def prune(self, frontier_keys: torch.Tensor, requeue: bool):
         """Drop bins whose frontier is gone; return (origins, dirs, feats) of the dropped
-        bins for re-casting when ``requeue`` (origin = old frontier centre, direction = bin
-        centre, feature = bin mean), else None."""
+        bins for re-casting when ``requeue`` (origin = old frontier centre, direction = the
+        bin's stored weighted mean direction (:meth:`directions`; the bin centre only for a
+        zero direction sum), feature = bin mean), else None. The mean, not the bin centre:
+        with one 360° bin the centre is always +x (audit B1)."""
         alive = torch.isin(self.fkey, frontier_keys)
         out = None
         if requeue and not bool(alive.all()):
             dead = ~alive
             o = voxel_center(K_.unpack(self.fkey[dead]), self.beta)
-            dd = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
+            n = self.dsum[dead].norm(dim=1, keepdim=True)
+            bc = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
+            dd = torch.where(n > 1e-12, self.dsum[dead] / n.clamp_min(1e-12), bc)
             out = (o, dd, self.feat[dead].to(torch.float32))
         self._take(alive)
         return out
