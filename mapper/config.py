@@ -62,8 +62,13 @@ class MapConfig:
     angle_bin_size: float = field_(20.0, "ray angle bin psi (deg); >= 360 = one bin per frontier (semantic frontiers)")
     ray_range_factor: float = field_(4.0, "frontiers farther than this times the sensing range are not candidates (paper 4, reference 3)")
     ray_reject_close: bool = field_(False, "reference rule: frontiers closer than 2*beta to the ray origin are not candidates")
+    ray_cost_norm: Literal["paper", "absolute"] = field_(
+        "paper", "ray-frontier cost scale: 'paper' = per ray over its candidates (the paper's equation; a lone "
+                 "candidate costs 1, weight floored at ray_min_weight), 'absolute' = d_ortho/beta and "
+                 "d_orig/(ray_range_factor*range), no floor (mapper.ray_frontiers)")
     ray_min_weight: float = field_(
-        0.05, "floor of the ray weight 1 - cost (the paper's per-ray normalised cost is 1 for a lone candidate)")
+        0.05, "floor of the ray weight 1 - cost in the 'paper' cost mode (its per-ray normalised cost is 1 for a "
+              "lone candidate)")
     ray_weight_normalize: bool = field_(False, "reference behaviour: normalise weights to sum 1 per cast batch")
     zero_depth_mode: bool = field_(False, "no depth: each ray goes to the nearest frontier, no direction test")
     global_encoding: bool = field_(False, "Semantic Poses: one ray per frame along camera +z with the image-level feature")
@@ -93,6 +98,8 @@ class MapConfig:
             raise ConfigError(f"ray_erosion must be >= 0, got {self.ray_erosion}")
         if self.clip_bbox is not None and len(self.clip_bbox) != 6:
             raise ConfigError("clip_bbox must have 6 numbers [xmin,ymin,zmin,xmax,ymax,zmax]")
+        if self.ray_cost_norm not in ("paper", "absolute"):
+            raise ConfigError(f"ray_cost_norm must be paper|absolute, got {self.ray_cost_norm!r}")
         if self.point_selection not in ("random", "confidence"):
             raise ConfigError(f"point_selection must be random|confidence, got {self.point_selection!r}")
         return self

@@ -115,9 +115,11 @@ def group_pairs(group: torch.Tensor, idx: torch.Tensor, wt: torch.Tensor, n_grou
 
 def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, frontier_ijk: torch.Tensor,
                    beta: float, base: torch.Tensor, max_dist: float, reject_close: bool,
-                   block: int = 4) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   block: int = 4, scales=None, argmin=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Kernel-only ray -> frontier association: (rays, frontier idx, float64 cost), equal to
-    :func:`mapper.ray_frontiers.associate`'s torch path (see the C++ source)."""
+    :func:`mapper.ray_frontiers.associate`'s torch path (see the C++ source). With fixed
+    cost ``scales`` (the ``absolute`` cost) the kernel gives the candidate pairs and
+    ``argmin(rays, fidx, (x1, x2), n_rays)`` (the torch code) picks per ray."""
     ri, fi, oo, vv = _rfkernels.associate_rays(_np(o, torch.float64), _np(d, torch.float64),
                                                _np(lengths, torch.float64), _np(frontier_ijk, torch.int64),
                                                float(beta), int(block), _np(base, torch.float64),
@@ -125,6 +127,8 @@ def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, fron
     # square roots in torch: bit-identical to the torch path's float32 sqrt
     x1 = torch.from_numpy(oo).sqrt().to(torch.float64)
     x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
+    if scales is not None:
+        return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
     r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
     return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)
 

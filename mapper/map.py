@@ -315,7 +315,8 @@ class RayFrontsMap:
         rng = cfg.sensing_range()
         max_dist = cfg.ray_range_factor * rng if rng > 0 else -1.0
         ri, fi, cost = associate(o, dr, K_.unpack(fk), cfg.beta, max_dist=max_dist,
-                                 reject_close=cfg.ray_reject_close, zero_depth=cfg.zero_depth_mode)
+                                 reject_close=cfg.ray_reject_close, zero_depth=cfg.zero_depth_mode,
+                                 cost=cfg.ray_cost_norm)
         t = self._tick("ray_associate", t)
         if cfg.ray_tracing and not cfg.zero_depth_mode and ri.numel():
             p = voxel_center(K_.unpack(fk[fi]), cfg.beta).to(torch.float64)
@@ -325,9 +326,15 @@ class RayFrontsMap:
             keep = blocked.to(self.device) >= tq - cfg.vox_size
             ri, fi, cost = ri[keep], fi[keep], cost[keep]
             t = self._tick("ray_trace", t)
+        w = 1.0 - cost
+        if cfg.ray_cost_norm == "paper" or cfg.zero_depth_mode:
+            w = w.clamp_min(cfg.ray_min_weight)
+        w = w.to(torch.float32)
+        pos = w > 0          # absolute cost without floor: a ray at both limits carries nothing
+        if not bool(pos.all()):
+            ri, fi, w = ri[pos], fi[pos], w[pos]
         if ri.numel() == 0:
             return
-        w = (1.0 - cost).clamp_min(cfg.ray_min_weight).to(torch.float32)
         if cfg.ray_weight_normalize:
             w = w / w.sum()
         self.ray_store.merge(fk[fi], fk, dr[ri], fe[ri], w)

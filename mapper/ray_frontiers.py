@@ -5,10 +5,20 @@ Association (paper equation, per ray over its own candidate set): a frontier ``p
 centre, cell size ``beta``) is a candidate of ray ``(o, d)`` when ``t = (p - o)·d > 0``,
 ``d_ortho = |p - o - t d| <= beta``, ``d_orig = |p - o| <= max_dist`` (``max_dist =
 ray_range_factor * range``; no limit when the range is unknown) and, with the reference's
-optional rule, ``d_orig >= 2 beta``. Cost ``c = (d_ortho / max_cand d_ortho + d_orig /
-max_cand d_orig) / 2`` (a 0/0 term is 0); the ray takes the candidate of least cost (ties:
-lowest frontier index); weight ``max(1 - c, min_weight)``. Zero-depth mode: every frontier is
-a candidate, cost ``d_orig / max d_orig`` (nearest frontier), no direction test.
+optional rule, ``d_orig >= 2 beta``. Two cost scales (``MapConfig.ray_cost_norm``, audit B2):
+
+* ``paper``: ``c = (d_ortho / max_cand d_ortho + d_orig / max_cand d_orig) / 2`` (a 0/0 term
+  is 0), normalised per ray over its own candidates as the paper's equation reads; a lone
+  candidate costs 1, so the map floors the weight at ``ray_min_weight``, and adding a worse
+  second candidate raises the chosen one's weight.
+* ``absolute``: ``c = (d_ortho / beta + d_orig / max_dist) / 2`` — fixed scales, so a ray's
+  cost does not depend on which other frontiers happen to be candidates; both terms lie in
+  [0, 1] by the candidate test, no floor. With an unknown range (``max_dist <= 0``) the
+  ``d_orig`` term keeps the per-ray maximum.
+
+The ray takes the candidate of least cost (ties: lowest frontier index); weight ``1 - c``.
+Zero-depth mode (either scale): every frontier is a candidate, cost ``d_orig / max d_orig``
+(nearest frontier), no direction test.
 
 Candidates come from a spatial index, never from an R×F matrix: each frontier is
 registered in the 27 coarse cells around its own; each ray is walked through the coarse
@@ -81,8 +91,9 @@ def _base(o: torch.Tensor) -> torch.Tensor:
     return torch.round(o.mean(0)) if o.shape[0] else torch.zeros(3, dtype=o.dtype, device=o.device)
 
 
-def _select(ri: torch.Tensor, fi: torch.Tensor, o, d, p, beta, max_dist, reject_close, n_rays, base=None):
-    """Filter candidate pairs, per-ray normalised cost, argmin. Returns (rays, frontiers, cost).
+def _select(ri: torch.Tensor, fi: torch.Tensor, o, d, p, beta, max_dist, reject_close, n_rays, base=None,
+            cost: str = "paper"):
+    """Filter candidate pairs, cost (see module docstring), argmin. Returns (rays, frontiers, cost).
 
     Per pair, in float32 relative to a common base point (:func:`_base` of all rays):
     ``t = v·d``, ``d_orig² = v·v``, ``d_ortho² = max(v·v - t², 0)`` with ``v = p - o``."""
@@ -102,13 +113,26 @@ def _select(ri: torch.Tensor, fi: torch.Tensor, o, d, p, beta, max_dist, reject_
     if reject_close:
         ok &= vv >= 4 * beta * beta
     ri, fi = ri[ok], fi[ok]
-    return _argmin_cost(ri, fi, (oo[ok].sqrt().to(torch.float64), vv[ok].sqrt().to(torch.float64)), n_rays)
+    return _argmin_cost(ri, fi, (oo[ok].sqrt().to(torch.float64), vv[ok].sqrt().to(torch.float64)), n_rays,
+                        _scales(cost, beta, max_dist))
 
 
-def _argmin_cost(ri, fi, terms, n_rays):
+def _scales(cost: str, beta: float, max_dist: float):
+    """Fixed per-term scales of the ``absolute`` cost (``None`` = per-ray max), or None for ``paper``."""
+    if cost == "paper":
+        return None
+    if cost != "absolute":
+        raise ValueError(f"ray cost normalisation must be 'paper' or 'absolute', got {cost!r}")
+    return (float(beta), float(max_dist) if max_dist > 0 else None)
+
+
+def _argmin_cost(ri, fi, terms, n_rays, scales=None):
     dev = ri.device
     cost = torch.zeros(ri.shape[0], dtype=torch.float64, device=dev)
-    for x in terms:
+    for j, x in enumerate(terms):
+        if scales is not None and scales[j] is not None:
+            cost += x / scales[j]
+            continue
         mx = torch.zeros(n_rays, dtype=torch.float64, device=dev).scatter_reduce(0, ri, x, "amax", include_self=True)
         den = mx[ri]
         cost += torch.where(den > 0, x / torch.where(den > 0, den, torch.ones_like(den)), torch.zeros_like(x))
@@ -124,11 +148,11 @@ def _argmin_cost(ri, fi, terms, n_rays):
 
 def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Tensor, beta: float, *,
               max_dist: float = -1.0, reject_close: bool = False, zero_depth: bool = False,
-              chunk: int = 1 << 22, block: int = 4, _base_pt: torch.Tensor | None = None):
+              cost: str = "paper", chunk: int = 1 << 22, block: int = 4, _base_pt: torch.Tensor | None = None):
     """Match rays to coarse frontiers (cells ``frontier_ijk`` (F, 3) of size ``beta``).
 
     Returns ``(ray_idx (K,), frontier_idx (K,), cost (K,) float64)`` for the rays that found
-    a frontier. Exact same result as :func:`associate_bruteforce`. Candidates come from the
+    a frontier; ``cost`` = ``paper`` | ``absolute`` (module docstring). Exact same result as :func:`associate_bruteforce`. Candidates come from the
     C++ kernel (:mod:`mapper.kernels`, blocks of ``block``³ coarse cells) when available,
     else from the torch walk below; the exact test and cost are the same torch code."""
     dev = origins.device
@@ -141,6 +165,7 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     p = (frontier_ijk.to(torch.float64) + 0.5) * beta
     if zero_depth:
         return _nearest(o, p)
+    scales = _scales(cost, beta, max_dist)
     base = _base(o) if _base_pt is None else _base_pt
     # ray length: the distance cutoff, or the farthest frontier-bbox corner
     if max_dist > 0:
@@ -152,7 +177,9 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     if KN.enabled(o, d, frontier_ijk):
         step = KERNEL_RAY_CHUNK
         parts = [KN.associate_rays(o[s:s + step], d[s:s + step], L[s:s + step], frontier_ijk, beta, base,
-                                   max_dist, reject_close, block) for s in range(0, R, step)]
+                                   max_dist, reject_close, block, scales=scales,
+                                   argmin=lambda r, f, x, n: _argmin_cost(r, f, x, n, scales))
+                 for s in range(0, R, step)]
         if len(parts) == 1:
             return parts[0]
         return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, step))]),
@@ -160,7 +187,8 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     ray_chunk = 8192  # per-ray results are independent: chunking over rays bounds memory
     if R > ray_chunk:
         parts = [associate(origins[s:s + ray_chunk], dirs[s:s + ray_chunk], frontier_ijk, beta, max_dist=max_dist,
-                           reject_close=reject_close, chunk=chunk, _base_pt=base) for s in range(0, R, ray_chunk)]
+                           reject_close=reject_close, cost=cost, chunk=chunk, _base_pt=base)
+                 for s in range(0, R, ray_chunk)]
         return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, ray_chunk))]),
                 torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
     ends = o + d * L[:, None]
@@ -210,7 +238,7 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     if not ri_all:
         return e, e.clone(), torch.empty(0, dtype=torch.float64, device=dev)
     ri, fi = torch.cat(ri_all), torch.cat(fi_all)
-    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, base)
+    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, base, cost)
 
 
 def _nearest(o: torch.Tensor, p: torch.Tensor):
@@ -230,7 +258,7 @@ def _nearest(o: torch.Tensor, p: torch.Tensor):
 
 
 def associate_bruteforce(origins, dirs, frontier_ijk, beta, *, max_dist=-1.0, reject_close=False,
-                         zero_depth=False):
+                         zero_depth=False, cost="paper"):
     """O(R×F) reference of :func:`associate` (tests only)."""
     R, F = origins.shape[0], frontier_ijk.shape[0]
     o = origins.to(torch.float64)
@@ -240,7 +268,7 @@ def associate_bruteforce(origins, dirs, frontier_ijk, beta, *, max_dist=-1.0, re
         return _nearest(o, p)
     ri = torch.arange(R).repeat_interleave(F)
     fi = torch.arange(F).repeat(R)
-    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R)
+    return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, cost=cost)
 
 
 # --------------------------------------------------------------------------- store

@@ -57,3 +57,98 @@ def test_b1_requeue_in_map_keeps_direction():
     out = m.ray_store.prune(torch.empty(0, dtype=torch.int64), requeue=True)
     assert out is not None and out[1].shape == (1, 3)
     assert math.degrees(math.acos(float(out[1][0] @ _unit([0.0, 1.0, 0.2])))) < 1e-3
+
+
+# --------------------------------------------------------------------------- B2 cost modes
+def _one_ray():
+    o = torch.zeros(1, 3, dtype=torch.float64)
+    d = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
+    return o, d
+
+
+def test_b2_paper_cost_lone_candidate_and_second_candidate():
+    """Paper mode: a lone candidate costs 1; a worse second candidate lowers the chosen one's
+    cost (the audit's 0.05 -> 0.256 weight jump). Absolute mode: the chosen cost is the same
+    hand-computed value with or without the second candidate."""
+    from mapper.ray_frontiers import associate
+    beta, D = 2.0, 40.0
+    o, d = _one_ray()
+    near = torch.tensor([[3, 0, 0]])                  # centre (7, 1, 1): d_ortho = sqrt(2), d_orig = sqrt(51)
+    far = torch.tensor([[8, 0, 0]])                   # centre (17, 1, 1)
+    both = torch.cat([near, far])
+    _, f1, c1 = associate(o, d, near, beta, max_dist=D, cost="paper")
+    _, f2, c2 = associate(o, d, both, beta, max_dist=D, cost="paper")
+    assert f1.tolist() == [0] and float(c1[0]) == 1.0
+    assert f2.tolist() == [0] and float(c2[0]) < 0.8       # changed by an unrelated candidate
+    want = (math.sqrt(2) / beta + math.sqrt(51) / D) / 2
+    _, a1, e1 = associate(o, d, near, beta, max_dist=D, cost="absolute")
+    _, a2, e2 = associate(o, d, both, beta, max_dist=D, cost="absolute")
+    assert a1.tolist() == [0] and a2.tolist() == [0]
+    assert abs(float(e1[0]) - want) < 1e-6 and float(e1[0]) == float(e2[0])
+
+
+def test_b2_absolute_cost_can_pick_a_different_frontier():
+    """The two scales rank candidates differently. Ray from (0, .4, .4) along +x, beta 1,
+    max_dist 100: A = centre (2.5, .5, -.5) (d_ortho .906, d_orig 2.658), B = centre
+    (29.5, .5, .5) (d_ortho .141, d_orig 29.5). Paper: A (1 + .090)/2 = .545 < B (.156 + 1)/2
+    = .578 -> A. Absolute: A (.906 + .027)/2 = .466 > B (.141 + .295)/2 = .218 -> B."""
+    from mapper.ray_frontiers import associate
+    o = torch.tensor([[0.0, 0.4, 0.4]], dtype=torch.float64)
+    d = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
+    fr = torch.tensor([[2, 0, -1], [29, 0, 0]])
+    _, pf, pc = associate(o, d, fr, 1.0, max_dist=100.0, cost="paper")
+    _, af, ac = associate(o, d, fr, 1.0, max_dist=100.0, cost="absolute")
+    a_ortho, a_orig = math.hypot(0.1, 0.9), math.sqrt(2.5 ** 2 + 0.1 ** 2 + 0.9 ** 2)
+    b_ortho, b_orig = math.hypot(0.1, 0.1), math.sqrt(29.5 ** 2 + 0.02)
+    assert pf.tolist() == [0] and af.tolist() == [1]
+    assert float(pc[0]) == pytest.approx((1 + a_orig / b_orig) / 2, abs=1e-6)
+    # float32 pair metrics (d_ortho² = v·v - t², cancellation at 30 m): ~1e-4 absolute
+    assert float(ac[0]) == pytest.approx((b_ortho + b_orig / 100.0) / 2, abs=1e-3)
+
+
+@pytest.mark.parametrize("seed,beta,max_dist,close", [(0, 1.0, 15.0, False), (1, 0.5, 8.0, True),
+                                                      (2, 2.0, -1.0, False)])
+def test_b2_absolute_kernel_torch_bruteforce_identical(seed, beta, max_dist, close):
+    from mapper import kernels as KN
+    from mapper.ray_frontiers import associate, associate_bruteforce
+    g = torch.Generator().manual_seed(seed)
+    fr = torch.unique(torch.randint(-12, 12, (500, 3), generator=g), dim=0)
+    o = (torch.rand(300, 3, generator=g, dtype=torch.float64) - 0.5) * 8
+    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=1)
+    assert KN.available(), f"mapper._rfkernels not built: {KN.IMPORT_ERROR}"
+    k = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
+    with KN.disabled():
+        t = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
+    ref = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
+    paper = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="paper")
+    assert t[0].numel() > 20
+    for a, b in ((k, t), (t, ref)):
+        for x, y in zip(a, b):
+            assert x.dtype == y.dtype and torch.equal(x, y)
+    # same candidate sets, different costs
+    assert torch.equal(ref[0], paper[0]) and not torch.equal(ref[2], paper[2])
+    if max_dist > 0:
+        assert float(ref[2].max()) <= 1.0
+
+
+def test_b2_map_weights_absolute_no_floor():
+    """Map level: absolute mode stores 1 - c (no 0.05 floor); paper mode floors lone candidates."""
+    from mapper.config import map_config
+    from mapper.map import RayFrontsMap
+    ws = {}
+    for mode in ("paper", "absolute"):
+        cfg = map_config("online", {"vox_size": 1.0, "depth_limit": 10.0, "ray_tracing": False,
+                                    "ray_cost_norm": mode})
+        m = RayFrontsMap(cfg, 4, occupancy_backend="torch")
+        m.fronts.keys = torch.sort(K_.pack(torch.tensor([[2, 0, 0]])))[0]     # beta = 4: centre (10, 2, 2)
+        o, d = _one_ray()
+        d = torch.nn.functional.normalize(torch.tensor([[10.0, 2.0, 1.0]], dtype=torch.float64), dim=1)
+        m._cast(o, d.to(torch.float32), torch.eye(4)[:1], 0.0)
+        ws[mode] = float(m.ray_store.weight.sum())
+    assert ws["paper"] == pytest.approx(0.05)
+    v = torch.tensor([10.0, 2.0, 2.0], dtype=torch.float64)
+    dd = d[0]
+    t = float(v @ dd)
+    ortho = math.sqrt(max(float(v @ v) - t * t, 0.0))
+    want = 1 - (ortho / 4.0 + float(v.norm()) / 40.0) / 2
+    assert ws["absolute"] == pytest.approx(want, rel=1e-5)
