@@ -9,7 +9,10 @@ How a session config is built (:func:`make_config`), later steps win:
 1. the Zenoh JSON5 file ``config_file`` (e.g. one of ``deploy/zenoh/*.json5``; falls back to
    the ``RAYFRONTS_ZENOH_CONFIG`` environment variable), else Zenoh's defaults;
 2. our keys: ``mode``, ``connect``, ``listen`` (only when set: they replace the file's),
-   multicast scouting, shared memory, lease;
+   multicast scouting, shared memory, lease (``lease_ms``; without a config file and with
+   ``lease_ms = 0`` the default :data:`DEFAULT_LEASE_MS` with :data:`DEFAULT_KEEP_ALIVE`
+   keep-alives per lease, so a frozen or cut-off peer is declared gone within about 2 s
+   with the CLI defaults instead of Zenoh's 10 s);
 3. relative TLS / credential paths in the result are resolved against ``certs_dir``
    (falls back to ``RAYFRONTS_CERTS``, then ``/etc/rayfronts/certs``), so one shipped file
    serves every machine: each machine's certs dir holds ``ca.pem``, ``cert.pem``, ``key.pem``;
@@ -49,6 +52,12 @@ MODES = ("router", "client", "peer")
 DEFAULT_CERTS_DIR = "/etc/rayfronts/certs"
 ENV_CONFIG = "RAYFRONTS_ZENOH_CONFIG"
 ENV_CERTS = "RAYFRONTS_CERTS"
+#: link lease (ms) of a session built without a config file: a silent link (SIGSTOPped or
+#: partitioned peer) is closed about one lease after the last message it got, and the peer's
+#: liveliness tokens go with it. Zenoh's own default is 10 s.
+DEFAULT_LEASE_MS = 2000
+#: keep-alive messages per lease (Zenoh's ``transport/link/tx/keep_alive``): one every 500 ms.
+DEFAULT_KEEP_ALIVE = 4
 
 #: config keys holding file paths that are resolved against ``certs_dir`` when relative.
 PATH_KEYS = (
@@ -86,8 +95,9 @@ class ZenohConfig:
     multicast_scouting: bool = field_(False, "UDP multicast discovery (off: explicit endpoints only)")
     shared_memory: bool | None = field_(None, "shared-memory transport between local processes; "
                                               "null = Zenoh default (on); false to measure the network")
-    lease_ms: int = field_(0, "link lease in ms (liveliness loss seen after about this long); "
-                              "0 = the file's / Zenoh default (10000)")
+    lease_ms: int = field_(0, "link lease in ms (a frozen or cut-off peer is seen gone after about this "
+                              "long); 0 = the config file's lease, or 2000 (4 keep-alives per lease) "
+                              "without a config file")
     connect_timeout_ms: int = field_(-1, "client mode: -1 = keep retrying until the router answers "
                                          "(start order does not matter); 0 = one try; N = retry N ms")
     connect_retry_s: float = field_(1.0, "client mode: wait between connection attempts (seconds, max)")
@@ -155,6 +165,9 @@ def make_config(cfg: ZenohConfig, extra: dict[str, Any] | None = None, default_m
         if cfg.lease_ms < 100:
             raise ConfigError(f"zenoh lease_ms {cfg.lease_ms} is too small (>= 100 ms)")
         _insert(c, "transport/link/tx/lease", int(cfg.lease_ms), "lease_ms")
+    elif not path:
+        _insert(c, "transport/link/tx/lease", DEFAULT_LEASE_MS, "default lease")
+        _insert(c, "transport/link/tx/keep_alive", DEFAULT_KEEP_ALIVE, "default keep-alive")
     if cfg.acl_file:
         text = _read_text(cfg.acl_file, "access-control file")
         try:

@@ -231,6 +231,24 @@ def test_scannet_frame_skip_and_missing(scannet_scene, tmp_path):
         open_source(SourceConfig(kind="scannet", path=str(bad)))
 
 
+def test_scannet_corrupt_frame_skipped_and_counted(scannet_scene, tmp_path, caplog):
+    import shutil
+
+    scene = tmp_path / scannet_scene.name
+    shutil.copytree(scannet_scene, scene)
+    (scene / "color" / "3.jpg").write_bytes(b"\xff\xd8 not a jpeg at all")      # undecodable colour
+    d = (scene / "depth" / "4.png").read_bytes()
+    (scene / "depth" / "4.png").write_bytes(d[: len(d) // 2])                   # truncated depth PNG
+    src = open_source(SourceConfig(kind="scannet", path=str(scene)))
+    with caplog.at_level("ERROR"):
+        frames = list(src)
+    assert [f.meta["index"] for f in frames] == [0, 1, 5]   # 2: -inf pose; 3, 4: corrupt
+    assert [f.seq for f in frames] == [0, 1, 2]                    # seq stays contiguous
+    assert src.skipped["corrupt frame"] == 2
+    lines = [r.getMessage() for r in caplog.records if "skipping frame" in r.getMessage()]
+    assert len(lines) == 2 and "3.jpg" in lines[0] and "4.png" in lines[1]
+
+
 # --------------------------------------------------------------------------- Replica
 
 REPLICA_CAM = {"w": 40, "h": 24, "fx": 20.0, "fy": 20.0, "cx": 19.5, "cy": 11.5, "scale": 6553.5}
@@ -312,9 +330,10 @@ def test_replica_missing(tmp_path, replica_root):
         open_source(SourceConfig(kind="replica", path=str(tmp_path), scene="scene"))
     src = open_source(SourceConfig(kind="replica", path=str(replica_root), scene="room0"))
     (replica_root / "room0" / "results" / "depth000006.png").rename(replica_root / "room0" / "gone.png")
-    try:
-        with pytest.raises(SourceError, match="depth000006.png"):
-            list(src)
+    try:   # a frame whose file vanished is skipped and counted; the others still come
+        got = [f.meta["index"] for f in src]
+        assert 6 not in got and len(got) == len(src) - 1
+        assert src.skipped["corrupt frame"] == 1
     finally:
         (replica_root / "room0" / "gone.png").rename(replica_root / "room0" / "results" / "depth000006.png")
 

@@ -6,6 +6,12 @@ in order: frame selection (``index % (frame_skip + 1) == 0``, then ``max_frames`
 resampling to ``resolution`` (RGB area/bilinear, depth/labels/confidence nearest,
 intrinsics rescaled), the depth conventions (``sanitize_depth``: ≤0/−inf → NaN, finite >
 ``depth_limit`` → +inf), and stamps ``robot`` and ``seq`` (0, 1, ... in output order).
+
+A frame that fails to read or decode (a corrupt image or recording frame, a bag message
+that does not deserialise, a non-rigid pose) is skipped, not fatal: the source logs one
+line naming the frame and the error, counts it in ``skipped["corrupt frame"]`` (one bounded
+reason, never the error text) and goes on with the next frame; ``seq`` stays contiguous.
+A source that cannot be opened at all still raises :class:`SourceError`.
 """
 from __future__ import annotations
 
@@ -23,6 +29,9 @@ from edge.sources.errors import SourceError
 from edge.sources.imageops import parse_resolution, resize_nearest, resize_rgb
 
 log = logging.getLogger(__name__)
+
+#: the ``skipped`` reason of frames that failed to read or decode
+CORRUPT = "corrupt frame"
 
 
 def select_indices(candidates: Sequence[int], frame_skip: int, max_frames: int | None) -> list[int]:
@@ -67,9 +76,15 @@ class FrameSource:
         raise NotImplementedError
 
     def _iter_native(self, indices: list[int]) -> Iterator[Frame]:
-        """Native frames for ``indices`` in order; default: ``_load`` each."""
+        """Native frames for ``indices`` in order; default: ``_load`` each, skipping (and
+        counting) those that fail to read."""
         for i in indices:
-            yield self._load(i)
+            try:
+                f = self._load(i)
+            except SourceError as e:
+                self._skip_corrupt(i, e)
+                continue
+            yield f
 
     # ---- shared ------------------------------------------------------------------------
     @property
@@ -81,6 +96,12 @@ class FrameSource:
 
     def _skip(self, reason: str, count: int = 1) -> None:
         self.skipped[reason] += count
+
+    def _skip_corrupt(self, index, err: Exception) -> None:
+        """Count a frame that could not be read/decoded and log one line about it."""
+        self.skipped[CORRUPT] += 1
+        log.error("%s: skipping frame %s (%d skipped so far): %s", self.name, index, self.skipped[CORRUPT],
+                  str(err)[:300])
 
     def _report_skips(self) -> None:
         for reason, n in self.skipped.items():
@@ -112,8 +133,15 @@ class FrameSource:
             from tqdm import tqdm
 
             it = tqdm(it, total=len(self), desc=self.name, unit="frame")
-        for seq, frame in enumerate(it):
-            yield self._finish(frame, seq)
+        seq = 0
+        for frame in it:
+            try:
+                out = self._finish(frame, seq)
+            except SourceError as e:
+                self._skip_corrupt((frame.meta or {}).get("index", "?"), e)
+                continue
+            seq += 1
+            yield out
 
     def _finish(self, f: Frame, seq: int) -> Frame:
         depth = np.asarray(f.depth)

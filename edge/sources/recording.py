@@ -7,6 +7,9 @@ source re-applies frame selection, ``resolution`` and ``depth_limit`` and re-sta
 recording's ``recording.yaml`` (``class_names`` / ``classes``, at the top level or in its
 ``source`` dict). Intrinsics are read from the first selected frame.
 
+A corrupt frame file (one that does not decode) is skipped and counted
+(``skipped["corrupt frame"]``, one log line), and the frames after it are still read.
+
 World frame: whatever frame the recorder wrote (the recorded frames already obey the
 conventions: RDF camera-to-world; z-up for the synthetic world and the converted sources).
 """
@@ -57,9 +60,13 @@ class RecordingSource(FrameSource):
             self.world_frame = "the recorded world frame (RDF camera-to-world poses as the recorder wrote them)"
         self.default_fps = 1.0 / float(src["frame_dt"]) if src.get("frame_dt") else 10.0
         self._select(range(len(self.reader)))
-        if self._indices:
-            f = self._read(self._indices[0])
+        for i in self._indices:   # intrinsics from the first selected frame that decodes
+            try:
+                f = self._read(i)
+            except SourceError:
+                continue          # counted when the iteration reaches it
             self.native_K, self.native_hw = np.asarray(f.intrinsics, dtype=np.float64), tuple(f.depth.shape)
+            break
 
     def _read(self, i: int):
         try:
