@@ -1,0 +1,234 @@
+"""Several robots in one map — the pure parts (mapper.fleet): feature-space compatibility and
+re-projection between PCA bases (with the measured query-score error), world_from_robot
+transforms, rates, status and the bounds on per-robot state."""
+from __future__ import annotations
+
+import collections
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from common.feature_space import FeatureSpace
+from common.pca import PCA
+from mapper.fleet import (
+    DropWarner, FleetSection, RateMeter, Reprojection, RobotTransforms, StatusPublisher, TransformError,
+    advised_rate, compatibility, evictions, expire_pending, parse_transform, reprojection_score_error, robot_status,
+)
+
+
+def _features(n, d=384, seed=0, decay=0.97, shift=0.0):
+    """Encoder-like features: a power-law spectrum, a common mean (plus ``shift``)."""
+    g = np.random.default_rng(seed)
+    scales = decay ** np.arange(d)
+    x = g.standard_normal((n, d)) * scales + 0.3 + shift
+    return x.astype(np.float32)
+
+
+def _space(x, k, name="enc", version="1"):
+    return FeatureSpace(name, version, x.shape[1], pca=PCA.fit(torch.as_tensor(x), k))
+
+
+def test_reprojection_is_decompress_then_compress():
+    xa, xb = _features(3000, seed=1), _features(3000, seed=2, shift=0.2)
+    fa, fb = _space(xa, 32), _space(xb, 24)
+    assert fa.id != fb.id
+    rp = Reprojection(fa, fb)                       # robot b into map a
+    assert rp.A.shape == (32, 24) and rp.b.shape == (32,)
+    y = np.random.default_rng(3).standard_normal((24, 5, 7)).astype(np.float32)
+    got = rp.features(y)
+    flat = y.reshape(24, -1).T
+    ref = fa.compress(fb.decompress(flat)).T.reshape(32, 5, 7)
+    np.testing.assert_allclose(got, ref, atol=2e-4)
+    np.testing.assert_allclose(rp.vector(y[:, 0, 0]), ref[:, 0, 0], atol=2e-4)
+    with pytest.raises(ValueError):
+        rp.features(y[:3])
+    # same basis: identity
+    same = Reprojection(fa, fa)
+    np.testing.assert_allclose(same.A, np.eye(32), atol=1e-5)
+    np.testing.assert_allclose(same.b, 0, atol=1e-5)
+    # a raw (no PCA) robot into a PCA map: plain compression
+    raw = FeatureSpace("enc", "1", 384)
+    x1 = xa[:4]
+    np.testing.assert_allclose(Reprojection(fa, raw).vector(x1[0]), fa.compress(x1)[0], atol=1e-4)
+
+
+def test_reprojection_score_error_is_small_and_measured():
+    """The figure quoted in the README: three robots with bases fitted on different data
+    (different means and samples) against the map's basis, scored with 64 queries."""
+    xs = [_features(4000, seed=s, shift=0.1 * s) for s in range(3)]
+    spaces = [_space(x, 100) for x in xs]
+    test_x = np.concatenate([_features(1000, seed=10 + s, shift=0.1 * s) for s in range(3)])
+    q = torch.as_tensor(_features(64, seed=99))
+    errs = [reprojection_score_error(spaces[0], fs, test_x, q) for fs in spaces[1:]]
+    for e in errs:
+        assert e["max_abs"] < 0.02, e
+        assert e["mean_abs"] < 0.003, e
+        assert e["top1_agree"] >= 0.9, e
+    # same basis: only float16 rounding differs (both paths round the same way)
+    e0 = reprojection_score_error(spaces[0], spaces[0], test_x, q)
+    assert e0["max_abs"] < 1e-3
+    # a basis that throws away the directions the queries use gives a large, visible error
+    tiny = _space(xs[1], 2)
+    bad = reprojection_score_error(spaces[0], tiny, test_x, q)
+    assert bad["max_abs"] > 10 * errs[0]["max_abs"]
+
+
+def test_label_encoder_reprojection_error_is_rounding_only():
+    """With the label encoder (what the demo and tests run) every feature is a mix of the
+    world's class embeddings, which any basis of >= the class count keeps: the error is
+    float16 rounding only."""
+    from common.text_encoders import make_text_encoder
+    from common.world.classes import CLASS_NAMES
+
+    enc = make_text_encoder("minilm-l6")
+    emb = enc.encode_labels(list(CLASS_NAMES)).float().numpy()            # (C, 384)
+    g = np.random.default_rng(0)
+
+    def mixes(n, classes):
+        w = g.dirichlet(np.full(len(classes), 0.3), size=n)
+        return (w @ emb[classes]).astype(np.float32)
+
+    c = len(CLASS_NAMES)
+    # robots that saw different parts of the world fit different bases
+    sa = FeatureSpace("label", "1", 384, pca=PCA.fit(torch.as_tensor(mixes(3000, list(range(c)))), 32))
+    sb = FeatureSpace("label", "1", 384, pca=PCA.fit(torch.as_tensor(mixes(3000, list(range(c))[::-1])), 20))
+    assert sa.id != sb.id
+    e = reprojection_score_error(sa, sb, mixes(2000, list(range(c))), torch.as_tensor(emb))
+    assert e["max_abs"] < 5e-3 and e["top1_agree"] == 1.0, e
+
+
+def test_compatibility_one_line_reasons():
+    x = _features(500, seed=0)
+    base = _space(x, 16)
+    other_basis = _space(_features(500, seed=1), 16)
+    assert compatibility(base, base) == ""
+    assert compatibility(base, other_basis) == ""
+    assert "fleet.reproject=false" in compatibility(base, other_basis, reproject=False)
+    for fs, word in ((_space(x, 16, name="radio"), "encoder enc"), (_space(x, 16, version="2"), "version"),
+                     (FeatureSpace("enc", "1", 384, text_model="siglip", pca=base.pca), "text model")):
+        why = compatibility(fs, base)
+        assert why.startswith("different encoder family") and word in why and "\n" not in why, why
+    y = _features(500, d=200, seed=0)
+    assert "dimension" in compatibility(base, _space(y, 16))
+
+
+def test_head_difference_is_refused():
+    from common.text.heads import MLP2, MLP2Config
+
+    cfg = MLP2Config(in_dim=32, hidden_dim=16, out_dim=8, num_inner=0)
+    torch.manual_seed(0)
+    h1 = {k: v.numpy().copy() for k, v in MLP2(cfg).state_dict().items()}
+    torch.manual_seed(1)
+    h2 = {k: v.numpy().copy() for k, v in MLP2(cfg).state_dict().items()}
+    a = FeatureSpace("radio", "1", 32, head_config=cfg, head_state=h1)
+    b = FeatureSpace("radio", "1", 32, head_config=cfg, head_state=h2)
+    assert "language head" in compatibility(a, b)
+    assert compatibility(a, FeatureSpace("radio", "1", 32, head_config=cfg, head_state=dict(h1))) == ""
+
+
+def test_transforms_parse_apply_and_refuse():
+    T = parse_transform({"xyz": [10, -5, 1], "rpy_deg": [0, 0, 90]})
+    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(parse_transform(T.reshape(-1).tolist()), T)
+    np.testing.assert_allclose(parse_transform(T.tolist()), T)
+    for bad in ([1, 2, 3], np.diag([2, 1, 1, 1]).tolist(), {"xyz": [0, 0, 0], "yaw": 3}, "x",
+                [float("nan")] * 16):
+        with pytest.raises(TransformError):
+            parse_transform(bad)
+    tr = RobotTransforms({"r2": T.reshape(-1).tolist()})
+    pose = np.eye(4)
+    pose[:3, 3] = [1, 0, 0]
+    np.testing.assert_allclose(tr.apply("r2", pose)[:3, 3], [10, -4, 1], atol=1e-12)
+    assert tr.apply("r1", pose) is pose
+    tr.set("r1", {"xyz": [0, 0, 2]})
+    assert tr.apply("r1", pose)[2, 3] == 2 and set(tr.as_dict()) == {"r1", "r2"}
+    with pytest.raises(TransformError):
+        RobotTransforms({"r3": [0] * 16})
+
+
+def test_rate_meter_and_bounded():
+    m = RateMeter(window=2.0, cap=50)
+    for i in range(20):
+        m.add(now=100 + i * 0.1)               # 10 Hz for 2 s
+    assert m.rate(now=102.0) == pytest.approx(10.0, rel=0.1)
+    assert m.rate(now=110.0) == 0.0
+    for i in range(1000):
+        m.add(now=200 + i * 0.001)             # 1 kHz burst, capped storage
+    assert len(m._t) == 50 and m.rate(now=201.0) > 40
+
+
+def test_drop_warner_rate_limited_with_rate(caplog):
+    import logging
+
+    w = DropWarner(period=10.0, logger=logging.getLogger("t.fleet"))
+    with caplog.at_level(logging.WARNING, "t.fleet"):
+        assert w.dropped("r1", 1, {"dropped_hz": 3.2, "received_hz": 4.0, "mapped_hz": 0.8}, 8, now=0.0)
+        assert not any(w.dropped("r1", 1, {}, 8, now=0.1 * i) for i in range(1, 50))
+        assert w.dropped("r1", 1, {"dropped_hz": 3.0}, 8, now=10.5)
+        assert w.dropped("r2", 2, {}, 8, now=10.6)
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 3 and "3.2/s" in msgs[0] and "r1: 50 frame(s)" in msgs[1], msgs
+
+
+def test_status_and_publish_cadence():
+    st = SimpleNamespace(received=10, mapped=7, dropped=2, rejected=collections.Counter(bad=1),
+                         queue=collections.deque([1]), feature_space="s1", reprojection=object())
+    s = robot_status("r1", "accepted", "", st, {"mapped_hz": 2.0}, "s0", advised_hz=3.33333)
+    assert s["rejected_total"] == 1 and s["reprojected"] and s["advised_hz"] == 3.333 and s["queue"] == 1
+    with pytest.raises(ValueError):
+        robot_status("r1", "happy", "", st, {}, "s0")
+    p = StatusPublisher(period=1.0)
+    assert p.due("r1", s, now=0.0)
+    assert not p.due("r1", s, now=0.5)                       # nothing changed
+    s2 = dict(s, mapped=8)
+    assert not p.due("r1", s2, now=0.6)                      # changed counts: at most once a period
+    assert p.due("r1", s2, now=1.7)
+    assert p.due("r1", dict(s2, state="refused", reason="x"), now=1.8)   # state change: at once
+
+
+def test_advised_rate_fair_share_and_probe():
+    assert advised_rate(0.0, 2, {}, 8) is None
+    # congested robot: fair share of what the mapper maps, a bit under it
+    r = advised_rate(10.0, 4, {"dropped_hz": 1.0, "mapped_hz": 2.5, "queue": 8}, 8)
+    assert r == pytest.approx(0.9 * 2.5)
+    # a robot below its share may go up
+    assert advised_rate(10.0, 4, {"mapped_hz": 1.0, "queue": 0}, 8) == pytest.approx(2.5)
+    assert advised_rate(10.0, 1, {"mapped_hz": 10.0, "queue": 0}, 8) == pytest.approx(12.5)
+
+
+def _st(name, **kw):
+    d = dict(name=name, present=False, gone_at=None, seen_at=0.0, last_frame_at=0.0, space_ok=False,
+             feature_space="", queue=collections.deque())
+    d.update(kw)
+    return SimpleNamespace(**d)
+
+
+def test_evictions():
+    cfg = FleetSection(no_space_evict_s=60, gone_evict_s=300)
+    robots = {"ok": _st("ok", present=True, space_ok=True, feature_space="s"),
+              "nospace_old": _st("nospace_old", present=True, seen_at=0.0),
+              "nospace_new": _st("nospace_new", present=True, seen_at=50.0),
+              "gone_old": _st("gone_old", gone_at=10.0, space_ok=True, feature_space="s", last_frame_at=9.0),
+              "gone_new": _st("gone_new", gone_at=90.0, space_ok=True, feature_space="s")}
+    out = dict(evictions(robots, 100.0, cfg))
+    assert set(out) == {"nospace_old"}
+    out = dict(evictions(robots, 350.0, cfg))
+    assert set(out) == {"nospace_old", "nospace_new", "gone_old"}
+    assert set(dict(evictions(robots, 400.0, cfg))) == {"nospace_old", "nospace_new", "gone_old", "gone_new"}
+    assert "feature space" in out["nospace_old"] and "gone" in out["gone_old"]
+
+
+def test_expire_pending_ttl_and_global_cap():
+    cfg = FleetSection(pending_ttl_s=10.0, pending_max_frames=5)
+    a = _st("a", queue=collections.deque([(None, t) for t in (0.0, 5.0, 12.0, 13.0)]))
+    b = _st("b", queue=collections.deque([(None, t) for t in (11.0, 14.0, 15.0, 16.0)]))
+    ok = _st("ok", space_ok=True, queue=collections.deque([(None, 0.0)] * 3))
+    out = dict(expire_pending([a, b, ok], 20.0, cfg))
+    # ttl: a's 0.0 and 5.0 (and nothing of b: 11 is 9 s old); cap 5 of the remaining 6: b's 11.0
+    assert out == {"a": 2, "b": 1}
+    assert [t for _, t in a.queue] == [12.0, 13.0] and [t for _, t in b.queue] == [14.0, 15.0, 16.0]
+    assert len(ok.queue) == 3                                  # robots with a space are not touched
+    assert math.isclose(sum(len(s.queue) for s in (a, b)), 5)
