@@ -14,8 +14,20 @@ import torch
 from common.feature_space import FeatureSpace
 from common.pca import PCA
 from mapper.fleet import (
-    DropWarner, FleetSection, RateMeter, Reprojection, RobotTransforms, StatusPublisher, TransformError,
-    advised_rate, compatibility, evictions, expire_pending, parse_transform, reprojection_score_error, robot_status,
+    DropWarner,
+    FleetSection,
+    RateMeter,
+    Reprojection,
+    RobotTransforms,
+    StatusPublisher,
+    TransformError,
+    advised_rate,
+    compatibility,
+    evictions,
+    expire_pending,
+    parse_transform,
+    reprojection_score_error,
+    robot_status,
 )
 
 
