@@ -50,8 +50,10 @@ class MapConfig:
     fronti_min_unobserved: int = field_(9, "min unobserved cells in the neighbourhood")
     fronti_min_empty: int = field_(4, "min free cells in the neighbourhood")
     fronti_min_occupied: int = field_(0, "min occupied cells in the neighbourhood")
-    fronti_subsampling: int = field_(5, "coarse frontier cell = vox_size * this (beta)")
-    fronti_subsampling_min_fronti: int = field_(12, "a coarse cell is a frontier if it holds MORE than this many fine frontiers")
+    fronti_subsampling: int = field_(5, "coarse frontier cell = vox_size * this (beta); 1 = no subsampling "
+                                        "(every fine frontier voxel, min_fronti unused, as the reference)")
+    fronti_subsampling_min_fronti: int = field_(
+        12, "a coarse cell is a frontier if it holds MORE than this many fine frontiers (only when fronti_subsampling > 1)")
     # --- rays ---------------------------------------------------------------------------
     semantic_rays: bool = field_(True, "cast semantic rays (False = the Semantic Voxels baseline)")
     max_rays_per_frame: int = field_(-1, "max out-of-range rays per frame, -1 = all")
@@ -86,8 +88,9 @@ class MapConfig:
             raise ConfigError(f"max_occ_cnt must be in 1..127 (int8), got {self.max_occ_cnt}")
         if not 0 < self.max_empty_cnt <= 128:
             raise ConfigError(f"max_empty_cnt must be in 1..128 (int8), got {self.max_empty_cnt}")
-        if self.occ_observ_weight < 1:
-            raise ConfigError(f"occ_observ_weight must be >= 1, got {self.occ_observ_weight}")
+        if not 1 <= self.occ_observ_weight <= 128:
+            raise ConfigError(f"occ_observ_weight must be in 1..128 (the occupied increment occ_observ_weight - 1 "
+                              f"is an int8, <= 127), got {self.occ_observ_weight}")
         if self.occ_thickness < 1:
             raise ConfigError(f"occ_thickness must be >= 1, got {self.occ_thickness}")
         if self.fronti_subsampling < 1:
@@ -148,7 +151,11 @@ PRESETS: dict[str, dict] = {
     "offline": _OFFLINE,
 }
 
-# The paper's baselines (Table I) as overrides on top of a preset.
+# The paper's baselines (Table I) as overrides on top of a preset. Ray tracing per method as
+# the reference runs them (experiments/srchvol_configs, brief §6.2): on for RayFronts (the
+# preset's value; the online preset has it on), off for the two semantic-frontier baselines
+# (their rays are dropped, not re-cast, when a frontier vanishes); the zero-depth methods
+# never trace (no occupancy along the ray) and Semantic Voxels casts no rays.
 METHODS: dict[str, dict] = {
     "rayfronts": {},
     "rayfronts_zero_depth": dict(zero_depth_mode=True, depth_limit=0.0, fronti_min_unobserved=0,
@@ -158,8 +165,8 @@ METHODS: dict[str, dict] = {
                            fronti_min_unobserved=0, fronti_min_empty=0, fronti_min_occupied=0,
                            fronti_subsampling_min_fronti=1),
     "semantic_voxels": dict(semantic_rays=False),
-    "spherical_semfronts": dict(angle_bin_size=360.0, infer_direction=False),
-    "unidirectional_semfronts": dict(angle_bin_size=360.0, infer_direction=True),
+    "spherical_semfronts": dict(angle_bin_size=360.0, infer_direction=False, ray_tracing=False),
+    "unidirectional_semfronts": dict(angle_bin_size=360.0, infer_direction=True, ray_tracing=False),
 }
 
 

@@ -5,6 +5,11 @@ holds **more than** ``min_fronti`` fine frontier voxels (strict, as the referenc
 position is the coarse cell centre ``(c + 0.5) * beta`` and its identity is the packed
 coarse index (:mod:`mapper.keys`), so rays reference frontiers by exact integer keys.
 
+With ``s = 1`` there is no subsampling, as in the reference (which clusters only when
+``s > 1``): every fine frontier voxel is a frontier and ``min_fronti`` is not used (a 1-voxel
+cell holds at most one fine frontier, so the count test would silently remove them all —
+audit B3).
+
 The table is persistent and updated incrementally: after an occupancy update with fine
 bounding box ``[lo, hi]`` every fine voxel whose frontier status can have changed lies in
 ``[lo - r, hi + r]``; that box is widened to whole coarse cells, the fine frontiers in it are
@@ -26,7 +31,8 @@ class FrontierTable:
     def __init__(self, vox: float, subsampling: int, min_fronti: int, device="cpu"):
         self.vox = float(vox)
         self.s = int(subsampling)
-        self.min_fronti = int(min_fronti)
+        # s = 1: no subsampling (reference), every fine frontier is kept (see module docstring)
+        self.min_fronti = int(min_fronti) if self.s > 1 else 0
         self.device = torch.device(device)
         self.keys = torch.empty(0, dtype=torch.int64, device=self.device)
         self.counts = torch.empty(0, dtype=torch.int64, device=self.device)
@@ -89,7 +95,9 @@ class FrontierTable:
 
 def subsample(fine_ijk: torch.Tensor, s: int, min_fronti: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Stand-alone coarse subsampling: (coarse ijk (F, 3) sorted, counts (F,)) of cells with
-    more than ``min_fronti`` fine frontiers."""
+    more than ``min_fronti`` fine frontiers; ``s = 1``: all fine frontiers (no subsampling)."""
+    if s <= 1:
+        min_fronti = 0
     coarse = torch.div(fine_ijk.to(torch.int64), s, rounding_mode="floor")
     uk, cnt = torch.unique(K_.pack(coarse), return_counts=True)
     keep = cnt > min_fronti

@@ -152,3 +152,59 @@ def test_b2_map_weights_absolute_no_floor():
     ortho = math.sqrt(max(float(v @ v) - t * t, 0.0))
     want = 1 - (ortho / 4.0 + float(v.norm()) / 40.0) / 2
     assert ws["absolute"] == pytest.approx(want, rel=1e-5)
+
+
+# --------------------------------------------------------------------------- B3, B5
+def _frontier_frames():
+    from common.geometry import intrinsics_from_fov, look_at
+    K = intrinsics_from_fov(90.0, 32, 32)
+    pose = look_at([0.0, 0.0, 0.0], [5.0, 0.0, 0.0], up=[0.0, 0.0, 1.0])
+    depth = torch.full((32, 32), float("inf"))
+    depth[:, :10] = 4.0                               # a wall on one side, open space elsewhere
+    return pose, K, depth
+
+
+def test_b3_subsampling_one_keeps_every_fine_frontier():
+    """fronti_subsampling=1 with the default min_fronti (12) gave 0 frontiers silently; now,
+    as the reference, subsampling is skipped at 1 and every fine frontier voxel is a frontier."""
+    import numpy as np
+    from mapper.config import map_config
+    from mapper.frontiers import subsample
+    from mapper.map import RayFrontsMap
+    fine = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 0, 0], [5, 5, 5]])
+    ijk, cnt = subsample(fine, 1, 12)
+    assert sorted(ijk.tolist()) == [[0, 0, 0], [1, 0, 0], [5, 5, 5]] and cnt.tolist() == [1, 2, 1]
+    pose, K, depth = _frontier_frames()
+    counts = {}
+    for s in (1, 2):
+        cfg = map_config("default", {"vox_size": 0.5, "fronti_subsampling": s, "depth_limit": 6.0,
+                                     "vox_accum_period": 1})
+        assert cfg.fronti_subsampling_min_fronti == 12
+        m = RayFrontsMap(cfg, 4, occupancy_backend="torch")
+        m.integrate(np.asarray(pose), np.asarray(K), depth, features=torch.ones(4, 32, 32))
+        m.flush()
+        counts[s] = len(m.fronts)
+        fine_n = len(m.occupancy.frontiers(cfg.fronti_min_unobserved, cfg.fronti_min_empty,
+                                           cfg.fronti_min_occupied, cfg.fronti_neighborhood_r))
+        if s == 1:
+            assert fine_n > 0 and counts[1] == fine_n
+    assert counts[1] > counts[2] >= 0
+
+
+def test_b5_occ_observ_weight_names_the_int8_bound():
+    from common.config import ConfigError
+    from mapper.config import map_config
+    with pytest.raises(ConfigError, match=r"occ_observ_weight must be in 1\.\.128 .*int8.*got 200"):
+        map_config("default", {"occ_observ_weight": 200})
+    with pytest.raises(ConfigError, match="occ_observ_weight"):
+        map_config("default", {"occ_observ_weight": 0})
+    # the bound itself is usable: a voxel block with increment +127 runs
+    import numpy as np
+    from mapper.map import RayFrontsMap
+    cfg = map_config("default", {"occ_observ_weight": 128, "max_occ_cnt": 127, "vox_accum_period": 1,
+                                 "depth_limit": 6.0, "vox_size": 0.5})
+    m = RayFrontsMap(cfg, 4, occupancy_backend="torch")
+    pose, K, depth = _frontier_frames()
+    m.integrate(np.asarray(pose), np.asarray(K), depth, features=torch.ones(4, 32, 32))
+    ijk, vals = m.occupancy.active()
+    assert int(torch.as_tensor(vals).max()) == 127
