@@ -10,12 +10,25 @@ can still run ``rayfronts edge`` and a laptop with only the client ``rayfronts q
 
 Config-driven subcommands take ``--config FILE`` and trailing ``key=value`` overrides
 (see :mod:`common.config`); unknown keys are errors naming the closest valid key.
+
+Start-up: ``rayfronts --help`` (no subcommand) imports no subcommand module, so it prints in
+well under a second (no torch, zenoh or rerun import); ``rayfronts NAME ...`` imports only
+NAME's module.
+
+Errors: a user mistake (bad option or config key, missing file or directory, unreachable
+router, port in use, empty query, unreadable image, ...) ends the process with exactly one
+line on stderr, ``rayfronts NAME: error: <cause and what to do>``, and a non-zero exit code
+(2 for usage/config errors, 1 otherwise). Errors from Zenoh are rephrased
+(:func:`common.zenoh_errors.explain_zenoh_error`). An unexpected exception (a bug) is also one
+line, naming the exception; ``--log-level DEBUG`` or ``RAYFRONTS_TRACEBACK=1`` shows the
+traceback.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 #: subcommand -> module implementing it (imported only when that subcommand runs).
@@ -44,6 +57,46 @@ _FALLBACK_HELP = {
 }
 
 
+#: exception class names (anywhere in the MRO) that are user mistakes, not bugs; matched by
+#: name so the dispatcher need not import the roles' modules to classify their errors.
+USER_ERRORS = frozenset({
+    "ConfigError", "SourceError", "ModelFileError", "ZenohConnectError", "ZenohListenError", "QueryError",
+    "MapperUnavailable", "PCAError", "FeatureSpaceError", "InvalidKey", "RecordingError", "SnapshotError",
+    "WireError", "MessageError", "UserError", "ZError", "OSError",
+})
+#: of those, the ones that are usage errors (exit code 2)
+USAGE_ERRORS = frozenset({"ConfigError", "InvalidKey", "UserError"})
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse errors as one line (``rayfronts query: error: ... (see --help)``), exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _names(e: BaseException) -> set[str]:
+    return {c.__name__ for c in type(e).__mro__}
+
+
+def error_line(prog: str, e: BaseException) -> tuple[str, int]:
+    """(the one stderr line for exception ``e``, exit code)."""
+    names = _names(e)
+    msg = str(e) or type(e).__name__
+    if isinstance(e, OSError) and getattr(e, "strerror", None) and getattr(e, "filename", None):
+        msg = f"{e.strerror}: {e.filename}"
+    if "ZError" in names or ".rs:" in msg or "Zenoh" in type(e).__name__:
+        from common.zenoh_errors import explain_zenoh_error
+
+        msg = explain_zenoh_error(msg)
+    msg = " ".join(msg.split())  # one line, whatever the message held
+    if names & USER_ERRORS:
+        return f"{prog}: error: {msg}", (2 if names & USAGE_ERRORS else 1)
+    line = (f"{prog}: internal error: {type(e).__name__}: {msg} "
+            "(rerun with --log-level DEBUG for the traceback)")
+    return line, 1
+
+
 class _Unavailable:
     def __init__(self, name: str, err: Exception):
         self.HELP = f"{_FALLBACK_HELP.get(name, '')} [unavailable: {err}]"
@@ -66,16 +119,16 @@ def _load(name: str):
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="rayfronts",
         description="RayFronts over Zenoh: open-set semantic voxels and ray frontiers, "
         "split into edge, mapper and query client.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--log-level", default="INFO", help="logging level (DEBUG, INFO, WARNING, ERROR)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     for name in SUBCOMMANDS:
-        if only is not None and name != only:
+        if name != only:  # help line only: the module is imported when its subcommand runs
             sub.add_parser(name, help=_FALLBACK_HELP.get(name, ""))
             continue
         mod = _load(name)
@@ -90,26 +143,29 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     # Load only the requested subcommand's module (fast start, and a broken optional part
-    # does not break the others).
+    # does not break the others); none at all for the overview.
     only = next((a for a in argv if a in SUBCOMMANDS), None)
     parser = build_parser(only)
     args = parser.parse_args(argv)
-    logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+    level = str(args.log_level).upper()
+    logging.basicConfig(level=getattr(logging, level, logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if not getattr(args, "command", None):
         parser.print_help()
         return 0
+    prog = f"rayfronts {args.command}"
     try:
         return int(args._module.run(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except Exception as e:  # config errors etc.: one clear line, no traceback
-        from common.config import ConfigError
-
-        if isinstance(e, (ConfigError, FileNotFoundError)):
-            print(f"rayfronts {args.command}: error: {e}", file=sys.stderr)
-            return 2
+    except SystemExit:
         raise
+    except Exception as e:
+        if level == "DEBUG" or os.environ.get("RAYFRONTS_TRACEBACK"):
+            raise
+        line, code = error_line(prog, e)
+        print(line, file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

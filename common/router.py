@@ -59,8 +59,10 @@ def run(args: argparse.Namespace) -> int:
     try:
         session = open_session(zc)
     except Exception as e:
+        from common.zenoh_errors import explain_zenoh_error
+
         restore()
-        print(f"rayfronts router: {e}", file=sys.stderr)
+        print(f"rayfronts router: error: {explain_zenoh_error(e, cfg.listen)}", file=sys.stderr)
         return 1
     try:
         endpoints = json.loads(zc.get_json("listen/endpoints"))

@@ -19,6 +19,15 @@ compresses the features with PCA and publishes one frame message per frame on
 
 Configuration: --config FILE (YAML) plus trailing key=value overrides (keys below)."""
 
+FIT_PCA_DESCRIPTION = """Fit the PCA basis the edge compresses its features with, offline, over frames of
+a source, so every edge and the mapper share one fixed feature space. Writes a .npz basis
+that `rayfronts edge --pca FILE` (pca.basis) then uses.
+
+  rayfronts edge fit-pca --out pca.npz source.kind=replica source.path=/data/replica/room0 --frames 50
+
+The source, encoder and PCA size come from the same config keys as `rayfronts edge`
+(source.*, encoder.*, pca.out_dim; see `rayfronts edge --help`)."""
+
 log = logging.getLogger("rayfronts.edge")
 
 
@@ -55,6 +64,54 @@ def _options(parser, suppress: bool = False) -> None:
             a.default = argparse.SUPPRESS
 
 
+def _fit_pca_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rayfronts edge fit-pca", description=FIT_PCA_DESCRIPTION,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides (source.*, encoder.*, pca.*)")
+    p.add_argument("--out", metavar="FILE", required=True, help="where to write the basis (.npz)")
+    p.add_argument("--frames", type=int, default=50, help="frames to sample (default 50)")
+    p.add_argument("--samples-per-frame", type=int, default=4096,
+                   help="feature vectors sampled per frame (default 4096)")
+    p.add_argument("--config", metavar="FILE", default=None, help="YAML config file (EdgeConfig)")
+    return p
+
+
+def _wants_help(items) -> bool:
+    return any(i in ("-h", "--help") for i in items)
+
+
+def check_inputs(cfg) -> None:
+    """Check the files and directories the config names before anything connects, so a wrong
+    path is one error line and the robot never appears on the network. Raises
+    ConfigError / SourceError / ModelFileError naming the key and the path."""
+    from pathlib import Path
+
+    from common.config import ConfigError
+
+    src = cfg.source
+    if src.kind != "synthetic":
+        if not src.path:
+            raise ConfigError(f"source.kind={src.kind} needs source.path (the dataset / recording / bag location)")
+        if not Path(src.path).expanduser().exists():
+            raise ConfigError(f"source.path not found: {src.path} (source.kind={src.kind})")
+        if src.kind != "rosbag":  # directory-based sources check their layout cheaply when opened
+            from edge.sources import open_source
+
+            close = getattr(open_source(src), "close", None)
+            if callable(close):
+                close()
+    if cfg.pca.basis and not Path(cfg.pca.basis).expanduser().is_file():
+        raise ConfigError(f"pca.basis file not found: {cfg.pca.basis} (fit one with `rayfronts edge fit-pca`)")
+    enc = cfg.encoder
+    for key, d in (("encoder.model_dir", enc.model_dir), ("encoder.text_model_dir", enc.text_model_dir)):
+        if d and not Path(d).expanduser().is_dir():
+            raise ConfigError(f"{key} directory not found: {d} (see `rayfronts models check --help`)")
+    if enc.kind == "naradio":
+        from edge.encoders.files import find_radio_checkpoint
+
+        find_radio_checkpoint(enc.model, enc.model_dir or None, enc.checkpoint)
+
+
 def build_config(args, overrides):
     from common.config import load_config
     from common.zenoh_session import zenoh_config_from_args
@@ -84,13 +141,24 @@ def build_config(args, overrides):
 def run(args: argparse.Namespace) -> int:
     from common.config import ConfigError
 
-    items = split_trailing_options(args, list(args.items or []), _options)
+    raw = list(args.items or [])
+    if raw and raw[0] == "fit-pca" and _wants_help(raw):
+        _fit_pca_parser().print_help()
+        return 0
+    if _wants_help(raw):  # --help written after key=value items
+        p = argparse.ArgumentParser(prog="rayfronts edge", description=DESCRIPTION,
+                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+        add_arguments(p)
+        p.print_help()
+        return 0
+    items = split_trailing_options(args, raw, _options)
     action = None
     if items and "=" not in items[0]:
         action = items.pop(0)
         if action != "fit-pca":
             raise ConfigError(f"unknown edge action {action!r} (the only action is 'fit-pca')")
     cfg = build_config(args, items)
+    check_inputs(cfg)
     if action == "fit-pca":
         from edge.fit_pca import fit_pca
 

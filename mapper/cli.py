@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 import threading
+from pathlib import Path
 
 from common.cli_options import split_trailing_options
 
@@ -22,7 +23,6 @@ log = logging.getLogger("rayfronts.mapper")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from common.config import describe
-    from common.zenoh_session import add_zenoh_arguments
     from mapper.service_config import mapper_config_schema
 
     parser.add_argument("overrides", nargs=argparse.REMAINDER, metavar="KEY=VALUE",
@@ -65,11 +65,42 @@ def build_config(args):
     return cfg
 
 
+def check_listen(cfg) -> None:
+    """Fail at once, in one line, when a Zenoh listen endpoint of this (router-mode) mapper is
+    already taken, before the map, the text encoder and rerun are loaded."""
+    import json
+
+    from common.zenoh_errors import check_listen_free
+    from common.zenoh_session import config_mode, make_config
+
+    zc = make_config(cfg.zenoh, default_mode="router")
+    mode = config_mode(zc)
+    if mode == "client":
+        return
+    eps = json.loads(zc.get_json("listen/endpoints"))
+    if isinstance(eps, dict):
+        eps = eps.get(mode, [])
+    check_listen_free(eps)
+
+
 def run(args: argparse.Namespace) -> int:
+    if any(i in ("-h", "--help") for i in (args.overrides or [])):  # --help written after key=value items
+        p = argparse.ArgumentParser(prog="rayfronts mapper", description=DESCRIPTION,
+                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+        add_arguments(p)
+        p.print_help()
+        return 0
     from common.zenoh_session import install_signal_handlers
-    from mapper.service import MapperService
 
     cfg = build_config(args)
+    if cfg.text_model_dir and not Path(cfg.text_model_dir).expanduser().is_dir():
+        from common.config import ConfigError
+
+        raise ConfigError(f"text_model_dir directory not found: {cfg.text_model_dir} "
+                          "(see `rayfronts models check --help`)")
+    check_listen(cfg)
+    from mapper.service import MapperService
+
     stop = threading.Event()
     restore = install_signal_handlers(stop)
     try:

@@ -85,19 +85,53 @@ def log_result_rerun(r, file: str | None = None, url: str | None = None, layers:
     rec.disconnect()
 
 
-def run(args: argparse.Namespace) -> int:
-    from common.zenoh_session import zenoh_config_from_args, ZenohConfig
-    from query_client.client import Client, QueryError
+def check_inputs(args) -> None:
+    """The user's mistakes that need no mapper, found before connecting (ConfigError, one line)."""
+    from common.config import ConfigError
 
     if args.text is None and args.image is None and not args.stats:
-        print("rayfronts query: give a text, --image PATH or --stats", file=sys.stderr)
-        return 2
+        raise ConfigError('give a query text, --image PATH or --stats, e.g. rayfronts query "water tower"')
+    if args.text is not None and not args.text.strip():
+        raise ConfigError('the query text is empty; say what to look for, e.g. rayfronts query "water tower"')
+    if args.top_k < 1:
+        raise ConfigError(f"--top-k must be >= 1 (got {args.top_k})")
+    if args.timeout <= 0:
+        raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
+    if args.image is not None:
+        import os
+
+        if not os.path.isfile(args.image):
+            raise ConfigError(f"image file not found: {args.image}")
+        import cv2
+        import numpy as np
+
+        data = _read(args.image)
+        ok = len(data) > 0 and cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is not None
+        if not ok:
+            raise ConfigError(f"cannot decode image {args.image}: not a JPEG/PNG/BMP/TIFF image")
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from common.zenoh_session import ZenohConfig, ZenohConnectError, zenoh_config_from_args
+    from query_client.client import Client, QueryError
+
+    check_inputs(args)
     zc = zenoh_config_from_args(args, ZenohConfig(connect_timeout_ms=int(args.timeout * 1000)))
+    zlog = logging.getLogger("common.zenoh_session")
+    level = zlog.level
+    zlog.setLevel(logging.ERROR)  # the bounded retries need no "retrying" line: the outcome is one line
     try:
         client = Client(zc, prefix=args.prefix, timeout=args.timeout)
-    except Exception as e:
-        print(f"rayfronts query: cannot connect: {e}", file=sys.stderr)
+    except ZenohConnectError as e:
+        from common.zenoh_errors import explain_zenoh_error
+
+        print(f"rayfronts query: error: {explain_zenoh_error(e, zc.connect)} (waited {args.timeout:g} s)",
+              file=sys.stderr)
         return 1
+    finally:
+        zlog.setLevel(level)
     with client:
         try:
             if args.stats:
@@ -122,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
                 return 0
             r = client.query(args.text, image=_read(args.image), top_k=args.top_k, softmax=args.softmax)
         except QueryError as e:
-            print(f"rayfronts query: {e}", file=sys.stderr)
+            print(f"rayfronts query: error: {' '.join(str(e).split())}", file=sys.stderr)
             return 1
         if args.json:
             print(json.dumps(r.to_dict(), indent=2))
