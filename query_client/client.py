@@ -107,6 +107,24 @@ class Client:
             raise MapperUnavailable(f"no answer on {key}: {'; '.join(errs)}")
         raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable?)")
 
+    def _get_all(self, key: str, payload: bytes | None, timeout: float | None) -> tuple[list, list[str]]:
+        """Every reply to one ``get`` (all queryables on ``key``: every mapper shard):
+        ``([(payload bytes, attachment bytes or None)], [error texts])``."""
+        import zenoh
+
+        kw = {"timeout": float(timeout or self.timeout), "consolidation": zenoh.ConsolidationMode.NONE,
+              "target": zenoh.QueryTarget.ALL}
+        if payload is not None:
+            kw["payload"] = payload
+        oks, errs = [], []
+        for r in self.session.get(key, **kw):
+            if r.ok is not None:
+                att = r.ok.attachment
+                oks.append((r.ok.payload.to_bytes(), att.to_bytes() if att is not None else None))
+            else:
+                errs.append(r.err.payload.to_string() if r.err is not None else "?")
+        return oks, errs
+
     # ------------------------------------------------------------------ queries
     def query(self, text: str | None = None, image: bytes | str | None = None, top_k: int = 10,
               timeout: float | None = None, *, embedding: np.ndarray | None = None,
@@ -116,21 +134,47 @@ class Client:
             with open(image, "rb") as f:
                 image = f.read()
         req = QueryRequest(text=text, image=image, embedding=embedding, top_k=int(top_k), softmax=softmax)
-        data = self._get_one(self.keys.mapper_query, encode_query_request(req), timeout)
-        try:
-            return decode_query_result(data)
-        except MessageError as e:
-            raise QueryError(str(e)) from None
+        oks, errs = self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
+        return self._merged(oks, errs, int(top_k))
+
+    def _merged(self, oks: list, errs: list[str], top_k: int) -> QueryResult:
+        """One result from the replies of one or several mappers (shards: ``query_client.merge``);
+        shards answering with an error (e.g. an empty map) are left out while one answers."""
+        from common.fleet import decode_shard_info
+        from query_client.merge import merge_results
+
+        got, bad = [], []
+        for data, att in oks:
+            try:
+                got.append((decode_query_result(data), decode_shard_info(att)))
+            except MessageError as e:
+                bad.append(str(e))
+        if got:
+            return merge_results(got, top_k)
+        if bad:
+            raise QueryError("; ".join(dict.fromkeys(bad)))
+        if errs:
+            raise MapperUnavailable(f"no answer on {self.keys.mapper_query}: {'; '.join(errs)}")
+        raise MapperUnavailable(f"no mapper answered on {self.keys.mapper_query} (is it running and reachable?)")
 
     def watch(self, text: str | None, callback: Callable[[QueryResult], None], *, image: bytes | None = None,
               top_k: int = 10, qid: str | None = None, timeout: float | None = None) -> WatchHandle:
         """Register a standing query: ``callback(QueryResult)`` runs now and on each refresh
         (on a Zenoh thread; keep it short)."""
+        from common.fleet import decode_shard_info
+        from query_client.merge import merge_results
+
         qid = qid or "q" + uuid.uuid4().hex[:12]
+        latest: dict[str, tuple] = {}     # shard name -> its last (result, info): shards refresh separately
 
         def on_sample(sample):
             try:
-                callback(decode_query_result(sample.payload.to_bytes()))
+                att = sample.attachment
+                info = decode_shard_info(att.to_bytes() if att is not None else None)
+                with self._lock:
+                    latest[str(info.get("shard", ""))] = (decode_query_result(sample.payload.to_bytes()), info)
+                    res = merge_results(list(latest.values()), int(top_k))
+                callback(res)
             except Exception as e:  # never raise out of a zenoh callback
                 log.warning("standing query %s: %s", qid, e)
 
@@ -139,7 +183,8 @@ class Client:
         self._watches.add(handle)
         try:
             req = QueryRequest(text=text, image=image, top_k=int(top_k), standing=True, id=qid)
-            first = decode_query_result(self._get_one(self.keys.mapper_query, encode_query_request(req), timeout))
+            oks, errs = self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
+            first = self._merged(oks, errs, int(top_k))
         except Exception:
             handle.cancel()
             raise
