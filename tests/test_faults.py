@@ -21,11 +21,11 @@ import time
 import uuid
 
 import pytest
+import test_robustness as _rb
+from test_robustness import ROOT, Proc, client, edge_args, mapped, mapper_args, wait_for
 
 from apps.demo import zenoh_env
 from common.zenoh_session import free_tcp_port
-import test_robustness as _rb
-from test_robustness import ROOT, Proc, client, edge_args, mapped, mapper_args, wait_for
 
 pca_file = _rb.pca_file   # fixtures shared with the robustness suite
 procs = _rb.procs
@@ -201,3 +201,136 @@ def test_edge_skips_corrupt_recording_frame(tmp_path, procs, pca_file):
     assert sum("skipping frame 2" in ln for ln in log.splitlines()) == 1, log[-3000:]
     assert "'frames_skipped': 1" in log and "'frames_sent': 5" in log
     assert procs[0].stop() == 0
+
+
+# ------------------------------------------------- 13.2 / 13.7 codec (unit level)
+def _frame_bytes(**kw):
+    import numpy as np
+
+    from common.frame import Frame
+    from common.wire import encode_frame
+
+    return encode_frame(Frame("r1", 0, 0.0, np.eye(4), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]),
+                              np.ones((48, 64), np.float32), np.zeros((48, 64, 3), np.uint8),
+                              features=np.zeros((16, 6, 8), np.float16), feature_space="x", **kw))
+
+
+def _hostile_headers():
+    """Headers built to be expensive, each within the frame header's 64 KiB (or just over)."""
+    import struct
+
+    import msgpack
+
+    H = {"schema": "rayfronts.frame", "v": 1}
+
+    def m(hdr: bytes) -> bytes:
+        return struct.pack("<I", len(hdr)) + hdr
+
+    yield "8.9 MB map", m(msgpack.packb({**H, **{f"k{i}": i for i in range(700_000)}}))
+    yield "2 MB nested list", m(b"\x91" * 2_000_000 + b"\xc0")
+    yield "64 KiB nested list", m(b"\x91" * 65_535 + b"\xc0")
+    yield "64 KiB nested maps", m(b"\x81\xa1a" * 21_000 + b"\xc0")
+    yield "tree of ints", m(msgpack.packb({**H, "x": [[[1] * 127] * 127] * 3 + [[[1] * 127] * 120]}))
+    yield "tree of empty lists", m(msgpack.packb({**H, "x": [[[[]] * 127] * 127] * 3 + [[[[]] * 127] * 120]}))
+    yield "tree of empty maps", m(msgpack.packb({**H, "x": [[[{}] * 127] * 127] * 3 + [[[{}] * 127] * 120]}))
+    yield "one long list", m(msgpack.packb({**H, "x": list(range(20_000))}))
+    yield "64 KiB of strings", m(msgpack.packb({**H, "x": ["a" * 16_000] * 4}))
+    yield "huge shape", m(msgpack.packb({**H, "robot": "r1", "seq": 0, "stamp": 0.0,
+                                         "pose": {"__nd__": ["<f8", list(range(10_000)), 0, 8]}}))
+    yield "binary in header", m(msgpack.packb({**H, "robot": "r1", "x": b"\0" * 60_000}, use_bin_type=True))
+
+
+def test_rejected_header_costs_bounded_cpu():
+    """13.2: whatever the header, rejecting it costs little CPU (the worst, best of 5, is
+    printed; the bound here is 2.5x the issue's 10 ms so a loaded CI machine cannot flake,
+    while the old decoder took 680 ms - 3.4 s on the first two)."""
+    from common.wire import WireError, decode_frame
+
+    ok = _frame_bytes()
+    t = time.process_time()
+    decode_frame(ok)
+    real_ms = (time.process_time() - t) * 1e3
+    worst = (0.0, "")
+    for name, data in _hostile_headers():
+        best = 1e9
+        for _ in range(5):
+            t = time.process_time()
+            with pytest.raises(WireError) as ei:
+                decode_frame(data)
+            best = min(best, time.process_time() - t)
+        assert ei.value.reason in ("header", "frame.robot", "frame.pose"), (name, str(ei.value))
+        worst = max(worst, (best * 1e3, name))
+    print(f"worst rejected header: {worst[0]:.2f} ms CPU ({worst[1]}); a real frame: {real_ms:.2f} ms")
+    assert worst[0] <= 25.0, worst
+
+
+def test_codec_rejects_trailing_bytes():
+    from common.wire import WireError, decode_frame, decode_message, encode_message
+
+    ok = _frame_bytes()
+    decode_frame(ok)
+    for tail in (b"\0", b"x", b"\0" * 8, bytes(range(200))):
+        with pytest.raises(WireError, match="bytes after the end") as ei:
+            decode_frame(ok + tail)
+        assert ei.value.reason == "message"
+    ctl = encode_message("rayfronts.test", 1, {"a": 1})          # no buffers: ends at the header
+    assert decode_message(ctl)[2] == {"a": 1}
+    with pytest.raises(WireError, match="bytes after the end"):
+        decode_message(ctl + b"\0")
+
+
+def test_frame_header_over_limit_refused_on_encode():
+    from common.wire import WireError, decode_frame
+
+    meta = {f"k{i}": "x" * 4000 for i in range(20)}              # 80 kB of meta: over the 64 KiB header
+    with pytest.raises(WireError, match="frame header is .* over the wire limit"):
+        _frame_bytes(meta=meta)
+    small = _frame_bytes(meta={f"k{i}": "x" * 1000 for i in range(20)})
+    assert len(decode_frame(small).meta) == 20
+
+
+def test_reject_reasons_specific_and_bounded():
+    """13.7: the reason names the field (``frame.depth``, ``frame.pose``...) from a fixed
+    vocabulary, whatever text the error carries."""
+    import struct
+
+    import msgpack
+
+    from common.wire import WireError, decode_frame, decode_message
+    from common.wire.envelope import FRAME_FIELDS, reject_reason
+
+    ok = _frame_bytes()
+    _, _, body = decode_message(ok)
+    hl = struct.unpack_from("<I", ok)[0]
+
+    def with_header(fn):
+        hdr = msgpack.unpackb(ok[4:4 + hl])
+        fn(hdr)
+        h = msgpack.packb(hdr, use_bin_type=True)
+        pad = (-(4 + len(h))) % 8
+        return struct.pack("<I", len(h)) + h + b"\0" * pad + ok[4 + hl + ((-(4 + hl)) % 8):]
+
+    cases = {
+        "frame.depth": lambda h: h["depth"].update(shape=[48, 65]),
+        "frame.rgb": lambda h: h["rgb"].update(codec="webp"),
+        "frame.robot": lambda h: h.update(robot="bad robot!"),
+        "frame.seq": lambda h: h.update(seq=-1),
+        "frame.stamp": lambda h: h.update(stamp="now"),
+        "frame.meta": lambda h: h.update(meta=[1]),
+        "frame.feature_space": lambda h: h.update(feature_space=7),
+        "frame.intrinsics": lambda h: h.pop("intrinsics"),
+        "frame.pose": lambda h: h.pop("pose"),
+        "version": lambda h: h.update(v=9),
+        "schema": lambda h: h.update(schema="other"),
+    }
+    for want, fn in cases.items():
+        with pytest.raises(WireError) as ei:
+            decode_frame(with_header(fn))
+        assert ei.value.reason == want, (want, str(ei.value))
+    # attacker-chosen text never becomes a reason
+    rng = __import__("random").Random(0)
+    seen = {reject_reason(f"frame.{''.join(rng.choices('abcdefgh.[] :', k=12))}: x") for _ in range(2000)}
+    seen |= {reject_reason(''.join(rng.choices('abcdefgh.[] :', k=12))) for _ in range(2000)}
+    allowed = {f"frame.{f}" for f in FRAME_FIELDS} | {"frame.malformed", "header", "schema", "version",
+                                                       "message", "array", "encode"}
+    assert seen <= allowed, seen - allowed

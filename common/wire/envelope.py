@@ -25,20 +25,56 @@ Errors: every decode failure (and every encode of something that cannot go on th
 raises :class:`WireError` with a message naming the field, what was expected and what
 was found. Decoders never raise anything else.
 
-Limits: :class:`WireLimits` (one place for every size bound a decoder enforces).
+Limits: :class:`WireLimits` (one place for every size bound a decoder enforces). The
+header's size, container entries, string / binary lengths are bounded *inside* msgpack
+(``msgpack.unpackb``'s ``max_*_len`` limits, checked before it allocates), so the cost of
+a rejected header is bounded by its byte length; the frame schema uses a tight profile
+(:func:`frame_header_limits`: a 64 KiB header, at most 2·``max_meta_items`` entries per
+container, no binary, nesting 8), measured at < 5 ms of CPU for the worst header of that
+size (``tests/test_faults.py``). Deep nesting stops in msgpack's own fixed stack.
+
+The message must end exactly where its last buffer ends (or at the header when it has no
+buffers): trailing bytes are an error, like everything else the encoder never writes.
+
+Reasons: :attr:`WireError.reason` is a short code from a fixed vocabulary
+(``frame.<field>`` for a frame field, else ``header``, ``schema``, ``version``,
+``message``, ``array``), so counting rejects by reason stays bounded whatever the input.
 """
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Collection
 
 import msgpack
 import numpy as np
 
+#: frame fields a reject reason may name (``frame.<field>``); anything else is ``frame.malformed``
+FRAME_FIELDS = frozenset({"robot", "seq", "stamp", "pose", "intrinsics", "feature_space", "meta", "features",
+                          "global_feature", "depth", "rgb", "labels", "confidence"})
+_TOP_REASONS = {"header": "header", "schema": "schema", "v": "version", "message": "message"}
+
 
 class WireError(Exception):
     """A message could not be decoded (or a value could not be encoded); the text says why."""
+
+    @property
+    def reason(self) -> str:
+        """A short, stable reject reason from a fixed vocabulary (module docstring)."""
+        return reject_reason(str(self))
+
+
+def reject_reason(text: str) -> str:
+    """The bounded reason code of a decode error text: ``frame.depth``, ``frame.pose``, ...,
+    ``header``, ``schema``, ``version``, ``message``, ``array`` (never attacker text)."""
+    head = text.split(":", 1)[0].strip()
+    if head.startswith("cannot encode"):
+        return "encode"
+    if head.startswith("frame"):
+        field = head[len("frame"):].lstrip(".").split(".")[0].split("[")[0].split(" ")[0]
+        return f"frame.{field}" if field in FRAME_FIELDS else "frame.malformed"
+    word = head.split(" ")[0].split(".")[0].split("[")[0]
+    return _TOP_REASONS.get(word, "array")
 
 
 @dataclass
@@ -70,6 +106,26 @@ class WireLimits:
     """Characters of feature_space and of meta keys / string values."""
     max_meta_items: int = 64
     """Entries of a frame's meta dict."""
+    max_frame_header_bytes: int = 64 << 10
+    """The msgpack header of a frame message (its arrays travel out of band; a real one is
+    ~300 bytes). See :func:`frame_header_limits`."""
+    max_str_bytes: int = 0
+    """Bytes of one msgpack string in the header; 0 = up to the header size."""
+    max_bin_bytes: int = -1
+    """Bytes of one msgpack binary in the header; -1 = up to the header size, 0 = none."""
+    max_containers: int = 1 << 20
+    """Maps and lists in the whole header (each costs a step of the array-reference walk)."""
+
+
+def frame_header_limits(lim: "WireLimits") -> "WireLimits":
+    """The tight header profile of the frame schema, derived from ``lim``: header at most
+    ``max_frame_header_bytes``, containers at most ``max(2·max_meta_items, 16)`` entries,
+    strings at most 4·``max_string_len`` bytes (UTF-8), no binary, nesting at most 8, at
+    most 256 maps/lists in all (a real frame header has about 12)."""
+    return replace(lim, max_header_bytes=min(lim.max_header_bytes, lim.max_frame_header_bytes),
+                   max_container_len=min(lim.max_container_len, max(2 * lim.max_meta_items, 16)),
+                   max_str_bytes=4 * lim.max_string_len, max_bin_bytes=0, max_nesting=min(lim.max_nesting, 8),
+                   max_containers=min(lim.max_containers, 256))
 
 
 DEFAULT_LIMITS = WireLimits()
@@ -195,13 +251,15 @@ def encode_message(schema: str, v: int, body: dict) -> bytes:
 class _Decoder:
     """Resolves array references of one message against its buffer region."""
 
-    __slots__ = ("mv", "base", "region", "lim")
+    __slots__ = ("mv", "base", "region", "lim", "end", "budget")
 
     def __init__(self, mv: memoryview, base: int, lim: WireLimits) -> None:
         self.mv = mv
         self.base = base
         self.region = max(0, len(mv) - base)
         self.lim = lim
+        self.end = -1   # end of the furthest buffer (relative to base); -1 = no array seen
+        self.budget = lim.max_containers
 
     def array(self, ref: dict, path: str) -> np.ndarray:
         where = path or "array"
@@ -209,14 +267,14 @@ class _Decoder:
             raise WireError(f"{where}: an array reference must have only the key {_ND!r}, got {sorted(map(str, ref))}")
         r = ref[_ND]
         if type(r) is not list or len(r) != 4:
-            raise WireError(f"{where}: array reference must be [dtype, shape, offset, nbytes], got {r!r:.200}")
+            raise WireError(f"{where}: array reference must be [dtype, shape, offset, nbytes], got {_short(r)}")
         ds, shape, off, nbytes = r
         dt = _DTYPES.get(ds) if type(ds) is str else None
         if dt is None:
             raise WireError(f"{where}: dtype {ds!r:.50} not allowed (allowed: {', '.join(sorted(_DTYPES))})")
         lim = self.lim
         if type(shape) is not list or len(shape) > lim.max_ndim:
-            raise WireError(f"{where}: shape must be a list of at most {lim.max_ndim} ints, got {shape!r:.200}")
+            raise WireError(f"{where}: shape must be a list of at most {lim.max_ndim} ints, got {_short(shape)}")
         n = 1
         for s in shape:
             if type(s) is not int or s < 0 or s > lim.max_array_elems:
@@ -245,11 +303,15 @@ class _Decoder:
             if dt.kind == "b" and (a.view(np.uint8) > 1).any():
                 raise WireError(f"{where}: bool array holds bytes other than 0/1")
         a.flags.writeable = False
+        self.end = max(self.end, off + nbytes)
         return a
 
     def walk(self, obj: Any, path: str, depth: int) -> Any:
         if depth > self.lim.max_nesting:
-            raise WireError(f"{path}: nesting deeper than the limit {self.lim.max_nesting}")
+            raise WireError(f"header: {path}: nesting deeper than the limit {self.lim.max_nesting}")
+        self.budget -= 1
+        if self.budget < 0:
+            raise WireError(f"header: more than {self.lim.max_containers} maps/lists")
         if type(obj) is dict:
             if _ND in obj:
                 return self.array(obj, path)
@@ -263,6 +325,13 @@ class _Decoder:
                 if type(v) is dict or type(v) is list:
                     obj[i] = self.walk(v, f"{path}[{i}]", depth + 1)
         return obj
+
+
+def _short(x: Any) -> str:
+    """A bounded repr (never builds the repr of a huge container)."""
+    if type(x) in (list, dict) and len(x) > 16:
+        return f"a {_tname(x)} of {len(x)} entries"
+    return f"{x!r:.200}" if type(x) not in (list, dict) else repr(x)[:200]
 
 
 def _byte_view(data: Any) -> memoryview:
@@ -287,8 +356,8 @@ def _unpack_header(raw: memoryview, lim: WireLimits) -> Any:
             raw=False,
             use_list=True,
             strict_map_key=True,
-            max_str_len=n,
-            max_bin_len=n,
+            max_str_len=min(n, lim.max_str_bytes) if lim.max_str_bytes > 0 else n,
+            max_bin_len=min(n, lim.max_bin_bytes) if lim.max_bin_bytes >= 0 else n,
             max_array_len=min(n, lim.max_container_len),
             max_map_len=min(n, lim.max_container_len),
             max_ext_len=0,
@@ -354,7 +423,12 @@ def decode_message(
         if type(ver) is not int:
             raise WireError(f"v: expected int, got {_tname(ver)}")
         _check_expected(f"v (version of {sch!r})", ver, v)
-        body = _Decoder(mv, _align(4 + hl), lim).walk(header, "", 0)
+        dec = _Decoder(mv, _align(4 + hl), lim)
+        body = dec.walk(header, "", 0)
+        end = 4 + hl if dec.end < 0 else dec.base + dec.end
+        if n != end:
+            raise WireError(f"message: {n - end} bytes after the end of the message's data "
+                            f"({end} bytes: header{' and buffers' if dec.end >= 0 else ''})")
         return sch, ver, body
     except WireError:
         raise

@@ -15,13 +15,23 @@ import numpy as np
 
 from common.conventions import is_rigid
 from common.frame import Frame
-from common.wire.envelope import DEFAULT_LIMITS, WireError, WireLimits, _tname, decode_message, encode_message
+from common.wire.envelope import (
+    DEFAULT_LIMITS,
+    WireError,
+    WireLimits,
+    _tname,
+    decode_message,
+    encode_message,
+    frame_header_limits,
+)
 from common.wire.fields import _as_array, _bytes_array, _enc_err, _err, _image_spec, _nd, _req, _shape
 from common.wire.images import (
     _decode_depth,
     _decode_rgb,
     _encode_depth,
     _encode_rgb,
+    _jpeg_size,
+    _png_check,
     _png_decode,
     _png_encode,
 )
@@ -218,7 +228,12 @@ def encode_frame(
         "global_feature": global_feature,
         "meta": meta,
     }
-    return encode_message(FRAME_SCHEMA, FRAME_VERSION, body)
+    out = encode_message(FRAME_SCHEMA, FRAME_VERSION, body)
+    hl = int.from_bytes(out[:4], "little")
+    if hl > lim.max_frame_header_bytes:
+        raise _enc_err("meta", f"the frame header is {hl} bytes, over the wire limit {lim.max_frame_header_bytes} "
+                               "(meta too large)")
+    return out
 
 
 # ---- frame decoding -------------------------------------------------------------------
@@ -266,7 +281,8 @@ def decode_frame(data: bytes | bytearray | memoryview, limits: WireLimits | None
     the other arrays are fresh. Raises :class:`WireError` for anything malformed.
     """
     lim = limits or DEFAULT_LIMITS
-    _, _, b = decode_message(data, schema=FRAME_SCHEMA, v=FRAME_VERSION, limits=lim)
+    # the header under the tight frame profile: its decode cost is bounded by 64 KiB of msgpack
+    _, _, b = decode_message(data, schema=FRAME_SCHEMA, v=FRAME_VERSION, limits=frame_header_limits(lim))
     try:
         return _decode_frame_body(b, lim)
     except WireError:
@@ -331,6 +347,19 @@ def _decode_frame_body(b: dict, lim: WireLimits) -> Frame:
                 raise _err("features", f"feature map {fh}x{fw} must be non-empty and at most the depth size {h}x{w}")
     if features is not None and not _f16_finite(features):
         raise _err("features", "holds NaN or inf")
+    # The structure of every compressed image (PNG chunk walk with CRCs, JPEG frame header)
+    # is checked before any of them is decoded, so a broken one costs no image decode.
+    if type(dspec) is dict and "shape" in dspec:
+        if dspec.get("codec") == "png16mm" and "data" in dspec:
+            _png_check(_bytes_array(dspec["data"], "depth.data"), "depth.data", (h, w), 16)
+        rspec = b.get("rgb")
+        if type(rspec) is dict and rspec.get("codec") == "jpeg" and "data" in rspec:
+            _jpeg_size(_bytes_array(rspec["data"], "rgb.data"), "rgb.data")
+        for field, codec, bits in (("labels", "png16", 16), ("confidence", "png8", 8)):
+            if b.get(field) is not None:
+                spec = _image_spec(b, field, ("codec", "data"))
+                if spec["codec"] == codec:
+                    _png_check(_bytes_array(spec["data"], f"{field}.data"), f"{field}.data", (h, w), bits)
 
     depth = _decode_depth(b, lim)
     hw = depth.shape
