@@ -10,6 +10,13 @@ Fusion of points ``(x, rgb, f)`` into voxel ``v`` with count ``n``:
 ``mean' = (n * mean + sum_new) / (n + k)``, ``n' = n + k`` (k new points), accumulated in
 float32 and stored in ``feature_dtype`` (float32 or float16). Equal to the hit-count
 weighted mean over every point ever inserted.
+
+Change journal (for an incrementally maintained copy, the query's
+:class:`mapper.query_answer.QuerySnapshot`): every row a fuse writes or a prune moves is
+recorded; :meth:`SemanticVoxels.take_changes` hands the rows changed since the last call to
+*one* consumer (``owner``), so the copy is brought up to date by copying those rows only.
+The journal holds at most ``n / 4`` rows (then it says "everything", and the consumer takes a
+full copy), so it stays bounded when nobody consumes it.
 """
 from __future__ import annotations
 
@@ -87,6 +94,10 @@ class SemanticVoxels:
         self.index = KeyIndex(self.device)
         self.n = 0
         self._alloc(1024)
+        self._journal: list[torch.Tensor] = []   # rows changed since the consumer's last take
+        self._journal_rows = 0
+        self._journal_all = True                 # the consumer must take everything
+        self._journal_owner = None
 
     def _alloc(self, cap: int) -> None:
         dev = self.device
@@ -141,6 +152,7 @@ class SemanticVoxels:
             self._row_keys[nr] = uk[new]
             self._count[nr] = 0
             self.n += nn
+        self._note(rows)
         c0 = self._count[rows]
         c1 = c0 + cnt
         w0 = (c0 / c1)[:, None]
@@ -172,8 +184,35 @@ class SemanticVoxels:
                 t = getattr(self, name)
                 t[holes] = t[tail]
             self.index.set_rows(self._row_keys[holes], holes)
+            self._note(holes)
         self.n = new_n
         return k
+
+    # ------------------------------------------------------------------ change journal
+    def _note(self, rows: torch.Tensor) -> None:
+        if self._journal_all:
+            return
+        self._journal.append(rows)
+        self._journal_rows += int(rows.numel())
+        if self._journal_rows > max(4096, self.n // 4):
+            self._journal, self._journal_rows, self._journal_all = [], 0, True
+
+    def take_changes(self, owner) -> torch.Tensor | None:
+        """Rows (sorted, unique, all ``< len(self)``) written or moved since ``owner``'s last
+        call, or ``None``: take everything (first call of this owner, another owner in
+        between, a reload, or more changes than the journal keeps). Rows ``>= len(self)`` are
+        gone (pruned). Clears the journal."""
+        everything = self._journal_all or self._journal_owner is not owner
+        rows = None
+        if not everything and self._journal:
+            r = torch.cat(self._journal)
+            r = torch.unique(r[r < self.n])
+            rows = r
+        elif not everything:
+            rows = torch.empty(0, dtype=torch.int64, device=self.device)
+        self._journal, self._journal_rows, self._journal_all = [], 0, False
+        self._journal_owner = owner
+        return rows
 
     # ------------------------------------------------------------------------------------
     @property
@@ -219,3 +258,4 @@ class SemanticVoxels:
         if n:
             self.index.insert(self._row_keys[:n].clone(), torch.arange(n, device=self.device))
             self.index._merge()
+        self._journal, self._journal_rows, self._journal_all = [], 0, True

@@ -129,3 +129,53 @@ def load_map(path, device="cpu", occupancy_backend: str = "auto"):
     m._buf_rays = [tuple(T(f"buf_rays_{i}_{j}") for j in range(3)) for i in range(b["rays"])]
     m._pending_prune = [T(f"buf_prune_{i}") for i in range(b["prune"])]
     return m
+
+
+# --------------------------------------------------------------- generations on disk
+#: name prefix of one snapshot generation directory under ``snapshots.dir`` (``snap-<ms>``)
+GENERATION_PREFIX = "snap-"
+
+
+def snapshot_generations(root) -> list[Path]:
+    """The snapshot generations under ``root``, newest first.
+
+    A generation is a ``snap-<ms>`` directory (written as ``.tmp-snap-<ms>`` and renamed into
+    place, so a half-written one never has this name). The ``LATEST`` pointer, when it names
+    an existing generation, comes first even if a clock step made its name sort lower; the
+    others follow newest name first. Restore tries them in this order and takes the first
+    intact one (:func:`check_generation` + a full load), so a corrupt newest snapshot falls
+    back to the one before it instead of starting empty.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    gens = sorted((p for p in root.iterdir() if p.name.startswith(GENERATION_PREFIX) and p.is_dir()),
+                  key=lambda p: p.name, reverse=True)
+    ptr = root / "LATEST"
+    if ptr.is_file():
+        try:
+            latest = root / ptr.read_text().strip()
+        except (OSError, UnicodeDecodeError):
+            latest = None
+        if latest is not None and latest in gens:
+            gens.remove(latest)
+            gens.insert(0, latest)
+    return gens
+
+
+def check_generation(path) -> dict:
+    """Cheap structural check of one generation (the files exist, manifests parse); returns
+    its ``meta.json``. Raises :class:`SnapshotError` naming what is wrong. The arrays are
+    checked when they are loaded (zip CRCs), see :func:`load_map`."""
+    path = Path(path)
+    for name in ("meta.json", "feature_space.bin", "map/manifest.json", "map/arrays.npz"):
+        if not (path / name).is_file():
+            raise SnapshotError(f"snapshot {path} lacks {name}")
+    try:
+        meta = json.loads((path / "meta.json").read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise SnapshotError(f"snapshot {path}: meta.json is not valid JSON: {e}") from None
+    if not isinstance(meta, dict):
+        raise SnapshotError(f"snapshot {path}: meta.json is not an object")
+    read_manifest(path / "map")
+    return meta

@@ -334,3 +334,55 @@ def test_reject_reasons_specific_and_bounded():
     allowed = {f"frame.{f}" for f in FRAME_FIELDS} | {"frame.malformed", "header", "schema", "version",
                                                        "message", "array", "encode"}
     assert seen <= allowed, seen - allowed
+
+
+# ----------------------------------------------- 13.6 incremental copy (unit level)
+def test_semantic_change_journal_keeps_a_copy_exact():
+    """A copy maintained from ``take_changes`` (changed rows only) equals the store after any
+    mix of fuses and prunes; a second owner, a reload or an overflow asks for everything."""
+    import torch
+
+    from mapper.semantic_voxels import SemanticVoxels
+
+    g = torch.Generator().manual_seed(0)
+    sem = SemanticVoxels(0.5, 8)
+    owner = object()
+    copy_f = torch.zeros((0, 8))
+    copy_k = torch.zeros(0, dtype=torch.int64)
+
+    def sync():
+        nonlocal copy_f, copy_k
+        rows = sem.take_changes(owner)
+        n = len(sem)
+        if rows is None:
+            copy_f, copy_k = sem.feat.clone(), sem.keys.clone()
+            return "all"
+        f = torch.zeros((n, 8))
+        k = torch.zeros(n, dtype=torch.int64)
+        m = min(n, copy_f.shape[0])
+        f[:m], k[:m] = copy_f[:m], copy_k[:m]
+        f[rows], k[rows] = sem.feat[rows], sem.keys[rows]
+        copy_f, copy_k = f, k
+        return int(rows.numel())
+
+    assert sync() == "all"
+    sizes = []
+    for step in range(60):
+        xyz = torch.rand((200, 3), generator=g) * 20
+        sem.fuse(xyz, torch.rand((200, 3), generator=g), torch.randn((200, 8), generator=g))
+        if step % 3 == 2 and len(sem) > 50:
+            pick = torch.randperm(len(sem), generator=g)[:40]
+            sem.remove(sem.keys[pick].clone())
+        if step % 2:
+            sizes.append(sync())
+            torch.testing.assert_close(copy_f, sem.feat, rtol=0, atol=0)
+            assert torch.equal(copy_k, sem.keys)
+    assert all(isinstance(x, int) for x in sizes[1:])            # incremental after the first
+    assert max(sizes[1:]) < len(sem)                               # ... and smaller than a full copy
+    assert sem.take_changes(object()) is None                      # another owner: everything
+    assert sem.take_changes(owner) is None                         # and then this one again
+    # unconsumed, the journal stays bounded
+    for _ in range(200):
+        sem.fuse(torch.rand((300, 3), generator=g) * 20, torch.rand((300, 3), generator=g),
+                 torch.randn((300, 8), generator=g))
+    assert sem._journal_rows <= max(4096, len(sem) // 4)
