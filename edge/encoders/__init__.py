@@ -51,7 +51,13 @@ def make_encoder(cfg: EncoderConfig, class_names: Sequence[str] | None = None,
     if cfg.kind == "naradio":
         from edge.encoders.naradio import NaradioEncoder
         return NaradioEncoder(cfg, device=dev)
-    raise ValueError(f"unknown encoder kind {cfg.kind!r}; choose 'label' or 'naradio'")
+    if cfg.kind == "sim":
+        from edge.encoders.sim import SimEncoder
+        return SimEncoder(class_names or [], patch=cfg.sim_patch, input_width=cfg.sim_input_width,
+                          upsample=cfg.sim_upsample, bleed=cfg.sim_bleed, bias=cfg.sim_bias,
+                          confusion=cfg.sim_confusion, snr_db=cfg.sim_snr_db, related=cfg.sim_related,
+                          seed=cfg.sim_seed, device=dev, text_model_dir=cfg.text_model_dir or None)
+    raise ValueError(f"unknown encoder kind {cfg.kind!r}; choose 'label', 'naradio' or 'sim'")
 
 
 __all__ = ["EncoderConfig", "ImageEncoder", "ModelFileError", "make_encoder"]

