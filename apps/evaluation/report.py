@@ -1,8 +1,13 @@
 """``rayfronts eval report``: collect srchvol / semseg run directories into one Markdown page.
 
 Each run directory holds ``run_info.json`` (kind, configuration, encoder, data) and
-``summary.json``; srchvol runs also ``table.md`` and ``plots/*.png`` (linked relative to
-the page). Semseg runs are gathered into one table with the mean over runs (scenes).
+``summary.json``; srchvol runs also ``steps.json``, ``table.md`` and ``plots/*.png`` (linked
+relative to the page). Semseg runs are gathered into one table with the mean over runs (scenes).
+
+One page per report: for each srchvol run the settings, the Table-I table (Markdown, with a
+link to the same table as CSV), one figure per depth limit comparing all methods (SCVR over
+time; :mod:`apps.evaluation.figures` redraws them from ``steps.json``, so older run
+directories get them too), then the per-method plots folded away in a ``<details>`` block.
 """
 from __future__ import annotations
 
@@ -54,12 +59,25 @@ def write_report(run_dirs, out_file, title: str = "RayFronts benchmark results")
                       f"- scene volume: `{c['scene_volume']}` ({info.get('scene_volume_voxels')} voxels, GT range "
                       f"{c['gt_range']} m); classes: {', '.join(info.get('classes_evaluated', []))}",
                       f"- time: {info.get('timings_s', {}).get('total', float('nan')):.0f} s", ""]
+            compare = []
+            if (r["dir"] / "steps.json").is_file():
+                from apps.evaluation.figures import write_figures
+
+                compare = write_figures(r["dir"])
             tab = r["dir"] / "table.md"
             if tab.is_file():
                 lines += [tab.read_text(), ""]
-            for p in sorted((r["dir"] / "plots").glob("*.png")) if (r["dir"] / "plots").is_dir() else []:
-                rel = os.path.relpath(p, out.parent)
-                lines += [f"![{p.stem}]({rel})", ""]
+            if (r["dir"] / "table.csv").is_file():
+                lines += [f"(as CSV: [table.csv]({os.path.relpath(r['dir'] / 'table.csv', out.parent)}))", ""]
+            for p in compare:
+                lines += [f"![{p.stem}]({os.path.relpath(p, out.parent)})", ""]
+            per = [p for p in sorted((r["dir"] / "plots").glob("*.png")) if p not in compare] \
+                if (r["dir"] / "plots").is_dir() else []
+            if per:
+                lines += ["<details><summary>per-method plots (each class and the class mean)</summary>", ""]
+                for p in per:
+                    lines += [f"![{p.stem}]({os.path.relpath(p, out.parent)})", ""]
+                lines += ["</details>", ""]
     if ss:
         lines += ["## Offline 3D semantic segmentation (Tables II/III protocol)", "",
                   "Without background = background classes ignored; `bg` = all classes. In %.", ""]

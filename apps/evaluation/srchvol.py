@@ -446,6 +446,9 @@ def write_outputs(out: Path, rows: dict, summary: dict, info: dict, cfg: Srchvol
     (out / "table.md").write_text(table_markdown(summary, cfg.methods, [depth_key(d) for d in cfg.depth_limits]))
     if cfg.plots:
         plot_scvr(out, rows, cfg)
+        from apps.evaluation.figures import write_figures  # methods compared per depth; table.csv
+
+        write_figures(out)
 
 
 def table_markdown(summary: dict, methods, depth_keys) -> str:
@@ -502,10 +505,10 @@ def plot_scvr(out: Path, rows: dict, cfg: SrchvolConfig) -> list[Path]:
         ax.set_xlabel("frame")
         ax.set_ylabel("SCVR (%)")
         ax.set_title(f"{METHOD_TITLES.get(m, m)} — depth {d:g} m")
-        ax.legend(fontsize=6, ncol=2, loc="upper right")
+        ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.02, 1.0), frameon=False)  # outside the data
         fig.tight_layout()
         p = pdir / f"scvr_{m}_{depth_key(d)}.png"
-        fig.savefig(p, dpi=90)
+        fig.savefig(p, dpi=90, bbox_inches="tight")
         plt.close(fig)
         paths.append(p)
     return paths
