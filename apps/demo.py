@@ -12,7 +12,11 @@ the world's exact geometry:
 * ``best_voxel.error_m``: distance from the best voxel centre to the nearest instance;
 * ``best_ray.miss_m``: distance from the best ray (a half-line) to the nearest instance.
 
-Writes ``DIR/results.json`` and ``DIR/demo.rrd`` (the mapper's rerun recording).
+Writes ``DIR/results.json`` (its fields are explained in the README, "What the demo
+writes") and ``DIR/demo.rrd`` (the mapper's rerun recording, with the operator blueprint).
+
+The progress line is rewritten in place (``\r``) only on a terminal; into a log or a pipe it
+prints one line at most every 5 s and when the edge finishes, so a log stays readable.
 """
 from __future__ import annotations
 
@@ -164,11 +168,42 @@ def done_criteria(results: dict, vox_size: float, ray_miss_m: float = 10.0) -> l
 
 
 # ----------------------------------------------------------------------------- run
+class Progress:
+    """One status line: rewritten in place on a TTY; on a pipe/log a new line at most every
+    ``every_s`` seconds (and whenever ``force``), never a ``\r``."""
+
+    def __init__(self, stream=None, every_s: float = 5.0):
+        self.stream = stream if stream is not None else sys.stdout
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.every_s = every_s
+        self._last_t = None
+        self._last_text = None
+        self._open = False
+
+    def update(self, text: str, force: bool = False) -> None:
+        if self.tty:
+            print(f"\r{text}   ", end="", flush=True, file=self.stream)
+            self._open = True
+            return
+        now = time.monotonic()
+        due = self._last_t is None or now - self._last_t >= self.every_s
+        if text != self._last_text and (due or force):
+            print(text, flush=True, file=self.stream)
+            self._last_t, self._last_text = now, text
+
+    def end(self) -> None:
+        if self._open:
+            print(file=self.stream, flush=True)
+            self._open = False
+
+
 def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, others=()) -> dict:
     """Poll the mapper's stats until the edge has exited and every frame it sent is mapped,
     dropped or rejected, and the map is flushed."""
     last = None
     stable_since = None
+    line = Progress() if progress else None
+    was_done = False
     while time.monotonic() < deadline:
         for name, p in others:
             if p.poll() is not None:
@@ -184,22 +219,25 @@ def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, 
         done_edge = edge.poll() is not None
         settled = sum(st.get("queues", {}).values()) == 0
         key = (fr["received"], fr["mapped"], st.get("map_version"), st.get("flushed_version"))
-        if progress:
-            print(f"\r  frames received {fr['received']:4d}  mapped {fr['mapped']:4d}  dropped {fr['dropped']}"
-                  f"  rejected {fr['rejected_total']}  edge {'done' if done_edge else 'running'}   ",
-                  end="", flush=True)
+        if line is not None:
+            line.update(f"  frames received {fr['received']:4d}  mapped {fr['mapped']:4d}  dropped {fr['dropped']}"
+                        f"  rejected {fr['rejected_total']}  edge {'done' if done_edge else 'running'}",
+                        force=done_edge and not was_done)
+        was_done = done_edge
         if done_edge and settled and st.get("flushed_version") == st.get("map_version"):
             if key == last:
                 if stable_since and time.monotonic() - stable_since > 1.0:
-                    if progress:
-                        print()
+                    if line is not None:
+                        line.update(f"  frames received {fr['received']:4d}  mapped {fr['mapped']:4d}  dropped "
+                                    f"{fr['dropped']}  rejected {fr['rejected_total']}  edge done", force=True)
+                        line.end()
                     return st
             else:
                 stable_since = time.monotonic()
         last = key
         time.sleep(0.5)
-    if progress:
-        print()
+    if line is not None:
+        line.end()
     raise TimeoutError("the mapper did not finish mapping in time")
 
 
@@ -221,7 +259,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
     shm = [] if cfg.shared_memory is None else [f"zenoh.shared_memory={str(cfg.shared_memory).lower()}"]
     shm_flag = [] if cfg.shared_memory is None else ["--zenoh-set",
                                                       f"transport/shared_memory/enabled={str(cfg.shared_memory).lower()}"]
-    results: dict = {"queries": [], "frames": 0, "seconds": 0.0}
+    results: dict = {"settings": demo_settings(cfg, ep), "queries": [], "frames": 0, "seconds": 0.0}
     try:
         router = procs.start("router", _py("router", "--listen", ep, *shm_flag), env)
         mapper = procs.start("mapper", _py("mapper", "--mode", "client", "--connect", ep, "--rerun", str(rrd),
@@ -250,6 +288,9 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
                 entry = {"query": text, "class": world.classes[cid],
                          "in_range": class_in_range(world, cid, traj, cfg.depth_limit)}
                 entry.update(score_result(world, res, cid))
+                # in range: judged by the best voxel; beyond range: by the best ray (the best voxel of
+                # an unmapped object is just the most similar mapped surface, often far away)
+                entry["judged_by"] = "best_voxel" if entry["in_range"] else "best_ray"
                 entry["search_volume_m3"] = float(res.search_volume_m3)
                 results["queries"].append(entry)
     finally:
@@ -258,6 +299,18 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
     results["exit_codes"] = codes
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     return results
+
+
+def demo_settings(cfg: DemoConfig, endpoint: str = "") -> dict:
+    """What results.json records about how the run was set up (README "What the demo writes")."""
+    return {
+        "frames": cfg.frames, "resolution": cfg.resolution, "depth_limit_m": cfg.depth_limit, "seed": cfg.seed,
+        "vox_size_m": cfg.vox_size, "map_preset": cfg.preset, "pca_dim": cfg.pca_dim, "encoder": "label",
+        "world": "synthetic", "trajectory": "ground", "queries": list(cfg.queries), "top_k": 10,
+        "timeout_s": cfg.timeout_s, "map_overrides": list(cfg.map_overrides),
+        "shared_memory": cfg.shared_memory, "router_endpoint": endpoint,
+        "done_criteria": {"best_voxel_error_m_max": cfg.vox_size, "best_ray_miss_m_max": 10.0},
+    }
 
 
 def summary_table(results: dict, vox_size: float) -> str:

@@ -14,9 +14,13 @@ def test_demo_results_and_recording(tmp_path):
     res = run_demo(cfg, progress=False)
     data = json.loads((tmp_path / "results.json").read_text())
     assert 72 <= data["frames"] <= 80  # the edge's one-slot queue may replace a frame or two
-    assert set(data) >= {"queries", "frames", "seconds"}
+    assert set(data) >= {"queries", "frames", "seconds", "settings"}
+    st = data["settings"]
+    assert st["frames"] == 80 and st["depth_limit_m"] == cfg.depth_limit and st["vox_size_m"] == cfg.vox_size
+    assert st["queries"] == list(cfg.queries) and st["router_endpoint"].startswith("tcp/127.0.0.1:")
     for q in data["queries"]:
-        assert set(q) >= {"query", "class", "in_range", "best_voxel", "best_ray"}
+        assert set(q) >= {"query", "class", "in_range", "best_voxel", "best_ray", "judged_by", "search_volume_m3"}
+        assert q["judged_by"] == ("best_voxel" if q["in_range"] else "best_ray")
         assert set(q["best_voxel"]) == {"xyz", "score", "error_m"}
         assert set(q["best_ray"]) == {"origin", "direction", "score", "miss_m"}
     by = {q["query"]: q for q in data["queries"]}
@@ -36,3 +40,30 @@ def test_demo_results_and_recording(tmp_path):
     for needle in ("/camera", "/camera/image/rgb", "/camera/image/depth", "world/map/voxels",
                    "world/map/frontiers", "world/map/rays", "world/queries/"):
         assert needle in text, f"{needle} not in recording entities:\n{text}"
+
+
+def test_progress_line_has_no_carriage_return_off_a_terminal():
+    import io
+
+    from apps.demo import Progress
+
+    buf = io.StringIO()  # not a TTY
+    p = Progress(buf, every_s=3600.0)
+    p.update("frames 1")
+    p.update("frames 2")           # within the interval: not printed
+    p.update("frames 3 done", force=True)
+    p.end()
+    out = buf.getvalue()
+    assert "\r" not in out
+    assert out.splitlines() == ["frames 1", "frames 3 done"]
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    t = Tty()
+    p = Progress(t)
+    p.update("a")
+    p.update("b")
+    p.end()
+    assert t.getvalue().count("\r") == 2 and t.getvalue().endswith("\n")
