@@ -309,7 +309,10 @@ class EdgeRuntime:
             return self._frames, self._class_names
         from edge.sources import open_source
 
-        src = open_source(self.cfg.source)
+        extra = {}
+        if self.cfg.source.kind == "ros2":  # live topics: the edge's Zenoh settings and its stop event
+            extra = {"zenoh": self.cfg.zenoh, "stop": self.stop}
+        src = open_source(self.cfg.source, **extra)
         return src, list(getattr(src, "class_names", None) or []) or None
 
     def _rate(self) -> float:

@@ -18,6 +18,8 @@ World frame per kind (``src.world_frame`` says it in one sentence):
 * ``recording`` — whatever frame the recording was written in (its ``info``).
 * ``rosbag`` — the bag's world (``world_frame`` tf frame or the pose topic's frame),
   axes ``world_axes`` (REP-103 ENU by default) re-expressed as ENU.
+* ``ros2`` — live topics over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds keys): the same
+  world as ``rosbag`` would give for the same messages.
 """
 from __future__ import annotations
 
@@ -34,6 +36,7 @@ KINDS = {
     "tartanair": "edge.sources.tartanair:TartanAirSource",
     "recording": "edge.sources.recording:RecordingSource",
     "rosbag": "edge.sources.rosbag:RosbagSource",
+    "ros2": "edge.sources.ros2:Ros2Source",
 }
 
 
