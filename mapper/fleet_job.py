@@ -1,0 +1,310 @@
+"""The mapper's fleet job: several robots in one map, told what happens, bounded; and this
+mapper as one shard of several (module map: :mod:`mapper.state`).
+
+Hooks (the other jobs call them; pure parts in :mod:`mapper.fleet`, :mod:`mapper.shards`):
+
+* ingest, frame callback (``qlock`` held): :meth:`Fleet.admit` (robot cap) and
+  :meth:`Fleet.received` (rates, rate-limited drop warning with the rate);
+* ingest, feature-space fetch: :meth:`Fleet.space_decided` — refuses another encoder family
+  with one line, builds the :class:`mapper.fleet.Reprojection` of a robot with another PCA
+  basis;
+* map worker, before integrating: :meth:`Fleet.prepare` — re-projects features into the
+  map's basis, applies ``world_from_robot`` to the pose, and leaves out frames outside this
+  shard's region (counted ``outside_shard``); after: :meth:`Fleet.mapped`;
+* its own thread (:meth:`Fleet.loop`, every 0.5 s, waiting on ``stop``): evictions,
+  pending-frame expiry, per-robot status on ``mapper/robots/<robot>/status`` (on change,
+  else at most every ``fleet.status_period_s``);
+* the ``mapper/robots/*/world_from_robot`` queryable (:meth:`Fleet.on_transform`);
+* query replies carry :meth:`Fleet.shard_info` as their attachment (client-side merge).
+
+Per-robot frames never mix: a frame is queued under the robot of its key, and only when the
+frame's own ``robot`` field equals it (ingest rejects ``robot_mismatch``); its features,
+pose and seq travel together in one decoded :class:`common.frame.Frame` object from the
+callback to the map; the robot's re-projection and transform are looked up by that robot's
+state (``tests/test_fleet_runtime.py`` checks it end to end).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from mapper.fleet import (
+    DropWarner,
+    RateMeter,
+    Reprojection,
+    RobotRates,
+    RobotTransforms,
+    StatusPublisher,
+    TransformError,
+    advised_rate,
+    compatibility,
+    evictions,
+    expire_pending,
+    robot_status,
+)
+from mapper.shards import ShardFilter
+
+log = logging.getLogger("rayfronts.mapper")
+
+
+@dataclass
+class FleetRobot:
+    """Per-robot fleet data (``RobotState.fleet``)."""
+
+    rates: RobotRates
+    reprojection: Reprojection | None = None
+    last_frame_at: float = 0.0
+    outside_shard: int = 0
+    pending_expired: int = 0
+    refused: str = ""               # why the robot is refused ("" = not refused)
+    transformed: bool = False
+    seqs: dict = field(default_factory=dict)
+
+    def as_dict(self, now: float | None = None) -> dict:
+        d = {"reprojected": self.reprojection is not None, "outside_shard": self.outside_shard,
+             "pending_expired": self.pending_expired, **self.rates.as_dict(now)}
+        if self.reprojection is not None:
+            d["reprojection_kept"] = round(self.reprojection.kept, 4)
+        return d
+
+
+class Fleet:
+    """See the module docstring. One per mapper; ``state.fleet`` points at it."""
+
+    def __init__(self, state):
+        self.state = state
+        cfg = state.cfg
+        self.cfg = cfg.fleet
+        self.transforms = RobotTransforms(self.cfg.world_from_robot)
+        self.shard = ShardFilter(cfg.shard)
+        self.drops = DropWarner(self.cfg.drop_warn_s)
+        self.status = StatusPublisher(self.cfg.status_period_s)
+        self.map_rate = RateMeter(self.cfg.rate_window_s, cap=4096)
+        self.capped = 0
+        self.evicted = 0
+        self.pending_expired = 0
+        self._cap_warned = 0.0
+        state.fleet = self
+
+    # ------------------------------------------------------------ per robot
+    def robot_data(self, st) -> FleetRobot:
+        fr = getattr(st, "fleet", None)
+        if fr is None:
+            fr = st.fleet = FleetRobot(RobotRates(self.cfg.rate_window_s))
+        return fr
+
+    def admit(self, name: str) -> bool:
+        """True when ``name`` is tracked or may be (caller holds ``qlock``); else counts the
+        frame under ``robot_cap`` (globally: nothing is kept per refused id)."""
+        s = self.state
+        if name in s.robots or len(s.robots) < max(1, self.cfg.max_robots):
+            return True
+        self.capped += 1
+        s.rejected["robot_cap"] += 1
+        now = time.monotonic()
+        if now - self._cap_warned > self.cfg.drop_warn_s:
+            self._cap_warned = now
+            log.warning("robot %s refused: %d robots tracked already (fleet.max_robots); %d refused so far",
+                        name, len(s.robots), self.capped)
+        return False
+
+    def received(self, st, dropped: bool, now_wall: float | None = None) -> None:
+        """A frame of ``st`` was queued (``dropped``: the oldest one fell out). Caller holds ``qlock``."""
+        fr = self.robot_data(st)
+        now = time.monotonic()
+        fr.last_frame_at = time.time() if now_wall is None else now_wall
+        fr.rates.received.add(1, now)
+        if dropped:
+            fr.rates.dropped.add(1, now)
+            self.drops.dropped(st.name, 1, fr.rates.as_dict(now), len(st.queue), now)
+
+    def space_decided(self, st, fs) -> str:
+        """Decide on a robot's fetched feature space ``fs``: "" (accepted, possibly
+        re-projected) or the one-line reason it is refused. Caller holds the map ``lock``."""
+        s = self.state
+        fr = self.robot_data(st)
+        why = compatibility(s.space, fs, self.cfg.reproject)
+        fr.reprojection = None
+        if not why and fs.id != s.space_id:
+            fr.reprojection = Reprojection(s.space, fs)
+        fr.refused = why
+        return why
+
+    def prepare(self, st, frame):
+        """The frame as the map integrates it (re-projected, transformed), or None when it is
+        outside this shard (counted)."""
+        fr = self.robot_data(st)
+        pose = self.transforms.apply(st.name, frame.pose)
+        if self.shard.active and not self.shard.accepts(st.name, pose):
+            fr.outside_shard += 1
+            return None
+        rp = fr.reprojection
+        if rp is None and pose is frame.pose:
+            return frame
+        ch = {"pose": pose}
+        if rp is not None:
+            ch["features"] = rp.features(frame.features)
+            if frame.global_feature is not None:
+                ch["global_feature"] = rp.vector(frame.global_feature)
+        return replace(frame, **ch)
+
+    def mapped(self, st) -> None:
+        now = time.monotonic()
+        self.robot_data(st).rates.mapped.add(1, now)
+        self.map_rate.add(1, now)
+
+    # ------------------------------------------------------------ status
+    def _state_of(self, st) -> tuple[str, str]:
+        fr = self.robot_data(st)
+        if fr.refused or st.space_error:
+            return "refused", fr.refused or st.space_error
+        if not st.space_ok:
+            return "pending", "waiting for the robot's feature space (robots/<robot>/feature_space)"
+        if self.shard.active and fr.outside_shard and not st.mapped:
+            return "accepted", f"frames outside shard {self.shard.name or '(unnamed)'}: mapped by another shard"
+        return "accepted", ("re-projected into the map's PCA basis" if fr.reprojection is not None else "")
+
+    def status_of(self, st, now: float | None = None) -> dict:
+        s = self.state
+        now = time.monotonic() if now is None else now
+        fr = self.robot_data(st)
+        state, reason = self._state_of(st)
+        rates = fr.rates.as_dict(now)
+        with_frames = [r for r in s.robots.values() if r.space_ok and getattr(r, "fleet", None) is not None
+                       and r.fleet.rates.received.rate(now) > 0]
+        adv = advised_rate(self.map_rate.rate(now), len(with_frames),
+                           {**rates, "queue": len(st.queue)}, st.queue.maxlen or 1) if state == "accepted" else None
+        return robot_status(st.name, state, reason, _Counts(st, fr), rates, s.space_id, self.shard.name, adv)
+
+    def _publish(self, body: dict) -> None:
+        from common.fleet import encode_robot_status, robot_status_key
+
+        s = self.state
+        if s.session is None:
+            return
+        try:
+            s.session.put(robot_status_key(s.keys, body["robot"]), encode_robot_status(body))
+        except Exception as e:
+            s.warn("status", "publishing robot status failed: %s", e)
+
+    def tick(self) -> None:
+        """Evictions, pending expiry, status publication (the fleet thread, every 0.5 s)."""
+        s = self.state
+        now, now_w = time.monotonic(), time.time()
+        out = []
+        with s.qlock:
+            for name, n in expire_pending(s.robots.values(), now_w, self.cfg):
+                st = s.robots[name]
+                self.robot_data(st).pending_expired += n
+                st.rejected["pending_expired"] += n
+                s.rejected["pending_expired"] += n
+                self.pending_expired += n
+            for name, why in evictions({n: _Evictable(st, self.robot_data(st)) for n, st in s.robots.items()},
+                                       now_w, self.cfg):
+                st = s.robots.pop(name)
+                self.evicted += 1
+                self.drops.forget(name)
+                self.status.forget(name)
+                body = self.status_of(st, now)
+                out.append(dict(body, state="evicted", reason=why))
+                log.info("robot %s evicted: %s", name, why)
+            for st in s.robots.values():
+                fr = self.robot_data(st)
+                if self.shard.active and not st.mapped and fr.outside_shard and not fr.refused:
+                    continue            # another shard's robot: its status comes from there
+                body = self.status_of(st, now)
+                if self.status.due(st.name, body, now):
+                    out.append(body)
+        for body in out:
+            self._publish(body)
+
+    def loop(self) -> None:
+        s = self.state
+        while not s.stop.wait(0.5):
+            try:
+                self.tick()
+            except Exception as e:      # the fleet thread never dies
+                s.warn("fleet", "fleet bookkeeping failed: %s", e)
+
+    # ------------------------------------------------------------ transforms
+    def on_transform(self, query) -> None:
+        """``get mapper/robots/<robot>/world_from_robot``: payload (16 numbers) sets it; none reads it."""
+        from common.fleet import (
+            FleetMessageError,
+            decode_transform_request,
+            encode_transform_reply,
+            robot_from_mapper_key,
+        )
+        from common.messages import encode_error
+
+        s = self.state
+        try:
+            robot = robot_from_mapper_key(s.keys, query.key_expr)
+            try:
+                if robot is None:
+                    raise FleetMessageError(f"no robot id in {query.key_expr} (use mapper/robots/<robot>/"
+                                            "world_from_robot, no wildcards)")
+                vals = decode_transform_request(query.payload.to_bytes()) if query.payload is not None else None
+                if vals is not None:
+                    T = self.transforms.set(robot, vals)
+                    log.info("robot %s world_from_robot set at run time: t=%s", robot,
+                             np.round(T[:3, 3], 3).tolist())
+                cur = self.transforms.get(robot)
+                payload = encode_transform_reply(robot, None if cur is None else cur.reshape(-1).tolist())
+            except (FleetMessageError, TransformError) as e:
+                payload = encode_error(str(e))
+            query.reply(query.key_expr, payload)
+        except Exception as e:
+            log.warning("world_from_robot query failed: %s", e)
+
+    # ------------------------------------------------------------ queries, stats
+    def shard_info(self, res=None) -> bytes:
+        from common.fleet import encode_shard_info
+
+        q = self.state.cfg.query
+        info = {"shard": self.shard.name, "search_range_m": float(q.search_range_m),
+                "search_cell_m": float(q.search_cell_m), "search_samples": int(q.search_samples),
+                "search_rays": int(q.search_rays), "cluster_rel_score": float(q.cluster_rel_score),
+                "vox_size": float(self.state.cfg.map.vox_size)}
+        if res is not None:
+            for k in ("score_min", "half_angle_deg"):
+                v = getattr(res, k, None)
+                if v is not None:
+                    info[k] = float(v)
+        return encode_shard_info(info)
+
+    def stats(self) -> dict:
+        return {"robots_tracked": len(self.state.robots), "max_robots": self.cfg.max_robots,
+                "refused_robot_cap": self.capped, "evicted": self.evicted, "pending_expired": self.pending_expired,
+                "pending_frames": int(sum(len(st.queue) for st in self.state.robots.values() if not st.space_ok)),
+                "mapped_hz": round(self.map_rate.rate(), 3), "shard": self.shard.name,
+                "world_from_robot": self.transforms.as_dict()}
+
+
+class _Counts:
+    """What :func:`mapper.fleet.robot_status` reads from a robot (its state + fleet data)."""
+
+    def __init__(self, st, fr: FleetRobot):
+        self.received, self.mapped, self.dropped = st.received, st.mapped, st.dropped
+        self.rejected, self.queue, self.feature_space = dict(st.rejected), st.queue, st.feature_space
+        self.reprojection = fr.reprojection
+
+
+class _Evictable:
+    """What :func:`mapper.fleet.evictions` reads from a robot."""
+
+    def __init__(self, st, fr: FleetRobot):
+        self.present, self.gone_at, self.seen_at = st.present, st.gone_at, st.seen_at
+        self.space_ok = st.space_ok and not fr.refused
+        self.feature_space, self.queue = st.feature_space, st.queue
+        self.last_frame_at = fr.last_frame_at
+
+
+def start_thread(fleet: Fleet) -> threading.Thread:
+    t = threading.Thread(target=fleet.loop, name="mapper-fleet", daemon=True)
+    t.start()
+    return t
