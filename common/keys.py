@@ -6,6 +6,8 @@ experiments can share one Zenoh network::
     <p>/robots/<robot>/frames          edge publishes one frame message per processed frame
     <p>/robots/<robot>/alive           edge liveliness token
     <p>/robots/<robot>/feature_space   edge queryable (feature-space id, PCA basis, ...)
+    <p>/robots/<robot>/edge_status     edge publishes (and serves) its own state: starting /
+                                       running / done / refused / failed, with the reason
     <p>/mapper/alive                   mapper liveliness token
     <p>/mapper/query                   mapper queryable: run a query now
     <p>/mapper/queries/<id>            mapper publishes results of a standing query
@@ -92,6 +94,15 @@ class KeySpace:
     @property
     def feature_space_all(self) -> str:
         return f"{self.prefix}/robots/*/feature_space"
+
+    def edge_status(self, robot: str) -> str:
+        """The edge's own state (``common.messages.encode_edge_status``): put on every change
+        and served as a queryable while the edge process lives."""
+        return f"{self.robot_root(robot)}/edge_status"
+
+    @property
+    def edge_status_all(self) -> str:
+        return f"{self.prefix}/robots/*/edge_status"
 
     # ------------------------------------------------------------------ mapper
     @property

@@ -28,6 +28,7 @@ SCHEMA_STATS = "rayfronts.stats"
 SCHEMA_SNAPSHOT_REQUEST = "rayfronts.snapshot_request"
 SCHEMA_SNAPSHOT_REPLY = "rayfronts.snapshot_reply"
 SCHEMA_ERROR = "rayfronts.error"
+SCHEMA_EDGE_STATUS = "rayfronts.edge_status"
 VERSION = 1
 
 #: limits on query requests (a request over them is rejected, not truncated)
@@ -327,3 +328,35 @@ def encode_snapshot_reply(info: dict) -> bytes:
 
 def decode_snapshot_reply(data, limits=None) -> dict:
     return _decode(data, SCHEMA_SNAPSHOT_REPLY, limits)
+
+
+# -------------------------------------------------------------------- edge status
+#: states an edge reports on ``robots/<robot>/edge_status``. ``refused``: it could not start
+#: (invalid config combination, missing model or basis file, ...); ``failed``: it died while
+#: running; both carry the reason, one line.
+EDGE_STATES = ("starting", "running", "done", "refused", "failed")
+MAX_REASON_CHARS = 2000
+
+
+def encode_edge_status(robot: str, state: str, reason: str = "", stamp: float = 0.0) -> bytes:
+    if state not in EDGE_STATES:
+        raise MessageError(f"edge state must be one of {EDGE_STATES}, got {state!r}")
+    return encode_message(SCHEMA_EDGE_STATUS, VERSION, {"robot": str(robot), "state": state,
+                                                        "reason": str(reason)[:MAX_REASON_CHARS],
+                                                        "stamp": float(stamp)})
+
+
+def decode_edge_status(data, limits=None) -> dict:
+    """→ ``{"robot", "state", "reason", "stamp"}`` (validated)."""
+    body = _decode(data, SCHEMA_EDGE_STATUS, limits)
+    robot, state, reason = body.get("robot"), body.get("state"), body.get("reason", "")
+    if not isinstance(robot, str) or not _ID_RE.match(robot) or not robot:
+        raise MessageError(f"{SCHEMA_EDGE_STATUS}: bad robot id {robot!r}")
+    if state not in EDGE_STATES:
+        raise MessageError(f"{SCHEMA_EDGE_STATUS}: unknown state {state!r}")
+    if not isinstance(reason, str) or len(reason) > MAX_REASON_CHARS:
+        raise MessageError(f"{SCHEMA_EDGE_STATUS}: reason must be a string of at most {MAX_REASON_CHARS} chars")
+    stamp = body.get("stamp", 0.0)
+    if isinstance(stamp, bool) or not isinstance(stamp, (int, float)):
+        raise MessageError(f"{SCHEMA_EDGE_STATUS}: stamp must be a number")
+    return {"robot": robot, "state": state, "reason": reason, "stamp": float(stamp)}

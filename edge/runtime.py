@@ -18,6 +18,18 @@ processes; torch's default for a CPU encoder). Each frame's meta carries ``t_sen
 clock at hand-off, for the mapper's latency) and ``cpu_s`` (this process's CPU time, for
 the mapper's per-robot edge CPU per frame).
 
+Start-up checks and reporting (``check_setup``): the encoder × ``encoder.output`` × PCA
+combination is validated before the first frame is encoded (PCA output dimension within the
+encoder's feature dimension, a basis file fitted on the features this encoder/output gives and
+with the configured ``pca.out_dim``, enough samples for an online fit); a failing check, a
+missing model or basis file, or a source that cannot open is a *refusal*: one error line
+naming the combination, exit code 2. An exception while running is a *failure* (exit code 1).
+Either way the edge puts its state on ``robots/<robot>/edge_status``
+(``common.messages.encode_edge_status``: starting / running / done / refused / failed + the
+reason) before it undeclares its liveliness token, so the mapper can name the reason once. The
+image-level vector sent with each frame is in the dense features' space
+(``encode_with_global(..., global_space="features")``), compressed by the same PCA.
+
 The edge imports neither rerun nor the mapper.
 """
 from __future__ import annotations
@@ -61,6 +73,8 @@ class PublishSection:
     linger_s: float = field_(1.0, "after the source ends, keep serving the feature space this long so the "
                                   "last frames can be fetched/mapped")
     connect_retry_s: float = field_(0.5, "retry period after a failed session open")
+    status_wait_s: float = field_(3.0, "when the edge refuses to start or fails: how long it waits for the "
+                                       "Zenoh session to put the reason on robots/<robot>/edge_status")
 
 
 @dataclass
@@ -156,6 +170,59 @@ class LatestSlot:
         return self._item is not None
 
 
+# ------------------------------------------------------------------ start-up checks
+class EdgeRefused(Exception):
+    """The edge cannot start with this configuration; the text is the one-line reason."""
+
+
+def _combo(cfg) -> str:
+    e = cfg.encoder
+    enc = f"encoder.kind={e.kind}" + (f" encoder.output={e.output}" if e.kind == "naradio" else "")
+    pca = ("pca.out_dim=0 (no PCA)" if cfg.pca.out_dim <= 0 else
+           f"pca.basis={cfg.pca.basis}" if cfg.pca.basis else f"pca.out_dim={cfg.pca.out_dim} (fitted online)")
+    return f"{enc}, {pca}"
+
+
+def check_setup(cfg, encoder, pca) -> None:
+    """Refuse (:class:`EdgeRefused`) an encoder × output × PCA combination that cannot run."""
+    d = int(encoder.feature_dim)
+    k = int(cfg.pca.out_dim)
+    where = _combo(cfg)
+    if k < 0:
+        raise EdgeRefused(f"{where}: pca.out_dim must be >= 0 (0 = no PCA)")
+    if k > d:
+        raise EdgeRefused(f"{where}: pca.out_dim={k} exceeds the encoder's {d}-d features; use at most {d}")
+    if pca is not None:
+        if pca.in_dim != d:
+            hint = ""
+            if cfg.encoder.kind == "naradio":
+                hint = (" (encoder.output=radio gives backbone-width features, output=language the language "
+                        "head's width: fit the basis with the same output, `rayfronts edge fit-pca`)")
+            raise EdgeRefused(f"{where}: the basis was fitted on {pca.in_dim}-d features but this encoder "
+                              f"gives {d}-d features{hint}")
+        if pca.out_dim != k:
+            raise EdgeRefused(f"{where}: the basis has {pca.out_dim} components but pca.out_dim={k}; set "
+                              f"pca.out_dim={pca.out_dim} to use this basis")
+    elif k > 0 and not cfg.pca.basis:
+        n = max(1, cfg.pca.fit_frames) * cfg.pca.pixels_per_frame
+        if n <= k:
+            raise EdgeRefused(f"{where}: an online fit over pca.fit_frames={cfg.pca.fit_frames} x "
+                              f"pca.pixels_per_frame={cfg.pca.pixels_per_frame} = {n} samples cannot give {k} "
+                              "components; raise them or give pca.basis")
+
+
+def check_first_features(cfg, feats) -> None:
+    """After the first frame: an online PCA fit needs more feature vectors than components."""
+    k = int(cfg.pca.out_dim)
+    if k > 0 and not cfg.pca.basis:
+        per = min(int(feats.shape[-1] * feats.shape[-2]), cfg.pca.pixels_per_frame)
+        n = per * max(1, cfg.pca.fit_frames)
+        if n <= k:
+            raise EdgeRefused(f"{_combo(cfg)}: the encoder gives {per} feature vectors per frame, so an online "
+                              f"fit over {cfg.pca.fit_frames} frames has {n} samples for {k} components; raise "
+                              "pca.fit_frames, lower pca.out_dim or give pca.basis")
+
+
 # ------------------------------------------------------------------ compression
 def compress_features(pca, feats) -> np.ndarray:
     """(C, h, w) encoder features → (D, h, w) float16 PCA coefficients (``pca=None``: cast only)."""
@@ -175,7 +242,6 @@ def compress_features(pca, feats) -> np.ndarray:
 @dataclass
 class EdgeStats:
     frames_read: int = 0
-    frames_skipped: int = 0          # frames the source could not read/decode (skipped, counted)
     frames_encoded: int = 0
     frames_sent: int = 0
     frames_replaced: int = 0
@@ -217,12 +283,11 @@ class EdgeRuntime:
         self.keys = None
         self._recorder = None
         self._threads: list[threading.Thread] = []
-        self.phase = "waiting for the first source frame"   # what the pipeline is doing (said in
-        # the feature-space "not ready" reply and logged on each change)
-
-    def _set_phase(self, phase: str) -> None:
-        self.phase = phase
-        log.info("edge %s: %s", self.cfg.robot, phase)
+        self._started = False
+        self._status_q = None
+        self._status_pub = None
+        self._state = ("starting", "")
+        self._state_lock = threading.Lock()
 
     # ---------------------------------------------------------------- zenoh side
     def _connect_loop(self) -> None:
@@ -250,6 +315,8 @@ class EdgeRuntime:
                     congestion_control=zenoh.CongestionControl.BLOCK,
                     priority=zenoh.Priority.DATA, express=False)
                 self._queryable = s.declare_queryable(self.keys.feature_space(robot), self._on_feature_space)
+                self._status_pub = s.declare_publisher(self.keys.edge_status(robot))
+                self._status_q = s.declare_queryable(self.keys.edge_status(robot), self._on_status)
                 self._token = s.liveliness().declare_token(self.keys.alive(robot))
             except Exception:
                 s.close()
@@ -268,10 +335,38 @@ class EdgeRuntime:
         try:
             with self._fs_lock:
                 reply = self._fs_reply
-            payload = reply if reply is not None else encode_error(f"feature space not ready ({self.phase})")
+            payload = reply if reply is not None else encode_error("feature space not ready (PCA being fitted)")
             query.reply(query.key_expr, payload)
         except Exception as e:  # never raise out of a callback
             log.warning("feature_space reply failed: %s", e)
+
+    def _status_bytes(self) -> bytes:
+        from common.messages import encode_edge_status
+
+        with self._state_lock:
+            state, reason = self._state
+        return encode_edge_status(self.cfg.robot, state, reason, time.time())
+
+    def _on_status(self, query) -> None:
+        try:
+            query.reply(query.key_expr, self._status_bytes())
+        except Exception as e:  # never raise out of a callback
+            log.warning("edge_status reply failed: %s", e)
+
+    def set_state(self, state: str, reason: str = "", wait_s: float = 0.0) -> None:
+        """Record the edge's state and put it on ``robots/<robot>/edge_status`` (waiting up to
+        ``wait_s`` for the session when it is not connected yet)."""
+        with self._state_lock:
+            self._state = (state, reason)
+        if not self._connected.is_set() and wait_s > 0:
+            self._connected.wait(wait_s)
+        pub = self._status_pub
+        if pub is None or not self._connected.is_set():
+            return
+        try:
+            pub.put(self._status_bytes())
+        except Exception as e:
+            log.warning("edge_status put failed: %s", e)
 
     def _publish_loop(self) -> None:
         while True:
@@ -309,10 +404,7 @@ class EdgeRuntime:
             return self._frames, self._class_names
         from edge.sources import open_source
 
-        extra = {}
-        if self.cfg.source.kind == "ros2":  # live topics: the edge's Zenoh settings and its stop event
-            extra = {"zenoh": self.cfg.zenoh, "stop": self.stop}
-        src = open_source(self.cfg.source, **extra)
+        src = open_source(self.cfg.source)
         return src, list(getattr(src, "class_names", None) or []) or None
 
     def _rate(self) -> float:
@@ -323,20 +415,15 @@ class EdgeRuntime:
 
     def _iter_frames(self):
         n = 0
-        skipped0 = 0
         while not self.stop.is_set():
             src, names = self._open_source()
             got = False
             for fr in src:
                 got = True
-                # frames the source skipped as corrupt (FrameSource.skipped) are counted, not fatal
-                self.stats.frames_skipped = skipped0 + int(getattr(src, "skipped", {}).get("corrupt frame", 0))
                 yield fr, names
                 n += 1
                 if self.stop.is_set() or (self.cfg.publish.max_frames and n >= self.cfg.publish.max_frames):
                     return
-            skipped0 += int(getattr(src, "skipped", {}).get("corrupt frame", 0))
-            self.stats.frames_skipped = skipped0
             if not self.cfg.publish.loop or not got or self._frames is not None:
                 return
 
@@ -349,11 +436,44 @@ class EdgeRuntime:
         with self._fs_lock:
             self._fs_reply = encode_feature_space(self.cfg.robot, fs.to_body())
         log.info("feature space %s (dim %d)", fs.id, fs.dim)
-        self._set_phase("sending frames")
         return fs
 
     def run(self) -> int:
-        """Run to the end of the source (or ``stop``); returns a process exit code."""
+        """Run to the end of the source (or ``stop``); returns a process exit code: 0 done,
+        2 refused at start-up, 1 failed while running (state and reason on ``edge_status``)."""
+        from common.config import ConfigError
+        from common.pca import PCAError
+        from common.text.errors import ModelFileError
+
+        try:
+            return self._run()
+        except (EdgeRefused, ConfigError, PCAError, ModelFileError, FileNotFoundError, ValueError) as e:
+            if not self._started:
+                reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+                log.error("edge %s refused to start: %s", self.cfg.robot, reason)
+                self._report_end("refused", reason)
+                return 2
+            return self._failed(e)
+        except Exception as e:
+            return self._failed(e)
+        finally:
+            self.close()
+
+    def _failed(self, e: BaseException) -> int:
+        reason = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": ")
+        log.error("edge %s failed after %d frames: %s", self.cfg.robot, self.stats.frames_encoded, reason,
+                  exc_info=True)
+        self._report_end("failed", reason)
+        return 1
+
+    def _report_end(self, state: str, reason: str) -> None:
+        """Put the final state (waiting briefly for the session) and give Zenoh a moment to
+        send it before the session closes."""
+        self.set_state(state, reason, wait_s=self.cfg.publish.status_wait_s)
+        if self._connected.is_set():
+            time.sleep(0.3)
+
+    def _run(self) -> int:
         import torch
 
         from common.pca import PCA
@@ -374,6 +494,7 @@ class EdgeRuntime:
 
             self._recorder = RecordingWriter(Path(cfg.recording.dir), robot=cfg.robot, source=cfg.source.kind,
                                              overwrite=cfg.recording.overwrite)
+        self._started = False
         encoder = None
         pca = None
         fs = None
@@ -386,12 +507,13 @@ class EdgeRuntime:
             for fr, names in self._iter_frames():
                 self.stats.frames_read += 1
                 if encoder is None:
-                    self._set_phase(f"loading the {cfg.encoder.kind} encoder")
                     encoder = make_encoder(cfg.encoder, class_names=names)
+                    if cfg.pca.basis and cfg.pca.out_dim > 0:
+                        pca = PCA.load(cfg.pca.basis)
+                    check_setup(cfg, encoder, pca)
                     if cfg.pca.out_dim <= 0:
                         fs = self._build_feature_space(encoder, None)
                     elif cfg.pca.basis:
-                        pca = PCA.load(cfg.pca.basis)
                         fs = self._build_feature_space(encoder, pca)
                     else:
                         from common.pca import OnlinePCAFitter
@@ -401,12 +523,14 @@ class EdgeRuntime:
                                     cfg.pca.out_dim, cfg.pca.fit_frames)
                         fitter = OnlinePCAFitter(cfg.pca.out_dim, max(1, cfg.pca.fit_frames),
                                                  cfg.pca.pixels_per_frame)
-                        self._set_phase(f"fitting PCA-{cfg.pca.out_dim} online over the first "
-                                        f"{max(1, cfg.pca.fit_frames)} frames")
                 t0 = time.perf_counter()
                 with torch.inference_mode():
                     # one forward pass gives the dense map and the image-level vector
-                    feats, gfeat = encoder.encode_with_global(fr.rgb, fr.labels)
+                    feats, gfeat = encoder.encode_with_global(fr.rgb, fr.labels, global_space="features")
+                if not self._started:
+                    check_first_features(cfg, feats)
+                    self._started = True
+                    self.set_state("running")
                 self.stats.frames_encoded += 1
                 if fs is None:  # online PCA fit
                     pending.append((fr, feats, gfeat))
@@ -452,8 +576,11 @@ class EdgeRuntime:
                 time.sleep(0.05)
             if not self.stop.is_set():
                 self.stop.wait(cfg.publish.linger_s)
+            if not self._started and not self.stop.is_set():
+                raise EdgeRefused(f"the source ({cfg.source.kind}) yielded no frames")
+            self.set_state("done")
         finally:
-            self.close()
+            self.slot.close()  # run() reports a refusal/failure on the still open session, then closes
         self.stats.frames_replaced = self.slot.replaced
         log.info("edge %s done: %s", cfg.robot, self.stats.as_dict())
         return 0
@@ -475,7 +602,7 @@ class EdgeRuntime:
     def _close_session(self) -> None:
         s, self.session = self.session, None
         if s is not None:
-            for ent in (self._token, self._queryable, self._publisher):
+            for ent in (self._token, self._queryable, self._status_q, self._status_pub, self._publisher):
                 try:
                     if ent is not None:
                         ent.undeclare()

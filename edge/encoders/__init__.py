@@ -6,7 +6,10 @@ Common interface (:class:`ImageEncoder`): attributes ``name``, ``version``, ``fe
 
     encode(rgb (H, W, 3) uint8, labels (H, W) int | None = None) -> torch.Tensor (C, h, w) float32
     encode_global(rgb, labels=None) -> torch.Tensor (C_lang,) float32
-    encode_with_global(rgb, labels=None) -> (both of the above; NARADIO: one forward pass)
+    encode_with_global(rgb, labels=None, global_space="language")
+        -> (both of the above; NARADIO: one forward pass). ``global_space="features"``
+        gives the image vector in the dense features' space instead (what the edge sends:
+        the map stores it next to the dense features, through the same PCA)
 
 For the label encoder C = C_lang = 384 (MiniLM space). For NARADIO ``encode`` gives RADIO
 space (C = 768/1024, stride 16) and ``encode_global`` SigLIP space (the head is applied).
@@ -36,8 +39,8 @@ class ImageEncoder(Protocol):
 
     def encode_global(self, rgb: np.ndarray, labels: np.ndarray | None = None) -> torch.Tensor: ...
 
-    def encode_with_global(self, rgb: np.ndarray, labels: np.ndarray | None = None
-                           ) -> tuple[torch.Tensor, torch.Tensor]: ...
+    def encode_with_global(self, rgb: np.ndarray, labels: np.ndarray | None = None,
+                           global_space: str = "language") -> tuple[torch.Tensor, torch.Tensor]: ...
 
 
 def make_encoder(cfg: EncoderConfig, class_names: Sequence[str] | None = None,

@@ -88,7 +88,10 @@ class LabelEncoder:
             return self.table[int(hist.argmax())].float().clone()
         return (hist / hist.sum().clamp_min(1)) @ self.table
 
-    def encode_with_global(self, rgb: np.ndarray | None, labels: np.ndarray | None = None
-                           ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(encode(...), encode_global(...))``."""
+    def encode_with_global(self, rgb: np.ndarray | None, labels: np.ndarray | None = None,
+                           global_space: str = "language") -> tuple[torch.Tensor, torch.Tensor]:
+        """``(encode(...), encode_global(...))`` (dense and global features share the MiniLM
+        space, so ``global_space`` 'language' and 'features' are the same)."""
+        if global_space not in ("language", "features"):
+            raise ValueError(f"global_space must be 'language' or 'features', got {global_space!r}")
         return self.encode(rgb, labels), self.encode_global(rgb, labels)

@@ -7,6 +7,14 @@ p = 16) where ``(H', W')`` is the input size after optional resizing to
 mapper applies :attr:`language_head` at query time (after averaging). With
 ``output='language'`` the head is applied here instead. ``encode_global`` is the
 language-space (SigLIP) image vector: the head applied to the SigLIP class token.
+
+The image-level vector the edge *sends* must live in the same space as the dense features
+(the map stores both in one space and the PCA basis is fitted on it):
+``encode_with_global(..., global_space="features")`` gives the SigLIP teacher's class token
+in RADIO space for ``output='radio'`` (768/1024-d; the mapper's language head maps it at
+query time, exactly like an averaged voxel feature) and the head applied to it for
+``output='language'``. With PCA it goes through the same basis as the dense features
+(fitted on patch tokens, so the class token is compressed with some extra loss).
 """
 from __future__ import annotations
 
@@ -100,14 +108,23 @@ class NaradioEncoder:
         return self.head(feat)
 
     @torch.inference_mode()
-    def encode_with_global(self, rgb: np.ndarray, labels: np.ndarray | None = None
-                           ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Both outputs from one forward pass: ``((C, h, w), (D_lang,))`` float32."""
+    def encode_with_global(self, rgb: np.ndarray, labels: np.ndarray | None = None,
+                           global_space: str = "language") -> tuple[torch.Tensor, torch.Tensor]:
+        """Both outputs from one forward pass: ``((C, h, w), (D_g,))`` float32.
+
+        ``global_space='language'``: the SigLIP-space image vector (``D_g`` = head output);
+        ``'features'``: the image vector in the dense features' space (``D_g = C``; see the
+        module docstring), which is what the edge puts on the wire."""
+        if global_space not in ("language", "features"):
+            raise ValueError(f"global_space must be 'language' or 'features', got {global_space!r}")
         out = self.forward(rgb)
         f = out.features[0]
         if self.cfg.output == "language":
             f = self.align_spatial(f)
-        return f.float(), self.head(out.cls_tokens[0, self.slot]).float()
+        cls = out.cls_tokens[0, self.slot]
+        if global_space == "features" and self.cfg.output == "radio":
+            return f.float(), cls.float()
+        return f.float(), self.head(cls).float()
 
     def encode(self, rgb: np.ndarray, labels: np.ndarray | None = None) -> torch.Tensor:
         """``(C, h, w)`` float32 (labels ignored)."""
