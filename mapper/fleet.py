@@ -133,8 +133,11 @@ class Reprojection:
         self.A = (vmap.T @ vr).astype(np.float32)                 # (k_m, k_r)
         self.b = (vmap.T @ (mr - mmap)).astype(np.float32)        # (k_m,)
         self.in_dim, self.out_dim = self.A.shape[1], self.A.shape[0]
-        # share of the robot's kept directions that the map basis keeps (1 = nothing lost)
-        self.kept = float(np.square(self.A).sum() / max(1, self.in_dim))
+        # share of the robot's compressed variance inside the map basis' span (1 = nothing lost),
+        # weighted by the robot basis' explained variance (uniform without one)
+        w = robot_fs.pca.explained_variance if robot_fs.pca is not None else None
+        w = np.ones(self.in_dim) if w is None or not np.sum(w) > 0 else np.asarray(w, np.float64)
+        self.kept = float((np.square(self.A.astype(np.float64)).sum(0) * w).sum() / w.sum())
 
     def features(self, f: np.ndarray) -> np.ndarray:
         """``(k_r, h, w)`` → ``(k_m, h, w)`` float32."""
