@@ -24,17 +24,17 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from common.conventions import is_rigid, sanitize_depth, voxel_center, voxel_index
+from common.conventions import is_rigid, sanitize_depth, voxel_center
 from mapper import kernels as KN
 from mapper import keys as K_
+from mapper import search_volume as SV
 from mapper.config import MapConfig
 from mapper.depth_geometry import aggregate_samples, frame_geometry, sample_image
 from mapper.frontiers import FrontierTable
 from mapper.occupancy import make_occupancy
 from mapper.query import QueryResult, Similarity, run_query
-from mapper.semantic_voxels import SemanticVoxels as SemanticVoxels_
 from mapper.ray_frontiers import RayStore, angles_deg, associate, infer_directions, warn_infer_direction
-from mapper import search_volume as SV
+from mapper.semantic_voxels import SemanticVoxels as SemanticVoxels_
 
 
 @dataclass
@@ -59,6 +59,17 @@ class RayLayer:
     features: torch.Tensor       # (R, C)
     weights: torch.Tensor        # (R,) float32 accumulated weight
     frontier_keys: torch.Tensor  # (R,) int64
+
+
+@dataclass
+class PreparedFrame:
+    """One frame after :meth:`RayFrontsMap.prepare`: what :meth:`RayFrontsMap.commit` buffers."""
+    occ_ijk: torch.Tensor            # (Mo, 3) int64 occupied voxels
+    free_ijk: torch.Tensor           # (Mf, 3) int64 free voxels
+    sem: tuple | None                # (keys, rgb sums, feature sums, counts) per voxel, or None
+    rays: tuple | None               # (origins, unit dirs, features), or None
+    fov_deg: tuple[float, float]     # horizontal / vertical field of view
+    timings: dict                    # ms of validate / geometry / sample
 
 
 _DTYPES = {"float32": torch.float32, "float16": torch.float16}
@@ -119,10 +130,26 @@ class RayFrontsMap:
         """Add one frame. ``pose`` 4×4 camera-to-world (RDF), ``intrinsics`` 3×3 at depth
         resolution, ``depth`` (H, W) planar metres (NaN ignore, +inf beyond range), ``rgb``
         (H', W', 3) uint8 (or float in [0, 1]), ``features`` (C, h, w) any float dtype with
-        h ≤ H, w ≤ W, ``global_feature`` (C,), ``confidence`` (H, W). Returns per-stage ms."""
+        h ≤ H, w ≤ W, ``global_feature`` (C,), ``confidence`` (H, W). Returns per-stage ms.
+
+        Same as ``commit(prepare(...))``: :class:`mapper.pipeline.MapPipeline` runs the two
+        halves on different threads (frame N+1 prepared while frame N is committed)."""
+        return self.commit(self.prepare(pose, intrinsics, depth, rgb, features, global_feature, confidence))
+
+    def prepare(self, pose, intrinsics, depth, rgb=None, features=None, global_feature=None,
+                confidence=None) -> "PreparedFrame":
+        """First half of :meth:`integrate`: validation, geometry and feature / RGB sampling of
+        one frame. Reads only the configuration and advances only ``self.generator`` (the
+        budgets' random draws), so prepared frames must be committed in the order they were
+        prepared; touches no map state (safe to run while another thread commits / queries)."""
         cfg = self.cfg
-        self.timings = {}
-        t_start = t = time.perf_counter()
+        tm: dict[str, float] = {}
+        t = time.perf_counter()
+
+        def tick(name: str, t0: float) -> float:
+            t1 = time.perf_counter()
+            tm[name] = tm.get(name, 0.0) + (t1 - t0) * 1e3
+            return t1
         pose_np = np.asarray(pose.cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
         if not is_rigid(pose_np):
             raise ValueError("pose must be a finite rigid 4x4 camera-to-world transform")
@@ -162,8 +189,8 @@ class RayFrontsMap:
             raise ValueError(f"confidence must be {(H, W)}, got {tuple(conf.shape)}")
         if cfg.point_selection == "random":
             conf = None
-        self.last_fov_deg = (math.degrees(2 * math.atan(0.5 * W / K[0, 0])), math.degrees(2 * math.atan(0.5 * H / K[1, 1])))
-        t = self._tick("validate", t)
+        fov = (math.degrees(2 * math.atan(0.5 * W / K[0, 0])), math.degrees(2 * math.atan(0.5 * H / K[1, 1])))
+        t = tick("validate", t)
 
         use_rays = cfg.semantic_rays and not cfg.global_encoding
         g = frame_geometry(pose_np, K, d, cfg.vox_size, max_depth_sensing=cfg.sensing_range(),
@@ -182,9 +209,10 @@ class RayFrontsMap:
             free_ijk = free_ijk[inside(voxel_center(free_ijk, cfg.vox_size))]
             keep = inside(pts)
             pts, pix = pts[keep], pix[keep]
-        t = self._tick("geometry", t)
+        t = tick("geometry", t)
 
         # semantic points: pre-aggregate per voxel (sum of rgb / feature, count)
+        sem = rays = None
         sem_feat_src = feats is not None or (cfg.global_encoding and gfeat is not None)
         if pts.shape[0] and sem_feat_src:
             vk = KN.voxel_keys(pts, cfg.vox_size)
@@ -198,7 +226,7 @@ class RayFrontsMap:
                 cs = aggregate_samples(rgb_t, pix, (H, W), inv, n, cfg.interp_mode)
             else:
                 cs = torch.zeros((n, 3), dtype=torch.float32, device=self.device)
-            self._buf_sem.append((uk, cs, fs, cnt.to(torch.float32)))
+            sem = (uk, cs, fs, cnt.to(torch.float32))
         # rays
         if cfg.semantic_rays:
             if cfg.global_encoding:
@@ -206,13 +234,29 @@ class RayFrontsMap:
                 if gf is not None:
                     o = torch.as_tensor(pose_np[:3, 3], dtype=torch.float64, device=self.device)[None]
                     dz = torch.as_tensor(pose_np[:3, 2], dtype=torch.float32, device=self.device)[None]
-                    self._buf_rays.append((o, dz / dz.norm(), gf[None]))
+                    rays = (o, dz / dz.norm(), gf[None])
             elif g.ray_dirs.shape[0] and feats is not None:
                 rf = sample_image(feats, g.ray_pix, (H, W), cfg.interp_mode)
                 o = g.origin[None].expand(g.ray_dirs.shape[0], 3)
-                self._buf_rays.append((o, g.ray_dirs, rf))
-        self._buf_occ.append((occ_ijk, free_ijk))
-        t = self._tick("sample", t)
+                rays = (o, g.ray_dirs, rf)
+        tick("sample", t)
+        return PreparedFrame(occ_ijk, free_ijk, sem, rays, fov, tm)
+
+    def commit(self, p: "PreparedFrame") -> dict:
+        """Second half of :meth:`integrate`: buffer a prepared frame and run the voxel / ray
+        blocks that are due. Returns per-stage ms (the prepare stages included)."""
+        cfg = self.cfg
+        t_start = t = time.perf_counter()
+        self.timings = {}
+        for k, v in p.timings.items():
+            self.timings[k] = self.timings.get(k, 0.0) + v
+            self.timings_total[k] = self.timings_total.get(k, 0.0) + v
+        self.last_fov_deg = p.fov_deg
+        if p.sem is not None:
+            self._buf_sem.append(p.sem)
+        if p.rays is not None:
+            self._buf_rays.append(p.rays)
+        self._buf_occ.append((p.occ_ijk, p.free_ijk))
 
         c = self.counters
         c["frames"] += 1
@@ -227,7 +271,12 @@ class RayFrontsMap:
             self._voxel_block()
         if cfg.semantic_rays and c["ray"] >= max(1, cfg.ray_accum_period):
             self._ray_block()
-        self._tick("total", t_start)
+        t = time.perf_counter()
+        self.timings["commit"] = (t - t_start) * 1e3
+        self.timings_total["commit"] = self.timings_total.get("commit", 0.0) + self.timings["commit"]
+        tot = sum(p.timings.values()) + self.timings["commit"]
+        self.timings["total"] = tot
+        self.timings_total["total"] = self.timings_total.get("total", 0.0) + tot
         return dict(self.timings)
 
     # ------------------------------------------------------------------------------------

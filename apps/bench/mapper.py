@@ -2,10 +2,24 @@
 
 Frames are rendered up front (not timed) at the preset's resolution (throughput 224×224,
 online 640×640) with random 100-dim features at 1/16 resolution (float16, as on the wire);
-then every frame goes through :meth:`RayFrontsMap.integrate` and a final flush. The JSON
-records whether the C++ kernels ran (``--no-kernels`` forces the torch paths) and the
-machine's load average before the timed part (the numbers are only comparable at similar
-load). Peak RSS includes the pre-rendered frames (``rss_after_render_mb``).
+then every frame goes through the map and a final flush. By default frames go through
+the two-stage pipeline (:class:`mapper.pipeline.MapPipeline`: frame N+1's geometry and
+sampling on a second thread while frame N is committed); ``--no-pipeline`` integrates
+sequentially. ``--no-kernels`` forces the torch paths. Peak RSS includes the pre-rendered
+frames (``rss_after_render_mb``).
+
+The timed section ``integrate`` (:mod:`apps.bench.meta`) gives ``frames_per_s`` and
+``cpu_ms_per_frame`` = process CPU (all threads) per frame, the figure that survives a
+busy machine. ``stage_ms_per_frame`` are wall-clock stage times (stretched by load).
+
+* ``--compare kernels|pipeline``: both sides (C++ kernels vs torch paths, or pipeline vs
+  sequential) on two maps fed the same frames, **interleaved** in blocks of ``--block``
+  frames (A B A B …, each map drained at the end of its block), so both see the same load;
+  each side's frames/s and CPU ms/frame are the sums over its blocks, and the JSON says
+  whether the two maps came out identical.
+* ``--growing``: per-window (``--window`` frames, default 200) CPU ms/frame and stage times
+  over one long lap (the map grows through the run: new streets every window);
+  ``growth_cpu_ratio`` = last window / first window.
 """
 from __future__ import annotations
 
@@ -27,23 +41,95 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-limit", type=float, default=20.0, help="simulated sensor range in m (default 20)")
     parser.add_argument("--seed", type=int, default=0, help="world / feature seed")
     parser.add_argument("--threads", type=int, default=1,
-                        help="torch CPU threads (default 1; more threads on a shared 2-core box slow torch down)")
+                        help="torch CPU threads per stage (default 1; more threads on a shared 2-core box slow torch down)")
     parser.add_argument("--trajectory", choices=["ground", "drone"], default="ground", help="camera trajectory")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE", help="map config overrides")
     parser.add_argument("--no-kernels", action="store_true",
                         help="use the pure-torch paths instead of the C++ kernels (mapper._rfkernels); same results")
+    parser.add_argument("--no-pipeline", action="store_true",
+                        help="integrate sequentially on one thread instead of the two-stage pipeline; same map")
+    parser.add_argument("--compare", choices=["kernels", "pipeline"], default=None,
+                        help="time both sides interleaved in one run (kernels vs torch, pipeline vs sequential)")
+    parser.add_argument("--block", type=int, default=25, help="frames per interleaved block with --compare (default 25)")
+    parser.add_argument("--growing", action="store_true", help="report CPU ms/frame per window of --window frames")
+    parser.add_argument("--window", type=int, default=200, help="window size for --growing (default 200)")
 
 
 def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+class _Side:
+    """One map fed frame blocks; sums wall and process CPU over its blocks."""
+
+    def __init__(self, name, m, pipeline: bool, kernels_on: bool, threads: int):
+        from mapper.pipeline import MapPipeline
+        self.name, self.map, self.kernels_on = name, m, kernels_on
+        self.pipe = MapPipeline(m, prepare_threads=threads) if pipeline else None
+        self.wall = self.cpu = 0.0
+        self.frames = 0
+        self.stages: dict[str, float] = {}
+
+    def feed(self, frames, K) -> None:
+        from apps.bench import meta
+        from mapper import kernels
+        old = kernels.set_enabled(self.kernels_on)
+        try:
+            c0, t0 = meta.cpu_seconds(), time.perf_counter()
+            if self.pipe is not None:
+                done = []
+                for p, d, rgb, f in frames:
+                    done += self.pipe.submit(p, K, d, rgb, f)
+                done += self.pipe.drain()
+                for c in done:
+                    if c.error is not None:
+                        raise c.error
+                    self._add(c.timings)
+            else:
+                for p, d, rgb, f in frames:
+                    self._add(self.map.integrate(p, K, d, rgb, f))
+            self.wall += time.perf_counter() - t0
+            self.cpu += meta.cpu_seconds() - c0
+            self.frames += len(frames)
+        finally:
+            kernels.set_enabled(old)
+
+    def _add(self, tm: dict) -> None:
+        for k, v in tm.items():
+            self.stages[k] = self.stages.get(k, 0.0) + v
+
+    def close(self) -> None:
+        if self.pipe is not None:
+            self.pipe.close()
+
+    def summary(self) -> dict:
+        n = max(1, self.frames)
+        return {"frames": self.frames, "frames_per_s": round(self.frames / self.wall, 2) if self.wall else None,
+                "cpu_ms_per_frame": round(1e3 * self.cpu / n, 2), "wall_ms_per_frame": round(1e3 * self.wall / n, 2),
+                "stage_ms_per_frame": {k: round(v / n, 3) for k, v in sorted(self.stages.items())}}
+
+
+def maps_identical(a, b) -> bool:
+    """Every array of two maps' state equal (voxels, frontiers, rays, occupancy sample)."""
+    import torch
+    va, vb = a.voxels(), b.voxels()
+    ra, rb = a.rays(), b.rays()
+    pairs = [(va.xyz, vb.xyz), (va.rgb, vb.rgb), (va.features, vb.features), (va.counts, vb.counts),
+             (a.fronts.keys, b.fronts.keys), (a.fronts.counts, b.fronts.counts),
+             (ra.frontier_keys, rb.frontier_keys), (ra.features, rb.features), (ra.weights, rb.weights),
+             (ra.directions, rb.directions)]
+    if not all(x.shape == y.shape and torch.equal(x, y) for x, y in pairs):
+        return False
+    return a.counters == b.counters and int(a.occupancy.num_active) == int(b.occupancy.num_active)
+
+
 def run(args: argparse.Namespace) -> dict:
+    import os
+
     import numpy as np
     import torch
 
-    import os
-
+    from apps.bench import meta
     from common.config import parse_override
     from common.world import World
     from mapper import kernels
@@ -53,6 +139,8 @@ def run(args: argparse.Namespace) -> dict:
 
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    if args.block < 1 or args.window < 1:
+        raise ValueError("--block and --window must be >= 1")
     torch.set_num_threads(max(1, args.threads))
     hw = _RES[args.preset]
     over = {"depth_limit": args.depth_limit}
@@ -72,37 +160,84 @@ def run(args: argparse.Namespace) -> dict:
                        torch.randn(args.feature_dim, fh, fw, generator=g).to(torch.float16)))
     render_s = time.perf_counter() - t
     rss_before = _rss_mb()
-    load_before = os.getloadavg()
-    old_kernels = kernels.set_enabled(kernels.enabled() and not args.no_kernels)
-    try:
-        m = RayFrontsMap(cfg, args.feature_dim, "bench", occupancy_backend=args.backend)
-        stages: dict[str, float] = {}
-        t0 = time.perf_counter()
-        for p, d, rgb, f in frames:
-            for k, v in m.integrate(p, K, d, rgb, f).items():
-                stages[k] = stages.get(k, 0.0) + v
-        t1 = time.perf_counter()
-        m.flush()
-        t2 = time.perf_counter()
-        q = torch.randn(4, args.feature_dim)
-        m.query(q)
-        t3 = time.perf_counter()
-        used_kernels = kernels.enabled()
-    finally:
-        kernels.set_enabled(old_kernels)
-    st = m.stats()
     n = len(frames)
-    return {
-        "target": "mapper", "preset": args.preset, "resolution_hw": list(hw), "frames": n,
-        "backend": backend_name(args.backend), "threads": torch.get_num_threads(),
-        "kernels": used_kernels, "kernels_available": kernels.available(),
-        "load_avg_1_5_15": [round(x, 2) for x in load_before],
-        "depth_limit": args.depth_limit, "feature_dim": args.feature_dim,
-        "frames_per_s": round(n / (t1 - t0), 2), "ms_per_frame": round(1e3 * (t1 - t0) / n, 2),
+    use_kernels = kernels.enabled() and not args.no_kernels
+
+    def new_map():
+        return RayFrontsMap(cfg, args.feature_dim, "bench", occupancy_backend=args.backend)
+
+    res: dict = {"target": "mapper", "preset": args.preset, "resolution_hw": list(hw), "frames": n,
+                 "backend": backend_name(args.backend), "threads_per_stage": max(1, args.threads),
+                 "kernels_available": kernels.available(), "depth_limit": args.depth_limit,
+                 "feature_dim": args.feature_dim, "trajectory": args.trajectory,
+                 "render_s_excluded": round(render_s, 2), "rss_after_render_mb": round(rss_before, 1)}
+    if args.compare:
+        if args.compare == "kernels":
+            sides = [_Side("kernels", new_map(), not args.no_pipeline, True, args.threads),
+                     _Side("torch", new_map(), not args.no_pipeline, False, args.threads)]
+        else:
+            sides = [_Side("pipeline", new_map(), True, use_kernels, args.threads),
+                     _Side("sequential", new_map(), False, use_kernels, args.threads)]
+        with meta.timed("interleaved", frames=2 * n):
+            for s in range(0, n, args.block):
+                for side in sides:
+                    side.feed(frames[s:s + args.block], K)
+        for side in sides:
+            side.close()
+            side.map.flush()
+        a, b = sides
+        res.update(compare=args.compare, block=args.block,
+                   pipeline=(not args.no_pipeline) if args.compare == "kernels" else "both",
+                   sides={s.name: s.summary() for s in sides}, maps_identical=maps_identical(a.map, b.map))
+        res[f"{a.name}_vs_{b.name}_fps"] = (round(res["sides"][a.name]["frames_per_s"] / res["sides"][b.name]["frames_per_s"], 3)
+                                           if res["sides"][b.name]["frames_per_s"] else None)
+        res[f"{a.name}_vs_{b.name}_cpu"] = round(a.cpu / b.cpu, 3) if b.cpu else None
+        res["peak_rss_mb"] = round(_rss_mb(), 1)
+        res["main_section"] = None
+        return res
+
+    side = _Side("main", new_map(), not args.no_pipeline, use_kernels, args.threads)
+    windows = []
+    step = args.window if args.growing else n
+    with meta.timed("integrate", frames=n):
+        for s in range(0, n, step):
+            c0, w0, st0 = side.cpu, side.wall, dict(side.stages)
+            load0 = meta.loadavg()
+            side.feed(frames[s:s + step], K)
+            if args.growing:
+                k = min(step, n - s)
+                st = side.map.stats()
+                windows.append({"frames": [s, s + k], "cpu_ms_per_frame": round(1e3 * (side.cpu - c0) / k, 2),
+                                "wall_ms_per_frame": round(1e3 * (side.wall - w0) / k, 2),
+                                "load_before": load0, "load_after": meta.loadavg(),
+                                "stage_ms_per_frame": {key: round((v - st0.get(key, 0.0)) / k, 3)
+                                                       for key, v in sorted(side.stages.items())},
+                                "n_voxels": st["n_voxels"], "n_frontiers": st["n_frontiers"], "n_rays": st["n_rays"]})
+    side.close()
+    m = side.map
+    t1 = time.perf_counter()
+    m.flush()
+    t2 = time.perf_counter()
+    q = torch.randn(4, args.feature_dim)
+    m.query(q)
+    t3 = time.perf_counter()
+    st = m.stats()
+    summ = side.summary()
+    res.update({
+        "main_section": "integrate", "pipeline": not args.no_pipeline, "kernels": use_kernels,
+        "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()],
+        "frames_per_s": summ["frames_per_s"], "ms_per_frame": summ["wall_ms_per_frame"],
+        "cpu_ms_per_frame": summ["cpu_ms_per_frame"],
         "flush_ms": round(1e3 * (t2 - t1), 2), "query_ms_4q": round(1e3 * (t3 - t2), 2),
-        "stage_ms_per_frame": {k: round(v / n, 3) for k, v in sorted(stages.items())},
-        "render_s_excluded": round(render_s, 2),
-        "peak_rss_mb": round(_rss_mb(), 1), "rss_after_render_mb": round(rss_before, 1),
+        "stage_ms_per_frame": summ["stage_ms_per_frame"],
+        "peak_rss_mb": round(_rss_mb(), 1),
         "n_voxels": st["n_voxels"], "n_frontiers": st["n_frontiers"], "n_rays": st["n_rays"],
         "n_occupancy_active": st["n_occupancy_active"], "map_memory_mb": round(st["memory_bytes"] / 2**20, 2),
-    }
+    })
+    if args.growing:
+        res["windows"] = windows
+        res["window"] = step
+        if len(windows) >= 2:
+            res["growth_cpu_ratio"] = round(windows[-1]["cpu_ms_per_frame"] / windows[0]["cpu_ms_per_frame"], 3)
+            res["growth_first_last_cpu_ms"] = [windows[0]["cpu_ms_per_frame"], windows[-1]["cpu_ms_per_frame"]]
+    return res

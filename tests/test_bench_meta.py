@@ -1,0 +1,101 @@
+"""Benchmark metadata (apps.bench.meta via the dispatcher), `bench all`, the README table."""
+import json
+import os
+import sys
+import time
+
+from apps.bench import meta, report
+from apps.cli import main
+
+
+def _burn(seconds: float) -> None:
+    t = time.thread_time()
+    while time.thread_time() - t < seconds:
+        pass
+
+
+def test_section_separates_cpu_from_wall():
+    """A CPU-bound section shows its CPU time; a sleeping one shows wall time but ~no CPU."""
+    meta.reset()
+    with meta.timed("burn", frames=4) as a:
+        _burn(0.2)
+    with meta.timed("sleep", frames=4) as b:
+        time.sleep(0.25)
+    assert a.result["cpu_s"] >= 0.18 and a.result["calling_thread_cpu_s"] >= 0.18
+    assert abs(a.result["cpu_ms_per_frame"] - 1e3 * a.result["cpu_s"] / 4) < 1e-6
+    assert b.result["wall_s"] >= 0.24 and b.result["cpu_s"] < 0.1
+    assert b.result["cpu_ms_per_frame"] < 25 and b.result["wall_ms_per_frame"] >= 60
+    assert [s["name"] for s in meta.sections()] == ["burn", "sleep"]
+    assert len(a.result["load_before"]) == 3 and len(a.result["load_after"]) == 3
+
+
+def test_attach_picks_main_section_and_whole_run_fallback():
+    m = {"process": {"cpu_s": 2.0}, "sections": [{"name": "x", "frames": 10, "cpu_ms_per_frame": 5.0,
+                                                  "frames_per_s": 50.0},
+                                                 {"name": "y", "frames": 10, "cpu_ms_per_frame": 9.0,
+                                                  "frames_per_s": 20.0}]}
+    r = meta.attach({"frames": 10, "main_section": "y"}, m)
+    assert r["cpu_ms_per_frame"] == 9.0 and r["frames_per_s"] == 20.0 and r["meta"] is m
+    assert "cpu_ms_per_frame" not in meta.attach({"frames": 10}, m)  # two sections, no main: none chosen
+    r = meta.attach({"frames": 4}, {"process": {"cpu_s": 2.0}, "sections": []})
+    assert r["cpu_ms_per_frame_whole_run"] == 500.0
+    assert meta.attach({"frames": 4, "cpu_ms_per_frame": {"edge": 1}}, m)["cpu_ms_per_frame"] == {"edge": 1}
+
+
+def test_interleaved_alternates():
+    calls = []
+    out = meta.interleaved({"a": lambda: calls.append("a"), "b": lambda: calls.append("b")}, reps=3, warmup=1)
+    assert calls == ["a", "b"] * 4
+    assert sorted(out) == ["a", "b"] and all(len(v) == 3 for v in out.values())
+
+
+def test_dispatcher_wraps_every_target(tmp_path, capsys):
+    f = tmp_path / "w.json"
+    assert main(["bench", "world", "--frames", "2", "--json", str(f)]) == 0
+    d = json.loads(f.read_text())
+    assert json.loads(capsys.readouterr().out) == d
+    m = d["meta"]
+    assert m["machine"]["logical_cores"] == os.cpu_count() and m["machine"]["cpu_model"]
+    assert len(m["load_before"]) == 3 and len(m["load_after"]) == 3
+    assert m["process"]["cpu_s"] > 0 and m["process"]["wall_s"] > 0
+    assert m["argv"][:3] == ["rayfronts", "bench", "world"] and "--frames" in m["argv"]
+    names = [s["name"] for s in m["sections"]]
+    assert names == ["render_224x224", "render_640x480"]
+    assert d["cpu_ms_per_frame_224x224"] == m["sections"][0]["cpu_ms_per_frame"] > 0
+    assert d["fps_224x224"] > 0
+
+
+def test_bench_all_quick_and_table(tmp_path, monkeypatch):
+    """`bench all --quick` on two runs writes their JSONs, all.json and table.md; `bench
+    table --readme` puts the table between the markers and is idempotent."""
+    monkeypatch.chdir(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    out = tmp_path / "b"
+    assert main(["bench", "all", "--quick", "--only", "world,mapper_kernels_vs_torch", "--json", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["all.json", "mapper_kernels_vs_torch.json", "table.md", "world.json"]
+    mk = json.loads((out / "mapper_kernels_vs_torch.json").read_text())
+    assert mk["maps_identical"] is True and set(mk["sides"]) == {"kernels", "torch"}
+    assert mk["meta"]["argv"][:3] == ["rayfronts", "bench", "mapper"]
+    assert mk["sides"]["kernels"]["frames"] == mk["sides"]["torch"]["frames"] == 10
+    table = (out / "table.md").read_text()
+    assert table.startswith("Machine: ") and "QUICK" in table
+    rows = [r for r in table.splitlines() if r.startswith("| ") and not r.startswith("| run ")]
+    assert [r.split(" | ")[0] for r in rows] == ["| mapper_kernels_vs_torch", "| world"]
+    assert "`rayfronts bench world --frames 2`" in rows[1] and " → " in rows[1]
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n\ntext\n")
+    assert main(["bench", "table", str(out), "--readme", str(readme)]) == 0
+    once = readme.read_text()
+    assert main(["bench", "table", str(out), "--readme", str(readme)]) == 0
+    assert readme.read_text() == once and once.count(report.BEGIN) == 1 and table in once
+    assert main(["bench", "all", "--only", "nope", "--json", str(out)]) == 2
+    assert main(["bench", "table", str(tmp_path / "missing")]) == 2
+
+
+def test_bench_all_lists_every_readme_figure():
+    """Each README run names an existing target and a different JSON."""
+    from apps.bench import ALL, TARGETS
+    names = [n for n, _, _ in ALL]
+    assert len(set(names)) == len(names)
+    for _, full, quick in ALL:
+        assert full[0] in TARGETS and quick[0] == full[0]
+    assert sys.modules["apps.bench"].run_all is not None
