@@ -117,13 +117,29 @@ def resolve_query_threads(threads: int, cpu_count: int | None = None) -> int:
     return max(1, min(16, cpu_count if cpu_count is not None else _cpus()))
 
 
+def set_torch_threads(cfg, query: bool = False) -> int:
+    """Set the calling thread's torch intra-op threads: ``cfg.query.threads`` for a query,
+    else ``cfg.threads`` (mapping thread, process default). torch keeps the OpenMP count
+    per thread once a thread has run parallel work (MKL's count is process-wide: the
+    last caller's). Returns the count."""
+    import torch
+
+    if query:
+        n = resolve_query_threads(int(getattr(cfg.query, "threads", 0)))
+    else:
+        n = resolve_threads(int(getattr(cfg, "threads", 0)))
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return n
+
+
 def mapper_config_schema():
     return MapperConfig
 
 
 def load_mapper_config(path=None, overrides=()):
     """Defaults → preset (from ``preset=`` in the file or overrides) → YAML → overrides."""
-    from common.config import load_config, merge, parse_override, load_yaml
+    from common.config import load_config, load_yaml, parse_override
     from mapper.config import PRESETS
 
     schema = mapper_config_schema()

@@ -1,0 +1,397 @@
+"""Query answering, kept free of Zenoh and of the map's locking: embed the request in the
+map's language space, score voxels and rays, take the top k, cluster the best voxels
+(26-connected), measure the search volume of the best rays' cones (module map:
+:mod:`mapper.state`; ARCHITECTURE.md).
+
+Where to change a query's scoring: :func:`scores_for` (cosine / softmax against
+:data:`SOFTMAX_NEGATIVES` at :data:`SOFTMAX_TEMPERATURE`), :func:`answer_snapshot` (top k,
+clusters, search volume, timings), :class:`QuerySnapshot` (what a query copies from the map).
+World frame, metres, z up.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from common.conventions import voxel_center, voxel_index
+from common.messages import MessageError, QueryRequest, QueryResult
+
+#: generic phrases a softmax query is normalised against (relevancy-style)
+SOFTMAX_NEGATIVES = ("object", "things", "stuff", "texture")
+SOFTMAX_TEMPERATURE = 100.0
+
+
+def _np(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+_TEXT_ENCODERS: dict = {}
+
+
+def text_encoder(name: str, device="cpu", model_dir: str = ""):
+    """The text model the feature space names (cached per process)."""
+    key = (name, str(device), model_dir)
+    if key not in _TEXT_ENCODERS:
+        from common.text_encoders import make_text_encoder
+
+        _TEXT_ENCODERS[key] = make_text_encoder(name, model_dir=model_dir or None, device=device)
+    return _TEXT_ENCODERS[key]
+
+
+def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "") -> torch.Tensor:
+    """(1, lang_dim) query vector in the feature space's language space."""
+    if req.embedding is not None:
+        e = torch.as_tensor(np.asarray(req.embedding, np.float32))
+        if e.shape[-1] != fs.lang_dim:
+            raise MessageError(f"embedding has {e.shape[-1]} dims, the map's language space has {fs.lang_dim}")
+        return e.reshape(1, -1)
+    if req.image is not None:
+        raise MessageError(f"image queries need an image encoder on the mapper; feature space {fs.id} "
+                           f"({fs.text_model}) has none — send text or an embedding")
+    return fs.embed_queries([req.text], text_encoder(fs.text_model, device, model_dir)).reshape(1, -1)
+
+
+def scores_for(fs, feats: torch.Tensor, q: torch.Tensor, softmax: bool, negatives: torch.Tensor | None,
+               device="cpu") -> np.ndarray:
+    """(N,) float32 score of query ``q`` per feature row: cosine, or with ``softmax`` its
+    softmax(100·cos) share against ``negatives``. ``feats`` raw ``(N, dim)`` or a
+    :class:`common.feature_space.PreparedFeatures`."""
+    from common.feature_space import PreparedFeatures
+
+    if len(feats) == 0:
+        return np.zeros((0,), np.float32)
+    qs = torch.cat([q, negatives]) if softmax and negatives is not None else q
+    if isinstance(feats, PreparedFeatures):
+        sim = feats.similarity(qs)
+    else:
+        sim = fs.similarity(feats, qs, device=device)
+    if softmax:
+        sim = torch.softmax(SOFTMAX_TEMPERATURE * sim, dim=0)
+    return _np(sim[0]).astype(np.float32, copy=False)
+
+
+def top_stable(s: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` largest values of ``s``, best first, ties by lower index —
+    exactly ``np.argsort(-s, kind="stable")[:k]`` (NaN ranks last), in O(N + m log m)
+    (partition, then a stable sort of the m >= k values not below the k-th largest)."""
+    n = len(s)
+    k = min(int(k), n)
+    if k <= 0:
+        return np.zeros((0,), np.int64)
+    if np.isnan(s).any():
+        s = np.where(np.isnan(s), -np.inf, s)
+    if k >= n or n <= 4096:
+        return np.argsort(-s, kind="stable")[:k]
+    kth = np.partition(s, n - k)[n - k]
+    cand = np.flatnonzero(s >= kth)          # ascending indices: stable sort keeps index order on ties
+    return cand[np.argsort(-s[cand], kind="stable")[:k]]
+
+
+_NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                        if (i, j, k) > (0, 0, 0)], np.int64)  # 13 half-space offsets
+
+
+def cluster_voxels(ijk: np.ndarray) -> np.ndarray:
+    """26-connected components of a set of voxel indices → (M,) component label per voxel."""
+    m = len(ijk)
+    if m == 0:
+        return np.zeros((0,), np.int64)
+    base = ijk.min(0) - 1
+    span = ijk.max(0) - base + 2
+    def pack(a):
+        a = a - base
+        return (a[:, 0] * span[1] + a[:, 1]) * span[2] + a[:, 2]
+    keys = pack(ijk)
+    order = np.argsort(keys)
+    sk = keys[order]
+    rows, cols = [], []
+    for off in _NEIGHBOURS:
+        nk = pack(ijk + off)
+        pos = np.clip(np.searchsorted(sk, nk), 0, m - 1)
+        hit = sk[pos] == nk
+        rows.append(np.nonzero(hit)[0])
+        cols.append(order[pos[hit]])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    g = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(m, m))
+    _, labels = connected_components(g, directed=False)
+    return labels.astype(np.int64)
+
+
+def _cone_frame(d: np.ndarray) -> np.ndarray:
+    """(3, 3) rows: two unit vectors orthogonal to unit ``d``, then ``d``."""
+    a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(d, a)
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(d, u), d])
+
+
+def cone_union_volume(origins: np.ndarray, dirs: np.ndarray, half_angle_deg: float, range_m: float,
+                      cell_m: float, max_cells: int = 400_000, method: str = "samples") -> float:
+    """Volume (m³) of the union of cones (apex ``origins``, unit axes ``dirs``, half-angle,
+    cut at axial distance ``range_m``). One cone: exact.
+
+    ``method="samples"`` (default): every cone is filled with the same lattice of points
+    (spacing ``max(cell_m, (V/m)^(1/3))``, ``m = max_cells / n`` points per cone; the points
+    of an axial layer share the exact volume of that slab of the cone, so a cone's weights
+    sum to its exact volume ``V``); a point inside
+    ``c`` of the cones contributes ``weight/c``, so the sum is the union's volume. Exact for
+    disjoint and for identical cones; otherwise the error is that of the lattice on the
+    overlaps only (< 1 % at the defaults, see tests/test_query_latency.py). Cost
+    ``O(max_cells · n)``.
+
+    ``method="grid"``: cell centres of an axis-aligned grid over the cones' bounding box
+    (cell ``max(cell_m, (box/max_cells)^(1/3))``) that fall in any cone — the reference.
+    """
+    if len(origins) == 0 or range_m <= 0:
+        return 0.0
+    th = math.radians(min(max(half_angle_deg, 0.1), 89.0))
+    v1 = math.pi * range_m ** 3 * math.tan(th) ** 2 / 3.0
+    if len(origins) == 1:  # exact
+        return float(v1)
+    origins = np.asarray(origins, np.float64)
+    dirs = np.asarray(dirs, np.float64)
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True).clip(1e-12)
+    cos2 = math.cos(th) ** 2
+    if method == "samples":
+        n = len(origins)
+        h = max(cell_m, (v1 / max(8, max_cells // n)) ** (1 / 3))
+        tan = math.tan(th)
+        ax = np.arange(-range_m * tan + h / 2, range_m * tan, h)
+        t_layers = np.arange(h / 2, range_m, h)
+        pts, wts = [], []
+        uu, vv = np.meshgrid(ax, ax, indexing="ij")
+        for tl in t_layers:
+            sel = uu * uu + vv * vv <= (tl * tan) ** 2
+            u, v = (uu[sel], vv[sel]) if sel.any() else (np.zeros(1), np.zeros(1))   # the axis, near the apex
+            a, b = tl - h / 2, min(tl + h / 2, range_m)
+            layer_vol = math.pi * tan * tan * (b ** 3 - a ** 3) / 3.0                  # exact slab of the cone
+            pts.append(np.stack([u, v, np.full(len(u), tl)], 1))
+            wts.append(np.full(len(u), layer_vol / len(u)))
+        local, w = np.concatenate(pts), np.concatenate(wts)                          # sum(w) == v1
+        centre = origins.mean(0)
+        o = origins - centre
+        od = (o * dirs).sum(1)
+        oo = (o * o).sum(1)
+        total = 0.0
+        for i in range(n):
+            p = local @ _cone_frame(dirs[i]) + o[i]                 # (m, 3) world (centred)
+            tj = p @ dirs.T - od                                    # (m, n) axial distance
+            v2 = (p * p).sum(1)[:, None] - 2.0 * (p @ o.T) + oo     # (m, n) |p - o_j|²
+            inn = (tj > 0) & (tj <= range_m) & (tj * tj >= v2 * cos2)
+            inn[:, i] = True                                        # its own cone, whatever the rounding
+            total += float((w / inn.sum(1)).sum())
+        return total
+    if method != "grid":
+        raise ValueError(f"unknown cone union method {method!r} (samples, grid)")
+    r_base = range_m * math.tan(th)
+    ends = origins + dirs * range_m
+    lo = np.minimum(origins, ends).min(0) - r_base
+    hi = np.maximum(origins, ends).max(0) + r_base
+    vol_box = float(np.prod(hi - lo))
+    cell = max(cell_m, (vol_box / max_cells) ** (1 / 3))
+    axes = [np.arange(lo[i] + cell / 2, hi[i], cell, dtype=np.float32) for i in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = np.zeros(len(pts), bool)
+    cos_t = math.cos(th)
+    for o, d in zip(origins.astype(np.float32), dirs.astype(np.float32)):
+        v = pts - o
+        t = v @ d
+        nrm = np.linalg.norm(v, axis=1)
+        inside |= (t > 0) & (t <= range_m) & (t >= nrm * cos_t)
+    return float(inside.sum() * cell ** 3)
+
+
+# ------------------------------------------------------------- query snapshots
+class QuerySnapshot:
+    """A consistent copy of what a query reads from the map, taken under the caller's map
+    lock (:meth:`take`: voxel features converted to float32, voxel keys and the rays, into
+    buffers reused across map versions — one O(N·dim) pass), and the query-independent
+    terms derived from it outside the lock (:meth:`prepared`: per-row inverse norms, see
+    ``FeatureSpace.prepare``, which uses the float32 copy in place).
+
+    Memory: ``4·dim·N`` bytes (+25 % headroom for a growing map) for the features, ``8·N``
+    for the keys. :meth:`reserve` grows the buffers before the lock is taken, so the lock
+    is held for the copy only.
+
+    Not thread-safe: the caller serialises queries (``MapperService.query_lock``). ``gen``
+    is the caller's map generation the copy belongs to; ``frames_mapped`` its frame count.
+    """
+
+    def __init__(self):
+        self.gen = -1
+        self.frames_mapped = 0
+        self.vox = 1.0
+        self.half_angle = 45.0
+        self.n_voxels = 0
+        self._vfeat = torch.empty((0, 0))     # float32 copy of the voxel features (capacity >= n)
+        self._vkeys = torch.empty(0, dtype=torch.int64)
+        self.ray_feats = torch.empty(0)
+        self.ray_origins = np.zeros((0, 3), np.float32)
+        self.ray_dirs = np.zeros((0, 3), np.float32)
+        self._spare: tuple = (None, None)     # buffers allocated by reserve() for the next take()
+        self._prep: dict = {}                 # (space id, device) -> (voxels, rays) PreparedFeatures
+        self.take_ms = 0.0
+
+    @staticmethod
+    def _fits(buf: torch.Tensor | None, n: int, tail: tuple, dtype, device) -> bool:
+        return (buf is not None and buf.dtype == dtype and buf.device == device
+                and tuple(buf.shape[1:]) == tail and buf.shape[0] >= n)
+
+    def _buffers(self, m):
+        """Buffers that fit map ``m``: the current ones, reserve()'s spares, or new ones."""
+        sem = m.sem
+        n, dev = len(sem), sem.keys.device
+        out = []
+        for cur, spare, tail, dt in ((self._vfeat, self._spare[0], (int(sem.dim),), torch.float32),
+                                     (self._vkeys, self._spare[1], (), torch.int64)):
+            if self._fits(cur, n, tail, dt, dev):
+                out.append(cur)
+            elif self._fits(spare, n, tail, dt, dev):
+                out.append(spare)
+            else:   # zeroed: the pages are touched here, not during the copy under the lock
+                out.append(torch.zeros((max(n + n // 4, 1024), *tail), dtype=dt, device=dev))
+        return out
+
+    def reserve(self, m) -> "QuerySnapshot":
+        """Allocate buffers big enough for map ``m``'s current size ahead of :meth:`take`
+        (no lock needed: a size hint), leaving the current snapshot intact."""
+        f, k = self._buffers(m)
+        self._spare = (f if f is not self._vfeat else self._spare[0], k if k is not self._vkeys else self._spare[1])
+        return self
+
+    def take(self, m, gen: int, frames_mapped: int = 0) -> "QuerySnapshot":
+        """Copy the map's query arrays (the caller holds the map lock). Drops derived terms."""
+        t = time.perf_counter()
+        self._vfeat, self._vkeys = self._buffers(m)
+        self._spare = (None, None)
+        self._prep = {}
+        sem = m.sem
+        n = self.n_voxels = len(sem)
+        self._vfeat[:n].copy_(sem.feat)
+        self._vkeys[:n].copy_(sem.keys)
+        self.vox = float(m.cfg.vox_size)
+        rs = m.ray_store
+        self.ray_feats = rs.feat.clone()
+        self.ray_origins = _np(rs.origins()).astype(np.float32).reshape(-1, 3)
+        self.ray_dirs = _np(rs.directions()).astype(np.float32).reshape(-1, 3)
+        self.half_angle = float(m.cone_half_angle())
+        self.gen, self.frames_mapped = gen, frames_mapped
+        self.take_ms = (time.perf_counter() - t) * 1e3
+        return self
+
+    @property
+    def voxel_feats(self) -> torch.Tensor:
+        return self._vfeat[: self.n_voxels]
+
+    def voxel_xyz(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), 3) float32 voxel centres of snapshot rows."""
+        from mapper import keys as K_
+
+        k = self._vkeys[: self.n_voxels][torch.as_tensor(np.asarray(rows, np.int64))]
+        return _np(voxel_center(K_.unpack(k), self.vox)).astype(np.float32, copy=False).reshape(-1, 3)
+
+    def prepared(self, fs, device="cpu"):
+        """``(voxels, rays)`` PreparedFeatures for space ``fs`` (built once per snapshot)."""
+        key = (fs.id, str(device))
+        if key not in self._prep:
+            v = fs.prepare(self.voxel_feats, device=device)
+            r = fs.prepare(self.ray_feats, device=device)
+            self._prep[key] = (v, r)
+        return self._prep[key]
+
+
+_NEGATIVES: dict = {}
+
+
+def softmax_negatives(fs, device="cpu", model_dir: str = "") -> torch.Tensor:
+    """(4, lang_dim) embeddings of :data:`SOFTMAX_NEGATIVES` (cached per space and device)."""
+    key = (fs.id, fs.text_model, str(device), model_dir)
+    if key not in _NEGATIVES:
+        _NEGATIVES[key] = fs.embed_queries(list(SOFTMAX_NEGATIVES), text_encoder(fs.text_model, device, model_dir))
+    return _NEGATIVES[key]
+
+
+def answer_query(m, fs, req: QueryRequest, qcfg, device="cpu", model_dir: str = "") -> QueryResult:
+    """Run ``req`` on map ``m`` (the caller holds its lock throughout): a one-off
+    :class:`QuerySnapshot` + :func:`answer_snapshot`."""
+    return answer_snapshot(QuerySnapshot().take(m, 0), fs, req, qcfg, device, model_dir)
+
+
+def answer_snapshot(snap: QuerySnapshot, fs, req: QueryRequest, qcfg, device="cpu",
+                    model_dir: str = "") -> QueryResult:
+    """Run ``req`` on a map snapshot: voxel clusters, top voxels, top rays, search volume.
+
+    * top voxels/rays: the ``top_k`` best scores, ties by lower row (:func:`top_stable`);
+    * clusters: among the ``max(cluster_candidates, top_k)`` best voxels, those scoring at
+      least ``lo + cluster_rel_score·(hi − lo)`` (``lo`` the map's minimum, ``hi`` the best;
+      only the best one if ``hi == lo``), grouped 26-connected; the ``top_k`` clusters with
+      the best maximum score;
+    * search volume: union of the cones of the ``search_rays`` best rays
+      (:func:`cone_union_volume`, sampled, cost capped by ``search_samples``).
+    Timings (ms): ``encode``, ``prepare`` (per snapshot; 0 when cached), ``similarity``,
+    ``topk``, ``clusters``, ``search_volume``, ``postprocess`` (the last three together)."""
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    q = embed_request(fs, req, device, model_dir)
+    neg = softmax_negatives(fs, device, model_dir) if req.softmax else None
+    timings["encode"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
+    vprep, rprep = snap.prepared(fs, device)
+    timings["prepare"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
+    vs = scores_for(fs, vprep, q, req.softmax, neg, device)
+    rs = scores_for(fs, rprep, q, req.softmax, neg, device)
+    timings["similarity"] = (time.perf_counter() - t) * 1e3
+    t0 = t = time.perf_counter()
+    res = QueryResult(id=req.id, query=req.label)
+    k = req.top_k
+    if len(vs):
+        cand = top_stable(vs, max(qcfg.cluster_candidates, k))
+        top = cand[:k]
+        lo, hi = float(vs.min()), float(vs[cand[0]])
+        timings["topk"] = (time.perf_counter() - t) * 1e3
+        t = time.perf_counter()
+        keep = cand[vs[cand] >= lo + qcfg.cluster_rel_score * (hi - lo)] if hi > lo else cand[:1]
+        xyz = snap.voxel_xyz(np.concatenate([top, keep]))
+        res.voxel_xyz, res.voxel_score = xyz[:len(top)], vs[top]
+        # clusters: the best candidates (relative to the map's score range), 26-connected
+        vox = snap.vox
+        ijk = voxel_index(xyz[len(top):].astype(np.float64), vox)
+        lab = cluster_voxels(ijk)
+        n_cl = int(lab.max()) + 1 if len(lab) else 0
+        best = np.full(n_cl, -np.inf, np.float32)
+        np.maximum.at(best, lab, vs[keep])
+        order = np.argsort(-best, kind="stable")[:k]
+        # per cluster: centroid, size, bounding box (one pass over the kept voxels)
+        centres = voxel_center(ijk, vox)
+        size = np.bincount(lab, minlength=n_cl)
+        csum = np.zeros((n_cl, 3))
+        np.add.at(csum, lab, centres)
+        cmin = np.full((n_cl, 3), np.inf)
+        cmax = np.full((n_cl, 3), -np.inf)
+        np.minimum.at(cmin, lab, centres)
+        np.maximum.at(cmax, lab, centres)
+        res.cluster_xyz = (csum[order] / size[order, None]).astype(np.float32).reshape(-1, 3)
+        res.cluster_size = size[order].astype(np.int32)
+        res.cluster_extent = (cmax[order] - cmin[order] + vox).astype(np.float32).reshape(-1, 3)
+        res.cluster_score = best[order].astype(np.float32)
+        timings["clusters"] = (time.perf_counter() - t) * 1e3
+    if len(rs):
+        t = time.perf_counter()
+        top = top_stable(rs, k)
+        o, d = snap.ray_origins, snap.ray_dirs
+        res.ray_origin, res.ray_direction, res.ray_score = o[top], d[top], rs[top]
+        ns = min(qcfg.search_rays, len(top))
+        res.search_volume_m3 = cone_union_volume(o[top[:ns]], d[top[:ns]], snap.half_angle, qcfg.search_range_m,
+                                                 qcfg.search_cell_m, max_cells=qcfg.search_samples)
+        timings["search_volume"] = (time.perf_counter() - t) * 1e3
+    timings["postprocess"] = (time.perf_counter() - t0) * 1e3
+    res.timings = timings
+    return res

@@ -1,0 +1,208 @@
+"""What the mapper's jobs share: the map, its feature space, the robot table, counters, locks
+and the wake-up events (one :class:`MapperState` per :class:`mapper.service.MapperService`).
+
+Mapper module map (the service is a thin composition of jobs; see ARCHITECTURE.md)::
+
+    mapper/service.py          MapperService: builds the state and the jobs, declares the Zenoh
+                               entities, starts the threads, closes everything (lifecycle only)
+    mapper/state.py            MapperState (this module), RobotState, counters, jsonable
+    mapper/ingest.py           frames in: subscriber, validation, per-robot queues, liveliness,
+                               feature-space fetch, round-robin next_frame
+    mapper/map_worker.py       the one integrating thread: integrate, idle flush, and the
+                               schedule of standing queries / layers / periodic snapshots
+    mapper/query_server.py     query + stats queryables, QuerySnapshot, standing queries, stats()
+    mapper/snapshot_store.py   save / restore / write_snapshot, the snapshot queryable
+    mapper/outputs/layers.py   layer messages: periodic publish and the layer queryable
+    mapper/outputs/rerun.py    rerun recording (RerunLogger) and the service's rerun output
+    mapper/service_map.py      Zenoh-free map life: create/load/integrate/flush, layer arrays
+    mapper/query_answer.py     Zenoh-free query answering: embed, score, cluster, search volume
+    mapper/service_config.py   the mapper config schema, thread counts
+
+Locking: ``lock`` (the map lock) guards the map and its feature space; ``qlock`` the robot
+table and queues; ``query_lock`` serialises queries (one-shot and standing), always taken
+*before* ``lock``. ``map_gen`` bumps on every change of the map (under ``lock``): integrate,
+flush, create and restore.
+
+Events: every thread waits on its own event, so no thread polls while frames queue: ``wake``
+(map worker: a frame or a robot changed), ``space_wake`` (ingest's feature-space thread: a
+robot needs its space fetched), ``standing_due`` (query server: the map changed and standing
+queries are due).
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.wire import WireLimits
+
+log = logging.getLogger("rayfronts.mapper")
+
+
+class RateLimitedLog:
+    """Logs the first occurrence of each key, then at most once per ``period`` s with a count."""
+
+    def __init__(self, period: float = 10.0):
+        self.period = period
+        self._last: dict[str, float] = {}
+        self._n: dict[str, int] = collections.Counter()
+        self._lock = threading.Lock()
+
+    def __call__(self, key: str, msg: str, *args) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._n[key] += 1
+            last = self._last.get(key)
+            if last is not None and now - last < self.period:
+                return
+            n, self._n[key] = self._n[key], 0
+            self._last[key] = now
+        log.warning(msg + (f" (x{n} since last report)" if n > 1 else ""), *args)
+
+
+@dataclass
+class RobotState:
+    name: str
+    queue: collections.deque
+    received: int = 0
+    mapped: int = 0
+    dropped: int = 0
+    rejected: collections.Counter = field(default_factory=collections.Counter)
+    present: bool = False
+    seen_at: float = 0.0
+    gone_at: float | None = None
+    feature_space: str = ""          # id of the robot's space once fetched
+    space_ok: bool = False           # space known and equal to the map's
+    space_error: str = ""
+    fetch_after: float = 0.0
+    fetch_started: float = -1e9      # monotonic start of the last feature-space get
+    last_seq: int = -1
+    edge_cpu: tuple | None = None    # (first, last) edge process CPU s (frame meta ``cpu_s``) of mapped frames
+    edge_cpu_frames: int = 0         # mapped frames between them
+
+    def as_dict(self) -> dict:
+        d = {"received": self.received, "mapped": self.mapped, "dropped": self.dropped,
+             "rejected": dict(self.rejected), "queue": len(self.queue), "present": self.present,
+             "seen_at": self.seen_at, "gone_at": self.gone_at, "feature_space": self.feature_space,
+             "space_ok": self.space_ok, "space_error": self.space_error, "last_seq": self.last_seq}
+        if self.edge_cpu is not None and self.edge_cpu_frames > 0:
+            # the robot's edge process CPU per frame, over its mapped frames (frame meta cpu_s)
+            d["edge_cpu_ms_per_frame"] = (self.edge_cpu[1] - self.edge_cpu[0]) * 1e3 / self.edge_cpu_frames
+        return d
+
+
+class Percentiles:
+    """Ring buffer of recent samples with percentiles (ms)."""
+
+    def __init__(self, n: int = 1000):
+        self._d: collections.deque = collections.deque(maxlen=n)
+
+    def add(self, x: float) -> None:
+        self._d.append(float(x))
+
+    def summary(self) -> dict:
+        if not self._d:
+            return {"n": 0}
+        a = np.fromiter(self._d, float)
+        return {"n": int(a.size), "p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95)),
+                "max": float(a.max()), "mean": float(a.mean()), "last": float(a[-1])}
+
+
+class MapperState:
+    """The mutable state every mapper job reads and writes (see the module docstring for locks).
+
+    ``session`` / ``keys`` are the Zenoh session and key space, set by ``MapperService.start``.
+    """
+
+    def __init__(self, cfg, stop: threading.Event):
+        self.cfg = cfg
+        self.stop = stop
+        self.lock = threading.RLock()          # map + feature space
+        self.qlock = threading.Lock()          # robot table + queues
+        self.query_lock = threading.Lock()     # serialises queries; taken before `lock`
+        self.map_gen = 0                       # bumps on every change of the map (under `lock`)
+        self.map = None
+        self.space = None                      # FeatureSpace of the map
+        self._space_id: tuple = (None, "")     # (space, its id): FeatureSpace.id hashes the PCA basis
+        self.space_reply: bytes | None = None  # its envelope (for snapshots)
+        self.robots: dict[str, RobotState] = {}
+        self.rejected: collections.Counter = collections.Counter()
+        self.received = 0
+        self.mapped = 0
+        self.dropped = 0
+        self.started = time.time()
+        self.version = 0                       # bumps on every integrate
+        self.flushed_version = 0               # version at the last map.flush()
+        self.snap_version = -1                 # version at the last snapshot
+        self.first_mapped_at: float | None = None
+        self.last_mapped_at: float | None = None
+        self.cpu_mapped: list[float] = []      # process CPU s at the first and the last integration
+        self.standing: dict = {}               # standing query id -> QueryRequest
+        self.last_snapshot: dict = {}          # what the last save / restore wrote or read
+        self.timings = {"integrate_ms": Percentiles(), "integrate_cpu_ms": Percentiles(),
+                        "latency_ms": Percentiles(), "query_ms": Percentiles(), "decode_ms": Percentiles()}
+        self.warn = RateLimitedLog()
+        self.limits = WireLimits(max_message_bytes=int(cfg.queues.max_message_mb * (1 << 20)))
+        self.session = None
+        self.keys = None
+        self.wake = threading.Event()          # map worker: a frame or a robot changed
+        self.space_wake = threading.Event()    # feature-space thread: a robot needs its space (re)fetched
+        self.standing_due = threading.Event()  # query server: standing queries are due
+
+    @property
+    def space_id(self) -> str:
+        """Id of the map's feature space ("" before the map exists), computed once per space."""
+        fs = self.space
+        if fs is None:
+            return ""
+        if self._space_id[0] is not fs:
+            self._space_id = (fs, fs.id)
+        return self._space_id[1]
+
+    def robot(self, name: str) -> RobotState:
+        """The robot's state, created on first sight (caller holds ``qlock``)."""
+        st = self.robots.get(name)
+        if st is None:
+            st = RobotState(name, collections.deque(maxlen=max(1, self.cfg.queues.per_robot)))
+            self.robots[name] = st
+            st.seen_at = time.time()
+            self.wake.set()
+            self.space_wake.set()
+        return st
+
+    def reject(self, robot: str | None, reason: str, detail: str) -> None:
+        """Count a rejected frame (globally and for its robot) and log it, rate-limited."""
+        with self.qlock:
+            self.rejected[reason] += 1
+            if robot is not None and robot in self.robots:
+                self.robots[robot].rejected[reason] += 1
+        self.warn(f"{robot}:{reason}", "rejected frame from %s (%s): %s", robot, reason, detail[:200])
+
+    def create_map(self, fs, envelope: bytes) -> None:
+        """A new map in feature space ``fs`` (caller holds ``lock``)."""
+        from mapper.service_map import create_map
+
+        self.map = create_map(self.cfg, fs)
+        self.map_gen += 1
+        self.space = fs
+        self.space_reply = envelope
+        log.info("map created in feature space %s (dim %d)", fs.id, fs.dim)
+
+
+def jsonable(x):
+    """``x`` with numpy scalars/arrays turned into Python values and unknown objects into str."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, (str, int, float, bool)) or x is None:
+        return x
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return str(x)
