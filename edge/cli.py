@@ -16,6 +16,10 @@ compresses the features with PCA and publishes one frame message per frame on
 
   rayfronts edge robot=r1 source.kind=synthetic --connect tcp/BASE:7447
   rayfronts edge fit-pca --out pca.npz source.kind=replica source.path=... [--frames 50]
+  rayfronts edge --list-topics source.ros_connect=[tcp/127.0.0.1:7447]   # a ROS 2 robot's topics
+  rayfronts edge robot=r1 source.kind=ros2 source.ros_connect=[tcp/127.0.0.1:7447] \\
+      source.rgb_topic=/camera/color/image_raw source.depth_topic=/camera/depth/image_rect_raw \\
+      source.camera_info_topic=/camera/depth/camera_info source.pose_topic=/odom --connect tcp/BASE:7447
 
 Configuration: --config FILE (YAML) plus trailing key=value overrides (keys below)."""
 
@@ -58,6 +62,11 @@ def _options(parser, suppress: bool = False) -> None:
     parser.add_argument("--frames", type=int, default=50, help="fit-pca: frames to sample (default 50)")
     parser.add_argument("--samples-per-frame", type=int, default=4096,
                         help="fit-pca: feature vectors sampled per frame (default 4096)")
+    parser.add_argument("--list-topics", action="store_true",
+                        help="list the ROS 2 topics a robot publishes over Zenoh (rmw_zenoh graph tokens and data "
+                             "keys seen; source.ros_keys, source.ros_domain, source.ros_connect) and exit")
+    parser.add_argument("--list-seconds", type=float, default=2.0, metavar="S",
+                        help="--list-topics: how long to watch the data keys (default 2 s)")
     add_zenoh_arguments(parser, mode_default_help="client")
     if suppress:
         for a in parser._actions:
@@ -89,7 +98,7 @@ def check_inputs(cfg) -> None:
     from common.config import ConfigError
 
     src = cfg.source
-    if src.kind != "synthetic":
+    if src.kind not in ("synthetic", "ros2"):  # ros2: live topics, no path
         if not src.path:
             raise ConfigError(f"source.kind={src.kind} needs source.path (the dataset / recording / bag location)")
         if not Path(src.path).expanduser().exists():
@@ -158,6 +167,11 @@ def run(args: argparse.Namespace) -> int:
         if action != "fit-pca":
             raise ConfigError(f"unknown edge action {action!r} (the only action is 'fit-pca')")
     cfg = build_config(args, items)
+    if getattr(args, "list_topics", False):
+        from edge.sources.ros2 import format_topics, list_topics
+
+        print(format_topics(list_topics(cfg.source, cfg.zenoh, seconds=args.list_seconds)))
+        return 0
     check_inputs(cfg)
     if action == "fit-pca":
         from edge.fit_pca import fit_pca

@@ -33,7 +33,8 @@ Live behaviour (decisions):
   in ``skipped`` with a rate-limited warning (``ros_log_every``).
 * Per topic: a message whose stamp is older than the newest one already taken is dropped
   and counted (``out_of_order``); a message that does not decode or has an unsupported
-  encoding is counted (``bad``) with one line naming the topic; a topic silent for more
+  encoding is counted (``bad``) with one line naming the topic; a stream topic (colour,
+  depth, pose, tf; not CameraInfo / tf_static, which may be sent once) silent for more
   than 2 s while the others flow is reported (``stalls``). ``stats()`` returns it all.
 * tf: ``/tf_static`` and CameraInfo are also fetched once with a Zenoh ``get`` at start
   (publication caches answer it), since late joiners miss transient-local messages
@@ -408,7 +409,10 @@ class Ros2Source(FrameSource):
         if not self._last_arrival:
             return
         freshest = max(self._last_arrival.values())
+        streams = {self.topics[r] for r in ("rgb", "depth", "pose", "tf") if r in self.topics}
         for topic, t in self._last_arrival.items():
+            if topic not in streams:  # CameraInfo / tf_static may be latched (sent once)
+                continue
             silent = now - t
             if silent > STALL_S and now - freshest < STALL_S:
                 if topic not in self._stalled:
