@@ -242,6 +242,7 @@ def compress_features(pca, feats) -> np.ndarray:
 @dataclass
 class EdgeStats:
     frames_read: int = 0
+    frames_skipped: int = 0          # frames the source could not read/decode (skipped, counted)
     frames_encoded: int = 0
     frames_sent: int = 0
     frames_replaced: int = 0
@@ -288,6 +289,12 @@ class EdgeRuntime:
         self._status_pub = None
         self._state = ("starting", "")
         self._state_lock = threading.Lock()
+        self.phase = "waiting for the first source frame"   # what the pipeline is doing (said in
+        # the feature-space "not ready" reply and logged on each change)
+
+    def _set_phase(self, phase: str) -> None:
+        self.phase = phase
+        log.info("edge %s: %s", self.cfg.robot, phase)
 
     # ---------------------------------------------------------------- zenoh side
     def _connect_loop(self) -> None:
@@ -335,7 +342,7 @@ class EdgeRuntime:
         try:
             with self._fs_lock:
                 reply = self._fs_reply
-            payload = reply if reply is not None else encode_error("feature space not ready (PCA being fitted)")
+            payload = reply if reply is not None else encode_error(f"feature space not ready ({self.phase})")
             query.reply(query.key_expr, payload)
         except Exception as e:  # never raise out of a callback
             log.warning("feature_space reply failed: %s", e)
@@ -404,7 +411,10 @@ class EdgeRuntime:
             return self._frames, self._class_names
         from edge.sources import open_source
 
-        src = open_source(self.cfg.source)
+        extra = {}
+        if self.cfg.source.kind == "ros2":  # live topics: the edge's Zenoh settings and its stop event
+            extra = {"zenoh": self.cfg.zenoh, "stop": self.stop}
+        src = open_source(self.cfg.source, **extra)
         return src, list(getattr(src, "class_names", None) or []) or None
 
     def _rate(self) -> float:
@@ -415,15 +425,20 @@ class EdgeRuntime:
 
     def _iter_frames(self):
         n = 0
+        skipped0 = 0
         while not self.stop.is_set():
             src, names = self._open_source()
             got = False
             for fr in src:
                 got = True
+                # frames the source skipped as corrupt (FrameSource.skipped) are counted, not fatal
+                self.stats.frames_skipped = skipped0 + int(getattr(src, "skipped", {}).get("corrupt frame", 0))
                 yield fr, names
                 n += 1
                 if self.stop.is_set() or (self.cfg.publish.max_frames and n >= self.cfg.publish.max_frames):
                     return
+            skipped0 += int(getattr(src, "skipped", {}).get("corrupt frame", 0))
+            self.stats.frames_skipped = skipped0
             if not self.cfg.publish.loop or not got or self._frames is not None:
                 return
 
@@ -436,6 +451,7 @@ class EdgeRuntime:
         with self._fs_lock:
             self._fs_reply = encode_feature_space(self.cfg.robot, fs.to_body())
         log.info("feature space %s (dim %d)", fs.id, fs.dim)
+        self._set_phase("sending frames")
         return fs
 
     def run(self) -> int:
@@ -507,6 +523,7 @@ class EdgeRuntime:
             for fr, names in self._iter_frames():
                 self.stats.frames_read += 1
                 if encoder is None:
+                    self._set_phase(f"loading the {cfg.encoder.kind} encoder")
                     encoder = make_encoder(cfg.encoder, class_names=names)
                     if cfg.pca.basis and cfg.pca.out_dim > 0:
                         pca = PCA.load(cfg.pca.basis)
@@ -523,6 +540,8 @@ class EdgeRuntime:
                                     cfg.pca.out_dim, cfg.pca.fit_frames)
                         fitter = OnlinePCAFitter(cfg.pca.out_dim, max(1, cfg.pca.fit_frames),
                                                  cfg.pca.pixels_per_frame)
+                        self._set_phase(f"fitting PCA-{cfg.pca.out_dim} online over the first "
+                                        f"{max(1, cfg.pca.fit_frames)} frames")
                 t0 = time.perf_counter()
                 with torch.inference_mode():
                     # one forward pass gives the dense map and the image-level vector
