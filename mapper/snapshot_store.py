@@ -9,8 +9,17 @@ On-disk layout under ``snapshots.dir``::
     snap-<ms>/meta.json      frames_mapped, stamp, version, per-robot mapped / last_seq
 
 A snapshot is written into ``.tmp-snap-<ms>`` and renamed into place, then ``LATEST`` is
-replaced, so a crash never leaves a half snapshot behind the pointer. Restore failures are
-logged and the mapper starts empty.
+replaced, so a crash never leaves a half snapshot behind the pointer. The newest
+``snapshots.keep`` generations stay on disk. Restore tries them newest first
+(:func:`mapper.snapshot.snapshot_generations`; ``LATEST`` first) and takes the first intact
+one, logging each broken one and saying in the log and in ``stats().snapshot``
+(``fallback_from``) that it fell back; only when none is intact does the mapper start empty.
+
+Restore = the same answers: a snapshot holds the map *with* its pending accumulation
+buffers, and ``meta.json`` the map ``version`` and ``flushed_version`` at save time; restore
+puts both back, so a map saved before its idle flush is flushed after the restart exactly as
+it would have been (the old code set both to 1, the flush never came and the restored
+mapper answered from the unflushed map: no rays, missing voxels).
 """
 from __future__ import annotations
 
@@ -51,6 +60,7 @@ class SnapshotStore:
             version = s.version
             with s.qlock:
                 meta = {"frames_mapped": s.mapped, "stamp": time.time(), "version": version,
+                        "flushed_version": s.flushed_version,
                         "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in s.robots.items()}}
             path = write_snapshot(root, s.map, s.space_reply, meta, s.cfg.snapshots.keep)
         s.snap_version = version
@@ -60,36 +70,54 @@ class SnapshotStore:
         return s.last_snapshot
 
     def restore(self) -> None:
-        """Load the snapshot ``LATEST`` points to, if any (before the Zenoh entities exist)."""
+        """Load the newest intact snapshot generation, if any (before the Zenoh entities
+        exist); a broken newer one is logged and skipped (module docstring)."""
         from common.feature_space import FeatureSpace
         from mapper.service_map import load_map
+        from mapper.snapshot import check_generation, snapshot_generations
 
         s = self.state
         root = Path(s.cfg.snapshots.dir)
-        ptr = root / "LATEST"
-        if not ptr.is_file():
+        gens = snapshot_generations(root)
+        if not gens:
+            log.info("no snapshot in %s: starting with an empty map", root)
             return
-        path = root / ptr.read_text().strip()
-        try:
-            meta = json.loads((path / "meta.json").read_text())
-            envelope = (path / "feature_space.bin").read_bytes()
-            _, body = decode_feature_space(envelope)
-            fs = FeatureSpace.from_body(body)
-            s.map = load_map(path / "map", s.cfg, fs)
-            s.map_gen += 1
-        except Exception as e:
-            log.error("cannot restore snapshot %s: %s (starting empty)", path, e)
-            s.map = None
+        broken: list[str] = []
+        for path in gens:
+            log.info("restoring snapshot %s", path)
+            try:
+                meta = check_generation(path)
+                envelope = (path / "feature_space.bin").read_bytes()
+                _, body = decode_feature_space(envelope)
+                fs = FeatureSpace.from_body(body)
+                m = load_map(path / "map", s.cfg, fs)
+            except Exception as e:
+                log.error("snapshot %s is broken (%s); trying the generation before it", path, e)
+                broken.append(str(path))
+                continue
+            break
+        else:
+            log.error("no intact snapshot in %s (%d broken): starting with an empty map", root, len(broken))
             return
+        s.map = m
+        s.map_gen += 1
         s.space, s.space_reply = fs, envelope
         s.mapped = int(meta.get("frames_mapped", 0))
-        s.version = s.snap_version = s.flushed_version = 1
+        # the map's version and flush state as saved: a map saved with frames still in its
+        # accumulation buffers is flushed by the idle flush, as it would have been
+        s.version = max(1, int(meta.get("version", 1)))
+        s.flushed_version = int(meta.get("flushed_version", s.version - 1))
+        s.snap_version = s.version
         for name, r in meta.get("robots", {}).items():
             st = s.robot(name)
             st.mapped, st.last_seq = int(r.get("mapped", 0)), int(r.get("last_seq", -1))
         s.last_snapshot = {"path": str(path), "frames_mapped": s.mapped, "stamp": meta.get("stamp", 0.0),
                            "restored": True}
-        log.info("restored snapshot %s (%d frames, space %s)", path, s.mapped, fs.id)
+        if broken:
+            s.last_snapshot["fallback_from"] = broken
+        log.info("restored snapshot %s (%d frames, space %s, %s)%s", path, s.mapped, fs.id,
+                 "flush pending" if s.flushed_version != s.version else "flushed",
+                 f"; fell back from {len(broken)} broken newer generation(s)" if broken else "")
 
     def on_snapshot(self, query) -> None:
         s = self.state
