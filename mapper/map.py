@@ -461,5 +461,5 @@ class RayFrontsMap:
     @classmethod
     def load(cls, path, device="cpu", occupancy_backend: str = "auto") -> "RayFrontsMap":
         from mapper.snapshot import load_map
-        return load_map(path, device=device, occupancy_backend=occupancy_backend)
+        return load_map(path, cls, device=device, occupancy_backend=occupancy_backend)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common.config import to_dict, merge
+from common.config import merge, to_dict
 
 FORMAT = "rayfronts-map"
 VERSION = 1
@@ -92,9 +92,10 @@ def read_manifest(path) -> dict:
     return man
 
 
-def load_map(path, device="cpu", occupancy_backend: str = "auto"):
+def load_map(path, map_cls, device="cpu", occupancy_backend: str = "auto"):
+    """A ``map_cls`` (:class:`mapper.map.RayFrontsMap`, passed in by ``RayFrontsMap.load`` so this
+    module does not import the map) restored from the snapshot at ``path``."""
     from mapper.config import MapConfig
-    from mapper.map import RayFrontsMap
     from mapper.occupancy import from_state
 
     path = Path(path)
@@ -107,8 +108,8 @@ def load_map(path, device="cpu", occupancy_backend: str = "auto"):
     except Exception as e:  # noqa: BLE001 - any read problem is a snapshot problem
         raise SnapshotError(f"cannot read {af}: {e}") from None
     cfg = merge(MapConfig(), man["config"])
-    m = RayFrontsMap(cfg, man["feature_dim"], man["feature_space"], device=device,
-                     occupancy_backend=occupancy_backend)
+    m = map_cls(cfg, man["feature_dim"], man["feature_space"], device=device,
+                occupancy_backend=occupancy_backend)
 
     def T(name):
         if name not in z:

@@ -92,8 +92,13 @@ FORMATTERS = {"mapper": _mapper, "world": _world, "encoder": _encoder, "e2e": _e
 
 
 def _order(src: Path) -> list[Path]:
-    from apps.bench import ALL
-    names = [n for n, _, _ in ALL]
+    """The JSONs in the order ``bench all`` ran them (the ``runs`` of its ``all.json``, which
+    follow ``apps.bench.ALL``), then any others by name. Read from the directory, so this module
+    does not import ``apps.bench`` (which imports it)."""
+    try:
+        names = list(json.loads((src / "all.json").read_text()).get("runs", {}))
+    except (ValueError, OSError, AttributeError):
+        names = []
     files = {p.stem: p for p in sorted(src.glob("*.json")) if p.stem != "all"}
     return [files[n] for n in names if n in files] + [p for n, p in files.items() if n not in names]
 

@@ -32,13 +32,19 @@ STYLE = {
 }
 
 
-def _titles() -> dict:
-    try:
-        from apps.evaluation.srchvol import METHOD_TITLES
+METHOD_TITLES = {
+    "rayfronts": "RayFronts",
+    "semantic_poses": "Sem Poses",
+    "semantic_voxels": "Sem Voxels",
+    "spherical_semfronts": "Spherical Sem Fronts",
+    "unidirectional_semfronts": "Unidirectional Sem Fronts",
+}
+"""Display names of the search-volume methods (here, not in :mod:`apps.evaluation.srchvol`, which
+imports this module: the figures need no evaluation imports)."""
 
-        return dict(METHOD_TITLES)
-    except Exception:  # the figures do not need the evaluation's heavy imports
-        return {}
+
+def _titles() -> dict:
+    return dict(METHOD_TITLES)
 
 
 def _depth_key(d: float) -> str:

@@ -49,18 +49,12 @@ from apps.evaluation import metrics as M
 from apps.evaluation import raster as R
 from apps.evaluation import shapes as S
 from apps.evaluation.data import GroundTruth, ground_truth, load_frames, pack
+from apps.evaluation.figures import METHOD_TITLES
 from apps.evaluation.language import eval_language
 
 log = logging.getLogger("rayfronts.eval")
 
 ALL_METHODS = ["rayfronts", "semantic_poses", "semantic_voxels", "spherical_semfronts", "unidirectional_semfronts"]
-METHOD_TITLES = {
-    "rayfronts": "RayFronts",
-    "semantic_poses": "Sem Poses",
-    "semantic_voxels": "Sem Voxels",
-    "spherical_semfronts": "Spherical Sem Fronts",
-    "unidirectional_semfronts": "Unidirectional Sem Fronts",
-}
 METRIC_KEYS = ("miou_auc", "scv_auc", "recall_auc", "scvr_auc")
 
 

@@ -10,9 +10,10 @@ scenes for the benchmarks (DESIGN §6).
 World frame z up (x east, y north), ground at z = 0; poses camera-to-world, RDF camera axes.
 """
 from .classes import CLASS_COLORS, CLASS_NAMES, FAR_CLASSES, IN_RANGE_CLASSES
+from .parts import Part
 from .primitives import Box, Cone, Cylinder, Frustum, Sphere
 from .render import Render
-from .scene import Instance, Part, World
+from .scene import Instance, World
 
 __all__ = ["World", "Part", "Instance", "Render", "Box", "Frustum", "Cylinder", "Cone", "Sphere",
            "CLASS_NAMES", "CLASS_COLORS", "IN_RANGE_CLASSES", "FAR_CLASSES"]

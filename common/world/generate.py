@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .parts import Layout, Part
 from .primitives import Box, Cone, Cylinder, Sphere
-from .scene import Part, _Layout
 
 PRESETS = ("default", "sparse")
 ROAD_HW = 4.0  # road half width, m
@@ -44,7 +44,7 @@ def _jitter(rng, color, amount=18):
     return tuple(int(np.clip(c + rng.integers(-amount, amount + 1), 0, 255)) for c in color)
 
 
-def generate_parts(seed: int = 0, preset: str = "default") -> tuple[list[Part], _Layout]:
+def generate_parts(seed: int = 0, preset: str = "default") -> tuple[list[Part], Layout]:
     """Parts of the town for ``seed`` and ``preset`` (``"default"`` or ``"sparse"``, the
     latter with about half the street furniture)."""
     if preset not in PRESETS:
@@ -237,7 +237,7 @@ def generate_parts(seed: int = 0, preset: str = "default") -> tuple[list[Part], 
         add("building", [Box((bx, by, hz / 2), (hx, hy, hz / 2), rng.uniform(0, np.pi / 2))],
             _jitter(rng, (150, 160, 175), 20), name=f"building_far_{k}")
 
-    layout = _Layout(half_x=ax, half_y=ay, corner_radius=8.0, road_top=ROAD_TOP,
+    layout = Layout(half_x=ax, half_y=ay, corner_radius=8.0, road_top=ROAD_TOP,
                      extra={"far_instances": ["water_tower_0", "radio_tower_0", "chimney_factory", "building_factory",
                                               "building_far_0", "building_far_1", "building_far_2"]})
     return parts, layout

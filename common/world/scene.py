@@ -7,7 +7,7 @@ avoids such overlaps except where a later, smaller object sits on an earlier one
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -17,19 +17,8 @@ from common.geometry import intrinsics_from_fov
 
 from . import primitives as P
 from .classes import CLASS_COLORS, CLASS_NAMES
+from .parts import Layout, Part
 from .render import Render, render_scene
-
-
-@dataclass(frozen=True)
-class Part:
-    """One primitive of an object: ``shape`` with its ``class_name``, the ``instance`` name it
-    belongs to (parts with the same name form one instance) and an optional RGB colour
-    (default: the class colour)."""
-
-    shape: P.Shape
-    class_name: str
-    instance: str
-    color: tuple[int, int, int] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,24 +34,13 @@ class Instance:
     aabb_max: np.ndarray
 
 
-@dataclass
-class _Layout:
-    """What the generator knows about the town (used by the trajectories)."""
-
-    half_x: float = 40.0
-    half_y: float = 25.0
-    corner_radius: float = 8.0
-    road_top: float = 0.02
-    extra: dict = field(default_factory=dict)
-
-
 class World:
     """A procedural outdoor world made of labelled primitives.
 
     Build with :meth:`generate` (deterministic by seed) or :meth:`from_primitives`."""
 
     def __init__(self, parts: Sequence[Part], classes: Sequence[str] | None = None,
-                 class_colors: Sequence[tuple[int, int, int]] | None = None, layout: _Layout | None = None,
+                 class_colors: Sequence[tuple[int, int, int]] | None = None, layout: Layout | None = None,
                  seed: int | None = None):
         self.classes: list[str] = list(classes if classes is not None else CLASS_NAMES)
         if not self.classes or self.classes[0] != "sky":
@@ -79,7 +57,7 @@ class World:
         if not parts:
             raise ValueError("a world needs at least one part")
         self.parts: list[Part] = list(parts)
-        self.layout = layout or _Layout()
+        self.layout = layout or Layout()
         self.seed = seed
         self._build()
 
