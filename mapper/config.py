@@ -76,7 +76,8 @@ class MapConfig:
     global_encoding: bool = field_(False, "Semantic Poses: one ray per frame along camera +z with the image-level feature")
     infer_direction: bool = field_(False, "Unidirectional: ray directions inferred from the unobserved neighbourhood of the frontier")
     infer_direction_scale: Literal["coarse", "fine"] = field_(
-        "coarse", "neighbourhood offsets for infer_direction: coarse cells (beta) or fine voxels (vox)")
+        "fine", "neighbourhood offsets for infer_direction: fine voxels (vox, the reference's +-1 voxel) or "
+                "coarse cells (beta)")
     # --- search volumes / misc ----------------------------------------------------------
     cone_half_angle_deg: float = field_(-1.0, "search-volume cone half-angle (deg); <0 = max(FoV)/2 of the last frame")
     seed: int = field_(17, "seed of the point/ray subsampling generator")

@@ -27,7 +27,6 @@ import torch
 from common.conventions import is_rigid, sanitize_depth, voxel_center
 from mapper import kernels as KN
 from mapper import keys as K_
-from mapper import search_volume as SV
 from mapper.config import MapConfig
 from mapper.depth_geometry import aggregate_samples, frame_geometry, sample_image
 from mapper.frontiers import FrontierTable
@@ -426,21 +425,6 @@ class RayFrontsMap:
         a = self.cfg.cone_half_angle_deg
         return a if a > 0 else max(self.last_fov_deg) / 2
 
-    def search_volume_counts(self, result: QueryResult, q: int, voxel_centres, half_angle_deg: float | None = None,
-                             weighted: bool = False) -> torch.Tensor:
-        """(V,) how many search shapes of query ``q`` (rays labelled ``q``) hold each voxel
-        centre: cones of ``half_angle_deg`` from the rays, or — spherical semantic frontiers
-        (psi >= 360 without direction inference) — balls around their frontiers with radius
-        = distance to the nearest other ray-bearing frontier (beta if alone)."""
-        sel = result.ray_labels == q
-        rl = self.rays()
-        w = rl.weights[sel] if weighted else None
-        if self.cfg.angle_bin_size >= 360 and not self.cfg.infer_direction:
-            radii_all = SV.frontier_ball_radii(rl.origins, self.cfg.beta)
-            return SV.ball_membership_counts(voxel_centres, rl.origins[sel], radii_all[sel], weights=w)
-        ha = self.cone_half_angle() if half_angle_deg is None else half_angle_deg
-        return SV.cone_membership_counts(voxel_centres, rl.origins[sel], rl.directions[sel], ha, weights=w)
-
     # ------------------------------------------------------------------------------------
     def memory_bytes(self) -> int:
         return int(self.sem.memory_bytes() + self.ray_store.memory_bytes() + self.occupancy.memory_bytes()
@@ -461,5 +445,5 @@ class RayFrontsMap:
     @classmethod
     def load(cls, path, device="cpu", occupancy_backend: str = "auto") -> "RayFrontsMap":
         from mapper.snapshot import load_map
-        return load_map(path, cls, device=device, occupancy_backend=occupancy_backend)
+        return load_map(path, device=device, occupancy_backend=occupancy_backend)
 

@@ -394,11 +394,11 @@ class RayStore:
             setattr(self, f, t)
 
 
-def infer_directions(grid, frontier_keys: torch.Tensor, beta: float, vox: float, scale: str = "coarse") -> torch.Tensor:
+def infer_directions(grid, frontier_keys: torch.Tensor, beta: float, vox: float, scale: str = "fine") -> torch.Tensor:
     """Unidirectional baseline: per frontier, ``normalise(sum_n w_n * offset_n)`` over the 26
-    neighbours at offsets ``offset * h`` (h = beta for "coarse", vox for "fine") around the
-    frontier centre, with ``w = +1`` if the occupancy there is unobserved (0) and -1
-    otherwise. A zero sum gives a zero vector (caller keeps the old direction)."""
+    neighbours at offsets ``offset * h`` (h = vox for "fine", the reference's spacing; beta for
+    "coarse") around the frontier centre, with ``w = +1`` if the occupancy there is unobserved
+    (0) and -1 otherwise. A zero sum gives a zero vector (caller keeps the old direction)."""
     if frontier_keys.numel() == 0:
         return torch.empty((0, 3), dtype=torch.float32)
     h = beta if scale == "coarse" else vox
