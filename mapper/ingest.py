@@ -122,6 +122,37 @@ class Ingest:
         except Exception as e:
             log.warning("liveliness callback: %s", e)
 
+    def on_edge_status(self, sample) -> None:
+        """An edge's own state (``robots/<robot>/edge_status``). A refusal or failure is logged
+        once per (robot, state, reason), shown in stats (``robots.<r>.edge_state`` /
+        ``edge_reason``), and stops the feature-space retries (and their warnings) for that
+        robot until its edge comes back."""
+        s = self.state
+        try:
+            from common.messages import decode_edge_status
+
+            robot = s.keys.robot_from_key(str(sample.key_expr))
+            if robot is None:
+                return
+            try:
+                msg = decode_edge_status(sample.payload.to_bytes())
+            except MessageError as e:
+                s.warn(f"{robot}:edge_status", "bad edge status from %s: %s", robot, e)
+                return
+            if msg["robot"] != robot:
+                return
+            with s.qlock:
+                st = s.robot(robot)
+                changed = (st.edge_state, st.edge_reason) != (msg["state"], msg["reason"])
+                st.edge_state, st.edge_reason = msg["state"], msg["reason"]
+            if changed and msg["state"] in ("refused", "failed"):
+                log.error("robot %s: its edge %s: %s", robot,
+                          "refused to start" if msg["state"] == "refused" else "failed", msg["reason"])
+            elif changed:
+                log.info("robot %s: edge %s", robot, msg["state"])
+        except Exception as e:  # never raise out of a callback
+            log.warning("edge status callback: %s", e)
+
     # ====================================================== feature spaces
     def space_loop(self) -> None:
         """The feature-space thread: fetches the space of every robot that needs it."""
@@ -134,7 +165,8 @@ class Ingest:
             now = time.monotonic()
             with s.qlock:
                 todo = [st.name for st in s.robots.values()
-                        if not st.space_ok and not st.space_error and st.fetch_after <= now]
+                        if not st.space_ok and not st.space_error and st.fetch_after <= now
+                        and st.edge_state not in ("refused", "failed")]
             for robot in todo:
                 if s.stop.is_set():
                     return

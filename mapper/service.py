@@ -124,6 +124,7 @@ class MapperService:
             self._entities = [
                 s.declare_subscriber(k.frames_all, self.ingest.on_frame),
                 s.liveliness().declare_subscriber(k.alive_all, self.ingest.on_alive, history=True),
+                s.declare_subscriber(k.edge_status_all, self.ingest.on_edge_status),
                 s.declare_queryable(k.mapper_query, self.queries.on_query),
                 s.declare_queryable(k.stats, self.queries.on_stats),
                 s.declare_queryable(k.snapshot, self.snapshots.on_snapshot),

@@ -83,12 +83,15 @@ class RobotState:
     last_seq: int = -1
     edge_cpu: tuple | None = None    # (first, last) edge process CPU s (frame meta ``cpu_s``) of mapped frames
     edge_cpu_frames: int = 0         # mapped frames between them
+    edge_state: str = ""             # the edge's own state (robots/<robot>/edge_status): running, refused, ...
+    edge_reason: str = ""            # why, for refused / failed
 
     def as_dict(self) -> dict:
         d = {"received": self.received, "mapped": self.mapped, "dropped": self.dropped,
              "rejected": dict(self.rejected), "queue": len(self.queue), "present": self.present,
              "seen_at": self.seen_at, "gone_at": self.gone_at, "feature_space": self.feature_space,
-             "space_ok": self.space_ok, "space_error": self.space_error, "last_seq": self.last_seq}
+             "space_ok": self.space_ok, "space_error": self.space_error, "last_seq": self.last_seq,
+             "edge_state": self.edge_state, "edge_reason": self.edge_reason}
         if self.edge_cpu is not None and self.edge_cpu_frames > 0:
             # the robot's edge process CPU per frame, over its mapped frames (frame meta cpu_s)
             d["edge_cpu_ms_per_frame"] = (self.edge_cpu[1] - self.edge_cpu[0]) * 1e3 / self.edge_cpu_frames
