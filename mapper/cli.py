@@ -37,6 +37,15 @@ def _options(parser, suppress: bool = False) -> None:
     parser.add_argument("--config", metavar="FILE", default=None, help="YAML config file (MapperConfig)")
     parser.add_argument("--rerun", metavar="FILE", default=None, help="write a rerun recording here (rerun.file)")
     parser.add_argument("--serve-grpc", action="store_true", help="serve the rerun stream over gRPC (rerun.serve_grpc)")
+    parser.add_argument("--serve-web", action="store_true",
+                        help="serve the rerun web viewer connected to the live stream (rerun.serve_web); "
+                             "open the http://... address the mapper prints")
+    parser.add_argument("--rerun-bind", metavar="ADDR", default=None,
+                        help="address the rerun servers listen on (rerun.bind; default 127.0.0.1, this machine "
+                             "only; 0.0.0.0 for a viewer elsewhere)")
+    parser.add_argument("--grpc-port", type=int, default=None, help="rerun gRPC port (rerun.grpc_port, default 9876)")
+    parser.add_argument("--web-port", type=int, default=None,
+                        help="rerun web viewer port (rerun.web_port, default 9090)")
     parser.add_argument("--snapshots", metavar="DIR", default=None, help="snapshot directory (snapshots.dir)")
     parser.add_argument("--device", default=None, help="torch device (device)")
     add_zenoh_arguments(parser, mode_default_help="router")
@@ -57,9 +66,21 @@ def build_config(args):
     if args.device:
         ch["device"] = args.device
     cfg = dataclasses.replace(cfg, **ch)
-    if args.rerun or args.serve_grpc:
-        cfg = dataclasses.replace(cfg, rerun=dataclasses.replace(
-            cfg.rerun, file=args.rerun or cfg.rerun.file, serve_grpc=bool(args.serve_grpc) or cfg.rerun.serve_grpc))
+    rr = {}
+    if args.rerun:
+        rr["file"] = args.rerun
+    if args.serve_grpc:
+        rr["serve_grpc"] = True
+    if args.serve_web:
+        rr["serve_web"] = True
+    if args.rerun_bind:
+        rr["bind"] = args.rerun_bind
+    if args.grpc_port is not None:
+        rr["grpc_port"] = args.grpc_port
+    if args.web_port is not None:
+        rr["web_port"] = args.web_port
+    if rr:
+        cfg = dataclasses.replace(cfg, rerun=dataclasses.replace(cfg.rerun, **rr))
     if args.snapshots:
         cfg = dataclasses.replace(cfg, snapshots=dataclasses.replace(cfg.snapshots, dir=args.snapshots))
     return cfg
@@ -99,6 +120,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"text_model_dir directory not found: {cfg.text_model_dir} "
                           "(see `rayfronts models check --help`)")
     check_listen(cfg)
+    if cfg.rerun.serve_grpc or cfg.rerun.serve_web:  # rerun ports too, before anything loads
+        from common.zenoh_errors import check_listen_free
+
+        ports = [cfg.rerun.grpc_port] + ([cfg.rerun.web_port] if cfg.rerun.serve_web else [])
+        check_listen_free([f"tcp/{cfg.rerun.bind}:{p}" for p in ports])
     from mapper.service import MapperService
 
     stop = threading.Event()

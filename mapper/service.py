@@ -6,7 +6,8 @@ entities, threads, close); each job is its own module over one shared
 
     Zenoh                          job (module)                         thread
     ─────────────────────────────  ───────────────────────────────────  ───────────────
-    frames/*  subscriber           Ingest.on_frame       (ingest)       Zenoh callback
+    frames/*  subscriber           Ingest.on_frame       (ingest)       Zenoh callback (copy only)
+                                   Ingest.decode_loop    (ingest)       mapper-decode
     alive/*   liveliness sub       Ingest.on_alive       (ingest)       Zenoh callback
     robots/<r>/feature_space get   Ingest.space_loop     (ingest)       mapper-space
                                    MapWorker.loop        (map_worker)   mapper-map
@@ -16,6 +17,7 @@ entities, threads, close); each job is its own module over one shared
     mapper/snapshot queryable      SnapshotStore.on_snapshot (snapshot_store)
     mapper/layers/* put + get      LayerPublisher        (outputs.layers)
     (rerun file / gRPC)            RerunOutput           (outputs.rerun)
+    ROS 2 topics (rmw_zenoh/bridge) RosOutput            (outputs.ros)   mapper-ros, Zenoh callbacks
 
 Module map, locks and events: :mod:`mapper.state` and ARCHITECTURE.md. The names that used to
 be defined here (``MapperService``, ``write_snapshot``, ``reject_reason``, ``RobotState``)
@@ -88,6 +90,7 @@ class MapperService:
         self.layers = LayerPublisher(self.state)
         self.worker = MapWorker(self.state, self.ingest.next_frame, self.layers, self.snapshots)
         self.rerun = None                      # RerunOutput once started with rerun.file / rerun.serve_grpc
+        self.ros = None                        # RosOutput once started with ros.enabled
         self._entities: list = []
         self._threads: list[threading.Thread] = []
         self._closed = False
@@ -112,12 +115,10 @@ class MapperService:
                  resolve_query_threads(self.cfg.query.threads))
         if self.cfg.snapshots.dir and self.cfg.snapshots.restore:
             self.snapshots.restore()
-        if self.cfg.rerun.file or self.cfg.rerun.serve_grpc:
+        if self.cfg.rerun.file or self.cfg.rerun.serve_grpc or self.cfg.rerun.serve_web:
             from mapper.outputs.rerun import RerunLogger, RerunOutput
 
-            logger = RerunLogger(self.cfg.rerun.app_id, file=self.cfg.rerun.file or None,
-                                 serve_grpc=self.cfg.rerun.serve_grpc, grpc_port=self.cfg.rerun.grpc_port)
-            self._attach_rerun(RerunOutput(self.state, logger))
+            self._attach_rerun(RerunOutput(self.state, RerunLogger.from_config(self.cfg)))
         self.session = s = open_session(self.cfg.zenoh, stop=self.stop, default_mode="router")
         k = self.keys
         try:
@@ -134,11 +135,19 @@ class MapperService:
         except Exception:
             self.close()
             raise
-        for name, fn in (("mapper-map", self.worker.loop), ("mapper-space", self.ingest.space_loop),
-                         ("mapper-standing", self.queries.standing_loop)):
+        for name, fn in (("mapper-decode", self.ingest.decode_loop), ("mapper-map", self.worker.loop),
+                         ("mapper-space", self.ingest.space_loop), ("mapper-standing", self.queries.standing_loop)):
             t = threading.Thread(target=fn, name=name, daemon=True)
             t.start()
             self._threads.append(t)
+        if self.cfg.ros.enabled:  # the map as ROS 2 topics (RViz2)
+            from mapper.outputs.ros import RosOutput
+
+            try:
+                self.ros = RosOutput(self.state).start()
+            except Exception:
+                self.close()
+                raise
         log.info("mapper up (zid %s, prefix %r)", s.zid(), self.cfg.zenoh.prefix)
         return self
 
@@ -171,6 +180,9 @@ class MapperService:
         self._standing_due.set()
         for t in self._threads:
             t.join(timeout=30.0)
+        if self.ros is not None:
+            self.ros.close()
+            self.ros = None
         for e in reversed(self._entities):
             try:
                 e.undeclare()

@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Literal
 
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
 from mapper.config import MapConfig
+from mapper.outputs.ros import RosSection
 
 
 @dataclass
@@ -36,6 +38,13 @@ class QuerySection:
     search_range_m: float = field_(200.0, "cones of ray hits are cut at this distance when computing the "
                                           "search volume (m)")
     search_rays: int = field_(10, "top rays whose cones make up the search volume")
+    templates: Literal["auto", "none", "single", "imagenet80"] = field_(
+        "auto", "prompt templates of text queries: auto = the paper's 80 ImageNet/NACLIP templates for language "
+                "encoders (naradio), raw text for the label encoder; or none | single | imagenet80")
+    softmax_set: Literal["queries", "negatives"] = field_(
+        "queries", "what a softmax query is normalised against: 'queries' = the other standing queries (the "
+                   "paper; a lone query scores 1 everywhere), 'negatives' = the phrases in softmax_negatives")
+    softmax_negatives: list[str] = field_(["object", "things", "stuff", "texture"], "phrases of softmax_set=negatives")
     search_cell_m: float = field_(2.0, "finest spacing of the sample lattice that measures the union of cones (m)")
     search_samples: int = field_(100_000, "sample points (all cones together) that measure the search volume; caps "
                                           "its cost (exact for one cone, disjoint or identical cones)")
@@ -58,8 +67,15 @@ class SnapshotSection:
 @dataclass
 class RerunSection:
     file: str = field_("", "write a rerun recording (.rrd) here; empty = off")
-    serve_grpc: bool = field_(False, "serve the recording over gRPC for a remote viewer")
+    serve_grpc: bool = field_(False, "serve the live recording over gRPC for a viewer (rerun --connect URL)")
+    serve_web: bool = field_(False, "also serve the rerun web viewer, connected to the live stream "
+                                    "(implies the gRPC server)")
     grpc_port: int = field_(9876, "gRPC port of the rerun server")
+    web_port: int = field_(9090, "HTTP port of the rerun web viewer (serve_web)")
+    bind: str = field_("127.0.0.1", "address the rerun gRPC and web servers listen on: 127.0.0.1 = this "
+                                    "machine only; 0.0.0.0 = every interface (a viewer on another machine)")
+    server_memory_limit: str = field_("512MiB", "the rerun server keeps at most this much of the stream for "
+                                                "late viewers (oldest data dropped first)")
     every_n_frames: int = field_(1, "log camera/rgb/depth every n-th frame per robot")
     app_id: str = field_("rayfronts", "rerun application id")
 
@@ -83,6 +99,7 @@ class MapperConfig:
     query: QuerySection = section(QuerySection, "queries and standing queries")
     snapshots: SnapshotSection = section(SnapshotSection, "snapshots (atomic) and restore on start")
     rerun: RerunSection = section(RerunSection, "rerun logging")
+    ros: RosSection = section(RosSection, "the map and standing queries as ROS 2 topics over Zenoh (RViz2)")
 
 
 def _cpus() -> int:

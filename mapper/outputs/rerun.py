@@ -1,5 +1,6 @@
-"""Rerun output of the mapper (rerun-sdk 0.41 API: ``RecordingStream``, ``set_time``,
-``save`` / ``serve_grpc``; never spawns a viewer). Module map: :mod:`mapper.state`.
+"""Rerun output of the mapper (rerun-sdk 0.41 API: ``RecordingStream``, ``set_time``, sinks;
+never spawns a viewer). Module map: :mod:`mapper.state`. The operator's view (blueprint,
+colour scale, labels, cones, the loopback-bound server) is :mod:`mapper.outputs.rerun_view`.
 
 :class:`RerunLogger` is the recording (moved here from ``mapper/rerun_log.py``);
 :class:`RerunOutput` is what the mapper's jobs call: every ``rerun.every_n_frames``-th mapped
@@ -15,9 +16,12 @@ Entity layout (world frame, z up, metres)::
     world/map/voxels                   Points3D coloured by RGB
     world/map/frontiers                Points3D
     world/map/rays                     Arrows3D
-    world/queries/<label>/heat         Points3D of voxels coloured by query score
-    world/queries/<label>/rays         Arrows3D of the best rays
-    world/queries/<label>/search_volume Points3D samples of the cones
+    world/queries/<q>/heat             Points3D: every voxel coloured by the query's score
+    world/queries/<q>/clusters         Boxes3D of the voxel clusters (best ones labelled, apart)
+    world/queries/<q>/rays             Arrows3D of the best rays (the best one labelled)
+    world/queries/<q>/search_volume    LineStrips3D outlining the best rays' cones
+    scale/<q>/legend                   TextDocument: query, score range, counts, search volume
+    scale/<q>/colour_scale             Image of the heat colour scale with its range
 
 Timeline ``frame`` = frames mapped so far.
 """
@@ -25,44 +29,68 @@ from __future__ import annotations
 
 import collections
 import logging
-import re
 
 import numpy as np
 
 log = logging.getLogger("rayfronts.mapper.rerun")
 
 
-def _heat(s: np.ndarray) -> np.ndarray:
-    """Scores → RGB (blue → red), min-max normalised."""
-    s = np.asarray(s, np.float32)
-    if s.size == 0:
-        return np.zeros((0, 3), np.uint8)
-    lo, hi = float(s.min()), float(s.max())
-    t = (s - lo) / (hi - lo) if hi > lo else np.ones_like(s)
-    return np.stack([255 * t, 64 * (1 - np.abs(2 * t - 1)), 255 * (1 - t)], -1).astype(np.uint8)
-
-
-def _safe(label: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_-]+", "_", label)[:48] or "query"
-
-
 class RerunLogger:
-    """One rerun recording for the mapper: to a file (``file``) and/or a gRPC server."""
+    """One rerun recording for the mapper: to a file (``file``) and/or a live stream (a
+    loopback-bound rerun server child, :class:`mapper.outputs.rerun_view.RerunServer`), with
+    the operator blueprint (:func:`mapper.outputs.rerun_view.build_blueprint`)."""
 
     def __init__(self, app_id: str = "rayfronts", file: str | None = None, serve_grpc: bool = False,
-                 grpc_port: int = 9876, recording_id: str | None = None):
+                 grpc_port: int = 9876, recording_id: str | None = None, serve_web: bool = False,
+                 web_port: int = 9090, bind: str = "127.0.0.1", search_rays: int = 10,
+                 search_range_m: float = 200.0, memory_limit: str = "512MiB"):
         import rerun as rr
+
+        from mapper.outputs.rerun_view import RerunServer, build_blueprint
 
         self.rr = rr
         self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
         self.url = None
+        self.web_url = None
+        self.server = None
+        self.search_rays = int(search_rays)
+        self.search_range_m = float(search_range_m)
+        self._queries: list[str] = []     # entity names of the queries seen, oldest first
+        self._selected: str | None = None
+        self._robots: list[str] = []
+        self._eye = None
+        bp = build_blueprint(None, [], [])
+        sinks = []
         if file:
-            self.rec.save(file)
-        if serve_grpc:
-            self.url = self.rec.serve_grpc(grpc_port=grpc_port)
-            log.info("rerun: serving %s (rerun --connect %s)", self.url, self.url)
+            sinks.append(rr.FileSink(str(file)))
+        if serve_grpc or serve_web:
+            self.server = RerunServer(bind=bind, grpc_port=grpc_port, serve_web=serve_web, web_port=web_port,
+                                      memory_limit=memory_limit)
+            self.url, self.web_url = self.server.url, self.server.web_url
+            sinks.append(rr.GrpcSink(self.url))
+            if self.web_url:
+                log.info("rerun: web viewer at %s", self.web_url)
+            log.info("rerun: streaming to %s (native viewer: rerun --connect %s)", self.url, self.url)
+        if sinks:
+            self.rec.set_sinks(*sinks, default_blueprint=bp)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._traj: dict[str, list] = {}
+
+    @classmethod
+    def from_config(cls, cfg) -> "RerunLogger":
+        """From a :class:`mapper.service_config.MapperConfig` (``rerun`` and ``query`` sections)."""
+        r = cfg.rerun
+        return cls(r.app_id, file=r.file or None, serve_grpc=r.serve_grpc, grpc_port=r.grpc_port,
+                   serve_web=getattr(r, "serve_web", False), web_port=getattr(r, "web_port", 9090),
+                   bind=getattr(r, "bind", "127.0.0.1"), search_rays=cfg.query.search_rays,
+                   search_range_m=cfg.query.search_range_m,
+                   memory_limit=getattr(r, "server_memory_limit", "512MiB"))
+
+    def _send_blueprint(self) -> None:
+        from mapper.outputs.rerun_view import build_blueprint
+
+        self.rec.send_blueprint(build_blueprint(self._selected, self._queries, self._robots, self._eye),
+                                make_active=True, make_default=True)
 
     def _t(self, frame_no: int) -> None:
         self.rec.set_time("frame", sequence=int(frame_no))
@@ -77,7 +105,8 @@ class RerunLogger:
         self.rec.log(f"{base}/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         h, w = frame.depth.shape[:2]
         self.rec.log(f"{base}/camera/image", rr.Pinhole(image_from_camera=np.asarray(frame.intrinsics),
-                                                        width=w, height=h, camera_xyz=rr.ViewCoordinates.RDF))
+                                                        width=w, height=h, camera_xyz=rr.ViewCoordinates.RDF,
+                                                        image_plane_distance=1.0))
         rgb = np.asarray(frame.rgb)
         if rgb.shape[:2] != (h, w):
             import cv2
@@ -89,42 +118,90 @@ class RerunLogger:
         self.rec.log(f"{base}/camera/image/depth", rr.DepthImage(dmm, meter=1000.0))
         tr = self._traj.setdefault(frame.robot, [])
         tr.append(pose[:3, 3].astype(np.float32))
-        self.rec.log(f"{base}/trajectory", rr.LineStrips3D([np.asarray(tr)]))
+        self.rec.log(f"{base}/trajectory", rr.LineStrips3D([np.asarray(tr)], colors=[255, 255, 255]))
+        if frame.robot not in self._robots:
+            self._robots.append(frame.robot)
+            self._send_blueprint()
 
     def log_map(self, frame_no: int, vox_xyz, vox_rgb, frontiers, ray_o, ray_d, vox_size: float = 0.3) -> None:
         rr = self.rr
         self._t(frame_no)
         self.rec.log("world/map/voxels", rr.Points3D(vox_xyz, colors=vox_rgb, radii=vox_size / 2))
-        self.rec.log("world/map/frontiers", rr.Points3D(frontiers, colors=[255, 200, 0], radii=vox_size / 2))
+        self.rec.log("world/map/frontiers", rr.Points3D(frontiers, colors=[0, 220, 160], radii=vox_size / 2))
         self.rec.log("world/map/rays", rr.Arrows3D(origins=ray_o, vectors=np.asarray(ray_d) * 2.0,
                                                    colors=[0, 200, 255]))
+        if self._eye is None and len(vox_xyz):
+            from mapper.outputs.rerun_view import eye_for
+
+            self._eye = eye_for(vox_xyz)
+            self._send_blueprint()
 
     def log_query(self, res, m, fs, req, frame_no: int) -> None:
-        """Voxels coloured by query heat, the best rays and search-volume samples."""
+        """The query's own entity tree: voxel heat (with its colour scale and range), labelled
+        clusters, the best rays and the outlines of the search-volume cones; a new query text
+        becomes the selected one."""
+        from mapper.outputs.rerun_view import colour_scale_image, cone_outlines, heat_colors, query_entity, thin_labels
         from mapper.query_answer import embed_request, scores_for
         from mapper.service_map import voxel_arrays
 
         rr = self.rr
         self._t(frame_no)
-        base = f"world/queries/{_safe(res.query)}"
+        name = query_entity(res.query)
+        base = f"world/queries/{name}"
+        vox = float(m.cfg.vox_size)
         xyz, feats, _ = voxel_arrays(m)
+        lo = hi = float("nan")
         if len(xyz):
             q = embed_request(fs, req)
             s = scores_for(fs, feats, q, False, None)
-            self.rec.log(f"{base}/heat", rr.Points3D(xyz, colors=_heat(s), radii=float(m.cfg.vox_size) / 2))
-        if len(res.ray_origin):
-            self.rec.log(f"{base}/rays", rr.Arrows3D(origins=res.ray_origin, vectors=res.ray_direction * 20.0,
-                                                     colors=_heat(res.ray_score),
-                                                     labels=[f"{x:.3f}" for x in res.ray_score]))
-            # search volume: points sampled along the best ray cones
-            pts = []
-            for o, d in zip(res.ray_origin[:5], res.ray_direction[:5]):
-                t = np.linspace(2.0, 100.0, 50, dtype=np.float32)
-                pts.append(o + t[:, None] * d)
-            self.rec.log(f"{base}/search_volume", rr.Points3D(np.concatenate(pts), colors=[255, 0, 255], radii=0.5))
+            s = s.detach().cpu().numpy() if hasattr(s, "detach") else np.asarray(s)
+            cols, lo, hi = heat_colors(s)
+            self.rec.log(f"{base}/heat", rr.Points3D(xyz, colors=cols, radii=0.55 * vox))
+            self.rec.log(f"scale/{name}/colour_scale", rr.Image(colour_scale_image(lo, hi)))
+            if self._eye is None:
+                from mapper.outputs.rerun_view import eye_for
+
+                self._eye = eye_for(xyz)
         if len(res.cluster_xyz):
-            self.rec.log(f"{base}/clusters", rr.Boxes3D(centers=res.cluster_xyz, half_sizes=res.cluster_extent / 2,
-                                                        labels=[f"{res.query} {x:.3f}" for x in res.cluster_score]))
+            keep = set(thin_labels(res.cluster_xyz, res.cluster_score, min_sep=max(3.0, 6 * vox)))
+            labels = [f"{res.query} #{i + 1} {sc:.3f}" if i in keep else ""
+                      for i, sc in enumerate(res.cluster_score)]
+            self.rec.log(f"{base}/clusters", rr.Boxes3D(centers=res.cluster_xyz,
+                                                        half_sizes=np.maximum(np.asarray(res.cluster_extent) / 2,
+                                                                              vox / 2),
+                                                        colors=[255, 255, 255], labels=labels,
+                                                        show_labels=True))
+        else:
+            self.rec.log(f"{base}/clusters", rr.Clear(recursive=False))
+        n = min(self.search_rays, len(res.ray_origin))
+        if len(res.ray_origin):
+            cols, _, _ = heat_colors(res.ray_score)
+            labels = [f"best ray {res.ray_score[0]:.3f}"] + [""] * (len(res.ray_origin) - 1)
+            self.rec.log(f"{base}/rays", rr.Arrows3D(origins=res.ray_origin,
+                                                     vectors=np.asarray(res.ray_direction) * 20.0,
+                                                     colors=cols, labels=labels, show_labels=True))
+            strips = cone_outlines(res.ray_origin[:n], res.ray_direction[:n], float(m.cone_half_angle()),
+                                   self.search_range_m)
+            self.rec.log(f"{base}/search_volume", rr.LineStrips3D(strips, colors=[255, 120, 255, 110],
+                                                                  radii=rr.Radius.ui_points(1.0)))
+        else:
+            self.rec.log(f"{base}/rays", rr.Clear(recursive=False))
+            self.rec.log(f"{base}/search_volume", rr.Clear(recursive=False))
+        rng = f"{lo:.3f} (blue) to {hi:.3f} (yellow)" if np.isfinite(lo) else "no voxels yet"
+        self.rec.log(f"scale/{name}/legend", rr.TextDocument(
+            f"### {res.query}\n\n"
+            f"- heat: similarity of every voxel, {rng}\n"
+            f"- clusters: {len(res.cluster_xyz)} (white boxes; the best ones, apart, labelled)\n"
+            f"- rays beyond range: {len(res.ray_origin)}; search volume of the best {n} cones: "
+            f"{res.search_volume_m3:,.0f} m³ (cut at {self.search_range_m:g} m)\n"
+            f"- {res.frames_mapped} frames mapped\n\n"
+            "Other queries: `world/queries/<query>` in the blueprint panel (eye icon).",
+            media_type=rr.MediaType.MARKDOWN))
+        if name not in self._queries:
+            self._queries.append(name)
+        if self._selected != name:
+            self._selected = name
+            self._send_blueprint()
 
     def close(self) -> None:
         try:
@@ -135,6 +212,9 @@ class RerunLogger:
             self.rec.disconnect()
         except Exception as e:
             log.debug("rerun disconnect: %s", e)
+        if self.server is not None:
+            self.server.close()
+            self.server = None
 
 
 class RerunOutput:

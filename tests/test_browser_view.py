@@ -1,0 +1,270 @@
+"""The mapper's rerun web viewer (``rayfronts mapper --serve-web``) in headless Debian chromium.
+
+Real processes on loopback: a router, the mapper with ``--serve-web``, an edge playing the
+synthetic world, then one query. The page the mapper serves (rerun's own web viewer, served
+locally: no internet) is loaded in headless chromium driven over the DevTools protocol (a
+stdlib WebSocket client below, no extra package). From the screenshot the test checks that
+the 3D view draws the query's heatmap (pixels of the heat colour scale, several parts of the
+scale) and the map (frontier / ray colours of the map layers), and that the camera view beside
+it shows the robot's image. The screenshot is kept (path printed) as a test artefact under
+``$RAYFRONTS_ARTEFACTS`` (default ``out/test-artefacts``).
+
+Chromium missing: the test fails under CI (``CI`` set; set-up installs it with the test extra)
+and is skipped, saying so, elsewhere.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class WS:
+    def __init__(self, url, timeout=30):
+        m = re.match(r"ws://([^:/]+):(\d+)(/.*)", url)
+        host, port, path = m.group(1), int(m.group(2)), m.group(3)
+        self.s = socket.create_connection((host, port), timeout=timeout)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self.s.sendall((f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
+        buf = b""
+        while b"\r\n\r\n" not in buf:
+            buf += self.s.recv(4096)
+        head, self.rest = buf.split(b"\r\n\r\n", 1)
+        assert b" 101 " in head.split(b"\r\n")[0], head
+
+    def _recv(self, n):
+        while len(self.rest) < n:
+            chunk = self.s.recv(1 << 20)
+            if not chunk:
+                raise ConnectionError("websocket closed")
+            self.rest += chunk
+        out, self.rest = self.rest[:n], self.rest[n:]
+        return out
+
+    def send(self, text):
+        data = text.encode()
+        hdr = bytes([0x81])
+        n = len(data)
+        if n < 126:
+            hdr += bytes([0x80 | n])
+        elif n < 65536:
+            hdr += bytes([0x80 | 126]) + struct.pack(">H", n)
+        else:
+            hdr += bytes([0x80 | 127]) + struct.pack(">Q", n)
+        mask = os.urandom(4)
+        self.s.sendall(hdr + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data)))
+
+    def recv(self):
+        msg = b""
+        while True:
+            b0, b1 = self._recv(2)
+            n = b1 & 0x7F
+            if n == 126:
+                n = struct.unpack(">H", self._recv(2))[0]
+            elif n == 127:
+                n = struct.unpack(">Q", self._recv(8))[0]
+            payload = self._recv(n)
+            op = b0 & 0x0F
+            if op == 0x8:
+                raise ConnectionError("websocket closed by the browser")
+            if op in (0x9, 0xA):
+                continue
+            msg += payload
+            if b0 & 0x80:
+                return msg.decode()
+
+
+class Chromium:
+    FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+             "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+    def __init__(self, exe, width=1400, height=900):
+        self.ud = tempfile.mkdtemp(prefix="rf-chromium-")
+        self.p = subprocess.Popen([exe, *self.FLAGS, f"--user-data-dir={self.ud}", "--remote-debugging-port=0",
+                                   f"--window-size={width},{height}", "about:blank"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        port = None
+        end = time.monotonic() + 60
+        while time.monotonic() < end:
+            line = self.p.stderr.readline()
+            m = re.search(r"DevTools listening on ws://127\.0\.0\.1:(\d+)/", line or "")
+            if m:
+                port = int(m.group(1))
+                break
+            if not line and self.p.poll() is not None:
+                raise RuntimeError("chromium exited at start")
+        assert port, "chromium did not print its DevTools address"
+        threading.Thread(target=lambda: [None for _ in self.p.stderr], daemon=True).start()
+        pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
+        page = next(t for t in pages if t.get("type") == "page")
+        self.ws = WS(page["webSocketDebuggerUrl"])
+        self._id = 0
+        self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
+
+    def call(self, method, **params):
+        self._id += 1
+        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
+        while True:
+            m = json.loads(self.ws.recv())
+            if m.get("id") == self._id:
+                if "error" in m:
+                    raise RuntimeError(f"{method}: {m['error']}")
+                return m.get("result", {})
+
+    def screenshot(self) -> bytes:
+        return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+
+    def close(self):
+        try:
+            self.p.terminate()
+            self.p.wait(10)
+        except Exception:
+            self.p.kill()
+
+
+# ----------------------------------------------------------------------------- the test
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _chromium_exe() -> str:
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe:
+        return exe
+    if os.environ.get("CI"):
+        pytest.fail("chromium is not installed: deploy/setup_dev.sh installs Debian's chromium with the test extra")
+    pytest.skip("chromium is not installed here (apt-get install chromium); under CI this test fails instead")
+
+
+def _wait_log(p, log: Path, pattern: str, timeout: float) -> re.Match:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        m = re.search(pattern, log.read_text(errors="replace")) if log.exists() else None
+        if m:
+            return m
+        if p.poll() is not None:
+            raise AssertionError(f"process exited ({p.returncode}):\n{log.read_text(errors='replace')[-3000:]}")
+        time.sleep(0.2)
+    raise AssertionError(f"{pattern!r} not in {log} after {timeout} s:\n{log.read_text(errors='replace')[-3000:]}")
+
+
+def _near(img: np.ndarray, colours: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mask of pixels within ``tol`` of one of ``colours``, index of the nearest colour)."""
+    px = img.reshape(-1, 3).astype(np.float32)
+    d = ((px[:, None, :] - colours[None].astype(np.float32)) ** 2).sum(-1)
+    idx = d.argmin(1)
+    return (d[np.arange(len(px)), idx] <= tol * tol).reshape(img.shape[:2]), idx.reshape(img.shape[:2])
+
+
+def analyse(png: bytes) -> dict:
+    """What the screenshot shows (layout: blueprint panel left, 3D view, right column)."""
+    import cv2
+
+    from mapper.outputs.rerun_view import HEAT_LUT
+
+    img = cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    h, w = img.shape[:2]
+    view = img[int(0.08 * h):int(0.92 * h), int(0.2 * w):int(0.72 * w)]
+    lut = HEAT_LUT[::4]
+    mask, idx = _near(view, lut, tol=30.0)
+    quarters = np.bincount((idx[mask] * 4 // len(lut)).ravel(), minlength=4)
+    map_cols = np.array([[0, 220, 160], [0, 200, 255]], np.uint8)  # frontiers, rays (mapper/outputs/rerun.py)
+    mmask, _ = _near(view, map_cols, tol=40.0)
+    cam = img[int(0.55 * h):int(0.95 * h), int(0.8 * w):]
+    return {"heat_px": int(mask.sum()), "heat_quarters": [int(q) for q in quarters], "map_px": int(mmask.sum()),
+            "view_px": int(view.shape[0] * view.shape[1]), "camera_std": float(cam.reshape(-1, 3).std(0).mean())}
+
+
+def good(a: dict) -> bool:
+    return (a["heat_px"] >= 0.01 * a["view_px"] and sum(q >= 30 for q in a["heat_quarters"]) >= 2
+            and a["map_px"] >= 20 and a["camera_std"] > 8.0)
+
+
+@pytest.mark.timeout(420)
+def test_web_viewer_draws_map_and_heatmap(tmp_path):
+    exe = _chromium_exe()
+    from query_client.client import Client
+
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    grpc, web = _free_port(), _free_port()
+    env = dict(os.environ, RUST_LOG="error", PYTHONUNBUFFERED="1")
+    py = [sys.executable, "-m", "apps.cli"]
+    procs = []
+
+    def start(name, args):
+        log = tmp_path / f"{name}.log"
+        p = subprocess.Popen(py + args, cwd=ROOT, env=env, stdout=open(log, "wb"), stderr=subprocess.STDOUT)
+        procs.append((name, p))
+        return p, log
+
+    browser = None
+    artefacts = Path(os.environ.get("RAYFRONTS_ARTEFACTS", ROOT / "out" / "test-artefacts"))
+    artefacts.mkdir(parents=True, exist_ok=True)
+    shot = artefacts / "browser_view.png"
+    try:
+        r, rlog = start("router", ["router", "--listen", ep])
+        _wait_log(r, rlog, "listening on", 60)
+        m, mlog = start("mapper", ["mapper", "--mode", "client", "--connect", ep, "--serve-web", "--grpc-port",
+                                   str(grpc), "--web-port", str(web), "map.vox_size=0.5", "map.depth_limit=20",
+                                   "layers.rate_hz=1", "snapshots.on_exit=false"])
+        url = _wait_log(m, mlog, r"web viewer at (http://127\.0\.0\.1:\d+/\?url=\S+)", 120).group(1)
+        _wait_log(m, mlog, "mapper up", 120)
+        e, elog = start("edge", ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.kind=synthetic",
+                                 "source.n_frames=30", "source.resolution=120x160", "source.depth_limit=20",
+                                 "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4"])
+        assert e.wait(240) == 0, elog.read_text()[-3000:]
+        with Client(connect=ep, timeout=30.0) as c:
+            end = time.monotonic() + 120
+            while time.monotonic() < end:
+                st = c.stats()
+                if st["frames"]["mapped"] >= 25 and st.get("flushed_version") == st.get("map_version"):
+                    break
+                time.sleep(0.5)
+            res = c.query("vehicle", top_k=5)
+        assert len(res.cluster_xyz) > 0
+        time.sleep(2.5)  # a layer publication logs the map to the stream
+        browser = Chromium(exe)
+        browser.call("Page.navigate", url=url)
+        a, png = None, b""
+        end = time.monotonic() + 150
+        while time.monotonic() < end:
+            time.sleep(4)
+            png = browser.screenshot()
+            a = analyse(png)
+            if good(a):
+                break
+        shot.write_bytes(png)
+        print(f"\nbrowser screenshot: {shot}  {a}")
+        assert a is not None and good(a), f"screenshot {shot} lacks the map or the heatmap: {a}"
+    finally:
+        if browser is not None:
+            browser.close()
+        for name, p in reversed(procs):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(60)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
