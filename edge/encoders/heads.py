@@ -1,25 +1,7 @@
-"""RADIO adaptor heads for language alignment.
+"""Moved to :mod:`common.encoders.heads` (the mapper needs it for image queries); this name is
+the same module object, kept for the edge and existing imports."""
+import sys
 
-The head module itself (:class:`~common.text.heads.MLP2`) lives in ``common`` because the
-mapper applies it at query time (features are averaged in RADIO/PCA space first, then
-projected: brief §4.3). This module picks a teacher's summary head out of a checkpoint.
-"""
-from __future__ import annotations
+from common.encoders import heads as _impl
 
-import torch
-
-from common.text.heads import MLP2, MLP2Config  # noqa: F401  (re-export)
-from edge.encoders.radio import RadioCheckpoint
-
-
-def summary_head(ckpt: RadioCheckpoint, adaptor: str = "siglip", device="cpu",
-                 dtype: torch.dtype = torch.float32) -> MLP2:
-    """The ``_heads.<adaptor>`` MLP2 of ``ckpt`` (looked up by teacher name, then index)."""
-    sd = ckpt.head_for(adaptor)
-    head = MLP2.from_state_dict(sd, device="cpu")
-    return head.to(device=device, dtype=dtype).eval()
-
-
-def summary_slot(ckpt: RadioCheckpoint, adaptor: str = "siglip", default: int = 1) -> int:
-    """Class-token index of ``adaptor`` (its ``token_slot`` / teacher index), else ``default``."""
-    return int(ckpt.config.teacher_slots.get(adaptor, default))
+sys.modules[__name__] = _impl
