@@ -3,10 +3,21 @@ map's language space, score voxels and rays, take the top k, cluster the best vo
 (26-connected), measure the search volume of the best rays' cones (module map:
 :mod:`mapper.state`; ARCHITECTURE.md).
 
-Where to change a query's scoring: :func:`scores_for` (cosine / softmax against
-:data:`SOFTMAX_NEGATIVES` at :data:`SOFTMAX_TEMPERATURE`), :func:`answer_snapshot` (top k,
-clusters, search volume, timings), :class:`QuerySnapshot` (what a query copies from the map).
-World frame, metres, z up.
+Where to change a query's scoring: :func:`scores_for` (cosine / softmax at
+:data:`SOFTMAX_TEMPERATURE` against the softmax set of :func:`softmax_set`),
+:func:`answer_snapshot` (top k, clusters, search volume, timings), :class:`QuerySnapshot`
+(what a query copies from the map). World frame, metres, z up.
+
+Query defaults are the paper's (``query.*`` config keys):
+
+* text: the mean of the 80 ImageNet/NACLIP prompt templates for language encoders
+  (feature spaces with a language head or the SigLIP text model); raw text for the label
+  encoder, whose features are raw name embeddings (``query.templates``);
+* softmax set (``softmax=true`` requests): the query and the mapper's other standing queries,
+  as the reference softmaxes over its whole query list (``query.softmax_set=queries``). With
+  no other query the softmax of one is identically 1 — the reference's pitfall, kept on
+  purpose; ``query.softmax_set=negatives`` compares against the phrases in
+  ``query.softmax_negatives`` instead (our earlier behaviour, not the paper's).
 """
 from __future__ import annotations
 
@@ -21,7 +32,7 @@ from scipy.sparse.csgraph import connected_components
 from common.conventions import voxel_center, voxel_index
 from common.messages import MessageError, QueryRequest, QueryResult
 
-#: generic phrases a softmax query is normalised against (relevancy-style)
+#: generic phrases of ``query.softmax_set=negatives`` (relevancy-style; not the paper's default)
 SOFTMAX_NEGATIVES = ("object", "things", "stuff", "texture")
 SOFTMAX_TEMPERATURE = 100.0
 
@@ -45,8 +56,33 @@ def text_encoder(name: str, device="cpu", model_dir: str = ""):
     return _TEXT_ENCODERS[key]
 
 
-def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "") -> torch.Tensor:
-    """(1, lang_dim) query vector in the feature space's language space."""
+def query_templates(fs, setting: str = "auto") -> str:
+    """Prompt templates of text queries in space ``fs``: ``setting``, or for "auto" the 80
+    ImageNet/NACLIP templates ("imagenet80") for language encoders, raw text ("none") else."""
+    if setting != "auto":
+        return setting
+    return "imagenet80" if (fs.head_config is not None or fs.text_model == "siglip") else "none"
+
+
+_TEXT_CACHE: dict = {}
+_TEXT_CACHE_MAX = 256
+
+
+def embed_text(fs, text: str, device="cpu", model_dir: str = "", templates: str = "auto") -> torch.Tensor:
+    """(1, lang_dim) embedding of one query text (cached: 80 templates cost 80 text passes)."""
+    tl = query_templates(fs, templates)
+    key = (fs.id, fs.text_model, text, tl, str(device), model_dir)
+    if key not in _TEXT_CACHE:
+        if len(_TEXT_CACHE) >= _TEXT_CACHE_MAX:
+            _TEXT_CACHE.pop(next(iter(_TEXT_CACHE)))
+        _TEXT_CACHE[key] = fs.embed_queries([text], text_encoder(fs.text_model, device, model_dir),
+                                            templates=tl).reshape(1, -1)
+    return _TEXT_CACHE[key]
+
+
+def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "", templates: str = "auto") -> torch.Tensor:
+    """(1, lang_dim) query vector in the feature space's language space (text: see
+    :func:`query_templates`)."""
     if req.embedding is not None:
         e = torch.as_tensor(np.asarray(req.embedding, np.float32))
         if e.shape[-1] != fs.lang_dim:
@@ -55,7 +91,7 @@ def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "") -> t
     if req.image is not None:
         raise MessageError(f"image queries need an image encoder on the mapper; feature space {fs.id} "
                            f"({fs.text_model}) has none — send text or an embedding")
-    return fs.embed_queries([req.text], text_encoder(fs.text_model, device, model_dir)).reshape(1, -1)
+    return embed_text(fs, req.text, device, model_dir, templates)
 
 
 def scores_for(fs, feats: torch.Tensor, q: torch.Tensor, softmax: bool, negatives: torch.Tensor | None,
@@ -310,12 +346,32 @@ class QuerySnapshot:
 _NEGATIVES: dict = {}
 
 
-def softmax_negatives(fs, device="cpu", model_dir: str = "") -> torch.Tensor:
-    """(4, lang_dim) embeddings of :data:`SOFTMAX_NEGATIVES` (cached per space and device)."""
-    key = (fs.id, fs.text_model, str(device), model_dir)
+def softmax_negatives(fs, device="cpu", model_dir: str = "", phrases=SOFTMAX_NEGATIVES,
+                      templates: str = "auto") -> torch.Tensor:
+    """(len(phrases), lang_dim) embeddings of the negative phrases (cached per space and device)."""
+    tl = query_templates(fs, templates)
+    key = (fs.id, fs.text_model, str(device), model_dir, tuple(phrases), tl)
     if key not in _NEGATIVES:
-        _NEGATIVES[key] = fs.embed_queries(list(SOFTMAX_NEGATIVES), text_encoder(fs.text_model, device, model_dir))
+        _NEGATIVES[key] = fs.embed_queries(list(phrases), text_encoder(fs.text_model, device, model_dir),
+                                           templates=tl)
     return _NEGATIVES[key]
+
+
+def softmax_set(fs, req: QueryRequest, qcfg, standing=(), device="cpu", model_dir: str = "") -> torch.Tensor | None:
+    """Embeddings the query is softmaxed against (module docstring), or None (a set of one):
+    ``qcfg.softmax_set`` "queries" = the other standing queries, "negatives" = the phrases
+    ``qcfg.softmax_negatives``."""
+    mode = getattr(qcfg, "softmax_set", "queries")
+    tl = getattr(qcfg, "templates", "auto")
+    if mode == "negatives":
+        phrases = tuple(getattr(qcfg, "softmax_negatives", SOFTMAX_NEGATIVES))
+        return softmax_negatives(fs, device, model_dir, phrases, tl) if phrases else None
+    if mode != "queries":
+        raise MessageError(f"query.softmax_set must be 'queries' or 'negatives', got {mode!r}")
+    others = [r for r in standing if r.id != req.id and not r.cancel]
+    if not others:
+        return None
+    return torch.cat([embed_request(fs, r, device, model_dir, tl) for r in others])
 
 
 def answer_query(m, fs, req: QueryRequest, qcfg, device="cpu", model_dir: str = "") -> QueryResult:
@@ -325,7 +381,7 @@ def answer_query(m, fs, req: QueryRequest, qcfg, device="cpu", model_dir: str = 
 
 
 def answer_snapshot(snap: QuerySnapshot, fs, req: QueryRequest, qcfg, device="cpu",
-                    model_dir: str = "") -> QueryResult:
+                    model_dir: str = "", standing=()) -> QueryResult:
     """Run ``req`` on a map snapshot: voxel clusters, top voxels, top rays, search volume.
 
     * top voxels/rays: the ``top_k`` best scores, ties by lower row (:func:`top_stable`);
@@ -335,12 +391,13 @@ def answer_snapshot(snap: QuerySnapshot, fs, req: QueryRequest, qcfg, device="cp
       the best maximum score;
     * search volume: union of the cones of the ``search_rays`` best rays
       (:func:`cone_union_volume`, sampled, cost capped by ``search_samples``).
+    ``standing``: the mapper's standing queries (the paper's softmax set, :func:`softmax_set`).
     Timings (ms): ``encode``, ``prepare`` (per snapshot; 0 when cached), ``similarity``,
     ``topk``, ``clusters``, ``search_volume``, ``postprocess`` (the last three together)."""
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    q = embed_request(fs, req, device, model_dir)
-    neg = softmax_negatives(fs, device, model_dir) if req.softmax else None
+    q = embed_request(fs, req, device, model_dir, getattr(qcfg, "templates", "auto"))
+    neg = softmax_set(fs, req, qcfg, standing, device, model_dir) if req.softmax else None
     timings["encode"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     vprep, rprep = snap.prepared(fs, device)

@@ -89,7 +89,7 @@ class QueryServer:
             timings: dict = {}
             snap = self.snapshot(timings)
             res = answer_snapshot(snap, s.space, req, s.cfg.query, device=s.cfg.device,
-                                  model_dir=s.cfg.text_model_dir)
+                                  model_dir=s.cfg.text_model_dir, standing=list(s.standing.values()))
             res.frames_mapped = snap.frames_mapped
         res.timings.update(timings)
         res.stamp = time.time()

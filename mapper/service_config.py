@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from typing import Literal
+from typing import Literal
 
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
@@ -38,6 +39,13 @@ class QuerySection:
     search_range_m: float = field_(200.0, "cones of ray hits are cut at this distance when computing the "
                                           "search volume (m)")
     search_rays: int = field_(10, "top rays whose cones make up the search volume")
+    templates: Literal["auto", "none", "single", "imagenet80"] = field_(
+        "auto", "prompt templates of text queries: auto = the paper's 80 ImageNet/NACLIP templates for language "
+                "encoders (naradio), raw text for the label encoder; or none | single | imagenet80")
+    softmax_set: Literal["queries", "negatives"] = field_(
+        "queries", "what a softmax query is normalised against: 'queries' = the other standing queries (the "
+                   "paper; a lone query scores 1 everywhere), 'negatives' = the phrases in softmax_negatives")
+    softmax_negatives: list[str] = field_(["object", "things", "stuff", "texture"], "phrases of softmax_set=negatives")
     templates: Literal["auto", "none", "single", "imagenet80"] = field_(
         "auto", "prompt templates of text queries: auto = the paper's 80 ImageNet/NACLIP templates for language "
                 "encoders (naradio), raw text for the label encoder; or none | single | imagenet80")

@@ -39,6 +39,12 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frame-skip", type=int, default=None, help="keep every (n+1)-th frame (source.frame_skip)")
     p.add_argument("--vox", type=float, default=None, help="voxel size in metres")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--encoder", default=None, choices=["label", "sim", "naradio"],
+                   help="image encoder (encoder.kind): label = exact class embeddings, sim = simulated ViT "
+                        "(patch grid, bleeding, confusion, noise), naradio = the real model")
+    p.add_argument("--templates", default=None, choices=["auto", "on", "off"],
+                   help="class texts: 80 prompt templates (on), raw names (off), auto = on for language "
+                        "encoders (naradio), off for label/sim (default auto)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
 
@@ -101,6 +107,10 @@ def build_config(args):
         data["source"] = src
     if args.vox is not None:
         data["vox"] = args.vox
+    if args.encoder is not None:
+        data["encoder"] = {"kind": args.encoder}
+    if args.templates is not None:
+        data["templates"] = {"on": True, "off": False}.get(args.templates, args.templates)
     if args.no_progress:
         data["progress"] = False
     if args.action == "srchvol":

@@ -48,6 +48,18 @@ def text_model_dir(enc, configured: str = "") -> str | None:
     return None
 
 
+def use_templates(setting, enc) -> bool:
+    """Resolve a ``templates`` setting (true / false / "auto") for encoder ``enc``: auto = the
+    paper's 80 prompt templates for language encoders (class texts from a text tower aligned
+    with an image model: a language head or the SigLIP text model), raw names for the label
+    and sim encoders (their features are the raw name embeddings themselves)."""
+    if isinstance(setting, bool):
+        return setting
+    if setting != "auto":
+        raise ValueError(f"templates must be true, false or 'auto', got {setting!r}")
+    return getattr(enc, "language_head", None) is not None or getattr(enc, "text_model", "") == "siglip"
+
+
 def eval_language(enc, class_names: Sequence[str], templates: bool = False, model_dir: str = "",
                   device: str | torch.device = "cpu") -> EvalLanguage:
     """Class embeddings and similarity for the encoder ``enc`` (see module doc);

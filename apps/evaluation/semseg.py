@@ -22,6 +22,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -30,12 +31,16 @@ from common.config import ConfigError, field_, section, to_dict
 from edge.encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
 from apps.evaluation import metrics as M
-from apps.evaluation.data import load_frames, pack, subsample_frame
+from apps.evaluation.data import load_frames
 from apps.evaluation.language import eval_language
 from apps.evaluation.srchvol import _json_safe
 
-BACKGROUND = ["wall", "floor", "ceiling", "door", "window", "background", "otherprop", "otherstructure",
-              "otherfurniture", "sky", "ground", "road"]
+#: the reference's background classes (Replica; ScanNet adds the three "other*" classes), brief §6.1
+BACKGROUND_REFERENCE = ["wall", "floor", "ceiling", "door", "window", "background", "otherprop", "otherstructure",
+                        "otherfurniture"]
+#: the synthetic world's background-like classes (its stand-ins for floor / wall / sky); ours, not the paper's
+BACKGROUND_SYNTHETIC = ["sky", "ground", "road"]
+BACKGROUND = BACKGROUND_REFERENCE + BACKGROUND_SYNTHETIC
 
 
 def _default_source() -> SourceConfig:
@@ -50,11 +55,17 @@ class SemsegConfig:
     vox: float = field_(0.5, "voxel size (m); paper 0.05 indoor, 1.0 TartanAir")
     depth_range: float = field_(50.0, "depth beyond this (m) is ignored for mapping and GT (TartanAir cutoff)")
     k: int = field_(5, "alignment: k nearest predicted voxels majority vote; 0 = exact voxel grid")
-    templates: bool = field_(False, "embed class names with the text encoder's prompt templates (else raw names)")
+    templates: Literal["auto"] | bool = field_(
+        "auto", "class texts = mean of the 80 ImageNet/NACLIP prompt templates (true), raw names (false), or auto: "
+                "templates for language encoders (naradio), raw names for label/sim (their features are name "
+                "embeddings)")
     temperature: float = field_(100.0, "softmax temperature over classes")
     denoise: float = field_(0.5, "prompt denoising threshold over the whole map")
     pred_thresh: float = field_(0.1, "no prediction below this softmax value")
-    background: list[str] = field_(list(BACKGROUND), "class names treated as background ('without background' columns)")
+    background: list[str] = field_(
+        list(BACKGROUND), "class names treated as background ('without background' columns): the reference's "
+                          "list (wall, floor, ceiling, door, window, background, otherprop, otherstructure, "
+                          "otherfurniture) plus the synthetic world's sky, ground, road; written to summary.json")
     text_model_dir: str = field_("", "text model directory for the class names (SigLIP for NARADIO; default "
                                      "<encoder.model_dir or $RAYFRONTS_MODEL_DIR>/siglip_text)")
     gt_points: str = field_("", "external GT: labelled points (.npz with xyz (N,3), labels (N,) [, class_names]; or "
@@ -137,10 +148,13 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
                          "with class_names")
     if ext is not None and ext[1].size and ext[1].max() >= len(names):
         raise ValueError(f"GT point labels go up to {int(ext[1].max())} but there are only {len(names)} class names")
-    if cfg.encoder.kind == "label" and any(f.labels is None for f in frames):
-        raise ValueError("the label encoder needs frames with GT labels; use encoder.kind=naradio")
+    needs_labels = cfg.encoder.kind in ("label", "sim")
+    if needs_labels and any(f.labels is None for f in frames):
+        raise ValueError(f"the {cfg.encoder.kind} encoder needs frames with GT labels; use encoder.kind=naradio")
     enc = make_encoder(cfg.encoder, names, device=cfg.device)
-    lang = eval_language(enc, names, cfg.templates, cfg.text_model_dir, device=cfg.device)
+    from apps.evaluation.language import use_templates
+    templates = use_templates(cfg.templates, enc)
+    lang = eval_language(enc, names, templates, cfg.text_model_dir, device=cfg.device)
     over = dict(vox_size=cfg.vox, depth_limit=float(cfg.depth_range), semantic_rays=False,
                 occ_pruning_period=-1, sem_pruning_period=-1)
     over.update(cfg.map)
@@ -157,7 +171,7 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
         it = tqdm(frames, desc="semseg", unit="frame")
     for f in it:
         with torch.inference_mode():
-            feats = enc.encode(f.rgb, f.labels) if cfg.encoder.kind == "label" else enc.encode(f.rgb)
+            feats = enc.encode(f.rgb, f.labels) if needs_labels else enc.encode(f.rgb)
         pmap.integrate(f.pose, f.intrinsics, f.depth, f.rgb, feats, None)
         if ext is not None:
             continue
@@ -181,8 +195,10 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
         glab = gv.features.to(torch.float32).argmax(1).numpy().astype(np.int64)
     aligned = M.knn_align(gxyz, pv.xyz.numpy().astype(np.float64), pred, cfg.k, cfg.vox)
     summary = scores_with_without_bg(glab, aligned, names, cfg.background)
+    summary["background_classes"] = [n for n in names if n.lower() in {b.lower() for b in cfg.background}]
     t_end = time.perf_counter()
     info = dict(kind="semseg", config=to_dict(cfg), class_names=names, encoder=enc.name, text_model=lang.text_model,
+                templates=templates, background_classes=summary["background_classes"],
                 language_head=lang.similarity is not None, gt="points" if ext is not None else "frames",
                 encoder_version=getattr(enc, "version", ""), source=getattr(src, "name", cfg.source.kind),
                 frames=len(frames), resolution=list(frames[0].depth.shape), n_pred_voxels=int(len(pred)),

@@ -27,6 +27,16 @@ Encoders with a language head (NARADIO): voxel/ray features stay in encoder spac
 compared through the head at query time (:mod:`apps.evaluation.language`); class names
 are embedded by the SigLIP text tower (``text_model_dir``); Semantic Poses maps the
 image-level (already language-space) features.
+
+Query defaults (the paper's): class texts are the mean of the 80 ImageNet/NACLIP prompt
+templates for language encoders (``templates=auto``; the label and sim encoders' features
+*are* raw name embeddings, so their class texts stay raw names), and the softmax runs over
+exactly the evaluated class names (the dataset's classes incl. class 0, no invented
+negatives), temperature 100.
+
+Encoders: ``label`` (every pixel its class's name embedding — measures geometry only),
+``sim`` (those embeddings degraded like a ViT's, :mod:`edge.encoders.sim` — measures
+open-vocabulary mapping under realistic feature errors) or ``naradio``.
 """
 from __future__ import annotations
 
@@ -86,7 +96,12 @@ class SrchvolConfig:
         "raster", "shape counting: exact row rasterisation (fast) or the block-test path (slow; identical counts)")
     text_model_dir: str = field_("", "text model directory for the class names (SigLIP for NARADIO; default "
                                      "<encoder.model_dir or $RAYFRONTS_MODEL_DIR>/siglip_text)")
-    temperature: float = field_(100.0, "softmax temperature over class similarities")
+    templates: Literal["auto"] | bool = field_(
+        "auto", "class texts = mean of the 80 ImageNet/NACLIP prompt templates (true), raw names (false), or auto: "
+                "templates for language encoders (naradio), raw names for label/sim (their features are name "
+                "embeddings)")
+    temperature: float = field_(100.0, "softmax temperature over the class names (the softmax set = all evaluated "
+                                       "class names, as the paper)")
     denoise: float = field_(0.5, "prompt denoising threshold (whole ray/voxel set)")
     pred_thresh: float = field_(0.1, "no prediction below this softmax value")
     srchvol_thresh: float = field_(0.05, "normalised count threshold of a search volume (> thresh)")
@@ -309,7 +324,9 @@ def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
     gt_counts = gt.class_counts()
     classes = [c for c in range(1, len(class_names)) if gt_counts[c] > 0]
     enc = make_encoder(cfg.encoder, class_names, device=cfg.device)
-    lang = eval_language(enc, class_names, model_dir=cfg.text_model_dir, device=cfg.device)
+    from apps.evaluation.language import use_templates
+    templates = use_templates(cfg.templates, enc)
+    lang = eval_language(enc, class_names, templates, model_dir=cfg.text_model_dir, device=cfg.device)
     text = lang.text
     H, W = frames[0].depth.shape
     K0 = frames[0].intrinsics
@@ -388,6 +405,7 @@ def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
         config=to_dict(cfg), class_names=class_names, classes_evaluated=[class_names[c] for c in classes],
         gt_class_voxels={class_names[c]: int(gt_counts[c]) for c in classes}, scene_volume_voxels=int(len(gt.keys)),
         frames=n, resolution=[H, W], fov_deg=list(fov), cone_half_angle_deg=half_angle, encoder=enc.name,
+        templates=templates, softmax_set=list(class_names),
         encoder_version=getattr(enc, "version", ""), text_model=lang.text_model, language_head=lang.similarity is not None,
         source=getattr(src, "name", cfg.source.kind), steps=steps,
         map_configs={f"{d:g}m/{m}": to_dict(maps[(d, m)].cfg) for (d, m) in maps},
