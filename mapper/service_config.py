@@ -10,6 +10,7 @@ from common.config import field_, section
 from common.zenoh_session import ZenohConfig
 from mapper.config import MapConfig
 from mapper.outputs.ros import RosSection
+from mapper.outputs.ros import RosSection
 
 
 @dataclass
@@ -107,6 +108,7 @@ class MapperConfig:
     query: QuerySection = section(QuerySection, "queries and standing queries")
     snapshots: SnapshotSection = section(SnapshotSection, "snapshots (atomic) and restore on start")
     rerun: RerunSection = section(RerunSection, "rerun logging")
+    ros: RosSection = section(RosSection, "the map and standing queries as ROS 2 topics over Zenoh (RViz2)")
     ros: RosSection = section(RosSection, "the map and standing queries as ROS 2 topics over Zenoh (RViz2)")
 
 

@@ -2,9 +2,9 @@
 
 ``rosbags`` is imported lazily (it is the ``ros`` extra); a missing package raises
 :class:`CdrError` naming the install command. The message definitions we use (sensor_msgs,
-geometry_msgs, nav_msgs, tf2_msgs, std_msgs, visualization_msgs) are identical from Humble
-on, so one typestore decodes every distro; ``distro`` only picks the type hash we
-advertise (``humble``: ``TypeHashNotSupported``; ``jazzy`` and later: ``RIHS01_...``).
+geometry_msgs, nav_msgs, tf2_msgs, std_msgs) are identical from Humble on, so one typestore
+decodes every distro's inputs; for output, ``distro`` picks the definitions and the type hash
+we advertise (``humble``: ``TypeHashNotSupported``; ``jazzy`` and later: ``RIHS01_...``).
 """
 from __future__ import annotations
 
@@ -64,9 +64,11 @@ def deserialize_any(raw, candidates: tuple[str, ...]):
     raise CdrError("; ".join(errs) or "no candidate types")
 
 
-def serialize(msg, msgtype: str) -> bytes:
-    """Message object → little-endian CDR bytes (with the encapsulation header)."""
-    return bytes(typestore().serialize_cdr(msg, msgtype, little_endian=True))
+def serialize(msg, msgtype: str, distro: str = "humble") -> bytes:
+    """Message object (a class of ``types(distro)``) → little-endian CDR bytes (with the
+    encapsulation header). Jazzy's visualization_msgs/Marker has fields Humble's lacks, so
+    build and serialise with the distro whose type hash you advertise."""
+    return bytes(typestore(distro).serialize_cdr(msg, msgtype, little_endian=True))
 
 
 def type_hash(msgtype: str, distro: str = "jazzy") -> str:

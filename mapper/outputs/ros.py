@@ -1,0 +1,351 @@
+"""The map out to ROS 2 (``ros.enabled=true``): RViz2 on the robot's network shows it live,
+with no ROS install on the mapper (module map: :mod:`mapper.state`; ARCHITECTURE.md).
+
+Topics (under ``ros.topic_prefix``, default ``/rayfronts``), in the world frame
+``ros.frame_id`` (the map's world: z up, metres):
+
+* ``/rayfronts/voxels`` — sensor_msgs/PointCloud2, fields x, y, z (float32) and rgb (float32
+  holding 0x00RRGGBB, as PCL / RViz2 expect): the semantic voxel centres with their colour;
+* ``/rayfronts/frontiers`` — PointCloud2 x, y, z: frontier centres;
+* ``/rayfronts/rays`` — visualization_msgs/MarkerArray: a DELETEALL marker, then one ARROW
+  per semantic ray from its frontier along its direction (``ros.ray_length`` m), coloured by
+  the ray's accumulated weight (blue = lightest ... red = heaviest, scaled to the heaviest);
+* ``/rayfronts/query/<id>`` — PointCloud2 x, y, z, score (float32) of each standing query's
+  top voxels, each time the query server refreshes it (``mapper/queries/<id>``);
+* ``/rayfronts/query_text`` (subscribed) — std_msgs/String: adds a standing text query with
+  id ``ros_<text, non-alphanumerics as _>`` and ``ros.query_top_k`` voxels.
+
+Layers go out at ``ros.rate_hz`` from their own thread (``mapper-ros``) when the map changed,
+limited by ``layers.max_voxels`` / ``ros.max_rays`` (seeded subsample, as the layer messages).
+Keys (``ros.keys``): rmw_zenoh (``<ros.domain>/<topic>/<dds type>/<type hash>``, the hash of
+``ros.distro``: Jazzy ``RIHS01_...`` or Humble ``TypeHashNotSupported``; plus the node /
+publisher / subscription liveliness tokens ``@ros2_lv/...`` that ``ros2 topic list`` reads,
+and the per-sample attachment) or bridge (``<topic>``, no tokens). Messages are built with
+rosbags' typestore of ``ros.distro`` (Jazzy's Marker has fields Humble's lacks). The
+session is the mapper's own unless ``ros.connect`` names the robot's router (client session).
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+import threading
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from common.config import field_
+
+log = logging.getLogger("rayfronts.mapper")
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+STRING = "std_msgs/msg/String"
+
+
+@dataclass
+class RosSection:
+    enabled: bool = field_(False, "publish the map as ROS 2 topics over Zenoh (RViz2, no ROS install here)")
+    domain: int = field_(0, "ROS_DOMAIN_ID of the robot network (rmw_zenoh keys)")
+    frame_id: str = field_("map", "header.frame_id of every message (the map's world frame in tf)")
+    keys: Literal["rmw_zenoh", "bridge"] = field_(
+        "rmw_zenoh", "key layout: rmw_zenoh (<domain>/<topic>/<dds type>/<hash> + graph tokens) or bridge "
+                     "(zenoh-bridge-ros2dds: <topic>)")
+    distro: Literal["humble", "jazzy"] = field_(
+        "jazzy", "ROS 2 distro of the subscribers: message definitions and type hash (jazzy: RIHS01_..., "
+                 "humble: TypeHashNotSupported)")
+    rate_hz: float = field_(1.0, "ROS layer publish rate (when the map changed); 0 = only standing queries")
+    topic_prefix: str = field_("/rayfronts", "topic namespace: <prefix>/voxels, /frontiers, /rays, /query/<id>, "
+                                             "/query_text")
+    connect: list[str] = field_([], "Zenoh endpoints of the robot's ROS router (client session); [] = publish "
+                                    "on the mapper's own session")
+    ray_length: float = field_(2.0, "length in metres of the ray arrows")
+    max_rays: int = field_(2000, "at most this many ray arrows per MarkerArray (seeded subsample)")
+    query_top_k: int = field_(1000, "voxels per standing query added from /rayfronts/query_text")
+    node: str = field_("rayfronts_mapper", "ROS node name in the graph tokens")
+
+
+# ------------------------------------------------------------------ message builders
+def _stamp(T, t: float):
+    sec = int(t)
+    return T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
+
+
+def _header(T, frame_id: str, t: float):
+    return T["std_msgs/msg/Header"](stamp=_stamp(T, t), frame_id=frame_id)
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 → (N,) float32 whose bits are 0x00RRGGBB (PCL's packed rgb)."""
+    rgb = np.asarray(rgb, np.uint32).reshape(-1, 3)
+    return ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).astype("<u4").view("<f4")
+
+
+def pointcloud2(T, frame_id: str, t: float, xyz: np.ndarray, extra: dict[str, np.ndarray] | None = None):
+    """PointCloud2 with float32 fields x, y, z and then ``extra`` (name → (N,) float32), dense,
+    little endian, one row."""
+    xyz = np.asarray(xyz, "<f4").reshape(-1, 3)
+    extra = extra or {}
+    names = ["x", "y", "z", *extra]
+    n = len(xyz)
+    data = np.empty((n, len(names)), "<f4")  # column copies keep the bits (packed rgb)
+    data[:, :3] = xyz
+    for i, v in enumerate(extra.values()):
+        data[:, 3 + i] = np.asarray(v, "<f4").reshape(-1)
+    PF = T["sensor_msgs/msg/PointField"]
+    fields = [PF(name=nm, offset=4 * i, datatype=PF.FLOAT32, count=1) for i, nm in enumerate(names)]
+    step = 4 * len(names)
+    return T[POINTCLOUD2](header=_header(T, frame_id, t), height=1, width=n, fields=fields, is_bigendian=False,
+                          point_step=step, row_step=step * n,
+                          data=np.ascontiguousarray(data).view(np.uint8).reshape(-1), is_dense=True)
+
+
+def weight_colour(w: np.ndarray) -> np.ndarray:
+    """Weights → (N, 4) RGBA in [0, 1]: blue (lightest) → green → red (heaviest), scaled to the max."""
+    w = np.asarray(w, np.float64).reshape(-1)
+    a = w / w.max() if len(w) and w.max() > 0 else np.zeros_like(w)
+    r = np.clip(2 * a - 1, 0, 1)
+    b = np.clip(1 - 2 * a, 0, 1)
+    g = 1 - r - b
+    return np.stack([r, g, b, np.ones_like(a)], 1)
+
+
+def ray_markers(T, frame_id: str, t: float, origin, direction, weight, length: float, distro: str):
+    """MarkerArray: DELETEALL, then one ARROW per ray (points = origin, origin + length·dir)."""
+    M = T["visualization_msgs/msg/Marker"]
+    V3, P, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
+    C = T["std_msgs/msg/ColorRGBA"]
+    hdr = _header(T, frame_id, t)
+    pose = T["geometry_msgs/msg/Pose"](position=P(x=0.0, y=0.0, z=0.0), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0))
+    zero = T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)
+    extra = {}
+    if "texture" in M.__dataclass_fields__:  # Jazzy and later
+        extra = dict(texture_resource="", uv_coordinates=[], mesh_file=T["visualization_msgs/msg/MeshFile"](
+            filename="", data=np.zeros(0, np.uint8)),
+            texture=T["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=np.zeros(0, np.uint8)))
+
+    def marker(i, action, points=(), colour=(0, 0, 0, 0)):
+        return M(header=hdr, ns="rays", id=int(i), type=M.ARROW, action=action, pose=pose,
+                 scale=V3(x=0.05, y=0.12, z=0.2), color=C(r=float(colour[0]), g=float(colour[1]),
+                                                            b=float(colour[2]), a=float(colour[3])),
+                 lifetime=zero, frame_locked=False, points=list(points), colors=[], text="", mesh_resource="",
+                 mesh_use_embedded_materials=False, **extra)
+
+    o = np.asarray(origin, np.float64).reshape(-1, 3)
+    tip = o + length * np.asarray(direction, np.float64).reshape(-1, 3)
+    cols = weight_colour(weight)
+    markers = [marker(0, M.DELETEALL)]
+    for i in range(len(o)):
+        markers.append(marker(i + 1, M.ADD, (P(x=o[i, 0], y=o[i, 1], z=o[i, 2]),
+                                             P(x=tip[i, 0], y=tip[i, 1], z=tip[i, 2])), cols[i]))
+    return T[MARKER_ARRAY](markers=markers)
+
+
+def query_id(text: str) -> str:
+    """Standing-query id for a ROS query text (Zenoh-key and ROS-topic safe)."""
+    slug = re.sub(r"[^A-Za-z0-9]+", "_", text.strip()).strip("_").lower()[:48]
+    return f"ros_{slug or 'query'}"
+
+
+def ray_arrays_weighted(m, max_rays: int):
+    """Ray origins, unit directions and weights (subsampled like the rays layer: seeded)."""
+    rs = m.ray_store
+    o = rs.origins().detach().cpu().numpy().astype(np.float32).reshape(-1, 3)
+    d = rs.directions().detach().cpu().numpy().astype(np.float32).reshape(-1, 3)
+    w = rs.weight.detach().cpu().numpy().astype(np.float32).reshape(-1)
+    if len(o) > max_rays:
+        idx = np.sort(np.random.default_rng(0).choice(len(o), max_rays, replace=False))
+        o, d, w = o[idx], d[idx], w[idx]
+    return o, d, w
+
+
+# ------------------------------------------------------------------ the output
+class RosOutput:
+    """Publishes the shared map's layers and standing queries as ROS 2 topics; adds standing
+    queries from ``<prefix>/query_text``. ``start()`` declares everything, ``close()`` undoes it."""
+
+    def __init__(self, state, cfg: RosSection | None = None):
+        from common.ros2 import cdr
+        from common.ros2.keys import check_domain, check_layout, normalize_topic
+
+        self.state = state
+        self.cfg = cfg or state.cfg.ros
+        check_layout(self.cfg.keys)
+        self.domain = check_domain(self.cfg.domain)
+        self.cdr = cdr
+        self.T = cdr.types(self.cfg.distro)
+        p = normalize_topic(self.cfg.topic_prefix)
+        self.topics = {"voxels": (f"{p}/voxels", POINTCLOUD2), "frontiers": (f"{p}/frontiers", POINTCLOUD2),
+                       "rays": (f"{p}/rays", MARKER_ARRAY)}
+        self.query_topic_prefix = f"{p}/query"
+        self.query_text_topic = f"{p}/query_text"
+        self.session = None
+        self._own_session = None
+        self._pubs: dict[str, object] = {}
+        self._entities: list = []
+        self._eid = 0
+        self._seq = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = None
+        self._last_version = None
+        self.published: dict[str, int] = {}
+        self.errors = 0
+
+    # -------------------------------------------------------------- zenoh entities
+    def _key(self, topic: str, msgtype: str) -> str:
+        from common.ros2.keys import publish_key
+
+        return publish_key(topic, msgtype, self.cfg.keys, self.domain, self.cdr.type_hash(msgtype, self.cfg.distro))
+
+    def _token(self, kind: str, topic: str | None = None, msgtype: str | None = None) -> None:
+        from common.ros2.keys import RMW_ZENOH, liveliness_token
+
+        if self.cfg.keys != RMW_ZENOH:
+            return
+        self._eid += 1
+        key = liveliness_token(self.domain, str(self.session.zid()), 0, 0 if kind == "NN" else self._eid, kind,
+                               self.cfg.node, topic=topic, msgtype=msgtype,
+                               type_hash=self.cdr.type_hash(msgtype, self.cfg.distro) if msgtype else "")
+        self._entities.append(self.session.liveliness().declare_token(key))
+
+    def _publisher(self, topic: str, msgtype: str):
+        pub = self._pubs.get(topic)
+        if pub is None:
+            pub = self._pubs[topic] = self.session.declare_publisher(self._key(topic, msgtype))
+            self._entities.append(pub)
+            self._token("MP", topic, msgtype)
+        return pub
+
+    def start(self) -> "RosOutput":
+        from common.ros2.keys import subscribe_key
+
+        s = self.state
+        if self.cfg.connect:
+            from common.zenoh_session import ZenohConfig, open_session
+
+            self._own_session = open_session(ZenohConfig(mode="client", connect=list(self.cfg.connect)),
+                                             stop=s.stop, default_mode="client")
+        self.session = self._own_session or s.session
+        self._token("NN")
+        for topic, msgtype in self.topics.values():
+            self._publisher(topic, msgtype)
+        self._entities.append(self.session.declare_subscriber(
+            subscribe_key(self.query_text_topic, self.cfg.keys, self.domain), self._on_query_text))
+        self._token("MS", self.query_text_topic, STRING)
+        self._entities.append(self.session.declare_subscriber(s.keys.mapper_queries_all, self._on_standing))
+        if self.cfg.rate_hz > 0:
+            self._thread = threading.Thread(target=self._loop, name="mapper-ros", daemon=True)
+            self._thread.start()
+        log.info("ROS 2 output: %s layout, domain %d, %s, topics %s", self.cfg.keys, self.domain, self.cfg.distro,
+                 ", ".join(t for t, _ in self.topics.values()))
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            self._thread = None
+        with self._lock:
+            ents, self._entities = self._entities, []
+            self._pubs = {}
+        for e in reversed(ents):
+            try:
+                e.undeclare()
+            except Exception:
+                pass
+        if self._own_session is not None:
+            try:
+                self._own_session.close()
+            except Exception:
+                pass
+            self._own_session = None
+        self.session = None
+
+    # -------------------------------------------------------------- publishing
+    def _put(self, topic: str, msgtype: str, msg) -> None:
+        from common.ros2.keys import RMW_ZENOH
+
+        data = self.cdr.serialize(msg, msgtype, self.cfg.distro)
+        with self._lock:
+            if self.session is None:
+                return
+            pub = self._publisher(topic, msgtype)
+            self._seq += 1
+            att = None
+            if self.cfg.keys == RMW_ZENOH:
+                gid = hashlib.blake2b(f"{self.session.zid()}{topic}".encode(), digest_size=16).digest()
+                att = self.cdr.attachment(self._seq, time.time_ns(), gid)
+            pub.put(data, attachment=att)
+        self.published[topic] = self.published.get(topic, 0) + 1
+
+    def layer_messages(self) -> dict:
+        """{topic: (type, message)} for the current map (None before the map exists)."""
+        from mapper.service_map import layer_arrays
+
+        s = self.state
+        with s.lock:
+            if s.map is None:
+                return {}
+            vox, _ = layer_arrays(s.map, "voxels", s.cfg.layers)
+            fr, _ = layer_arrays(s.map, "frontiers", s.cfg.layers)
+            o, d, w = ray_arrays_weighted(s.map, self.cfg.max_rays)
+        t, T, fid = time.time(), self.T, self.cfg.frame_id
+        return {
+            self.topics["voxels"][0]: (POINTCLOUD2, pointcloud2(T, fid, t, vox["xyz"], {"rgb": pack_rgb(vox["rgb"])})),
+            self.topics["frontiers"][0]: (POINTCLOUD2, pointcloud2(T, fid, t, fr["xyz"])),
+            self.topics["rays"][0]: (MARKER_ARRAY, ray_markers(T, fid, t, o, d, w, self.cfg.ray_length,
+                                                               self.cfg.distro)),
+        }
+
+    def publish_layers(self) -> None:
+        for topic, (msgtype, msg) in self.layer_messages().items():
+            self._put(topic, msgtype, msg)
+
+    def _loop(self) -> None:
+        s = self.state
+        period = 1.0 / self.cfg.rate_hz
+        while not self._stop.wait(period) and not s.stop.is_set():
+            if s.map is None or s.version == self._last_version:
+                continue
+            try:
+                self._last_version = s.version
+                self.publish_layers()
+            except Exception as e:
+                self.errors += 1
+                s.warn("ros", "ROS 2 layer publishing failed: %s", e)
+
+    def _on_standing(self, sample) -> None:
+        """A standing query result (``mapper/queries/<id>``) → ``<prefix>/query/<id>`` PointCloud2."""
+        from common.messages import decode_query_result
+
+        try:
+            res = decode_query_result(sample.payload.to_bytes())
+            qid = res.id or str(sample.key_expr).rsplit("/", 1)[-1]
+            msg = pointcloud2(self.T, self.cfg.frame_id, time.time(), res.voxel_xyz,
+                              {"score": np.asarray(res.voxel_score, np.float32)})
+            self._put(f"{self.query_topic_prefix}/{qid}", POINTCLOUD2, msg)
+        except Exception as e:  # never raise out of a Zenoh callback
+            self.errors += 1
+            self.state.warn("ros", "ROS 2 standing-query output failed: %s", e)
+
+    def _on_query_text(self, sample) -> None:
+        """std_msgs/String on ``<prefix>/query_text`` → a standing text query."""
+        from common.messages import QueryRequest
+
+        s = self.state
+        try:
+            msg = self.cdr.deserialize(sample.payload.to_bytes(), STRING)
+            text = str(msg.data).strip()
+            if not text:
+                raise ValueError("empty query text")
+            req = QueryRequest(text=text, top_k=int(self.cfg.query_top_k), standing=True, id=query_id(text)).validate()
+            s.standing[req.id] = req
+            s.standing_due.set()
+            log.info("ROS 2: standing query %r from %s (results on %s/%s)", text, self.query_text_topic,
+                     self.query_topic_prefix, req.id)
+        except Exception as e:
+            self.errors += 1
+            s.warn("ros-query", "ROS 2 query on %s rejected: %s", self.query_text_topic, e)

@@ -1,0 +1,196 @@
+"""The mapper's ROS 2 output (``ros.enabled=true``) read by an outside decoder: a real mapper
+process maps a synthetic-world edge; the test subscribes with a plain Zenoh session on the
+rmw_zenoh keys, decodes with rosbags' (Jazzy) typestore and checks the points against the
+map's own layers (via the query client), the rmw_zenoh graph tokens `ros2 topic list`
+reads, and a standing query sent as a std_msgs/String."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+
+from apps.demo import zenoh_env
+from common.zenoh_session import ZenohConfig, free_tcp_port
+
+ROOT = Path(__file__).resolve().parents[1]
+JAZZY = get_typestore(Stores.ROS2_JAZZY)
+MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0", "rerun.file=",
+       "snapshots.on_exit=false", "layers.max_voxels=100000000", "layers.max_rays=100000000",
+       "ros.enabled=true", "ros.rate_hz=2", "ros.frame_id=odom", "ros.max_rays=100000000", "queues.idle_flush_s=0.5",
+       "queues.per_robot=1000"]
+
+
+def _session(ep):
+    c = zenoh.Config()
+    c.insert_json5("mode", '"client"')
+    c.insert_json5("connect/endpoints", json.dumps([ep]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(c)
+
+
+def _dds(t):
+    pkg, sub, name = t.split("/")
+    return f"{pkg}::{sub}::dds_::{name}_"
+
+
+def _cloud(msg) -> dict[str, np.ndarray]:
+    """PointCloud2 → {field: (N,) float32} read through the message's own field table."""
+    assert msg.height == 1 and not msg.is_bigendian and msg.row_step == msg.point_step * msg.width
+    raw = np.asarray(msg.data, np.uint8).reshape(msg.width, msg.point_step)
+    out = {}
+    for f in msg.fields:
+        assert f.datatype == 7 and f.count == 1  # FLOAT32
+        out[f.name] = raw[:, f.offset:f.offset + 4].copy().view("<f4").reshape(-1)
+    return out
+
+
+class Latest:
+    def __init__(self, s, key):
+        self.lock = threading.Lock()
+        self.samples: list = []
+        self.sub = s.declare_subscriber(key, self._cb)
+
+    def _cb(self, sample):
+        with self.lock:
+            self.samples.append((str(sample.key_expr), sample.payload.to_bytes(),
+                                 None if sample.attachment is None else sample.attachment.to_bytes()))
+
+    def last(self):
+        with self.lock:
+            return self.samples[-1] if self.samples else None
+
+
+def _wait(fn, timeout, what):
+    end = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < end:
+        try:
+            last = fn()
+            if last:
+                return last
+        except Exception as e:
+            last = e
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
+    from query_client import Client
+
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    logs = [open(tmp_path / n, "wb") for n in ("mapper.log", "edge.log")]
+    env = zenoh_env()
+    procs = [subprocess.Popen([sys.executable, "-m", "apps.cli", "mapper", "--mode", "router", "--listen", ep, *MAP],
+                              stdout=logs[0], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))]
+    s = None
+    try:
+        with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0) as c:
+            _wait(lambda: c.mapper_alive(), 60, "mapper alive")
+            s = _session(ep)
+            subs = {n: Latest(s, f"0/rayfronts/{n}/*/*") for n in ("voxels", "frontiers", "rays")}
+            qsub = Latest(s, "0/rayfronts/query/ros_vehicle/*/*")
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "apps.cli", "edge", "--connect", ep, "--rate", "0", "robot=r1",
+                 "source.resolution=96x128", "source.n_frames=12", "source.depth_limit=20", "pca.out_dim=16",
+                 "pca.fit_frames=4", "publish.linger_s=8"], stdout=logs[1], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT)))
+            assert procs[1].wait(120) == 0
+            st = _wait(lambda: (lambda x: x if x["frames"]["mapped"] == 12 and x["flushed_version"] == x["map_version"]
+                                else None)(c.stats()), 60, "12 frames mapped and flushed")
+            vox_l, _ = c.layer("voxels")
+            fr_l, _ = c.layer("frontiers")
+            rays_l, _ = c.layer("rays")
+            n_vox = st["map"]["n_voxels"]
+            assert len(vox_l["xyz"]) == n_vox > 100
+
+            def final(name, n):
+                last = subs[name].last()
+                if last is None:
+                    return None
+                msg = JAZZY.deserialize_cdr(last[1], "sensor_msgs/msg/PointCloud2")
+                return last if msg.width == n else None
+
+            key, raw, att = _wait(lambda: final("voxels", n_vox), 30, "the final voxel cloud")
+            # rmw_zenoh key with Jazzy's type hash, computed here by rosbags
+            assert key == f"0/rayfronts/voxels/{_dds('sensor_msgs/msg/PointCloud2')}/" \
+                          f"{JAZZY.hash_rihs01('sensor_msgs/msg/PointCloud2')}"
+            assert att is not None and len(att) == 33 and att[16] == 16  # int64 seq, int64 time, 16-byte gid
+            msg = JAZZY.deserialize_cdr(raw, "sensor_msgs/msg/PointCloud2")
+            assert msg.header.frame_id == "odom"
+            assert [f.name for f in msg.fields] == ["x", "y", "z", "rgb"]
+            cl = _cloud(msg)
+            xyz = np.stack([cl["x"], cl["y"], cl["z"]], 1)
+            rgb_u = cl["rgb"].view("<u4")
+            rgb = np.stack([(rgb_u >> 16) & 255, (rgb_u >> 8) & 255, rgb_u & 255], 1).astype(np.uint8)
+            o_r, o_l = np.lexsort(xyz.T), np.lexsort(vox_l["xyz"].T)
+            np.testing.assert_array_equal(xyz[o_r], vox_l["xyz"][o_l])
+            np.testing.assert_array_equal(rgb[o_r], vox_l["rgb"][o_l])
+
+            fkey, fraw, _ = _wait(lambda: final("frontiers", len(fr_l["xyz"])), 30, "the frontier cloud")
+            fc = _cloud(JAZZY.deserialize_cdr(fraw, "sensor_msgs/msg/PointCloud2"))
+            fxyz = np.stack([fc["x"], fc["y"], fc["z"]], 1)
+            np.testing.assert_array_equal(fxyz[np.lexsort(fxyz.T)], fr_l["xyz"][np.lexsort(fr_l["xyz"].T)])
+
+            rkey, rraw, _ = subs["rays"].last()
+            assert rkey.startswith(f"0/rayfronts/rays/{_dds('visualization_msgs/msg/MarkerArray')}/RIHS01_")
+            ma = JAZZY.deserialize_cdr(rraw, "visualization_msgs/msg/MarkerArray")
+            assert ma.markers[0].action == 3  # DELETEALL
+            arrows = ma.markers[1:]
+            assert len(arrows) == len(rays_l["origin"]) > 0
+            o = np.array([[m.points[0].x, m.points[0].y, m.points[0].z] for m in arrows])
+            tip = np.array([[m.points[1].x, m.points[1].y, m.points[1].z] for m in arrows])
+            assert all(m.type == 0 and m.action == 0 and m.header.frame_id == "odom" for m in arrows)
+            np.testing.assert_allclose(o, rays_l["origin"], atol=1e-6)
+            np.testing.assert_allclose((tip - o) / 2.0, rays_l["direction"], atol=1e-5)  # ros.ray_length = 2
+            col = np.array([[m.color.r, m.color.g, m.color.b, m.color.a] for m in arrows])
+            assert np.all((col >= 0) & (col <= 1)) and np.all(col[:, 3] == 1)
+            assert np.isclose(col[:, 0].max(), 1.0)  # the heaviest ray is red
+
+            # the graph as `ros2 topic list` sees it: rmw_zenoh liveliness tokens
+            toks = [str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/0/**", timeout=3.0) if r.ok is not None]
+            pubs = {t.split("/")[9]: t.split("/")[10:12] for t in toks if t.split("/")[5] == "MP"}
+            assert pubs["%rayfronts%voxels"] == [_dds("sensor_msgs/msg/PointCloud2"),
+                                                 JAZZY.hash_rihs01("sensor_msgs/msg/PointCloud2")]
+            assert pubs["%rayfronts%rays"][0] == _dds("visualization_msgs/msg/MarkerArray")
+            assert "%rayfronts%frontiers" in pubs
+            assert any(t.split("/")[5] == "MS" and t.split("/")[9] == "%rayfronts%query_text" for t in toks)
+            assert any(t.split("/")[5] == "NN" and t.endswith("/rayfronts_mapper") for t in toks)
+
+            # a standing query from ROS: std_msgs/String serialised by rosbags
+            T = JAZZY.types
+            h = JAZZY.hash_rihs01("std_msgs/msg/String")
+            s.put(f"0/rayfronts/query_text/{_dds('std_msgs/msg/String')}/{h}",
+                  bytes(JAZZY.serialize_cdr(T["std_msgs/msg/String"](data="vehicle"), "std_msgs/msg/String")))
+            qkey, qraw, _ = _wait(lambda: qsub.last(), 30, "the standing query cloud")
+            qc = _cloud(JAZZY.deserialize_cdr(qraw, "sensor_msgs/msg/PointCloud2"))
+            assert set(qc) == {"x", "y", "z", "score"} and len(qc["score"]) > 0
+            ref = c.query("vehicle", top_k=1000)
+            np.testing.assert_array_equal(np.stack([qc["x"], qc["y"], qc["z"]], 1), ref.voxel_xyz)
+            np.testing.assert_allclose(qc["score"], ref.voxel_score, rtol=1e-6)
+            assert "ros_vehicle" in c.stats()["standing_queries"]
+            # a payload that is not a String is rejected, the mapper keeps serving
+            s.put(f"0/rayfronts/query_text/{_dds('std_msgs/msg/String')}/{h}", b"\x00\x01\x00\x00\xff")
+            time.sleep(0.5)
+            assert c.mapper_alive()
+    finally:
+        if s is not None:
+            s.close()
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+        for f in logs:
+            f.close()
+    assert procs[0].returncode == 0, (tmp_path / "mapper.log").read_text()[-3000:]
