@@ -18,7 +18,6 @@ entities, threads, close); each job is its own module over one shared
     mapper/layers/* put + get      LayerPublisher        (outputs.layers)
     (rerun file / gRPC)            RerunOutput           (outputs.rerun)
     ROS 2 topics (rmw_zenoh/bridge) RosOutput            (outputs.ros)   mapper-ros, Zenoh callbacks
-    ROS 2 topics (rmw_zenoh/bridge) RosOutput            (outputs.ros)   mapper-ros, Zenoh callbacks
 
 Module map, locks and events: :mod:`mapper.state` and ARCHITECTURE.md. The names that used to
 be defined here (``MapperService``, ``write_snapshot``, ``reject_reason``, ``RobotState``)
@@ -92,7 +91,6 @@ class MapperService:
         self.worker = MapWorker(self.state, self.ingest.next_frame, self.layers, self.snapshots)
         self.rerun = None                      # RerunOutput once started with rerun.file / rerun.serve_grpc
         self.ros = None                        # RosOutput once started with ros.enabled
-        self.ros = None                        # RosOutput once started with ros.enabled
         self._entities: list = []
         self._threads: list[threading.Thread] = []
         self._closed = False
@@ -150,14 +148,6 @@ class MapperService:
             except Exception:
                 self.close()
                 raise
-        if self.cfg.ros.enabled:  # the map as ROS 2 topics (RViz2)
-            from mapper.outputs.ros import RosOutput
-
-            try:
-                self.ros = RosOutput(self.state).start()
-            except Exception:
-                self.close()
-                raise
         log.info("mapper up (zid %s, prefix %r)", s.zid(), self.cfg.zenoh.prefix)
         return self
 
@@ -190,9 +180,6 @@ class MapperService:
         self._standing_due.set()
         for t in self._threads:
             t.join(timeout=30.0)
-        if self.ros is not None:
-            self.ros.close()
-            self.ros = None
         if self.ros is not None:
             self.ros.close()
             self.ros = None

@@ -4,12 +4,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from typing import Literal
-from typing import Literal
 
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
 from mapper.config import MapConfig
-from mapper.outputs.ros import RosSection
 from mapper.outputs.ros import RosSection
 
 
@@ -40,13 +38,6 @@ class QuerySection:
     search_range_m: float = field_(200.0, "cones of ray hits are cut at this distance when computing the "
                                           "search volume (m)")
     search_rays: int = field_(10, "top rays whose cones make up the search volume")
-    templates: Literal["auto", "none", "single", "imagenet80"] = field_(
-        "auto", "prompt templates of text queries: auto = the paper's 80 ImageNet/NACLIP templates for language "
-                "encoders (naradio), raw text for the label encoder; or none | single | imagenet80")
-    softmax_set: Literal["queries", "negatives"] = field_(
-        "queries", "what a softmax query is normalised against: 'queries' = the other standing queries (the "
-                   "paper; a lone query scores 1 everywhere), 'negatives' = the phrases in softmax_negatives")
-    softmax_negatives: list[str] = field_(["object", "things", "stuff", "texture"], "phrases of softmax_set=negatives")
     templates: Literal["auto", "none", "single", "imagenet80"] = field_(
         "auto", "prompt templates of text queries: auto = the paper's 80 ImageNet/NACLIP templates for language "
                 "encoders (naradio), raw text for the label encoder; or none | single | imagenet80")
@@ -108,7 +99,6 @@ class MapperConfig:
     query: QuerySection = section(QuerySection, "queries and standing queries")
     snapshots: SnapshotSection = section(SnapshotSection, "snapshots (atomic) and restore on start")
     rerun: RerunSection = section(RerunSection, "rerun logging")
-    ros: RosSection = section(RosSection, "the map and standing queries as ROS 2 topics over Zenoh (RViz2)")
     ros: RosSection = section(RosSection, "the map and standing queries as ROS 2 topics over Zenoh (RViz2)")
 
 
