@@ -1,32 +1,42 @@
 # The two README commands:  `make demo`  and  `make test`.
 # Each sets everything up on a fresh Debian 12 / Ubuntu 24.04 machine (system packages,
 # .venv, CPU torch, the project in editable mode with its C++ extension) and then runs.
-# A second run skips the set-up it already did (stamp file .venv/.rayfronts-setup).
+# A second run skips the set-up it already did (stamp files .venv/.rayfronts-setup-*).
+# `make demo` sets up the runtime extras only; `make test` adds the test extra (pytest and
+# Debian's chromium for the browser test).
 
+comma   := ,
 PY      ?= python3
 VENV    ?= .venv
 TORCH   ?= torch==2.13.0
 EXTRAS  ?= all,test
-STAMP   := $(VENV)/.rayfronts-setup
+DEMO_EXTRAS ?= all
 OUT     ?= out/demo
 PYTEST_ARGS ?=
+SETUP_DEPS := pyproject.toml CMakeLists.txt $(wildcard mapper/csrc/*) deploy/setup_dev.sh
+STAMP      := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(EXTRAS))
+DEMO_STAMP := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(DEMO_EXTRAS))
 
-.PHONY: setup demo test bench clean-build
+.PHONY: setup demo test lint bench clean-build
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml CMakeLists.txt $(wildcard mapper/csrc/*) deploy/setup_dev.sh
-	PY=$(PY) VENV=$(VENV) TORCH='$(TORCH)' EXTRAS='$(EXTRAS)' bash deploy/setup_dev.sh
-	touch $(STAMP)
+$(VENV)/.rayfronts-setup-%: $(SETUP_DEPS)
+	PY=$(PY) VENV=$(VENV) TORCH='$(TORCH)' EXTRAS='$(subst -,$(comma),$*)' bash deploy/setup_dev.sh
+	touch $@
 
-demo: $(STAMP)
+demo: $(DEMO_STAMP)
 	$(VENV)/bin/rayfronts demo --out $(OUT)
 
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q -p no:cacheprovider $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q -rs -p no:cacheprovider $(PYTEST_ARGS)
 
-bench: $(STAMP)
+# ruff with the rule set in pyproject.toml ([tool.ruff]; ruff comes with the test extra)
+lint: $(STAMP)
+	$(VENV)/bin/python -m ruff check .
+
+bench: $(DEMO_STAMP)
 	$(VENV)/bin/rayfronts bench world --json out/bench_world.json
 
 clean-build:
-	rm -rf build $(STAMP)
+	rm -rf build $(VENV)/.rayfronts-setup-* $(VENV)/.rayfronts-ext-key
