@@ -159,8 +159,14 @@ fi
 KEY=$("$VPY" - <<'PYEOF'
 import glob, hashlib, subprocess, sys, sysconfig
 h = hashlib.sha256()
-for f in sorted(["CMakeLists.txt", "pyproject.toml", *glob.glob("mapper/csrc/*")]):
+for f in sorted(["CMakeLists.txt", *glob.glob("mapper/csrc/*")]):
     h.update(f.encode()); h.update(open(f, "rb").read())
+try:  # of pyproject.toml only what the build reads (not the dependency lists)
+    import tomllib
+    t = tomllib.load(open("pyproject.toml", "rb"))
+    h.update(repr((t.get("build-system"), t.get("tool", {}).get("scikit-build"))).encode())
+except ImportError:
+    h.update(open("pyproject.toml", "rb").read())
 def out(cmd):
     try:
         return subprocess.run(cmd, capture_output=True, text=True).stdout
