@@ -98,7 +98,7 @@ def test_b2_absolute_cost_can_pick_a_different_frontier():
     fr = torch.tensor([[2, 0, -1], [29, 0, 0]])
     _, pf, pc = associate(o, d, fr, 1.0, max_dist=100.0, cost="paper")
     _, af, ac = associate(o, d, fr, 1.0, max_dist=100.0, cost="absolute")
-    a_ortho, a_orig = math.hypot(0.1, 0.9), math.sqrt(2.5 ** 2 + 0.1 ** 2 + 0.9 ** 2)
+    _a_ortho, a_orig = math.hypot(0.1, 0.9), math.sqrt(2.5 ** 2 + 0.1 ** 2 + 0.9 ** 2)
     b_ortho, b_orig = math.hypot(0.1, 0.1), math.sqrt(29.5 ** 2 + 0.02)
     assert pf.tolist() == [0] and af.tolist() == [1]
     assert float(pc[0]) == pytest.approx((1 + a_orig / b_orig) / 2, abs=1e-6)

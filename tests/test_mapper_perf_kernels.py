@@ -13,7 +13,6 @@ import pytest
 import torch
 
 from common.conventions import sanitize_depth, voxel_index
-from common.geometry import intrinsics_from_fov, look_at
 from mapper import kernels as KN
 from mapper import keys as K_
 from mapper.config import map_config

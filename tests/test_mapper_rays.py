@@ -1,13 +1,18 @@
 """Ray ↔ frontier association, binning, merging, pruning and the baseline modes."""
 import math
 
-import numpy as np
 import pytest
 import torch
 
 from mapper import keys as K_
-from mapper.ray_frontiers import (RayStore, angle_bins, associate, associate_bruteforce, bin_centre_dirs,
-                                  infer_directions)
+from mapper.ray_frontiers import (
+    RayStore,
+    angle_bins,
+    associate,
+    associate_bruteforce,
+    bin_centre_dirs,
+    infer_directions,
+)
 
 
 def _rand_case(seed, n_rays=300, n_front=400, spread=12):

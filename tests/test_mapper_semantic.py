@@ -1,6 +1,4 @@
 """Semantic voxel fusion and pruning; frontier subsampling."""
-import numpy as np
-import pytest
 import torch
 
 from common.conventions import voxel_index

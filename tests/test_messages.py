@@ -3,9 +3,22 @@ import numpy as np
 import pytest
 
 from common.messages import (
-    MessageError, QueryRequest, QueryResult, decode_feature_space, decode_layer, decode_query_request,
-    decode_query_result, decode_snapshot_request, decode_stats, encode_error, encode_feature_space, encode_layer,
-    encode_query_request, encode_query_result, encode_snapshot_request, encode_stats,
+    MessageError,
+    QueryRequest,
+    QueryResult,
+    decode_feature_space,
+    decode_layer,
+    decode_query_request,
+    decode_query_result,
+    decode_snapshot_request,
+    decode_stats,
+    encode_error,
+    encode_feature_space,
+    encode_layer,
+    encode_query_request,
+    encode_query_result,
+    encode_snapshot_request,
+    encode_stats,
 )
 from common.wire import encode_message
 

@@ -17,8 +17,14 @@ import torch.nn.functional as F
 from common.text.errors import ModelFileError
 from edge.encoders import EncoderConfig, make_encoder
 from edge.encoders.naclip import NaclipAttention, gaussian_bias
-from edge.encoders.radio import (RadioConfig, RadioModel, build_radio, read_checkpoint,
-                                 realize_spectral_reparam, save_flat)
+from edge.encoders.radio import (
+    RadioConfig,
+    RadioModel,
+    build_radio,
+    read_checkpoint,
+    realize_spectral_reparam,
+    save_flat,
+)
 
 D, DEPTH, HEADS, GRID, NTOK, P = 64, 2, 4, 32, 8, 16
 HID, OUT = 96, 48

@@ -9,8 +9,7 @@ import pytest
 import torch
 
 from common.conventions import voxel_index
-from mapper.occupancy import (TorchOccupancy, VdbOccupancy, backend_name, from_state,
-                              make_occupancy, vdb_available)
+from mapper.occupancy import TorchOccupancy, VdbOccupancy, backend_name, from_state, make_occupancy, vdb_available
 
 BACKENDS = [
     "torch",

@@ -9,6 +9,7 @@ import threading
 import numpy as np
 import pytest
 import torch
+from test_runtime import _bfs_components  # the brute-force 26-neighbour oracle
 
 from common.conventions import voxel_center
 from common.feature_space import FeatureSpace
@@ -17,7 +18,6 @@ from common.pca import PCA
 from common.text.heads import MLP2, MLP2Config
 from mapper import keys as K_
 from mapper.service_map import QuerySnapshot, answer_snapshot, cone_union_volume, create_map, top_stable
-from test_runtime import _bfs_components  # the brute-force 26-neighbour oracle
 
 
 def _pca(d=32, k=8, seed=0):

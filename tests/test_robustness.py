@@ -6,7 +6,6 @@ processes (client mode) and talks to them with ``query_client.Client``.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -174,7 +173,6 @@ def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pc
                                 np.ones((48, 64), np.float32), np.zeros((48, 64, 3), np.uint8),
                                 features=np.zeros((16, 6, 8), np.float16), feature_space="x"))
         rng = np.random.default_rng(0)
-        bad_pose = bytearray(ok)
         kinds = [
             lambda i: rng.bytes(int(rng.integers(0, 64))),                       # garbage
             lambda i: ok[: int(rng.integers(1, len(ok) - 1))],                   # truncated

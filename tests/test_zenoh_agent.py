@@ -12,8 +12,6 @@ query), ``token`` / ``untoken``, ``received`` (what a subscriber got, optionally
 """
 from __future__ import annotations
 
-import pytest
-
 import json
 import os
 import signal
@@ -23,13 +21,14 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 # --------------------------------------------------------------------------- child side
 def _child(spec: dict) -> int:
     sys.path.insert(0, str(ROOT))
-    import zenoh
 
     from common.zenoh_session import SessionGuard, ZenohConfig, open_session
 

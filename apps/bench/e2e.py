@@ -32,7 +32,6 @@ fitted one: the cost depends on the sizes only); ``--only stream`` just the stre
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import subprocess

@@ -95,9 +95,9 @@ def _source_overrides(args) -> dict:
 
 def build_config(args):
     """The action's config from --config, the options and the key=value overrides."""
-    from common.config import load_config, merge
     from apps.evaluation.semseg import SemsegConfig
     from apps.evaluation.srchvol import SrchvolConfig
+    from common.config import load_config, merge
 
     schema = SrchvolConfig if args.action == "srchvol" else SemsegConfig
     cfg = load_config(schema, args.config, ())
@@ -149,8 +149,9 @@ def run(args: argparse.Namespace) -> int:
             run_srchvol(cfg, args.out)
             print((__import__("pathlib").Path(args.out) / "table.md").read_text())
         else:
-            from apps.evaluation.semseg import run_semseg
             import json
+
+            from apps.evaluation.semseg import run_semseg
             s = run_semseg(cfg, args.out)
             print(json.dumps({k: v for k, v in s.items() if k != "per_class"}, indent=2))
         return 0

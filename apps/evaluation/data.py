@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from common.frame import Frame
 from apps.evaluation.metrics import EMPTY, IGNORE
+from common.frame import Frame
 
 
 @dataclass

@@ -107,8 +107,8 @@ def load_labelled_points(path: str | Path, label_field: str = "label"
 def voxelize_labels(xyz: np.ndarray, labels: np.ndarray, vox: float) -> tuple[np.ndarray, np.ndarray]:
     """Voxels holding labelled points (label > 0) and their majority label (ties → the
     smallest id): ``(centres (M, 3) float64, labels (M,) int64)``, voxel = ``floor(xyz / vox)``."""
-    from common.conventions import voxel_index
     from apps.evaluation.data import pack
+    from common.conventions import voxel_index
 
     keep = (labels > 0) & np.isfinite(xyz).all(1)
     xyz, labels = xyz[keep], labels[keep]

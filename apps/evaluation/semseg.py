@@ -27,13 +27,13 @@ from typing import Literal
 import numpy as np
 import torch
 
-from common.config import ConfigError, field_, section, to_dict
-from edge.encoders.config import EncoderConfig
-from edge.sources.config import SourceConfig
 from apps.evaluation import metrics as M
 from apps.evaluation.data import load_frames
 from apps.evaluation.language import eval_language
 from apps.evaluation.srchvol import _json_safe
+from common.config import ConfigError, field_, section, to_dict
+from edge.encoders.config import EncoderConfig
+from edge.sources.config import SourceConfig
 
 #: the reference's background classes (Replica; ScanNet adds the three "other*" classes), brief §6.1
 BACKGROUND_REFERENCE = ["wall", "floor", "ceiling", "door", "window", "background", "otherprop", "otherstructure",

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import torch
 
-from common.text.heads import MLP2, MLP2Config  # noqa: F401  (re-export)
 from common.encoders.radio import RadioCheckpoint
+from common.text.heads import MLP2, MLP2Config  # noqa: F401  (re-export)
 
 
 def summary_head(ckpt: RadioCheckpoint, adaptor: str = "siglip", device="cpu",

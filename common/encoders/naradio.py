@@ -26,8 +26,7 @@ from common.encoders.config import EncoderConfig
 from common.encoders.files import find_radio_checkpoint
 from common.encoders.heads import summary_head, summary_slot
 from common.encoders.naclip import NaclipBlock
-from common.encoders.radio import (PRESETS, RadioCheckpoint, RadioConfig, RadioModel, build_radio,
-                                 read_checkpoint)
+from common.encoders.radio import PRESETS, RadioCheckpoint, RadioConfig, RadioModel, build_radio, read_checkpoint
 
 _DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 

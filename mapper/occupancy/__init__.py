@@ -12,7 +12,8 @@ import logging
 
 from .base import OccupancyGrid
 from .torch_backend import TorchOccupancy
-from .vdb_backend import VdbOccupancy, available as vdb_available
+from .vdb_backend import VdbOccupancy
+from .vdb_backend import available as vdb_available
 
 __all__ = ["OccupancyGrid", "TorchOccupancy", "VdbOccupancy", "make_occupancy",
            "backend_name", "from_state", "vdb_available"]

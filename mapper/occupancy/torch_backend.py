@@ -20,8 +20,18 @@ import math
 import torch
 import torch.nn.functional as F
 
-from ._inputs import (IJK_MAX, IJK_MIN, as_ijk, as_inc, check_bounds, check_frontier_args,
-                      check_tolerance, pack, prepare_rays, unpack)
+from ._inputs import (
+    IJK_MAX,
+    IJK_MIN,
+    as_ijk,
+    as_inc,
+    check_bounds,
+    check_frontier_args,
+    check_tolerance,
+    pack,
+    prepare_rays,
+    unpack,
+)
 
 _BRICK_LOG2 = 4
 _BRICK = 1 << _BRICK_LOG2   # frontier brick edge (voxels); must exceed 2 * max radius

@@ -12,8 +12,7 @@ import os
 import numpy as np
 import torch
 
-from ._inputs import (as_ijk, as_inc, check_bounds, check_frontier_args, check_tolerance,
-                      pack, prepare_rays)
+from ._inputs import as_ijk, as_inc, check_bounds, check_frontier_args, check_tolerance, pack, prepare_rays
 
 try:  # the extension is optional (built only where OpenVDB was found)
     from mapper import _vdbocc  # type: ignore[attr-defined]
