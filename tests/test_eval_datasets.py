@@ -15,7 +15,7 @@ import torch
 from common.config import merge
 from common.feature_space import FeatureSpaceError
 
-torch.set_num_threads(2)
+pytestmark = pytest.mark.usefixtures("torch_two_threads")
 
 LANG = 24           # SigLIP projection = the tiny head's output dim
 

@@ -12,7 +12,7 @@ from common.world import World
 from apps.evaluation.semseg import SemsegConfig, run_semseg
 from apps.evaluation.srchvol import ALL_METHODS, SrchvolConfig, run_srchvol
 
-torch.set_num_threads(2)
+pytestmark = pytest.mark.usefixtures("torch_two_threads")
 
 
 @pytest.fixture(scope="module")
@@ -68,10 +68,11 @@ def test_srchvol_paper_shape(sv_run):
     assert top["10m"]["semantic_voxels"]["scvr_auc"] < 0.02
     # Semantic Poses maps nothing in range: mIoU 0
     assert top["0m"]["semantic_poses"]["miou_auc"] == 0.0
-    # all in-range methods share the voxel layer at 10 m -> same mIoU, and it is > 0
-    mi = {m: top["10m"][m]["miou_auc"] for m in ("rayfronts", "semantic_voxels", "spherical_semfronts",
-                                                 "unidirectional_semfronts")}
-    assert mi["rayfronts"] > 0 and mi["rayfronts"] == mi["semantic_voxels"]
+    # rays never change the voxel layer: the frontier baselines' own (separate) maps give
+    # RayFronts' observed-region mIoU exactly, and it is > 0 (Semantic Voxels shares the
+    # RayFronts map under share_maps, so comparing with it would prove nothing)
+    mi = {m: top["10m"][m]["miou_auc"] for m in ("rayfronts", "spherical_semfronts", "unidirectional_semfronts")}
+    assert mi["rayfronts"] > 0 and mi["rayfronts"] == mi["spherical_semfronts"] == mi["unidirectional_semfronts"]
     # beyond-range rays cut search volume: RayFronts above Semantic Voxels
     assert top["10m"]["rayfronts"]["scvr_auc"] > top["10m"]["semantic_voxels"]["scvr_auc"]
     assert any(r["evidence"] for r in rows if r["method"] == "rayfronts" and r["depth_limit"] == 10.0)

@@ -6,13 +6,12 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from common.config import merge
 from apps.evaluation import raster as RA
 from apps.evaluation import shapes as S
 
-torch.set_num_threads(2)
+pytestmark = pytest.mark.usefixtures("torch_two_threads")
 
 
 def _case(rng, vox):

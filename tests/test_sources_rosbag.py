@@ -8,9 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-pytest.importorskip("rosbags")
-from rosbags.rosbag2 import Writer  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from rosbags.rosbag2 import Writer
+from rosbags.typesys import Stores, get_typestore
 
 from edge.sources import SourceConfig, SourceError, open_source  # noqa: E402
 

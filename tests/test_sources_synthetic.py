@@ -7,7 +7,7 @@ import pytest
 from common.geometry import camera_rays, intrinsics_from_fov
 from edge.sources import SourceConfig, SourceError, open_source, select_indices
 
-world_mod = pytest.importorskip("common.world")
+import common.world as world_mod
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +91,7 @@ def test_synthetic_bad_config():
 # --------------------------------------------------------------------------- recording
 
 def test_recording_roundtrip(tmp_path, world):
-    rec = pytest.importorskip("common.recording")
+    import common.recording as rec
     frames = list(open_source(_cfg(n_frames=5)))
     path = tmp_path / "rec"
     with rec.RecordingWriter(path, robot="robot1", source={"type": "synthetic_world", "classes": world.classes,

@@ -11,7 +11,7 @@ from common.world import World
 
 
 def test_rayfronts_world_writes_recording_and_rrd(tmp_path, capsys):
-    rr = pytest.importorskip("rerun")
+    import rerun as rr
     from common.recording import RecordingReader
 
     out = tmp_path / "w"

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-zenoh = pytest.importorskip("zenoh")
+import zenoh  # noqa: F401  (core dependency: a missing one fails, never skips)
 
 from common.config import ConfigError, load_config  # noqa: E402
 from common.zenoh_session import (  # noqa: E402
