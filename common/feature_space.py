@@ -8,7 +8,10 @@ the mapper needs to compare text/image queries with it:
 * ``pca`` (optional): the centred PCA that compresses ``in_dim -> dim``;
 * ``head`` (optional): the language head (RADIO's SigLIP MLP2) that maps encoder features
   to the text model's space; applied at query time *after* averaging (brief §4.3);
-* ``text_model``: "minilm-l6" | "siglip" — which text encoder embeds queries.
+* ``text_model``: "minilm-l6" | "siglip" — which text encoder embeds queries;
+* ``encoder_config`` (optional): the encoder settings the mapper needs to embed *image*
+  queries with the same encoder (``EncoderConfig`` keys; not part of the id, which already
+  names the encoder version).
 
 Its id is ``f"{encoder_name}-{encoder_version}-{pca.content_hash or 'raw'}-{dim}"``; maps
 never mix ids. :meth:`to_body`/:meth:`from_body` give a flat dict of str/int/float/numpy
@@ -41,6 +44,7 @@ class FeatureSpace:
     pca: PCA | None = None
     head_config: MLP2Config | None = None
     head_state: dict[str, np.ndarray] | None = None
+    encoder_config: dict | None = None
     _head_cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
@@ -79,8 +83,9 @@ class FeatureSpace:
         if head is not None:
             hc = head.cfg
             hs = {k: v.detach().float().cpu().numpy() for k, v in head.state_dict().items()}
+        qc = getattr(encoder, "query_config", None)
         return cls(encoder.name, str(encoder.version), int(encoder.feature_dim),
-                   getattr(encoder, "text_model", "minilm-l6"), pca, hc, hs)
+                   getattr(encoder, "text_model", "minilm-l6"), pca, hc, hs, dict(qc) if qc else None)
 
     # ------------------------------------------------------------------ wire body
     def to_body(self) -> dict:
@@ -95,6 +100,8 @@ class FeatureSpace:
             b["pca.explained_variance"] = self.pca.explained_variance.astype(np.float64)
             b["pca.total_variance"] = float(self.pca.total_variance)
             b["pca.n_samples"] = int(self.pca.n_samples)
+        if self.encoder_config:
+            b["encoder_config"] = dict(self.encoder_config)
         if self.head_config is not None:
             for k, v in self.head_config.to_dict().items():
                 b[f"head.cfg.{k}"] = int(v) if isinstance(v, bool) else v
@@ -154,8 +161,13 @@ class FeatureSpace:
                 wrong = sorted(k for k in set(expect) & set(got) if expect[k] != got[k])
                 raise FeatureSpaceError(f"language head tensors do not match its config: missing {missing}, "
                                         f"unexpected {extra}, wrong shapes {wrong}")
+        ec = body.get("encoder_config")
+        if ec is not None and not (isinstance(ec, dict) and len(ec) <= 64 and all(
+                isinstance(k, str) and (v is None or isinstance(v, (str, int, float, bool, list)))
+                for k, v in ec.items())):
+            raise FeatureSpaceError("feature-space field 'encoder_config' must be a map of str to plain values")
         fs = cls(get("encoder_name", str), get("encoder_version", str), in_dim,
-                 get("text_model", str), pca, hc, hs)
+                 get("text_model", str), pca, hc, hs, dict(ec) if ec else None)
         if fs.dim != dim:
             raise FeatureSpaceError(f"body dim {dim} != PCA output dim {fs.dim}")
         if "id" in body and body["id"] != fs.id:

@@ -80,17 +80,19 @@ def embed_text(fs, text: str, device="cpu", model_dir: str = "", templates: str 
     return _TEXT_CACHE[key]
 
 
-def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "", templates: str = "auto") -> torch.Tensor:
+def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "", templates: str = "auto",
+                  image_model_dir: str = "") -> torch.Tensor:
     """(1, lang_dim) query vector in the feature space's language space (text: see
-    :func:`query_templates`)."""
+    :func:`query_templates`; image: :mod:`mapper.image_query`)."""
     if req.embedding is not None:
         e = torch.as_tensor(np.asarray(req.embedding, np.float32))
         if e.shape[-1] != fs.lang_dim:
             raise MessageError(f"embedding has {e.shape[-1]} dims, the map's language space has {fs.lang_dim}")
         return e.reshape(1, -1)
     if req.image is not None:
-        raise MessageError(f"image queries need an image encoder on the mapper; feature space {fs.id} "
-                           f"({fs.text_model}) has none — send text or an embedding")
+        from mapper.image_query import embed_image
+
+        return embed_image(fs, req.image, device, model_dir, image_model_dir, text_encoder)
     return embed_text(fs, req.text, device, model_dir, templates)
 
 
@@ -371,7 +373,8 @@ def softmax_set(fs, req: QueryRequest, qcfg, standing=(), device="cpu", model_di
     others = [r for r in standing if r.id != req.id and not r.cancel]
     if not others:
         return None
-    return torch.cat([embed_request(fs, r, device, model_dir, tl) for r in others])
+    return torch.cat([embed_request(fs, r, device, model_dir, tl, getattr(qcfg, "image_model_dir", ""))
+                      for r in others])
 
 
 def answer_query(m, fs, req: QueryRequest, qcfg, device="cpu", model_dir: str = "") -> QueryResult:
@@ -396,7 +399,8 @@ def answer_snapshot(snap: QuerySnapshot, fs, req: QueryRequest, qcfg, device="cp
     ``topk``, ``clusters``, ``search_volume``, ``postprocess`` (the last three together)."""
     timings: dict[str, float] = {}
     t = time.perf_counter()
-    q = embed_request(fs, req, device, model_dir, getattr(qcfg, "templates", "auto"))
+    q = embed_request(fs, req, device, model_dir, getattr(qcfg, "templates", "auto"),
+                      getattr(qcfg, "image_model_dir", ""))
     neg = softmax_set(fs, req, qcfg, standing, device, model_dir) if req.softmax else None
     timings["encode"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()

@@ -45,6 +45,8 @@ class QuerySection:
         "queries", "what a softmax query is normalised against: 'queries' = the other standing queries (the "
                    "paper; a lone query scores 1 everywhere), 'negatives' = the phrases in softmax_negatives")
     softmax_negatives: list[str] = field_(["object", "things", "stuff", "texture"], "phrases of softmax_set=negatives")
+    image_model_dir: str = field_("", "image queries on NARADIO maps: directory with the edge's RADIO checkpoint "
+                                      "(default $RAYFRONTS_MODEL_DIR or ~/.cache/rayfronts/models)")
     search_cell_m: float = field_(2.0, "finest spacing of the sample lattice that measures the union of cones (m)")
     search_samples: int = field_(100_000, "sample points (all cones together) that measure the search volume; caps "
                                           "its cost (exact for one cone, disjoint or identical cones)")

@@ -97,18 +97,19 @@ def check_inputs(args) -> None:
         raise ConfigError(f"--top-k must be >= 1 (got {args.top_k})")
     if args.timeout <= 0:
         raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
+    if args.text is not None and args.image is not None:
+        raise ConfigError("give either a query text or --image PATH, not both")
     if args.image is not None:
         import os
 
+        from query_client.client import QueryError, read_query_image
+
         if not os.path.isfile(args.image):
             raise ConfigError(f"image file not found: {args.image}")
-        import cv2
-        import numpy as np
-
-        data = _read(args.image)
-        ok = len(data) > 0 and cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is not None
-        if not ok:
-            raise ConfigError(f"cannot decode image {args.image}: not a JPEG/PNG/BMP/TIFF image")
+        try:  # size and file type here (no image library needed); the mapper decodes the pixels
+            read_query_image(args.image)
+        except QueryError as e:
+            raise ConfigError(str(e)) from None
 
 
 def run(args: argparse.Namespace) -> int:

@@ -13,6 +13,7 @@ All positions are metres in the mapper's world frame (z up). Errors from the map
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import uuid
 from typing import Callable
@@ -26,7 +27,8 @@ from common.messages import (
 
 log = logging.getLogger("rayfronts.query_client")
 
-__all__ = ["Client", "QueryResult", "QueryError", "MapperUnavailable", "WatchHandle"]
+__all__ = ["Client", "QueryResult", "QueryError", "QueryImageError", "MapperUnavailable", "WatchHandle",
+           "read_query_image"]
 
 
 class QueryError(RuntimeError):
@@ -35,6 +37,47 @@ class QueryError(RuntimeError):
 
 class MapperUnavailable(QueryError):
     """No mapper answered within the timeout."""
+
+
+class QueryImageError(QueryError):
+    """A query image that cannot be sent (missing, empty, too big, not an image file)."""
+
+
+#: leading bytes of the image formats the mapper decodes (OpenCV)
+_IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n", b"BM", b"RIFF", b"II*\x00", b"MM\x00*")
+
+
+def read_query_image(image: bytes | str | os.PathLike) -> bytes:
+    """The encoded bytes of a query image (a path or the bytes themselves), checked here so a
+    bad input fails with one clear line before anything is sent: missing or unreadable file,
+    zero size, over ``common.messages.MAX_IMAGE_BYTES``, not a JPEG/PNG/BMP/WebP/TIFF file.
+    The pixels are decoded (and their size limited) on the mapper; the client needs no image
+    library and no torch."""
+    from common.messages import MAX_IMAGE_BYTES
+
+    if isinstance(image, (bytes, bytearray, memoryview)):
+        data, what = bytes(image), "query image"
+    else:
+        path = os.fspath(image)
+        what = f"query image {path}"
+        try:
+            size = os.path.getsize(path)
+        except OSError as e:
+            raise QueryImageError(f"{what}: {e.strerror or e}") from None
+        if size > MAX_IMAGE_BYTES:
+            raise QueryImageError(f"{what} is {size} bytes, over the limit of {MAX_IMAGE_BYTES} bytes")
+        try:
+            with open(path, "rb") as f:
+                data = f.read(MAX_IMAGE_BYTES + 1)
+        except OSError as e:
+            raise QueryImageError(f"{what}: {e.strerror or e}") from None
+    if not data:
+        raise QueryImageError(f"{what} is empty (0 bytes)")
+    if len(data) > MAX_IMAGE_BYTES:
+        raise QueryImageError(f"{what} is {len(data)} bytes, over the limit of {MAX_IMAGE_BYTES} bytes")
+    if not data.startswith(_IMAGE_MAGIC) or (data.startswith(b"RIFF") and data[8:12] != b"WEBP"):
+        raise QueryImageError(f"{what} is not an image file (expected JPEG, PNG, BMP, WebP or TIFF)")
+    return data
 
 
 class WatchHandle:
@@ -129,10 +172,10 @@ class Client:
     def query(self, text: str | None = None, image: bytes | str | None = None, top_k: int = 10,
               timeout: float | None = None, *, embedding: np.ndarray | None = None,
               softmax: bool = False) -> QueryResult:
-        """Run one query now. ``image`` = encoded image bytes or a file path."""
-        if isinstance(image, str):
-            with open(image, "rb") as f:
-                image = f.read()
+        """Run one query now. ``image`` = encoded image bytes or a file path (checked by
+        :func:`read_query_image`; the mapper embeds it in the map's feature space)."""
+        if image is not None:
+            image = read_query_image(image)
         req = QueryRequest(text=text, image=image, embedding=embedding, top_k=int(top_k), softmax=softmax)
         oks, errs = self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
         return self._merged(oks, errs, int(top_k))
@@ -178,6 +221,8 @@ class Client:
             except Exception as e:  # never raise out of a zenoh callback
                 log.warning("standing query %s: %s", qid, e)
 
+        if image is not None:
+            image = read_query_image(image)
         sub = self.session.declare_subscriber(self.keys.mapper_queries(qid), on_sample)
         handle = WatchHandle(self, qid, sub)
         self._watches.add(handle)

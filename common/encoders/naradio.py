@@ -64,12 +64,27 @@ class NaradioEncoder:
                                        cfg.reduced_block) if cfg.naclip else None)
         self.checkpoint_path = str(path)
         arch = cfg.model if cfg.model in PRESETS else rc.arch
-        self.version = f"{arch}.{ckpt.weights_hash()}" + ("" if cfg.normalize_input else ".nonorm") + \
-            ("" if cfg.naclip else ".plain") + (".lang" if cfg.output == "language" else "")
         self.stride = rc.patch_size
+        # the version names everything that changes the features (weights, input conditioning,
+        # NACLIP and its settings, output space), so maps of different settings never mix
+        naclip_tag = ".plain" if not cfg.naclip else (
+            (f".g{cfg.gauss_std:g}" if cfg.gauss_std != 7.0 else "") + (".reduced" if cfg.reduced_block else ""))
+        self.version = f"{arch}.{ckpt.weights_hash()}" + ("" if cfg.normalize_input else ".nonorm") + \
+            naclip_tag + (".lang" if cfg.output == "language" else "") + \
+            ("" if not cfg.input_resolution else ".r{}x{}".format(*self.input_size(1, 1)))
         self.feature_dim = self.head.out_dim if cfg.output == "language" else rc.embed_dim
         #: the head the mapper applies at query time (None when features are already language-space)
         self.language_head = None if cfg.output == "language" else self.head
+
+    @property
+    def query_config(self) -> dict:
+        """The settings another process needs to build this encoder for image queries
+        (``FeatureSpace.encoder_config``): ``EncoderConfig`` keys, without device and dtype."""
+        c = self.cfg
+        return {"kind": "naradio", "model": c.model, "checkpoint": c.checkpoint, "lang_adaptor": c.lang_adaptor,
+                "summary_slot": int(self.slot), "naclip": bool(c.naclip), "gauss_std": float(c.gauss_std),
+                "reduced_block": bool(c.reduced_block), "normalize_input": bool(c.normalize_input),
+                "input_resolution": [int(v) for v in c.input_resolution], "output": c.output}
 
     # ---------------------------------------------------------------- input
     def input_size(self, h: int, w: int) -> tuple[int, int]:
