@@ -98,7 +98,7 @@ def test_b2_absolute_cost_can_pick_a_different_frontier():
     fr = torch.tensor([[2, 0, -1], [29, 0, 0]])
     _, pf, pc = associate(o, d, fr, 1.0, max_dist=100.0, cost="paper")
     _, af, ac = associate(o, d, fr, 1.0, max_dist=100.0, cost="absolute")
-    _a_ortho, a_orig = math.hypot(0.1, 0.9), math.sqrt(2.5 ** 2 + 0.1 ** 2 + 0.9 ** 2)
+    a_orig = math.sqrt(2.5 ** 2 + 0.1 ** 2 + 0.9 ** 2)
     b_ortho, b_orig = math.hypot(0.1, 0.1), math.sqrt(29.5 ** 2 + 0.02)
     assert pf.tolist() == [0] and af.tolist() == [1]
     assert float(pc[0]) == pytest.approx((1 + a_orig / b_orig) / 2, abs=1e-6)
@@ -208,3 +208,20 @@ def test_b5_occ_observ_weight_names_the_int8_bound():
     m.integrate(np.asarray(pose), np.asarray(K), depth, features=torch.ones(4, 32, 32))
     ijk, vals = m.occupancy.active()
     assert int(torch.as_tensor(vals).max()) == 127
+
+
+def test_srchvol_variants_are_rayfronts_with_overrides():
+    """eval srchvol variants (the B2 ablation): RayFronts' map config plus the overrides, at
+    every depth RayFronts runs (zero-depth mode at 0 m); names may not shadow a method."""
+    from common.config import ConfigError, merge
+    from apps.evaluation.srchvol import SrchvolConfig, method_map_config
+    cfg = merge(SrchvolConfig(), {"variants": {"rf_abs": {"ray_cost_norm": "absolute"}}}).validate()
+    assert cfg.all_methods()[-1] == "rf_abs" and cfg.all_methods()[:-1] == cfg.methods
+    for d in (0.0, 10.0, 20.0):
+        a, b = method_map_config(cfg, "rf_abs", d, 96), method_map_config(cfg, "rayfronts", d, 96)
+        assert a.ray_cost_norm == "absolute" and b.ray_cost_norm == "paper"
+        assert a.zero_depth_mode == b.zero_depth_mode == (d == 0.0)
+        assert {k: v for k, v in a.__dict__.items() if k != "ray_cost_norm"} == \
+            {k: v for k, v in b.__dict__.items() if k != "ray_cost_norm"}
+    with pytest.raises(ConfigError, match="variant"):
+        merge(SrchvolConfig(), {"variants": {"rayfronts": {"ray_cost_norm": "absolute"}}}).validate()

@@ -52,15 +52,15 @@ from typing import Literal
 import numpy as np
 import torch
 
+from common.config import ConfigError, field_, section, to_dict
+from edge.encoders.config import EncoderConfig
+from edge.sources.config import SourceConfig
 from apps.evaluation import metrics as M
 from apps.evaluation import raster as R
 from apps.evaluation import shapes as S
 from apps.evaluation.data import GroundTruth, ground_truth, load_frames, pack
 from apps.evaluation.figures import METHOD_TITLES
 from apps.evaluation.language import eval_language
-from common.config import ConfigError, field_, section, to_dict
-from edge.encoders.config import EncoderConfig
-from edge.sources.config import SourceConfig
 
 log = logging.getLogger("rayfronts.eval")
 
