@@ -226,7 +226,9 @@ def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, 
         was_done = done_edge
         if done_edge and settled and st.get("flushed_version") == st.get("map_version"):
             if key == last:
-                if stable_since and time.monotonic() - stable_since > 1.0:
+                if stable_since is None:  # the final state may be reached before the edge exits
+                    stable_since = time.monotonic()
+                if time.monotonic() - stable_since > 1.0:
                     if line is not None:
                         line.update(f"  frames received {fr['received']:4d}  mapped {fr['mapped']:4d}  dropped "
                                     f"{fr['dropped']}  rejected {fr['rejected_total']}  edge done", force=True)
