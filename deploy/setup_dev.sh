@@ -197,7 +197,7 @@ else
   else
     say "installing the project and building its C++ extensions ($CMAKE_BUILD_PARALLEL_LEVEL jobs; ~3-4 min on 2 cores)"
     rc=0
-    FILTER='(^ *\[ *[0-9]+%\]|^\[[0-9]+/[0-9]+\]|will NOT be built|CMake Error|error:|Successfully installed|ERROR)' \
+    FILTER='(^ *\[ *[0-9]+%\]|^ *\[[0-9]+/[0-9]+\]|^ *\*\*\* (Configuring|Building|Installing)|will NOT be built|CMake Error|error:|Successfully installed|ERROR)' \
       filtered "$VPY" -m pip install "${PIP_EXT[@]}" || rc=$?
     if [ "$rc" = 0 ] && [ -z "${RAYFRONTS_NO_EXT_CACHE:-}" ] && ls "$SITE"/mapper/_*.so >/dev/null 2>&1; then
       mkdir -p "$EXT_CACHE" && cp "$SITE"/mapper/_*.so "$EXT_CACHE"/ && say "cached the built extensions in $EXT_CACHE"
