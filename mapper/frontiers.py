@@ -16,6 +16,13 @@ bounding box ``[lo, hi]`` every fine voxel whose frontier status can have change
 recomputed, and exactly the coarse cells inside it are replaced. Cells outside keep their
 (unchanged) counts. This fixes the reference's replacement of coarse centres against the
 fine box (§10.2 #13), which duplicated or lost cells straddling the box edge.
+
+Replacing a region touches only the keys of its x-slab (keys are sorted ``(i, j, k)``, so
+the cells with ``i`` in the box are one contiguous run found by binary search) and merges
+the new cells into that run: the cost follows the region, not the table. Every key a
+replacement removes is logged; :meth:`FrontierTable.take_removed` hands the log to the ray
+store, which then prunes only the rays of those frontiers (``None`` after
+:meth:`load_state`: the history is unknown and the caller prunes against the whole table).
 """
 from __future__ import annotations
 
@@ -36,6 +43,8 @@ class FrontierTable:
         self.device = torch.device(device)
         self.keys = torch.empty(0, dtype=torch.int64, device=self.device)
         self.counts = torch.empty(0, dtype=torch.int64, device=self.device)
+        self._removed: list[torch.Tensor] = []
+        self._removed_known = True
 
     @property
     def beta(self) -> float:
@@ -69,18 +78,57 @@ class FrontierTable:
         ``fine_ijk`` (fine frontier voxels, all inside the box)."""
         clo = torch.as_tensor(clo, dtype=torch.int64, device=self.device)
         chi = torch.as_tensor(chi, dtype=torch.int64, device=self.device)
-        if self.keys.numel():
-            c = K_.unpack(self.keys)
-            inside = ((c >= clo) & (c <= chi)).all(1)
-            self.keys, self.counts = self.keys[~inside], self.counts[~inside]
         if fine_ijk.numel():
             coarse = torch.div(fine_ijk, self.s, rounding_mode="floor")
             uk, cnt = torch.unique(K_.pack(coarse), return_counts=True)
             keep = cnt > self.min_fronti
-            k = torch.cat([self.keys, uk[keep]])
-            n = torch.cat([self.counts, cnt[keep]])
-            o = torch.argsort(k)
-            self.keys, self.counts = k[o], n[o]
+            new_k, new_n = uk[keep], cnt[keep]
+        else:
+            new_k = torch.empty(0, dtype=torch.int64, device=self.device)
+            new_n = torch.empty(0, dtype=torch.int64, device=self.device)
+        if self.keys.numel() == 0:
+            self.keys, self.counts = new_k, new_n
+            return
+        # the x-slab [clo_i, chi_i] of the sorted keys: one contiguous run
+        lo_i = min(max(int(clo[0]) + K_.OFFSET, 0), K_.MASK)
+        hi_i = min(max(int(chi[0]) + K_.OFFSET, 0), K_.MASK)
+        bounds = torch.tensor([lo_i << (2 * K_.BITS), (hi_i << (2 * K_.BITS)) | ((1 << (2 * K_.BITS)) - 1)],
+                              dtype=torch.int64, device=self.device)
+        a = int(torch.searchsorted(self.keys, bounds[:1]))
+        b = int(torch.searchsorted(self.keys, bounds[1:], right=True))
+        b = max(a, b)  # empty slab: the new cells go in at a
+        slab_k, slab_n = self.keys[a:b], self.counts[a:b]
+        c = K_.unpack(slab_k)
+        inside = ((c >= clo) & (c <= chi)).all(1)
+        old_in = slab_k[inside]
+        if old_in.numel():
+            gone = old_in[~torch.isin(old_in, new_k)] if new_k.numel() else old_in
+            if gone.numel():
+                self._removed.append(gone)
+        rest_k, rest_n = slab_k[~inside], slab_n[~inside]
+        if new_k.numel():
+            mk = torch.cat([rest_k, new_k])
+            mn = torch.cat([rest_n, new_n])
+            o = torch.argsort(mk)
+            mk, mn = mk[o], mn[o]
+        else:
+            mk, mn = rest_k, rest_n
+        if not old_in.numel() and not new_k.numel():
+            return
+        self.keys = torch.cat([self.keys[:a], mk, self.keys[b:]])
+        self.counts = torch.cat([self.counts[:a], mn, self.counts[b:]])
+
+    def take_removed(self) -> torch.Tensor | None:
+        """Sorted unique keys removed by :meth:`replace_region` since the last call (some may
+        be back in the table since), and clear the log; ``None`` when the log is incomplete
+        (after :meth:`load_state`)."""
+        known, self._removed_known = self._removed_known, True
+        parts, self._removed = self._removed, []
+        if not known:
+            return None
+        if not parts:
+            return torch.empty(0, dtype=torch.int64, device=self.device)
+        return torch.unique(torch.cat(parts))
 
     def contains(self, keys: torch.Tensor) -> torch.Tensor:
         return K_.lookup(self.keys, keys) >= 0
@@ -91,6 +139,7 @@ class FrontierTable:
     def load_state(self, st: dict) -> None:
         self.keys = st["keys"].to(self.device, torch.int64)
         self.counts = st["counts"].to(self.device, torch.int64)
+        self._removed, self._removed_known = [], False
 
 
 def subsample(fine_ijk: torch.Tensor, s: int, min_fronti: int) -> tuple[torch.Tensor, torch.Tensor]:

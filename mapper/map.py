@@ -338,7 +338,12 @@ class RayFrontsMap:
         self.counters["ray_blocks"] += 1
         t = time.perf_counter()
         fk = self.fronts.keys
-        requeued = self.ray_store.prune(fk, requeue=cfg.ray_tracing)
+        gone = self.fronts.take_removed()  # frontiers removed since the last ray block
+        if gone is None:  # history unknown (restored table): prune against the whole table
+            requeued = self.ray_store.prune(fk, requeue=cfg.ray_tracing)
+        else:
+            gone = gone[~self.fronts.contains(gone)] if gone.numel() else gone
+            requeued = self.ray_store.prune_keys(gone, requeue=cfg.ray_tracing)
         t = self._tick("ray_prune", t)
         bufs = list(self._buf_rays)
         self._buf_rays = []
@@ -445,5 +450,5 @@ class RayFrontsMap:
     @classmethod
     def load(cls, path, device="cpu", occupancy_backend: str = "auto") -> "RayFrontsMap":
         from mapper.snapshot import load_map
-        return load_map(path, device=device, occupancy_backend=occupancy_backend)
+        return load_map(path, cls, device=device, occupancy_backend=occupancy_backend)
 

@@ -152,9 +152,10 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     """Match rays to coarse frontiers (cells ``frontier_ijk`` (F, 3) of size ``beta``).
 
     Returns ``(ray_idx (K,), frontier_idx (K,), cost (K,) float64)`` for the rays that found
-    a frontier; ``cost`` = ``paper`` | ``absolute`` (module docstring). Exact same result as :func:`associate_bruteforce`. Candidates come from the
-    C++ kernel (:mod:`mapper.kernels`, blocks of ``block``³ coarse cells) when available,
-    else from the torch walk below; the exact test and cost are the same torch code."""
+    a frontier; ``cost`` = ``paper`` | ``absolute`` (module docstring). Exact same result as
+    :func:`associate_bruteforce`. Candidates come from the C++ kernel (:mod:`mapper.kernels`,
+    blocks of ``block``³ coarse cells) when available, else from the torch walk below; the
+    exact test and cost are the same torch code."""
     dev = origins.device
     R, F = origins.shape[0], frontier_ijk.shape[0]
     e = torch.empty(0, dtype=torch.int64, device=dev)
@@ -276,7 +277,13 @@ class RayStore:
     """Binned semantic rays, sorted by (frontier key, bin id).
 
     Per bin: frontier key (packed coarse ijk), theta/phi bin, feature = weighted mean
-    (stored in ``feature_dtype``), accumulated weight, weighted sum of unit directions."""
+    (stored in ``feature_dtype``), accumulated weight, weighted sum of unit directions.
+
+    Incremental: :meth:`merge` finds each new (frontier, bin) by binary search on the sorted
+    frontier keys and scans only that frontier's bins; new bins are placed by one ordered
+    scatter (no sort of the store); :meth:`prune_keys` drops the bins of given vanished
+    frontiers the same way. Results (values and order) equal the full-scan :meth:`prune`
+    and the sort-based merge they replace (``tests/test_mapper_incremental.py``)."""
 
     def __init__(self, beta: float, psi: float, feature_dim: int, feature_dtype=torch.float32, device="cpu"):
         self.beta = float(beta)
@@ -312,18 +319,45 @@ class RayStore:
         alive = torch.isin(self.fkey, frontier_keys)
         out = None
         if requeue and not bool(alive.all()):
-            dead = ~alive
-            o = voxel_center(K_.unpack(self.fkey[dead]), self.beta)
-            n = self.dsum[dead].norm(dim=1, keepdim=True)
-            bc = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
-            dd = torch.where(n > 1e-12, self.dsum[dead] / n.clamp_min(1e-12), bc)
-            out = (o, dd, self.feat[dead].to(torch.float32))
+            out = self._dead_out(~alive)
         self._take(alive)
+        return out
+
+    def _ranges(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For sorted query frontier ``keys``: (lo (m,), count (m,), query id per row, row) of
+        every stored bin of those frontiers."""
+        lo = torch.searchsorted(self.fkey, keys)
+        cnt = torch.searchsorted(self.fkey, keys, right=True) - lo
+        q = torch.repeat_interleave(torch.arange(keys.numel(), device=self.device), cnt)
+        start = torch.cumsum(cnt, 0) - cnt
+        rows = lo[q] + (torch.arange(q.numel(), device=self.device) - start[q])
+        return lo, cnt, q, rows
+
+    def _dead_out(self, dead: torch.Tensor):
+        o = voxel_center(K_.unpack(self.fkey[dead]), self.beta)
+        n = self.dsum[dead].norm(dim=1, keepdim=True)
+        bc = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
+        dd = torch.where(n > 1e-12, self.dsum[dead] / n.clamp_min(1e-12), bc)
+        return (o, dd, self.feat[dead].to(torch.float32))
+
+    def prune_keys(self, gone_keys: torch.Tensor, requeue: bool):
+        """:meth:`prune` for a store whose only frontiers missing from the table are among
+        ``gone_keys`` (sorted unique): drops the bins of those frontiers, touching only them."""
+        if gone_keys.numel() == 0 or self.fkey.numel() == 0:
+            return None
+        _, _, _, rows = self._ranges(gone_keys)
+        if rows.numel() == 0:
+            return None
+        dead = torch.zeros(self.fkey.numel(), dtype=torch.bool, device=self.device)
+        dead[rows] = True
+        out = self._dead_out(dead) if requeue else None
+        self._take(~dead)
         return out
 
     def merge(self, fkeys: torch.Tensor, frontier_keys_sorted: torch.Tensor, dirs: torch.Tensor,
               feats: torch.Tensor, w: torch.Tensor) -> None:
-        """Bin new rays (frontier key, unit dir, feature, weight) and fuse by weighted mean."""
+        """Bin new rays (frontier key, unit dir, feature, weight) and fuse by weighted mean.
+        Every ray's and every stored bin's frontier must be in ``frontier_keys_sorted``."""
         if fkeys.numel() == 0:
             return
         tb, pb = angle_bins(dirs, self.psi)
@@ -332,7 +366,7 @@ class RayStore:
         if bool((fi_new < 0).any()):
             raise ValueError("ray refers to a frontier that is not in the table")
         comp_new = fi_new * nb + tb * self.np_ + pb
-        uc, inv = torch.unique(comp_new, return_inverse=True)
+        uc, inv = torch.unique(comp_new, return_inverse=True)  # sorted = (frontier key, bin) order
         m = uc.numel()
         w32 = w.to(torch.float32)
         sw = torch.zeros(m, dtype=torch.float32, device=self.device).index_add_(0, inv, w32)
@@ -340,30 +374,45 @@ class RayStore:
             0, inv, feats.to(torch.float32) * w32[:, None])
         sd = torch.zeros((m, 3), dtype=torch.float32, device=self.device).index_add_(
             0, inv, dirs.to(torch.float32) * w32[:, None])
-        fi_old = K_.lookup(frontier_keys_sorted, self.fkey)
-        comp_old = fi_old * nb + self.tbin * self.np_ + self.pbin
-        pos = K_.lookup(comp_old, uc)
+        ufi = torch.div(uc, nb, rounding_mode="floor")
+        ub = uc - ufi * nb
+        ufk = frontier_keys_sorted[ufi]
+        # locate each (frontier, bin) among that frontier's stored bins only
+        lo, _, q, rows = self._ranges(ufk)
+        rb = self.tbin[rows] * self.np_ + self.pbin[rows]
+        hit = rb == ub[q]
+        pos = torch.full((m,), -1, dtype=torch.int64, device=self.device)
+        pos[q[hit]] = rows[hit]
         ex = pos >= 0
         if bool(ex.any()):
-            rows = pos[ex]
-            W0 = self.weight[rows]
+            rows_ex = pos[ex]
+            W0 = self.weight[rows_ex]
             W1 = W0 + sw[ex]
-            self.feat[rows] = ((self.feat[rows].to(torch.float32) * W0[:, None] + sf[ex]) / W1[:, None]).to(self.dtype)
-            self.weight[rows] = W1
-            self.dsum[rows] = self.dsum[rows] + sd[ex]
+            self.feat[rows_ex] = ((self.feat[rows_ex].to(torch.float32) * W0[:, None] + sf[ex]) / W1[:, None]).to(self.dtype)
+            self.weight[rows_ex] = W1
+            self.dsum[rows_ex] = self.dsum[rows_ex] + sd[ex]
         nw = ~ex
         if bool(nw.any()):
+            # insertion point of each new bin: after its frontier's smaller bins
+            below = torch.bincount(q[rb < ub[q]], minlength=m)
+            ins = (lo + below)[nw]                      # non-decreasing (keys sorted)
+            k = int(nw.sum())
+            R = self.fkey.numel()
+            new_rows = ins + torch.arange(k, device=self.device)
+            old_rows = torch.arange(R, device=self.device) + torch.searchsorted(
+                ins, torch.arange(R, device=self.device), right=True)
             c = uc[nw]
             fidx = torch.div(c, nb, rounding_mode="floor")
             rem = c - fidx * nb
-            self.fkey = torch.cat([self.fkey, frontier_keys_sorted[fidx]])
-            self.tbin = torch.cat([self.tbin, torch.div(rem, self.np_, rounding_mode="floor")])
-            self.pbin = torch.cat([self.pbin, rem % self.np_])
-            self.feat = torch.cat([self.feat, (sf[nw] / sw[nw][:, None]).to(self.dtype)])
-            self.weight = torch.cat([self.weight, sw[nw]])
-            self.dsum = torch.cat([self.dsum, sd[nw]])
-            fi_all = K_.lookup(frontier_keys_sorted, self.fkey)
-            self._take(torch.argsort(fi_all * nb + self.tbin * self.np_ + self.pbin))
+            vals = {"fkey": frontier_keys_sorted[fidx], "tbin": torch.div(rem, self.np_, rounding_mode="floor"),
+                    "pbin": rem % self.np_, "feat": (sf[nw] / sw[nw][:, None]).to(self.dtype),
+                    "weight": sw[nw], "dsum": sd[nw]}
+            for f in self._fields():
+                old = getattr(self, f)
+                out = torch.empty((R + k,) + tuple(old.shape[1:]), dtype=old.dtype, device=self.device)
+                out[old_rows] = old
+                out[new_rows] = vals[f].to(old.dtype)
+                setattr(self, f, out)
 
     # -- views -------------------------------------------------------------------------
     def origins(self) -> torch.Tensor:
