@@ -83,3 +83,29 @@ def test_rerun_server_binds_loopback_only():
     finally:
         srv.close()
     assert srv.proc.poll() is not None
+
+
+def test_recording_file_carries_the_blueprint_and_the_layout(tmp_path):
+    """A mapper recording (RerunLogger to a file) holds a blueprint store next to the data,
+    read back by rerun's own CLI (``rerun rrd stats``), not by our code."""
+    import subprocess
+    from types import SimpleNamespace
+
+    from mapper.outputs.rerun import RerunLogger
+    from mapper.outputs.rerun_view import rerun_binary
+
+    path = tmp_path / "m.rrd"
+    lg = RerunLogger("rayfronts_test", file=str(path))
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    frame = SimpleNamespace(robot="r7", stamp=1.0, pose=np.eye(4), intrinsics=K,
+                            rgb=np.full((48, 64, 3), 120, np.uint8), depth=np.full((48, 64), 3.0, np.float32))
+    lg.log_frame(frame, 1)
+    xyz = np.random.default_rng(0).uniform(0, 10, (200, 3)).astype(np.float32)
+    lg.log_map(1, xyz, np.full((200, 3), 100, np.uint8), xyz[:5], xyz[:3], np.tile([[0, 0, 1.0]], (3, 1)), 0.5)
+    lg.close()
+    out = subprocess.run([rerun_binary(), "rrd", "stats", str(path)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    text = out.stdout
+    for ent in ("/viewport", "/blueprint_panel", "/world/robots/r7/camera/image/rgb", "/world/map/voxels"):
+        assert ent in text, f"{ent} not in the recording:\n{text[:3000]}"
+    assert text.count("/view/") >= 2  # the 3D view and the camera view of robot r7

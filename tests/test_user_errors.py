@@ -125,3 +125,19 @@ def test_zenoh_errors_are_rephrased_without_rust_paths():
     line = explain_zenoh_error("Unable to connect to any of [Single(tcp/10.0.0.5:7447)]!  at /a/b/orchestrator.rs:447.")
     assert "tcp/10.0.0.5:7447" in line and "rayfronts router" in line
     assert strip_rust_locations('Str("unknown key") at /x/zenoh/src/api/config.rs:86.') == 'Str("unknown key")'
+
+
+def test_overview_help_imports_no_heavy_module():
+    """`rayfronts --help` must not import torch, zenoh or rerun (it printed in 3 s before)."""
+    code = ("import sys, contextlib, io\n"
+            "from apps.cli import main\n"
+            "with contextlib.redirect_stdout(io.StringIO()) as out:\n"
+            "    try:\n"
+            "        main(['--help'])\n"
+            "    except SystemExit:\n"
+            "        pass\n"
+            "assert 'COMMAND' in out.getvalue() and 'query' in out.getvalue()\n"
+            "print(sorted(m for m in ('torch', 'zenoh', 'rerun', 'numpy', 'cv2') if m in sys.modules))\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]", r.stdout
