@@ -3,14 +3,24 @@ fetch of the mapper (module map: :mod:`mapper.state`; ARCHITECTURE.md).
 
 Data path::
 
-    Zenoh callback (per sample)          map worker thread (mapper.map_worker)
-    ─────────────────────────            ───────────────────────────────────
-    decode_frame (validates) ──reject──▶ counted by reason, rate-limited log
-         │ ok
-         ▼
-    per-robot bounded deque  ──full───▶ oldest dropped (counted)
-         │
-         └──────────── round-robin ───▶ Ingest.next_frame → integrate
+    Zenoh callback (per sample)   decode thread (mapper-decode)      map worker thread
+    ──────────────────────────    ─────────────────────────────      ──────────────────
+    bytes → bounded raw queue ──▶ decode_frame (validates) ─reject─▶ counted by reason
+      (full: oldest dropped,        │ ok                              (WireError.reason)
+       counted)                     ▼
+                                  per-robot bounded deque ──full──▶ oldest dropped (counted)
+                                    │
+                                    └─────── round-robin ─────────▶ Ingest.next_frame → integrate
+
+The Zenoh callback only copies the payload into a bounded queue (at most
+:data:`RAW_QUEUE_MAX` messages and 4 x ``queues.max_message_mb`` bytes): decoding, which
+costs ~3 ms for a real frame and is bounded for a hostile one (``common.wire``: < 10 ms CPU
+for any rejected header), runs on the ``mapper-decode`` thread. When the queue is full the
+callback waits for room (at most :data:`RAW_WAIT_S`; Zenoh then holds back that link's
+publisher, as its ``BLOCK`` congestion control means), and only then drops the oldest
+undecoded message (counted in ``frames.dropped``). So a flooding publisher is slowed down on
+its own link instead of pushing other robots' frames out, and the Zenoh threads that carry
+queries never decode anything.
 
 Nothing raised in a callback escapes it; nothing malformed reaches the map. Frames of a
 robot whose feature space is unknown are held in its queue until a ``get`` on
@@ -18,13 +28,20 @@ robot whose feature space is unknown are held in its queue until a ``get`` on
 feature space differs from the map's are rejected (maps never mix spaces). The first robot
 space fetched creates the map.
 
+A frame whose ``feature_space`` differs from its robot's known space is rejected and counted
+(``feature_space_mismatch``) without touching the robot's state or its queue: only the
+robot itself changes its space, by announcing it (its liveliness token appearing again, as
+a restarted edge's does, makes the mapper fetch ``robots/<robot>/feature_space`` anew).
+
 A new per-frame check goes in :meth:`Ingest.on_frame` (reject with a short reason code: it
 shows in ``stats().frames.rejected``); a new frame field's validation belongs in
 :mod:`common.wire.frame`.
 """
 from __future__ import annotations
 
+import collections
 import logging
+import threading
 import time
 
 import cv2  # noqa: F401  (decode_frame's image codecs load OpenCV lazily: load it before the first frame)
@@ -36,14 +53,21 @@ from mapper.state import MapperState, RobotState
 log = logging.getLogger("rayfronts.mapper")
 
 
+#: frames waiting for the decode thread
+RAW_QUEUE_MAX = 64
+#: how long a frame callback waits for room in a full decode queue before dropping the oldest
+RAW_WAIT_S = 2.0
+
+
 def reject_reason(err: Exception) -> str:
-    """A short, stable reason code from a decode error (``'depth'``, ``'pose'``, ``'message'``...)."""
-    text = str(err)
-    if text.startswith("frame: "):
-        text = text[len("frame: "):]
-    head = text.split(":", 1)[0].strip().split(" ")[0]
-    head = head.split(".")[0].split("[")[0]
-    return head[:40] or "malformed"
+    """A short, stable reason code from a decode error, from a fixed vocabulary
+    (``frame.depth``, ``frame.pose``, ..., ``header``, ``schema``, ``version``, ``message``;
+    see ``common.wire.WireError.reason``), never the attacker's text."""
+    if isinstance(err, WireError):
+        return err.reason
+    from common.wire.envelope import reject_reason as _reason
+
+    return _reason(str(err))
 
 
 class Ingest:
@@ -52,26 +76,90 @@ class Ingest:
     def __init__(self, state: MapperState):
         self.state = state
         self._rr = 0                         # round-robin start in next_frame
+        self._raw: collections.deque = collections.deque()   # (key, bytes, t_recv) for the decode thread
+        self._raw_bytes = 0
+        self._raw_lock = threading.Lock()
+        self._raw_room = threading.Condition(self._raw_lock)   # notified when the decode thread takes one
+        self._raw_ready = threading.Event()
+        self.raw_dropped = 0                 # frames dropped before decoding (raw queue full)
 
     # ============================================================ callbacks
     def on_frame(self, sample) -> None:
+        """Zenoh callback: copy the payload into the bounded raw queue (nothing else)."""
         s = self.state
         try:
-            key_robot = s.keys.robot_from_key(str(sample.key_expr))
+            key = str(sample.key_expr)
+            data = sample.payload.to_bytes()
+            t_recv = time.time()
+            max_bytes = 4 * s.limits.max_message_bytes
+            dropped = []
+            with self._raw_lock:
+                s.received += 1
+                if len(self._raw) >= RAW_QUEUE_MAX:   # back-pressure on this link first
+                    end = time.monotonic() + RAW_WAIT_S
+                    while len(self._raw) >= RAW_QUEUE_MAX and not s.stop.is_set():
+                        rem = end - time.monotonic()
+                        if rem <= 0:
+                            break
+                        self._raw_room.wait(rem)
+                self._raw.append((key, data, t_recv))
+                self._raw_bytes += len(data)
+                while len(self._raw) > RAW_QUEUE_MAX or (self._raw_bytes > max_bytes and len(self._raw) > 1):
+                    old = self._raw.popleft()
+                    self._raw_bytes -= len(old[1])
+                    dropped.append(old[0])
+            if dropped:
+                self._count_raw_drops(dropped)
+            self._raw_ready.set()
+        except Exception as e:  # never raise out of a callback
+            s.reject(None, "internal", repr(e))
+
+    def _count_raw_drops(self, keys: list[str]) -> None:
+        s = self.state
+        with s.qlock:
+            self.raw_dropped += len(keys)
+            s.dropped += len(keys)
+            for key in keys:
+                try:
+                    st = s.robots.get(s.keys.robot_from_key(key))
+                except Exception:
+                    st = None
+                if st is not None:
+                    st.dropped += 1
+        s.warn("raw-queue", "decode backlog full: dropped %d undecoded frame(s)", len(keys))
+
+    def decode_loop(self) -> None:
+        """The decode thread: validates queued payloads and queues the frames per robot."""
+        s = self.state
+        while not s.stop.is_set():
+            self._raw_ready.clear()
+            with self._raw_lock:
+                item = self._raw.popleft() if self._raw else None
+                if item is not None:
+                    self._raw_bytes -= len(item[1])
+                    self._raw_room.notify()
+            if item is None:
+                self._raw_ready.wait(0.5)
+                continue
+            self.handle_frame(*item)
+
+    def handle_frame(self, key: str, data: bytes, t_recv: float) -> None:
+        """Decode and validate one frame message, then queue it for its robot (or reject it)."""
+        s = self.state
+        try:
+            key_robot = s.keys.robot_from_key(key)
         except Exception:
             key_robot = None
         try:
-            s.received += 1
             t0 = time.perf_counter()
             try:
-                data = sample.payload.to_bytes()
                 frame = decode_frame(data, limits=s.limits)
             except WireError as e:
                 s.reject(key_robot if key_robot in s.robots else None, reject_reason(e), str(e))
                 return
             s.timings["decode_ms"].add((time.perf_counter() - t0) * 1e3)
             if key_robot is None or frame.robot != key_robot:
-                s.reject(None, "robot_mismatch", f"frame robot {frame.robot!r} on key {sample.key_expr}")
+                s.reject(None, "robot_mismatch", f"frame robot {frame.robot!r} on key {key[:200]}")
                 return
             if frame.features is None:
                 s.reject(key_robot, "no_features", "frame carries no features")
@@ -80,15 +168,22 @@ class Ingest:
                 st = s.robot(key_robot)
                 st.received += 1
                 if st.feature_space and frame.feature_space != st.feature_space:
-                    # the edge may have restarted with another basis: refetch, reject meanwhile
-                    st.fetch_after = 0.0
-                    st.space_ok = False
-                    st.feature_space = ""
-                    s.space_wake.set()
-                if len(st.queue) == st.queue.maxlen:
-                    st.dropped += 1
-                    s.dropped += 1
-                st.queue.append((frame, time.time()))
+                    # not the robot's announced space: reject, touching neither its state nor
+                    # its queue (a restarted edge announces a new space through liveliness)
+                    st.rejected["feature_space_mismatch"] += 1
+                    s.rejected["feature_space_mismatch"] += 1
+                    mismatch = True
+                else:
+                    mismatch = False
+                    if len(st.queue) == st.queue.maxlen:
+                        st.dropped += 1
+                        s.dropped += 1
+                    st.queue.append((frame, t_recv))
+            if mismatch:
+                s.warn(f"{key_robot}:feature_space_mismatch", "rejected frame from %s (feature_space_mismatch): "
+                       "space %r, the robot announced %r", key_robot, frame.feature_space[:80], st.feature_space)
+                return
+            with s.qlock:
                 if not st.space_ok and not st.space_error:
                     # frames flow, so the edge's space is ready: fetch now rather than at the
                     # retry period (at most every 0.2 s), else frames pile up meanwhile
@@ -112,8 +207,11 @@ class Ingest:
                 st = s.robot(robot)
                 if sample.kind == zenoh.SampleKind.PUT:
                     st.present, st.seen_at, st.gone_at = True, time.time(), None
-                    st.fetch_after = 0.0   # (re)fetch the space of a (re)started edge
-                    log.info("robot %s present", robot)
+                    # a (re)started edge announces its space anew: fetch it (frames are held
+                    # meanwhile and checked against it in next_frame)
+                    st.fetch_after = 0.0
+                    st.space_ok, st.feature_space, st.space_error = False, "", ""
+                    log.info("robot %s present; fetching its feature space", robot)
                 else:
                     st.present, st.gone_at = False, time.time()
                     log.info("robot %s gone", robot)

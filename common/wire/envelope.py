@@ -74,6 +74,8 @@ def reject_reason(text: str) -> str:
         field = head[len("frame"):].lstrip(".").split(".")[0].split("[")[0].split(" ")[0]
         return f"frame.{field}" if field in FRAME_FIELDS else "frame.malformed"
     word = head.split(" ")[0].split(".")[0].split("[")[0]
+    if word in FRAME_FIELDS:   # an array reference inside a frame field (envelope errors name the path)
+        return f"frame.{word}"
     return _TOP_REASONS.get(word, "array")
 
 
