@@ -2,10 +2,16 @@
 
 Measures, in one run:
 
-* ``encoder_fps``: the edge pipeline alone in this process (label encoder → PCA →
-  ``encode_frame``), no network, with the edge's torch thread count (``EdgeConfig.threads``);
-  ``edge_alone_fps`` the same plus reading the source (rendering the synthetic world), i.e.
-  all the per-frame work of the edge process;
+* ``encoder_fps`` (= ``rates.encoder_alone``): the encoder alone in this process — the one
+  call per frame the edge makes, ``encode_with_global(..., global_space="features")`` — built
+  as the edge builds it (``--model``: the label encoder, or NARADIO ``radio_v2.5-b`` / ``-l``
+  from ``--model-dir`` or random weights of the real architecture written to
+  ``<workdir>/models`` as a user's model directory; ``--output`` radio/language), with the
+  edge's torch thread count (``EdgeConfig.threads``);
+  ``edge_alone_fps`` (= ``rates.edge_alone``): all the per-frame work of the edge process in
+  this process, no network: reading the source (rendering the synthetic world), the encoder,
+  PCA and ``encode_frame``; ``ratios`` gives ``edge_alone / encoder_alone``,
+  ``e2e / encoder_alone`` and ``e2e / edge_alone`` from the same run;
 * ``e2e_fps``: frames integrated per second by a ``rayfronts mapper`` process fed by a
   ``rayfronts edge`` process through a ``rayfronts router`` (first to last integration),
   and ``e2e_vs_encoder`` / ``e2e_vs_edge_alone`` its ratios to the above;
@@ -46,6 +52,12 @@ HELP = "end-to-end edge -> mapper throughput, latency, bytes per frame, query ro
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", default="label", choices=["label", "radio_v2.5-b", "radio_v2.5-l"],
+                        help="the edge's encoder: the label encoder (default) or NARADIO (random weights of the "
+                             "real architecture unless --model-dir holds a checkpoint)")
+    parser.add_argument("--model-dir", default="", help="NARADIO: model directory with the RADIO checkpoint")
+    parser.add_argument("--output", default="radio", choices=["radio", "language"],
+                        help="NARADIO output space (encoder.output, default radio)")
     parser.add_argument("--frames", type=int, default=40, help="frames streamed end to end (default 40)")
     parser.add_argument("--resolution", default="224x224", help="frame size HxW (default 224x224)")
     parser.add_argument("--pca-dim", type=int, default=100, help="PCA dimension on the wire (default 100)")
@@ -83,46 +95,60 @@ def _pct(a) -> dict:
             "n": int(a.size)}
 
 
-def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, stride: int, edge_set=()) -> dict:
-    """The edge's per-frame work in this process, no network: ``encoder_fps`` (encoder →
-    PCA → ``encode_frame``, as the edge does it: with ``encode_global`` and the frame meta),
-    ``source_ms`` (reading = rendering a frame), ``edge_alone_fps`` (both), CPU ms per
-    frame, and the local message sizes. Runs with the edge's torch thread count (``edge_set``:
-    the edge's extra config overrides)."""
+def encoder_items(args, work: Path) -> list[str]:
+    """The edge's encoder config overrides for ``--model`` (the same for the in-process
+    measurement and the edge process)."""
+    if args.model == "label":
+        return ["encoder.kind=label", f"encoder.label_stride={args.label_stride}"]
+    from apps.bench.encoder import random_model_dir
+
+    mdir = Path(args.model_dir) if args.model_dir else random_model_dir(args.model, work / "models")
+    return ["encoder.kind=naradio", f"encoder.model={args.model}", f"encoder.model_dir={mdir}",
+            f"encoder.output={args.output}"]
+
+
+def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, items=(), edge_set=()) -> dict:
+    """The edge's per-frame work in this process, no network, as the edge does it: the
+    encoder's one call per frame (``encoder_fps``), then PCA → ``encode_frame`` with the frame
+    meta; ``source_ms`` (reading = rendering a frame), ``edge_alone_fps`` (all of it), CPU ms
+    per frame, and the local message sizes. Runs with the edge's torch thread count and the
+    edge's start-up check (``edge_set``: the edge's extra config overrides)."""
     import dataclasses
 
     import torch
 
+    from apps.bench.encoder import edge_encoder
     from common.pca import OnlinePCAFitter
     from common.wire import encode_frame
-    from common.config import load_config
-    from edge.encoders import make_encoder
-    from edge.runtime import EdgeConfig, compress_features, resolve_threads
+    from edge.runtime import check_setup, compress_features
     from edge.sources import SourceConfig, open_source
 
-    ecfg_all = load_config(EdgeConfig, None, ["encoder.kind=label", f"encoder.label_stride={stride}", *edge_set])
-    ecfg = ecfg_all.encoder
-    threads = resolve_threads(ecfg_all) or torch.get_num_threads()
     old_threads = torch.get_num_threads()
-    torch.set_num_threads(threads)
     try:
         src = open_source(SourceConfig(kind="synthetic", n_frames=n, resolution=res, depth_limit=20.0))
         t0, c0 = time.perf_counter(), time.process_time()
         frames = list(src)
         src_s, src_cpu = time.perf_counter() - t0, time.process_time() - c0
-        enc = make_encoder(ecfg, class_names=src.class_names)
-        fit = OnlinePCAFitter(pca_dim, max_frames=min(8, len(frames)))
-        for f in frames[:8]:
-            with torch.inference_mode():
-                fit.add(enc.encode(f.rgb, labels=f.labels))
-        pca = fit.fit()
-        pca.save(pca_path)
+        enc, ecfg, threads = edge_encoder([*items, f"pca.out_dim={pca_dim}", *edge_set], src.class_names)
+        pca = None
+        if pca_dim > 0:
+            fit = OnlinePCAFitter(pca_dim, max_frames=min(8, len(frames)))
+            for f in frames[:8]:
+                with torch.inference_mode():
+                    fit.add(enc.encode_with_global(f.rgb, f.labels, global_space="features")[0])
+            pca = fit.fit()
+            pca.save(pca_path)
+        check_setup(ecfg, enc, pca)
         sizes = []
+        enc_s = enc_cpu = 0.0
         t0, c0 = time.perf_counter(), time.process_time()
         for f in frames:
+            t1, c1 = time.perf_counter(), time.process_time()
             with torch.inference_mode():
-                x = enc.encode(f.rgb, labels=f.labels)
-                g = enc.encode_global(f.rgb, f.labels)
+                # as the edge does: one pass, the image vector in the dense features' space
+                x, g = enc.encode_with_global(f.rgb, f.labels, global_space="features")
+            enc_s += time.perf_counter() - t1
+            enc_cpu += time.process_time() - c1
             out = dataclasses.replace(f, features=compress_features(pca, x), feature_space="bench",
                                       global_feature=compress_features(pca, g.reshape(-1, 1, 1)).reshape(-1))
             out.meta = {**(out.meta or {}), "t_send": time.time(), "cpu_s": time.process_time()}
@@ -131,8 +157,9 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, stride: int, 
     finally:
         torch.set_num_threads(old_threads)
     k = len(frames)
-    return {"encoder_fps": k / dt, "edge_alone_fps": k / (dt + src_s), "source_ms": 1e3 * src_s / k,
-            "threads": threads, "cpu_ms": {"encoder_alone": 1e3 * cpu / k, "edge_alone": 1e3 * (cpu + src_cpu) / k},
+    return {"encoder_fps": k / enc_s, "pipeline_fps": k / dt, "edge_alone_fps": k / (dt + src_s),
+            "source_ms": 1e3 * src_s / k, "threads": threads, "feature_shape": list(x.shape),
+            "cpu_ms": {"encoder_alone": 1e3 * enc_cpu / k, "edge_alone": 1e3 * (cpu + src_cpu) / k},
             "sizes": {"mean": float(np.mean(sizes)), "max": int(np.max(sizes))}}
 
 
@@ -191,7 +218,8 @@ def run(args: argparse.Namespace) -> dict:
     pca_path = work / "pca.npz"
     shm = "true" if args.shm else "false"
     out: dict = {"machine": {"python": platform.python_version(), "cpu": platform.processor() or platform.machine()},
-                 "settings": {"frames": args.frames, "resolution": args.resolution, "pca_dim": args.pca_dim,
+                 "settings": {"model": args.model, "output": args.output if args.model != "label" else None,
+                              "frames": args.frames, "resolution": args.resolution, "pca_dim": args.pca_dim,
                               "preset": args.preset, "shared_memory": args.shm, "label_stride": args.label_stride,
                               "rate_hz": args.rate, "only": args.only, "query_voxels": args.query_voxels,
                               "query_rays": args.query_rays, "layers_hz": args.layers_hz,
@@ -237,8 +265,10 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from query_client.client import Client
 
-    alone = _encoder_alone(args.resolution, args.pca_dim, args.frames, pca_path, args.label_stride, args.edge_set)
+    items = encoder_items(args, work)
+    alone = _encoder_alone(args.resolution, args.pca_dim, args.frames, pca_path, items, args.edge_set)
     enc_fps = alone["encoder_fps"]
+    out["feature_shape"] = alone["feature_shape"]
     out["bytes_per_frame_local"] = alone["sizes"]
     out["encoder_fps"] = enc_fps
     out["edge_alone_fps"] = alone["edge_alone_fps"]
@@ -257,7 +287,7 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
         sub = c.session.declare_subscriber(c.keys.frames_all, lambda s: sizes.append(len(s.payload.to_bytes())))
         router_cpu0 = _cpu_s(router)
         edge = start("edge", "edge", "--connect", ep, "--zenoh-set", zs, "--rate", str(args.rate), "robot=bench",
-                     f"encoder.label_stride={args.label_stride}",
+                     *items,
                      f"source.n_frames={args.frames}", f"source.resolution={args.resolution}",
                      "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}",
                      *args.edge_set)
@@ -296,6 +326,9 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
     out["e2e_own_cores_vs_encoder"] = out["e2e_fps_own_cores"] / enc_fps if worst else None
     map_cpu = out["integrate_cpu_ms"].get("mean")
     out["mapper_map_fps_cpu_bound"] = 1e3 / map_cpu if map_cpu else None
+    out["rates"] = {"encoder_alone_fps": enc_fps, "edge_alone_fps": alone["edge_alone_fps"], "e2e_fps": out["e2e_fps"]}
+    out["ratios"] = {"edge_alone_vs_encoder_alone": alone["edge_alone_fps"] / enc_fps,
+                     "e2e_vs_encoder_alone": out["e2e_vs_encoder"], "e2e_vs_edge_alone": out["e2e_vs_edge_alone"]}
     out["load_avg_1_5_15"] = [round(x, 2) for x in os.getloadavg()]
     out["bytes_per_frame"] = {"mean": float(np.mean(sizes)) if sizes else None,
                               "max": int(np.max(sizes)) if sizes else None, "n": len(sizes),
