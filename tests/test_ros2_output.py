@@ -119,7 +119,11 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
                 msg = JAZZY.deserialize_cdr(last[1], "sensor_msgs/msg/PointCloud2")
                 return last if msg.width == n else None
 
-            key, raw, att = _wait(lambda: final("voxels", n_vox), 30, "the final voxel cloud")
+            try:
+                key, raw, att = _wait(lambda: final("voxels", n_vox), 60, "the final voxel cloud")
+            except AssertionError as e:
+                widths = [JAZZY.deserialize_cdr(r, "sensor_msgs/msg/PointCloud2").width for _, r, _ in subs["voxels"].samples]
+                raise AssertionError(f"{e}; voxel clouds seen: {widths}, map has {n_vox}; stats {c.stats()['map']}")
             # rmw_zenoh key with Jazzy's type hash, computed here by rosbags
             assert key == f"0/rayfronts/voxels/{_dds('sensor_msgs/msg/PointCloud2')}/" \
                           f"{JAZZY.hash_rihs01('sensor_msgs/msg/PointCloud2')}"

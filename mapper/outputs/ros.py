@@ -15,7 +15,8 @@ Topics (under ``ros.topic_prefix``, default ``/rayfronts``), in the world frame
 * ``/rayfronts/query_text`` (subscribed) — std_msgs/String: adds a standing text query with
   id ``ros_<text, non-alphanumerics as _>`` and ``ros.query_top_k`` voxels.
 
-Layers go out at ``ros.rate_hz`` from their own thread (``mapper-ros``) when the map changed,
+Layers go out at ``ros.rate_hz`` from their own thread (``mapper-ros``) when the map changed
+(integrated or flushed),
 limited by ``layers.max_voxels`` / ``ros.max_rays`` (seeded subsample, as the layer messages).
 Keys (``ros.keys``): rmw_zenoh (``<ros.domain>/<topic>/<dds type>/<type hash>``, the hash of
 ``ros.distro``: Jazzy ``RIHS01_...`` or Humble ``TypeHashNotSupported``; plus the node /
@@ -308,10 +309,11 @@ class RosOutput:
         s = self.state
         period = 1.0 / self.cfg.rate_hz
         while not self._stop.wait(period) and not s.stop.is_set():
-            if s.map is None or s.version == self._last_version:
+            ver = (s.version, s.flushed_version)  # a flush changes the map without bumping version
+            if s.map is None or ver == self._last_version:
                 continue
             try:
-                self._last_version = s.version
+                self._last_version = ver
                 self.publish_layers()
             except Exception as e:
                 self.errors += 1
