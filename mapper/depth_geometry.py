@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from common.conventions import voxel_index
-from mapper import kernels as KN
-from mapper import keys as K_
+from mapper import kernels
+from mapper import keys as cell_keys
 from mapper.traversal import crossing_counts, unique_cells
 
 
@@ -134,8 +134,8 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
     occ_pix = _select(torch.nonzero(finite).squeeze(1), max_pts, generator, conf)
     if occ_pix.numel():
         offs = (torch.arange(occ_thickness, dtype=torch.float64, device=dev) - (occ_thickness - 1) / 2) * (vox / 2)
-        if KN.enabled(D, flat):  # same float64 operations in C++, hashed de-duplication
-            pts, okeys = KN.surface_samples(origin, D, flat, occ_pix, offs, vox)
+        if kernels.enabled(D, flat):  # same float64 operations in C++, hashed de-duplication
+            pts, okeys = kernels.surface_samples(origin, D, flat, occ_pix, offs, vox)
         else:
             z = flat[occ_pix].to(torch.float64)
             Dp = D[occ_pix]
@@ -143,8 +143,8 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
             zs = z[:, None] + offs[None, :]
             samples = origin + Dp[:, None, :] * zs[..., None]
             samples = samples[zs > 0]
-            okeys = torch.unique(K_.pack(voxel_index(samples, vox)))  # 1-D unique: fast
-        occ_ijk = K_.unpack(okeys)
+            okeys = torch.unique(cell_keys.pack(voxel_index(samples, vox)))  # 1-D unique: fast
+        occ_ijk = cell_keys.unpack(okeys)
     else:
         pts = torch.empty((0, 3), dtype=torch.float32, device=dev)
         occ_ijk = torch.empty((0, 3), dtype=torch.int64, device=dev)
@@ -182,7 +182,7 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
                 sijk = voxel_index(origin + dirs_f[ri] * tt[:, None], vox)
                 eijk = voxel_index(ends[ri], vox)
                 sijk = sijk[~(excl[ri] & (sijk == eijk).all(1))]
-                free_ijk = K_.unpack(torch.unique(K_.pack(sijk)))
+                free_ijk = cell_keys.unpack(torch.unique(cell_keys.pack(sijk)))
             else:
                 free_ijk = torch.empty((0, 3), dtype=torch.int64, device=dev)
         else:
@@ -192,7 +192,7 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
     else:
         free_ijk = cam_ijk
     if occ_ijk.numel() and free_ijk.numel():
-        free_ijk = free_ijk[~torch.isin(K_.pack(free_ijk), K_.pack(occ_ijk))]
+        free_ijk = free_ijk[~torch.isin(cell_keys.pack(free_ijk), cell_keys.pack(occ_ijk))]
 
     # out-of-range rays
     if want_rays and bool(posinf.any()):
@@ -259,11 +259,11 @@ def aggregate_samples(img: torch.Tensor, pix: torch.Tensor, hw: tuple[int, int],
     (few per voxel when features are coarser than depth), not to P·C."""
     C, h, w = img.shape
     # non-zeros of A (C++ kernel when available, else a dense bincount when A is small)
-    if KN.enabled(pix, group):
-        g, src, gw = KN.sample_pairs(group, pix, hw, h, w, mode, n_groups)
+    if kernels.enabled(pix, group):
+        g, src, gw = kernels.sample_pairs(group, pix, hw, h, w, mode, n_groups)
     else:
         idx, wt = _corners(pix, hw, h, w, mode)
-        g, src, gw = KN.group_pairs(group, idx, wt, n_groups, h * w, max_dense)
+        g, src, gw = kernels.group_pairs(group, idx, wt, n_groups, h * w, max_dense)
     out = torch.zeros((n_groups, C), dtype=torch.float32, device=pix.device)
     out.index_add_(0, g, img.reshape(C, h * w).T[src].to(torch.float32) * gw[:, None])
     return out

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 
 import torch
 
-from mapper import keys as K_
+from mapper import keys as cell_keys
 
 try:  # optional extension
     from mapper import _rfkernels  # type: ignore[attr-defined]
@@ -85,7 +85,7 @@ def segment_cells_unique(origins: torch.Tensor, ends: torch.Tensor, cell: float,
     keys, klo, khi = _rfkernels.segment_cells_unique(_np(origins, torch.float64), _np(ends, torch.float64), float(cell),
                                                       lo.numpy(), hi.numpy(), base.contiguous().numpy(),
                                                       ex.contiguous().numpy(), bool(include_start))
-    K_.check_range(klo, khi)
+    cell_keys.check_range(klo, khi)
     return torch.from_numpy(keys)
 
 
@@ -138,10 +138,10 @@ def voxel_keys(xyz: torch.Tensor, vox: float) -> torch.Tensor:
     if enabled(xyz) and xyz.dtype in (torch.float32, torch.float64) and xyz.ndim == 2 and xyz.shape[1] == 3:
         fn = _rfkernels.voxel_keys_f32 if xyz.dtype == torch.float32 else _rfkernels.voxel_keys_f64
         k, lo, hi = fn(xyz.detach().contiguous().numpy(), float(vox))
-        K_.check_range(lo, hi)
+        cell_keys.check_range(lo, hi)
         return torch.from_numpy(k)
     from common.conventions import voxel_index
-    return K_.pack(voxel_index(xyz.to(torch.float64), vox))
+    return cell_keys.pack(voxel_index(xyz.to(torch.float64), vox))
 
 
 def surface_samples(origin: torch.Tensor, D: torch.Tensor, depth_flat: torch.Tensor, pix: torch.Tensor,
@@ -151,5 +151,5 @@ def surface_samples(origin: torch.Tensor, D: torch.Tensor, depth_flat: torch.Ten
     pts, keys, lo, hi = _rfkernels.surface_samples(_np(origin, torch.float64), _np(D, torch.float64),
                                                     _np(depth_flat, torch.float32), _np(pix, torch.int64),
                                                     _np(offs, torch.float64), float(vox))
-    K_.check_range(lo, hi)
+    cell_keys.check_range(lo, hi)
     return torch.from_numpy(pts), torch.from_numpy(keys)

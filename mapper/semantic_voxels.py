@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 
 from common.conventions import voxel_center, voxel_index
-from mapper import keys as K_
+from mapper import keys as cell_keys
 
 
 class KeyIndex:
@@ -40,7 +40,7 @@ class KeyIndex:
     def lookup(self, q: torch.Tensor) -> torch.Tensor:
         out = torch.full(q.shape, -1, dtype=torch.int64, device=q.device)
         for k, r in ((self.main_k, self.main_r), (self.delta_k, self.delta_r)):
-            p = K_.lookup(k, q)
+            p = cell_keys.lookup(k, q)
             hit = p >= 0
             out[hit] = r[p[hit]]
         return out
@@ -73,7 +73,7 @@ class KeyIndex:
 
     def set_rows(self, k: torch.Tensor, r: torch.Tensor) -> None:
         for kk, rr in ((self.main_k, self.main_r), (self.delta_k, self.delta_r)):
-            p = K_.lookup(kk, k)
+            p = cell_keys.lookup(kk, k)
             hit = p >= 0
             rr[p[hit]] = r[hit]
 
@@ -120,7 +120,7 @@ class SemanticVoxels:
     def fuse(self, xyz: torch.Tensor, rgb: torch.Tensor, feat: torch.Tensor) -> torch.Tensor:
         """Fuse points ``xyz`` (P, 3) with ``rgb`` (P, 3) in [0, 1] and ``feat`` (P, C);
         returns the packed keys of the touched voxels (sorted, unique)."""
-        keys = K_.pack(voxel_index(xyz.to(torch.float64), self.vox))
+        keys = cell_keys.pack(voxel_index(xyz.to(torch.float64), self.vox))
         ones = torch.ones(keys.shape[0], dtype=torch.float32, device=keys.device)
         return self.fuse_sums(keys, rgb, feat, ones)
 
@@ -232,7 +232,7 @@ class SemanticVoxels:
         return self._count[: self.n]
 
     def ijk(self) -> torch.Tensor:
-        return K_.unpack(self.keys)
+        return cell_keys.unpack(self.keys)
 
     def xyz(self) -> torch.Tensor:
         return voxel_center(self.ijk(), self.vox)

@@ -86,7 +86,7 @@ def layer_arrays(m, layer: str, lcfg) -> tuple[dict, dict]:
     rng = np.random.default_rng(0)
     if layer == "voxels":
         # straight from the voxel store: only the kept rows are decoded (no feature copies)
-        from mapper import keys as K_
+        from mapper import keys as cell_keys
 
         sem = m.sem
         n = len(sem)
@@ -94,7 +94,7 @@ def layer_arrays(m, layer: str, lcfg) -> tuple[dict, dict]:
         if n > lcfg.max_voxels:
             idx = torch.from_numpy(np.sort(rng.choice(n, lcfg.max_voxels, replace=False))).to(keys.device)
             keys, rgb = keys[idx], rgb[idx]
-        xyz = _np(voxel_center(K_.unpack(keys), sem.vox)).astype(np.float32, copy=False).reshape(-1, 3)
+        xyz = _np(voxel_center(cell_keys.unpack(keys), sem.vox)).astype(np.float32, copy=False).reshape(-1, 3)
         rgb = np.clip(_np(rgb).astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8).reshape(-1, 3)
         return {"xyz": xyz, "rgb": rgb}, {"total": n, "vox_size": float(m.cfg.vox_size)}
     if layer == "frontiers":

@@ -20,8 +20,8 @@ from __future__ import annotations
 import torch
 
 from common.conventions import voxel_index
-from mapper import kernels as KN
-from mapper import keys as K_
+from mapper import kernels
+from mapper import keys as cell_keys
 
 DEFAULT_CHUNK = 1 << 22  # (segment, cell) pairs per chunk
 
@@ -126,9 +126,9 @@ def unique_cells(origins: torch.Tensor, ends: torch.Tensor, cell: float, *,
     dev = origins.device
     if origins.shape[0] == 0:
         return torch.empty((0, 3), dtype=torch.int64, device=dev)
-    if KN.enabled(origins, ends):  # same enumeration and arithmetic in C++, hashed
-        return K_.unpack(KN.segment_cells_unique(origins, ends, cell, list(_chunks(origins, ends, cell, chunk)),
-                                                 exclude_end))
+    if kernels.enabled(origins, ends):  # same enumeration and arithmetic in C++, hashed
+        return cell_keys.unpack(kernels.segment_cells_unique(origins, ends, cell,
+                                                             list(_chunks(origins, ends, cell, chunk)), exclude_end))
     a = voxel_index(origins, cell)
     b = voxel_index(ends, cell)
     lo = torch.minimum(a.min(0).values, b.min(0).values)
@@ -148,4 +148,4 @@ def unique_cells(origins: torch.Tensor, ends: torch.Tensor, cell: float, *,
         i = flat // (ext[1] * ext[2])
         return torch.stack([i, j, k], 1) + lo
     _, c = segment_cells(origins, ends, cell, exclude_end=exclude_end, chunk=chunk)
-    return K_.unpack(torch.unique(K_.pack(c)))
+    return cell_keys.unpack(torch.unique(cell_keys.pack(c)))

@@ -7,41 +7,40 @@ import numpy as np
 import pytest
 import torch
 
-from apps.evaluation import metrics as M
-from apps.evaluation import shapes as S
+from apps.evaluation import metrics, shapes
 
 
 # ----------------------------------------------------------------------------- search volume
 def test_srchvol_confusion_hand_case():
     gt = np.array([-1, 0, 0, 1, 1, 2, 2, 2])
     mask = np.array([1, 1, 0, 1, 0, 1, 0, 0], bool)
-    cf = M.srchvol_confusion(mask, gt, 1)
+    cf = metrics.srchvol_confusion(mask, gt, 1)
     assert (cf.tp, cf.fp, cf.fn, cf.tn, cf.volume) == (1, 2, 1, 3, 7)   # the ignored voxel is excluded
-    assert M.scv(cf) == pytest.approx(5 / 7)
-    assert M.recall(cf) == pytest.approx(1 / 2)
-    assert M.scvr(cf) == pytest.approx(5 / 14)
+    assert metrics.scv(cf) == pytest.approx(5 / 7)
+    assert metrics.recall(cf) == pytest.approx(1 / 2)
+    assert metrics.scvr(cf) == pytest.approx(5 / 14)
 
 
 def test_srchvol_default_prediction_and_none():
     gt = np.array([0, 0, 0, 1, 2, 2, -1])
-    out = M.srchvol_metrics({}, gt, [1, 2], default_prediction=True)
+    out = metrics.srchvol_metrics({}, gt, [1, 2], default_prediction=True)
     # whole unobserved volume predicted: FP = every non-c voxel -> SCV = n_c / vol, Recall 1
     assert out[1]["scv"] == pytest.approx(1 / 6) and out[1]["recall"] == 1.0
     assert out[2]["scvr"] == pytest.approx(2 / 6)
-    out = M.srchvol_metrics({}, gt, [1], default_prediction=False)
+    out = metrics.srchvol_metrics({}, gt, [1], default_prediction=False)
     assert out[1]["scv"] == 1.0 and out[1]["recall"] == 0.0 and out[1]["scvr"] == 0.0
     # a perfect search volume
-    out = M.srchvol_metrics({1: gt == 1}, gt, [1])
+    out = metrics.srchvol_metrics({1: gt == 1}, gt, [1])
     assert out[1]["scvr"] == 1.0
     # cutting everything -> recall 0 -> SCVR 0
-    out = M.srchvol_metrics({1: np.zeros(7, bool)}, gt, [1])
+    out = metrics.srchvol_metrics({1: np.zeros(7, bool)}, gt, [1])
     assert out[1]["scv"] == 1.0 and out[1]["scvr"] == 0.0
 
 
 def test_normalized_count_mask_threshold_is_strict():
     c = np.array([0, 1, 5, 20, 100])
-    np.testing.assert_array_equal(M.normalized_count_mask(c, 0.05), [False, False, False, True, True])
-    assert not M.normalized_count_mask(np.zeros(3)).any()
+    np.testing.assert_array_equal(metrics.normalized_count_mask(c, 0.05), [False, False, False, True, True])
+    assert not metrics.normalized_count_mask(np.zeros(3)).any()
 
 
 # ----------------------------------------------------------------------------- AUC
@@ -49,12 +48,12 @@ def test_auc_stopping_rule():
     steps = [10, 20, 30, 40]
     vals = [0.2, 0.4, np.nan, 0.8]
     # step 40 is the first with > 50 % observed: kept 10, 20, 30; NaN ignored; Δ = 10 each
-    assert M.auc_stopping(steps, vals, [0.1, 0.3, 0.4, 0.6]) == pytest.approx((0.2 * 10 + 0.4 * 10) / 20)
+    assert metrics.auc_stopping(steps, vals, [0.1, 0.3, 0.4, 0.6]) == pytest.approx((0.2 * 10 + 0.4 * 10) / 20)
     # never stops; exactly 0.5 does not stop
-    assert M.auc_stopping(steps, vals, [0.1, 0.5, 0.5, 0.5]) == pytest.approx((2 + 4 + 8) / 30)
+    assert metrics.auc_stopping(steps, vals, [0.1, 0.5, 0.5, 0.5]) == pytest.approx((2 + 4 + 8) / 30)
     # Δ uses prepend=0: the first point weighs its step index
-    assert M.auc_stopping([5, 10], [1.0, 0.0], [0, 0]) == pytest.approx(5 / 10)
-    assert math.isnan(M.auc_stopping(steps, vals, [0.9, 0, 0, 0]))
+    assert metrics.auc_stopping([5, 10], [1.0, 0.0], [0, 0]) == pytest.approx(5 / 10)
+    assert math.isnan(metrics.auc_stopping(steps, vals, [0.9, 0, 0, 0]))
 
 
 def test_auc_table_classes_then_mean():
@@ -64,14 +63,14 @@ def test_auc_table_classes_then_mean():
         rows.append({"class": 2, "step": s, "scvr": b, "observed_frac": 0.0 if s == 10 else 0.9, "gt_count": 3})
         rows.append({"class": 3, "step": s, "scvr": 1.0, "observed_frac": 0.0, "gt_count": 0})  # not in GT
     # class 1: (0.2+0.4)/2 = 0.3; class 2 stops at step 20: 0.5; mean 0.4
-    assert M.auc_table(rows, "scvr") == pytest.approx(0.4)
+    assert metrics.auc_table(rows, "scvr") == pytest.approx(0.4)
 
 
 # ----------------------------------------------------------------------------- segmentation
 def test_semseg_scores_hand_case():
     gt = np.array([1, 1, 1, 2, 2, 3, 0, 0, 3])
     pred = np.array([1, 1, 2, 2, 0, 3, 1, 3, 1])
-    s = M.semseg_scores(gt, pred, [1, 2, 3])
+    s = metrics.semseg_scores(gt, pred, [1, 2, 3])
     # c1: TP2 FP1 (the GT-3 voxel) FN1 -> 1/2; c2: TP1 FP1 FN1 -> 1/3; c3: TP1 FP0 FN1 -> 1/2
     assert s["per_class"][1]["iou"] == pytest.approx(1 / 2)
     assert s["per_class"][2]["iou"] == pytest.approx(1 / 3)
@@ -80,7 +79,7 @@ def test_semseg_scores_hand_case():
     assert s["fmiou"] == pytest.approx((3 * 1 / 2 + 2 * 1 / 3 + 2 * 1 / 2) / 7)
     assert s["acc"] == pytest.approx(4 / 7)
     # class 3 as ignored background: its voxels are not evaluated (no FP for class 1 there)
-    s = M.semseg_scores(gt, pred, [1, 2])
+    s = metrics.semseg_scores(gt, pred, [1, 2])
     assert s["per_class"][1]["iou"] == pytest.approx(2 / 3)
     assert s["miou"] == pytest.approx((2 / 3 + 1 / 3) / 2)
     assert s["fmiou"] == pytest.approx((3 * 2 / 3 + 2 * 1 / 3) / 5)
@@ -100,43 +99,43 @@ def test_semseg_background_split():
 
 
 def test_observed_iou_nan_when_absent():
-    out = M.observed_iou(np.array([0, 1, 1, 2]), np.array([1, 1, 0, 2]), [1, 2, 3])
+    out = metrics.observed_iou(np.array([0, 1, 1, 2]), np.array([1, 1, 0, 2]), [1, 2, 3])
     assert out[1] == pytest.approx(1 / 3) and out[2] == 1.0 and math.isnan(out[3])
 
 
 # ----------------------------------------------------------------------------- alignment
 def test_mode_smallest_ties():
-    np.testing.assert_array_equal(M.mode_smallest(np.array([[2, 1, 2, 1], [0, 5, 5, 5], [3, 0, 3, 0], [4, 4, 9, 9]])),
-                                  [1, 5, 0, 4])
+    modes = metrics.mode_smallest(np.array([[2, 1, 2, 1], [0, 5, 5, 5], [3, 0, 3, 0], [4, 4, 9, 9]]))
+    np.testing.assert_array_equal(modes, [1, 5, 0, 4])
 
 
 def test_knn_align_votes_and_ties():
     p = np.stack([np.arange(6.0), np.zeros(6), np.zeros(6)], 1)
     lab = np.array([1, 1, 2, 2, 3, 3])
     q = np.array([[0.1, 0, 0], [1.6, 0, 0], [4.6, 0, 0]])
-    np.testing.assert_array_equal(M.knn_align(q, p, lab, k=3), [1, 2, 3])
+    np.testing.assert_array_equal(metrics.knn_align(q, p, lab, k=3), [1, 2, 3])
     # k = 4 at x = 1.6: neighbours 2, 1, 3, 0 -> labels 1,2,1,2 -> tie -> 1
-    assert M.knn_align(q[1:2], p, lab, k=4)[0] == 1
+    assert metrics.knn_align(q[1:2], p, lab, k=4)[0] == 1
     # k larger than the predicted set
-    assert M.knn_align(q[:1], p[:2], lab[:2], k=5)[0] == 1
-    assert M.knn_align(q, np.empty((0, 3)), np.empty(0), k=5).tolist() == [0, 0, 0]
+    assert metrics.knn_align(q[:1], p[:2], lab[:2], k=5)[0] == 1
+    assert metrics.knn_align(q, np.empty((0, 3)), np.empty(0), k=5).tolist() == [0, 0, 0]
 
 
 def test_exact_grid_alignment():
     p = np.array([[0.25, 0.25, 0.25], [1.2, 0.1, 0.1]])
     g = np.array([[0.4, 0.4, 0.4], [1.9, 0.9, 0.9], [2.5, 0, 0], [-0.1, 0.2, 0.2]])
-    np.testing.assert_array_equal(M.knn_align(g, p, [7, 8], k=0, vox=0.5), [7, 0, 0, 0])
-    np.testing.assert_array_equal(M.knn_align(g, p, [7, 8], k=0, vox=1.0), [7, 8, 0, 0])
+    np.testing.assert_array_equal(metrics.knn_align(g, p, [7, 8], k=0, vox=0.5), [7, 0, 0, 0])
+    np.testing.assert_array_equal(metrics.knn_align(g, p, [7, 8], k=0, vox=1.0), [7, 8, 0, 0])
     with pytest.raises(ValueError):
-        M.knn_align(g, p, [7, 8], k=0)
+        metrics.knn_align(g, p, [7, 8], k=0)
 
 
 # ----------------------------------------------------------------------------- shapes
 def test_reference_cone_radius_hand():
-    r = M.reference_cone_radius([1, 5, 9, 100], 1.0, 4, 45.0)
+    r = metrics.reference_cone_radius([1, 5, 9, 100], 1.0, 4, 45.0)
     np.testing.assert_allclose(r, [4, 5, 6, 28.75])      # 4 m + 0.25 m per metre (brief §6.2)
-    np.testing.assert_allclose(M.reference_cone_radius([1, 5, 50], 1.0, 5, 45.0), [5, 5, 5])   # cylinder
-    r = M.reference_cone_radius([2, 10], 0.5, 4, 30.0)   # r0 = 2 at 0.5 m, 5*0.5*tan30 = 1.443 at 2.5 m
+    np.testing.assert_allclose(metrics.reference_cone_radius([1, 5, 50], 1.0, 5, 45.0), [5, 5, 5])   # cylinder
+    r = metrics.reference_cone_radius([2, 10], 0.5, 4, 30.0)   # r0 = 2 at 0.5 m, 5*0.5*tan30 = 1.443 at 2.5 m
     np.testing.assert_allclose(r, [2 + 1.5 * (2.5 * math.tan(math.radians(30)) - 2) / 2,
                                    2 + 9.5 * (2.5 * math.tan(math.radians(30)) - 2) / 2])
 
@@ -148,8 +147,8 @@ def test_reference_pyramid_vs_half_spaces(s, alpha):
     o = np.array([1.0, 2.0, 3.0])
     for d in ([0.3, -0.5, 0.8], [0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0]):
         d = np.asarray(d) / np.linalg.norm(d)
-        bf = S.brute_force_reference_inside(pts, o, d, 1.0, s, alpha)
-        cnt = S.reference_cone_counts(pts, o[None], d[None], 1.0, s, alpha).numpy()
+        bf = shapes.brute_force_reference_inside(pts, o, d, 1.0, s, alpha)
+        cnt = shapes.reference_cone_counts(pts, o[None], d[None], 1.0, s, alpha).numpy()
         np.testing.assert_array_equal(cnt > 0, bf)
         assert bf.sum() > 0
 
@@ -157,12 +156,12 @@ def test_reference_pyramid_vs_half_spaces(s, alpha):
 def test_reference_pyramid_radius_on_axis():
     # on the axis and just inside / outside the inscribed circle at several depths
     d = np.array([0.0, 1.0, 0.0])
-    R = S.rotation_z_to(torch.tensor(d[None]))[0].numpy()
+    R = shapes.rotation_z_to(torch.tensor(d[None]))[0].numpy()
     for z in (1.5, 3.0, 10.0, 40.0):
-        r = M.reference_cone_radius(z, 1.0, 4, 45.0)
+        r = metrics.reference_cone_radius(z, 1.0, 4, 45.0)
         apo = r * math.cos(math.pi / 6)
         pts = np.array([R @ [0, 0, z], R @ [0, 0.99 * apo, z], R @ [0, 1.01 * r, z], R @ [0, 0, 0.9]])
-        c = S.reference_cone_counts(pts, np.zeros((1, 3)), d[None], 1.0, 4, 45.0).numpy()
+        c = shapes.reference_cone_counts(pts, np.zeros((1, 3)), d[None], 1.0, 4, 45.0).numpy()
         np.testing.assert_array_equal(c, [1, 1, 0, 0])
 
 
@@ -172,7 +171,7 @@ def test_true_cones_vs_brute_force():
     o = rng.uniform(-5, 5, (7, 3))
     d = rng.normal(size=(7, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    cnt = S.cone_counts(pts, o, d, 30.0).numpy()
+    cnt = shapes.cone_counts(pts, o, d, 30.0).numpy()
     v = pts[:, None, :] - o[None]
     cosang = (v * d[None]).sum(2) / np.linalg.norm(v, axis=2)
     np.testing.assert_array_equal(cnt, (cosang >= math.cos(math.radians(30))).sum(1))
@@ -183,5 +182,5 @@ def test_ball_counts_vs_brute_force():
     pts = rng.uniform(-10, 10, (4000, 3))
     c = rng.uniform(-5, 5, (5, 3))
     r = rng.uniform(1, 4, 5)
-    cnt = S.ball_counts(pts, c, r).numpy()
+    cnt = shapes.ball_counts(pts, c, r).numpy()
     np.testing.assert_array_equal(cnt, (np.linalg.norm(pts[:, None] - c[None], axis=2) <= r).sum(1))

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from common.geometry import intrinsics_from_fov, look_at
-from mapper import keys as K_
+from mapper import keys as cell_keys
 from mapper.config import METHODS, PRESETS, map_config
 from mapper.map import RayFrontsMap
 from mapper.snapshot import SnapshotError
@@ -98,7 +98,7 @@ def test_schedule_and_layers():
     d = r.directions
     torch.testing.assert_close(r.angles[:, 0], torch.rad2deg(torch.atan2(d[:, 1], d[:, 0])))
     # all voxels are occupied in the occupancy grid (pruning keeps them consistent)
-    q = m.occupancy.query(K_.unpack(m.sem.keys))
+    q = m.occupancy.query(cell_keys.unpack(m.sem.keys))
     assert float((q > 0).float().mean()) > 0.9
 
 
@@ -155,7 +155,7 @@ def test_baseline_modes():
     vox, beta = uni.cfg.vox_size, uni.cfg.beta
     checked = 0
     for key, got in zip(r.frontier_keys.tolist(), r.directions):
-        c = (K_.unpack(torch.tensor([key]))[0].double() + 0.5) * beta
+        c = (cell_keys.unpack(torch.tensor([key]))[0].double() + 0.5) * beta
         acc = torch.zeros(3, dtype=torch.float64)
         for dx in (-1, 0, 1):
             for dy in (-1, 0, 1):
@@ -216,7 +216,7 @@ def test_synthetic_world_labels_and_landmark_rays():
         m.integrate(p, K, r.depth, r.rgb, onehot)
     m.flush()
     # in-range voxels: nearest class feature = the world's voxel label
-    gt = w.voxel_labels(K_.unpack(m.sem.keys).numpy(), 0.5)
+    gt = w.voxel_labels(cell_keys.unpack(m.sem.keys).numpy(), 0.5)
     pred = m.voxels().features.argmax(1).numpy()
     sel = gt > 0
     assert sel.sum() > 200

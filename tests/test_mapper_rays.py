@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from mapper import keys as K_
+from mapper import keys as cell_keys
 from mapper.ray_frontiers import (
     RayStore,
     angle_bins,
@@ -86,7 +86,7 @@ def test_theta_wraps_and_bins():
 
 
 def test_weighted_merge_and_prune_requeue():
-    keys = K_.pack(torch.tensor([[0, 0, 0], [3, 0, 0]]))
+    keys = cell_keys.pack(torch.tensor([[0, 0, 0], [3, 0, 0]]))
     rs = RayStore(beta=2.0, psi=30.0, feature_dim=2)
     d = torch.tensor([[1.0, 0, 0], [1.0, 0.01, 0], [0, 0, 1.0], [1.0, 0, 0]])
     d = torch.nn.functional.normalize(d, dim=1)
@@ -116,6 +116,6 @@ def test_infer_direction_points_to_unobserved():
     # observed (free) half-space x < 2; neighbours sampled at +-beta around the centre
     ijk = torch.stack(torch.meshgrid(torch.arange(-8, 2), torch.arange(-8, 16), torch.arange(-8, 16), indexing="ij"), -1).reshape(-1, 3)
     grid.update(ijk, -1)
-    fk = K_.pack(torch.tensor([[0, 1, 1]]))  # coarse cell (0,1,1) of beta 2 -> centre (1, 3, 3)
+    fk = cell_keys.pack(torch.tensor([[0, 1, 1]]))  # coarse cell (0,1,1) of beta 2 -> centre (1, 3, 3)
     d = infer_directions(grid, fk, beta=2.0, vox=1.0, scale="coarse")
     torch.testing.assert_close(d, torch.tensor([[1.0, 0, 0]]))

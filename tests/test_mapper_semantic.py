@@ -2,7 +2,7 @@
 import torch
 
 from common.conventions import voxel_index
-from mapper import keys as K_
+from mapper import keys as cell_keys
 from mapper.frontiers import FrontierTable, subsample
 from mapper.occupancy import make_occupancy
 from mapper.semantic_voxels import SemanticVoxels
@@ -22,11 +22,11 @@ def test_fusion_equals_bruteforce_weighted_mean_with_removals():
         if step == 6:  # remove some voxels: they restart from scratch afterwards
             k = sv.keys[::3].clone()
             assert sv.remove(k) == k.numel()
-            keys_all = K_.pack(voxel_index(torch.cat(allp).double(), 0.5))
+            keys_all = cell_keys.pack(voxel_index(torch.cat(allp).double(), 0.5))
             keep = ~torch.isin(keys_all, k)
             allp, allc, allf = [torch.cat(allp)[keep]], [torch.cat(allc)[keep]], [torch.cat(allf)[keep]]
     P, C, F = torch.cat(allp), torch.cat(allc), torch.cat(allf)
-    keys = K_.pack(voxel_index(P.double(), 0.5))
+    keys = cell_keys.pack(voxel_index(P.double(), 0.5))
     uk, inv, cnt = torch.unique(keys, return_inverse=True, return_counts=True)
     ref_f = torch.zeros(uk.numel(), 6).index_add_(0, inv, F) / cnt[:, None]
     ref_c = torch.zeros(uk.numel(), 3).index_add_(0, inv, C) / cnt[:, None]
@@ -45,7 +45,7 @@ def test_float16_storage():
     f = torch.tensor([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0]])
     sv.fuse(x, torch.zeros(3, 3), f)
     assert sv.feat.dtype == torch.float16
-    r = sv.index.lookup(K_.pack(torch.tensor([[0, 0, 0]])))
+    r = sv.index.lookup(cell_keys.pack(torch.tensor([[0, 0, 0]])))
     torch.testing.assert_close(sv.feat[r].float(), torch.tensor([[0.5, 0.5, 0, 0]]))
 
 
@@ -62,7 +62,7 @@ def test_map_pruning_removes_exactly_voxels_at_or_below_threshold():
     vals = torch.randint(-5, 6, (ijk.shape[0],), generator=g)
     m.occupancy.update(ijk, vals)
     touched = ijk[::2]
-    m._pending_prune = [K_.pack(touched)]
+    m._pending_prune = [cell_keys.pack(touched)]
     before = set(map(tuple, ijk.tolist()))
     m.prune_semantic()
     after = set(map(tuple, m.sem.ijk().tolist()))
@@ -82,13 +82,13 @@ def test_frontier_subsampling_strict_and_incremental_region():
     ft = FrontierTable(1.0, 4, 3)
     ft.update(grid, free.min(0).values, free.max(0).values, min_unobserved=9, min_free=4)
     full = subsample(grid.frontiers(9, 4), 4, 3)[0]
-    assert torch.equal(K_.unpack(ft.keys), full)
+    assert torch.equal(cell_keys.unpack(ft.keys), full)
     # extend the free region: incremental update must equal recomputation from scratch
     more = free + torch.tensor([0, 0, 3])
     grid.update(more, -1)
     ft.update(grid, more.min(0).values, more.max(0).values, min_unobserved=9, min_free=4)
     full = subsample(grid.frontiers(9, 4), 4, 3)[0]
-    assert torch.equal(K_.unpack(ft.keys), full)
+    assert torch.equal(cell_keys.unpack(ft.keys), full)
 
 
 def test_frontier_incremental_random_updates_match_full_recompute():
@@ -102,4 +102,4 @@ def test_frontier_incremental_random_updates_match_full_recompute():
         grid.update(ijk, inc)
         ft.update(grid, ijk.min(0).values, ijk.max(0).values, min_unobserved=4, min_free=2, min_occupied=0)
         full = subsample(grid.frontiers(4, 2, 0), 3, 1)[0]
-        assert torch.equal(K_.unpack(ft.keys), full)
+        assert torch.equal(cell_keys.unpack(ft.keys), full)

@@ -16,7 +16,7 @@ from common.feature_space import FeatureSpace
 from common.messages import QueryRequest
 from common.pca import PCA
 from common.text.heads import MLP2, MLP2Config
-from mapper import keys as K_
+from mapper import keys as cell_keys
 from mapper.service_map import QuerySnapshot, answer_snapshot, cone_union_volume, create_map, top_stable
 
 
@@ -115,7 +115,7 @@ def _map(n_side=14, n_rays=300, seed=0):
     feats = torch.from_numpy(p.compress(X[torch.randint(0, 3000, (len(xyz),), generator=g).numpy()]
                                         .astype(np.float32)))
     m.sem.fuse(xyz, torch.rand((len(xyz), 3), generator=g), feats)
-    fk = torch.unique(K_.pack(torch.randint(-50, 50, (n_rays, 3), generator=g)))
+    fk = torch.unique(cell_keys.pack(torch.randint(-50, 50, (n_rays, 3), generator=g)))
     r = fk.numel()
     z = torch.zeros(r, dtype=torch.int64)
     m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(), "feat": torch.randn((r, p.out_dim), generator=g),
@@ -131,7 +131,7 @@ def test_answer_snapshot_matches_bruteforce():
     q = np.asarray(X[7], np.float32)
     res = answer_snapshot(QuerySnapshot().take(m, 1), fs, QueryRequest(embedding=q, top_k=5), qcfg)
     feats, keys = m.sem.feat.float(), m.sem.keys
-    xyz = voxel_center(K_.unpack(keys), 0.5).numpy()
+    xyz = voxel_center(cell_keys.unpack(keys), 0.5).numpy()
     vs = _slow_cos(fs, feats, torch.from_numpy(q)[None])[0].numpy()
     order = np.argsort(-vs, kind="stable")
     np.testing.assert_array_equal(res.voxel_xyz, xyz[order[:5]])
@@ -139,7 +139,7 @@ def test_answer_snapshot_matches_bruteforce():
     # clusters: candidates above the relative score, 26-connected, best first
     cand = order[:300]
     keep = cand[vs[cand] >= vs.min() + qcfg.cluster_rel_score * (vs[cand[0]] - vs.min())]
-    ijk = K_.unpack(keys[torch.from_numpy(keep)]).numpy()
+    ijk = cell_keys.unpack(keys[torch.from_numpy(keep)]).numpy()
     lab = _bfs_components(ijk)
     best = np.array([vs[keep][lab == c].max() for c in range(lab.max() + 1)])
     cl = np.argsort(-best, kind="stable")[:5]
@@ -169,7 +169,7 @@ def test_snapshot_is_isolated_from_later_map_changes():
     # the map changes: every voxel gets the query's own feature, and new voxels appear
     best = torch.from_numpy(fs.compress(X[3:4].astype(np.float32)))
     m.sem.fuse(torch.full((50, 3), 100.25), torch.rand(50, 3), best.repeat(50, 1))
-    m.sem.fuse(voxel_center(K_.unpack(m.sem.keys[:64]), 0.5), torch.rand(64, 3), best.repeat(64, 1) * 9)
+    m.sem.fuse(voxel_center(cell_keys.unpack(m.sem.keys[:64]), 0.5), torch.rand(64, 3), best.repeat(64, 1) * 9)
     after_old = answer_snapshot(snap, fs, q, cfg.query)
     for f in ("voxel_xyz", "voxel_score", "cluster_xyz", "cluster_size", "ray_score"):
         np.testing.assert_array_equal(getattr(after_old, f), getattr(before, f))

@@ -46,8 +46,8 @@ class GroundTruth:
 
 
 def pack(ijk) -> np.ndarray:
-    from mapper import keys as K_
-    return K_.pack(torch.as_tensor(np.asarray(ijk), dtype=torch.int64)).numpy()
+    from mapper import keys as cell_keys
+    return cell_keys.pack(torch.as_tensor(np.asarray(ijk), dtype=torch.int64)).numpy()
 
 
 def load_frames(source_cfg, progress: bool = True, world=None) -> tuple[list[Frame], object]:

@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from mapper import search_volume as SV
+from mapper import search_volume
 
 ExactTest = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 #: interval function: (shape indices (S,), pad metres) -> (lo_out, hi_out, lo_in, hi_in) float64
@@ -344,7 +344,7 @@ def cone_counts(grid: RowGrid, origins, dirs, half_angle_deg: float, cells=None)
     the angle α with the row axis (a generator along the rows, e.g. (1, 1, 0)/√2 at 45°) is
     rasterised along another axis."""
     o = torch.as_tensor(origins).to(torch.float64).reshape(-1, 3)
-    _, exact = SV.cone_tests(o, torch.as_tensor(dirs).to(torch.float64).reshape(-1, 3), half_angle_deg)
+    _, exact = search_volume.cone_tests(o, torch.as_tensor(dirs).to(torch.float64).reshape(-1, 3), half_angle_deg)
     d = torch.nn.functional.normalize(torch.as_tensor(dirs).to(torch.float64).reshape(-1, 3), dim=1).numpy()
     on = o.numpy()
     c2 = math.cos(math.radians(half_angle_deg)) ** 2

@@ -27,7 +27,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from apps.evaluation import metrics as M
+from apps.evaluation import metrics
 from apps.evaluation.data import load_frames
 from apps.evaluation.language import eval_language
 from apps.evaluation.srchvol import _json_safe
@@ -114,8 +114,8 @@ def scores_with_without_bg(gt: np.ndarray, pred: np.ndarray, class_names, backgr
     present = sorted(int(c) for c in np.unique(gt) if c > 0)
     bg = {i for i, n in enumerate(class_names) if n.lower() in {b.lower() for b in background}}
     fg = [c for c in present if c not in bg]
-    s_all = M.semseg_scores(gt, pred, present)
-    s_fg = M.semseg_scores(gt, pred, fg) if fg else dict(miou=float("nan"), fmiou=float("nan"), acc=float("nan"))
+    s_all = metrics.semseg_scores(gt, pred, present)
+    s_fg = metrics.semseg_scores(gt, pred, fg) if fg else dict(miou=float("nan"), fmiou=float("nan"), acc=float("nan"))
     return dict(miou=s_fg["miou"], fmiou=s_fg["fmiou"], acc=s_fg["acc"], miou_bg=s_all["miou"],
                 fmiou_bg=s_all["fmiou"], acc_bg=s_all["acc"],
                 per_class={class_names[c]: dict(s_all["per_class"][c], background=c in bg) for c in present})
@@ -193,7 +193,7 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
         glab = world.voxel_labels(gijk, cfg.vox).astype(np.int64)
     else:
         glab = gv.features.to(torch.float32).argmax(1).numpy().astype(np.int64)
-    aligned = M.knn_align(gxyz, pv.xyz.numpy().astype(np.float64), pred, cfg.k, cfg.vox)
+    aligned = metrics.knn_align(gxyz, pv.xyz.numpy().astype(np.float64), pred, cfg.k, cfg.vox)
     summary = scores_with_without_bg(glab, aligned, names, cfg.background)
     summary["background_classes"] = [n for n in names if n.lower() in {b.lower() for b in cfg.background}]
     t_end = time.perf_counter()

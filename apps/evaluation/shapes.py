@@ -22,7 +22,7 @@ import math
 import numpy as np
 import torch
 
-from mapper import search_volume as SV
+from mapper import search_volume
 
 
 def rotation_z_to(dirs: torch.Tensor) -> torch.Tensor:
@@ -84,18 +84,18 @@ def reference_cone_counts(voxel_centres, origins, dirs, vox: float, subsampling:
     """(V,) number of reference pyramids (see module doc) holding each voxel centre."""
     bt, et = reference_pyramid_tests(origins, dirs, vox, subsampling, half_angle_deg, num_segs)
     n = int(torch.as_tensor(origins).reshape(-1, 3).shape[0])
-    return SV.membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), n, bt, et)
+    return search_volume.membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), n, bt, et)
 
 
 def cone_counts(voxel_centres, origins, dirs, half_angle_deg: float) -> torch.Tensor:
     """(V,) number of true cones of ``half_angle_deg`` holding each voxel centre."""
-    return SV.cone_membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), origins, dirs,
-                                     half_angle_deg)
+    return search_volume.cone_membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), origins, dirs,
+                                                half_angle_deg)
 
 
 def ball_counts(voxel_centres, centres, radii) -> torch.Tensor:
     """(V,) number of balls holding each voxel centre."""
-    return SV.ball_membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), centres, radii)
+    return search_volume.ball_membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), centres, radii)
 
 
 def brute_force_reference_inside(points: np.ndarray, origin, direction, vox: float, subsampling: float,

@@ -229,7 +229,7 @@ def search_volumes(snap: Snapshot, method: str, ctx: ScoringContext, un_idx: np.
     spherical = method == "spherical_semfronts"
     if spherical:
         uo, inv = np.unique(np.round(snap.ray_origins, 6), axis=0, return_inverse=True)
-        radii = S.SV.frontier_ball_radii(torch.as_tensor(uo), beta).numpy()[inv.reshape(-1)]
+        radii = S.search_volume.frontier_ball_radii(torch.as_tensor(uo), beta).numpy()[inv.reshape(-1)]
     raster = (cfg.scoring == "raster" and (spherical or cfg.cone_shape == "reference" or 0 < half_angle < 90)
               and ctx.grid.box_cells <= R.MAX_BOX_CELLS)
     cells = ctx.cells[un_idx]

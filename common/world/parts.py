@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from . import primitives as P
+from . import primitives
 
 
 @dataclass(frozen=True)
@@ -16,7 +16,7 @@ class Part:
     belongs to (parts with the same name form one instance) and an optional RGB colour
     (default: the class colour)."""
 
-    shape: P.Shape
+    shape: primitives.Shape
     class_name: str
     instance: str
     color: tuple[int, int, int] | None = None

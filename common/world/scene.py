@@ -15,7 +15,7 @@ import numpy as np
 from common.conventions import voxel_center
 from common.geometry import intrinsics_from_fov
 
-from . import primitives as P
+from . import primitives
 from .classes import CLASS_COLORS, CLASS_NAMES
 from .parts import Layout, Part
 from .render import Render, render_scene
@@ -92,14 +92,14 @@ class World:
             inst_ids.append(iid)
             cls_ids.append(cid)
             colors.append(p.color if p.color is not None else self.class_colors[cid])
-            kinds.append(P.kind_of(p.shape))
+            kinds.append(primitives.kind_of(p.shape))
         shapes = [p.shape for p in self.parts]
         self._kind = np.asarray(kinds, dtype=np.int64)
         self._kidx = np.zeros(len(shapes), dtype=np.int64)
-        for k in (P.KIND_BOX, P.KIND_FRUSTUM, P.KIND_SPHERE):
+        for k in (primitives.KIND_BOX, primitives.KIND_FRUSTUM, primitives.KIND_SPHERE):
             sel = self._kind == k
             self._kidx[sel] = np.arange(int(sel.sum()))
-        self._params = P.pack(shapes)
+        self._params = primitives.pack(shapes)
         self._cls = np.asarray(cls_ids, dtype=np.int32)
         self._inst = np.asarray(inst_ids, dtype=np.int32)
         self._color = np.asarray(colors, dtype=np.float64)
@@ -187,7 +187,7 @@ class World:
                 continue
             idx, q = idx[m], q[m]
             k = self._kind[i]
-            inside = P.CONTAINS[k](q, self._params[k][self._kidx[i]])
+            inside = primitives.CONTAINS[k](q, self._params[k][self._kidx[i]])
             out[idx[inside]] = self._cls[i]
         return out
 
@@ -220,7 +220,7 @@ class World:
         if not 0 <= int(class_id) < len(self.classes):
             raise ValueError(f"class id {class_id} out of range 0..{len(self.classes) - 1}")
         m = self._cls == class_id
-        return {k: self._params[k][self._kidx[m & (self._kind == k)]] for k in (P.KIND_BOX, P.KIND_FRUSTUM, P.KIND_SPHERE)}
+        return {k: self._params[k][self._kidx[m & (self._kind == k)]] for k in (primitives.KIND_BOX, primitives.KIND_FRUSTUM, primitives.KIND_SPHERE)}
 
     def distance_to_class(self, points: np.ndarray, class_id: int, chunk: int = 20_000) -> np.ndarray:
         """(N,) metres from each point to the nearest solid of any instance of ``class_id``
@@ -232,7 +232,7 @@ class World:
             q = p[a:a + chunk, None, :]
             for k, prm in prims.items():
                 if len(prm):
-                    out[a:a + chunk] = np.minimum(out[a:a + chunk], P.DIST[k](q, prm[None]).min(1))
+                    out[a:a + chunk] = np.minimum(out[a:a + chunk], primitives.DIST[k](q, prm[None]).min(1))
         return out
 
     def ray_distance_to_class(self, origin, direction, class_id: int, max_range: float | None = None,
@@ -265,7 +265,7 @@ class World:
         d = d / nd[:, None]
         best = np.full(len(o), np.inf)
         m = self._cls == class_id
-        for k in (P.KIND_BOX, P.KIND_FRUSTUM, P.KIND_SPHERE):
+        for k in (primitives.KIND_BOX, primitives.KIND_FRUSTUM, primitives.KIND_SPHERE):
             sel = np.nonzero(m & (self._kind == k))[0]
             if not len(sel):
                 continue
@@ -284,7 +284,7 @@ class World:
                 lo, hi = np.maximum(tp - span, 0.0), np.maximum(tp + span, 0.0)
                 if max_range is not None:
                     lo, hi = np.minimum(lo, max_range), np.minimum(hi, max_range)
-                val = _golden_min(P.DIST[k], oo, dd, prm, lo, hi, tol)  # (n, M)
+                val = _golden_min(primitives.DIST[k], oo, dd, prm, lo, hi, tol)  # (n, M)
                 best[a:a + step] = np.minimum(best[a:a + step], val.min(axis=1))
         return best
 
