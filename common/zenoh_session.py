@@ -216,7 +216,9 @@ def open_session(cfg, *, stop: threading.Event | None = None, extra: dict[str, A
         try:
             return zenoh.open(cfg)
         except Exception as e:
-            raise ZenohConnectError(f"cannot open zenoh session: {e}") from e
+            from common.zenoh_errors import explain_zenoh_error
+
+            raise ZenohConnectError(explain_zenoh_error(e)) from e
     zc = make_config(cfg, extra=extra, default_mode=default_mode)
     retry = config_mode(zc) == "client" and cfg.connect_timeout_ms != 0
     deadline = None if cfg.connect_timeout_ms < 0 else time.monotonic() + cfg.connect_timeout_ms / 1000
@@ -226,11 +228,13 @@ def open_session(cfg, *, stop: threading.Event | None = None, extra: dict[str, A
             return zenoh.open(zc)
         except Exception as e:
             err = e
+        from common.zenoh_errors import explain_zenoh_error  # one sentence, no Rust source paths
+
         if not retry or (deadline is not None and time.monotonic() >= deadline):
-            raise ZenohConnectError(f"cannot open zenoh session ({config_mode(zc)} → "
-                                    f"{json.loads(zc.get_json('connect/endpoints'))}): {err}") from err
+            eps = json.loads(zc.get_json("connect/endpoints"))
+            raise ZenohConnectError(explain_zenoh_error(err, eps if isinstance(eps, list) else None)) from err
         if not warned:
-            log.warning("zenoh: router not reachable yet (%s); retrying", str(err).split(" at ")[0])
+            log.warning("zenoh: %s; retrying", explain_zenoh_error(err))
             warned = True
         wait = min(wait * 2, max(cfg.connect_retry_s, 0.05))
         if deadline is not None:
