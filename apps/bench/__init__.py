@@ -34,6 +34,7 @@ TARGETS = {
     "mapper": "apps.bench.mapper",
     "encoder": "apps.bench.encoder",
     "e2e": "apps.bench.e2e",
+    "gpu": "apps.bench.gpu",
     "fleet": "apps.bench.fleet",
 }
 

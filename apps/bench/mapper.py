@@ -53,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--block", type=int, default=25, help="frames per interleaved block with --compare (default 25)")
     parser.add_argument("--growing", action="store_true", help="report CPU ms/frame per window of --window frames")
     parser.add_argument("--window", type=int, default=200, help="window size for --growing (default 200)")
+    parser.add_argument("--device", default="cpu",
+                        help="torch device of the map (cpu, cuda, cuda:1); the occupancy grid and the C++ kernels "
+                             "stay on the CPU, map tensors elsewhere take the torch paths")
 
 
 def _rss_mb() -> float:
@@ -88,6 +91,9 @@ class _Side:
             else:
                 for p, d, rgb, f in frames:
                     self._add(self.map.integrate(p, K, d, rgb, f))
+            if self.map.device.type == "cuda":
+                import torch
+                torch.cuda.synchronize(self.map.device)
             self.wall += time.perf_counter() - t0
             self.cpu += meta.cpu_seconds() - c0
             self.frames += len(frames)
@@ -142,6 +148,9 @@ def run(args: argparse.Namespace) -> dict:
     if args.block < 1 or args.window < 1:
         raise ValueError("--block and --window must be >= 1")
     torch.set_num_threads(max(1, args.threads))
+    if str(args.device).startswith("cuda") and not torch.cuda.is_available():
+        from common.config import ConfigError
+        raise ConfigError(f"--device {args.device}: CUDA is not available on this machine")
     hw = _RES[args.preset]
     over = {"depth_limit": args.depth_limit}
     for item in args.override:
@@ -164,12 +173,12 @@ def run(args: argparse.Namespace) -> dict:
     use_kernels = kernels.enabled() and not args.no_kernels
 
     def new_map():
-        return RayFrontsMap(cfg, args.feature_dim, "bench", occupancy_backend=args.backend)
+        return RayFrontsMap(cfg, args.feature_dim, "bench", device=args.device, occupancy_backend=args.backend)
 
     res: dict = {"target": "mapper", "preset": args.preset, "resolution_hw": list(hw), "frames": n,
                  "backend": backend_name(args.backend), "threads_per_stage": max(1, args.threads),
                  "kernels_available": kernels.available(), "depth_limit": args.depth_limit,
-                 "feature_dim": args.feature_dim, "trajectory": args.trajectory,
+                 "feature_dim": args.feature_dim, "trajectory": args.trajectory, "device": str(args.device),
                  "render_s_excluded": round(render_s, 2), "rss_after_render_mb": round(rss_before, 1)}
     if args.compare:
         if args.compare == "kernels":
