@@ -98,7 +98,11 @@ def check_inputs(cfg) -> None:
     from common.config import ConfigError
 
     src = cfg.source
-    if src.kind not in ("synthetic", "ros2"):  # ros2: live topics, no path
+    if src.kind == "ros2":  # live topics, no path: the source checks its options without connecting
+        from edge.sources import open_source
+
+        open_source(src)
+    if src.kind not in ("synthetic", "ros2"):
         if not src.path:
             raise ConfigError(f"source.kind={src.kind} needs source.path (the dataset / recording / bag location)")
         if not Path(src.path).expanduser().exists():

@@ -1,6 +1,6 @@
 """`rayfronts edge source.kind=ros2` end to end: a robot's ROS 2 topics (rendered from the
 synthetic world, serialised by rosbags, replayed by the independent ``tests/ros2_replay.py``
-process on rmw_zenoh keys) → the edge process (tiny random-weight NARADIO, no labels
+process on rmw_zenoh and on bridge keys) → the edge process (tiny random-weight NARADIO, no labels
 needed) → the mapper process. The frames the edge sent and the mapper's map must equal
 those built in-process from the bag source reading the same bag."""
 from __future__ import annotations
@@ -109,7 +109,8 @@ def _wait(fn, timeout, what):
 
 @pytest.mark.slow
 @pytest.mark.timeout(240)
-def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio):
+@pytest.mark.parametrize("layout", ["rmw_zenoh", "bridge"])
+def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     import torch
 
     from common.feature_space import FeatureSpace
@@ -133,10 +134,11 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio):
             _wait(lambda: c.mapper_alive(), 60, "mapper alive")
             procs.append(_run(["edge", "--connect", ep_m, "--rate", "4", "--record", str(rec), "robot=r1", "threads=1",
                                "source.kind=ros2", f"source.ros_connect=[{ep_r}]", "source.ros_idle_timeout=3",
+                               f"source.ros_keys={layout}",
                                *TOPICS, *enc_args], logs[1]))
             _wait(lambda: "r1" in c.robots(), 60, "edge r1 alive")
             procs.append(subprocess.Popen([sys.executable, str(ROOT / "tests" / "ros2_replay.py"), str(world_bag),
-                                           "--listen", ep_r, "--layout", "rmw_zenoh", "--distro", "jazzy",
+                                           "--listen", ep_r, "--layout", layout, "--distro", "jazzy",
                                            "--wait-subs", "4", "--speed", "1"],
                                           stdout=logs[2], stderr=subprocess.STDOUT, env=zenoh_env(), cwd=str(ROOT)))
             assert procs[2].wait(90) == 0

@@ -255,3 +255,23 @@ def test_config_errors():
         open_source(SourceConfig(kind="ros2", rgb_topic="/a/*", depth_topic="/d", pose_topic="/p"))
     with pytest.raises(SourceError, match="domain"):
         open_source(SourceConfig(kind="ros2", ros_domain=999, pose_topic="/p", **BASE))
+
+
+def test_cli_list_topics_bridge_and_config_error(bag, tmp_path, replays):
+    """`rayfronts edge --list-topics` on bridge keys (no graph tokens: the data keys seen), and a
+    ros2 edge without topics fails with one error line."""
+    r = Replay(bag, tmp_path, "bridge", "humble", wait_subs=1, speed=1.0)
+    replays.append(r)
+    out = subprocess.run([sys.executable, "-m", "apps.cli", "edge", "--list-topics", f"source.ros_connect=[{r.ep}]",
+                          "source.ros_keys=bridge", "--list-seconds", "3"], capture_output=True, text=True,
+                         env=zenoh_env(), cwd=str(ROOT), timeout=90)
+    assert out.returncode == 0, out.stderr[-2000:]
+    for topic in ("/cam/color", "/cam/depth", "/odom", "/tf_static"):
+        assert topic in out.stdout
+    assert "data" in out.stdout and "Hz" in out.stdout
+    r.finish()
+    bad = subprocess.run([sys.executable, "-m", "apps.cli", "edge", "source.kind=ros2", "source.pose_topic=/odom",
+                          "--connect", "tcp/127.0.0.1:1"], capture_output=True, text=True, env=zenoh_env(),
+                         cwd=str(ROOT), timeout=90)
+    assert bad.returncode != 0
+    assert "rgb_topic" in bad.stderr and "Traceback" not in bad.stderr
