@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 
 from common.conventions import voxel_center
-from mapper import keys as K_
+from mapper import keys as cell_keys
 
 
 class FrontierTable:
@@ -55,7 +55,7 @@ class FrontierTable:
 
     def centres(self) -> torch.Tensor:
         """(F, 3) float32 coarse cell centres (m)."""
-        return voxel_center(K_.unpack(self.keys), self.beta)
+        return voxel_center(cell_keys.unpack(self.keys), self.beta)
 
     def region(self, lo: torch.Tensor, hi: torch.Tensor, r: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Fine inclusive box covering whole coarse cells around fine box [lo, hi] grown by r."""
@@ -80,7 +80,7 @@ class FrontierTable:
         chi = torch.as_tensor(chi, dtype=torch.int64, device=self.device)
         if fine_ijk.numel():
             coarse = torch.div(fine_ijk, self.s, rounding_mode="floor")
-            uk, cnt = torch.unique(K_.pack(coarse), return_counts=True)
+            uk, cnt = torch.unique(cell_keys.pack(coarse), return_counts=True)
             keep = cnt > self.min_fronti
             new_k, new_n = uk[keep], cnt[keep]
         else:
@@ -90,15 +90,15 @@ class FrontierTable:
             self.keys, self.counts = new_k, new_n
             return
         # the x-slab [clo_i, chi_i] of the sorted keys: one contiguous run
-        lo_i = min(max(int(clo[0]) + K_.OFFSET, 0), K_.MASK)
-        hi_i = min(max(int(chi[0]) + K_.OFFSET, 0), K_.MASK)
-        bounds = torch.tensor([lo_i << (2 * K_.BITS), (hi_i << (2 * K_.BITS)) | ((1 << (2 * K_.BITS)) - 1)],
+        lo_i = min(max(int(clo[0]) + cell_keys.OFFSET, 0), cell_keys.MASK)
+        hi_i = min(max(int(chi[0]) + cell_keys.OFFSET, 0), cell_keys.MASK)
+        bounds = torch.tensor([lo_i << (2 * cell_keys.BITS), (hi_i << (2 * cell_keys.BITS)) | ((1 << (2 * cell_keys.BITS)) - 1)],
                               dtype=torch.int64, device=self.device)
         a = int(torch.searchsorted(self.keys, bounds[:1]))
         b = int(torch.searchsorted(self.keys, bounds[1:], right=True))
         b = max(a, b)  # empty slab: the new cells go in at a
         slab_k, slab_n = self.keys[a:b], self.counts[a:b]
-        c = K_.unpack(slab_k)
+        c = cell_keys.unpack(slab_k)
         inside = ((c >= clo) & (c <= chi)).all(1)
         old_in = slab_k[inside]
         if old_in.numel():
@@ -131,7 +131,7 @@ class FrontierTable:
         return torch.unique(torch.cat(parts))
 
     def contains(self, keys: torch.Tensor) -> torch.Tensor:
-        return K_.lookup(self.keys, keys) >= 0
+        return cell_keys.lookup(self.keys, keys) >= 0
 
     def state(self) -> dict:
         return {"keys": self.keys.clone(), "counts": self.counts.clone()}
@@ -148,6 +148,6 @@ def subsample(fine_ijk: torch.Tensor, s: int, min_fronti: int) -> tuple[torch.Te
     if s <= 1:
         min_fronti = 0
     coarse = torch.div(fine_ijk.to(torch.int64), s, rounding_mode="floor")
-    uk, cnt = torch.unique(K_.pack(coarse), return_counts=True)
+    uk, cnt = torch.unique(cell_keys.pack(coarse), return_counts=True)
     keep = cnt > min_fronti
-    return K_.unpack(uk[keep]), cnt[keep]
+    return cell_keys.unpack(uk[keep]), cnt[keep]

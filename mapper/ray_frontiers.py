@@ -43,8 +43,8 @@ import warnings
 import torch
 
 from common.conventions import voxel_center, voxel_index
-from mapper import kernels as KN
-from mapper import keys as K_
+from mapper import kernels
+from mapper import keys as cell_keys
 from mapper.traversal import segment_cells
 
 KERNEL_RAY_CHUNK = 1 << 15  # rays per kernel call in associate(): bounds the candidate-pair memory
@@ -175,11 +175,11 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
         lo, hi = p.min(0).values, p.max(0).values
         far = torch.maximum((o - lo).abs(), (o - hi).abs())
         L = far.norm(dim=1)
-    if KN.enabled(o, d, frontier_ijk):
+    if kernels.enabled(o, d, frontier_ijk):
         step = KERNEL_RAY_CHUNK
-        parts = [KN.associate_rays(o[s:s + step], d[s:s + step], L[s:s + step], frontier_ijk, beta, base,
-                                   max_dist, reject_close, block, scales=scales,
-                                   argmin=lambda r, f, x, n: _argmin_cost(r, f, x, n, scales))
+        parts = [kernels.associate_rays(o[s:s + step], d[s:s + step], L[s:s + step], frontier_ijk, beta, base,
+                                        max_dist, reject_close, block, scales=scales,
+                                        argmin=lambda r, f, x, n: _argmin_cost(r, f, x, n, scales))
                  for s in range(0, R, step)]
         if len(parts) == 1:
             return parts[0]
@@ -195,14 +195,14 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     ends = o + d * L[:, None]
     # dilated frontier table: cell key -> frontier index
     dil = frontier_ijk.to(torch.int64)[:, None, :] + _OFFS.to(dev)[None]
-    dk = K_.pack(dil.reshape(-1, 3))
+    dk = cell_keys.pack(dil.reshape(-1, 3))
     df = torch.arange(F, device=dev).repeat_interleave(27)
     order = torch.argsort(dk)
     dk, df = dk[order], df[order]
     ri_all, fi_all = [], []
     # lookup structure for walked cells: dense (start, count) table over the dilated
     # frontier box when small, else binary search in the sorted dilated keys
-    dil_ijk = K_.unpack(dk)
+    dil_ijk = cell_keys.unpack(dk)
     lo_c = frontier_ijk.min(0).values.to(torch.int64) - 1
     ext = frontier_ijk.max(0).values.to(torch.int64) + 2 - lo_c
     dense = int(ext.prod()) <= (1 << 22)  # two int32 tables of at most 16 MiB each
@@ -223,7 +223,7 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
         n = tab_cnt[flat].to(torch.int64)
         lo_i = tab_start[flat].to(torch.int64)
     else:
-        ck = K_.pack(cells)
+        ck = cell_keys.pack(cells)
         lo_i = torch.searchsorted(dk, ck)
         n = torch.searchsorted(dk, ck, right=True) - lo_i
     hit = n > 0
@@ -334,7 +334,7 @@ class RayStore:
         return lo, cnt, q, rows
 
     def _dead_out(self, dead: torch.Tensor):
-        o = voxel_center(K_.unpack(self.fkey[dead]), self.beta)
+        o = voxel_center(cell_keys.unpack(self.fkey[dead]), self.beta)
         n = self.dsum[dead].norm(dim=1, keepdim=True)
         bc = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
         dd = torch.where(n > 1e-12, self.dsum[dead] / n.clamp_min(1e-12), bc)
@@ -362,7 +362,7 @@ class RayStore:
             return
         tb, pb = angle_bins(dirs, self.psi)
         nb = self.nt * self.np_
-        fi_new = K_.lookup(frontier_keys_sorted, fkeys)
+        fi_new = cell_keys.lookup(frontier_keys_sorted, fkeys)
         if bool((fi_new < 0).any()):
             raise ValueError("ray refers to a frontier that is not in the table")
         comp_new = fi_new * nb + tb * self.np_ + pb
@@ -416,7 +416,7 @@ class RayStore:
 
     # -- views -------------------------------------------------------------------------
     def origins(self) -> torch.Tensor:
-        return voxel_center(K_.unpack(self.fkey), self.beta)
+        return voxel_center(cell_keys.unpack(self.fkey), self.beta)
 
     def directions(self) -> torch.Tensor:
         n = self.dsum.norm(dim=1, keepdim=True)
@@ -425,7 +425,7 @@ class RayStore:
 
     def set_frontier_directions(self, fkeys: torch.Tensor, dirs: torch.Tensor) -> None:
         """Overwrite the direction of every bin of frontier ``fkeys[i]`` with ``dirs[i]``."""
-        pos = K_.lookup(fkeys, self.fkey) if fkeys.numel() else torch.full_like(self.fkey, -1)
+        pos = cell_keys.lookup(fkeys, self.fkey) if fkeys.numel() else torch.full_like(self.fkey, -1)
         hit = pos >= 0
         self.dsum[hit] = dirs[pos[hit]].to(torch.float32) * self.weight[hit, None]
 
@@ -452,7 +452,7 @@ def infer_directions(grid, frontier_keys: torch.Tensor, beta: float, vox: float,
         return torch.empty((0, 3), dtype=torch.float32)
     h = beta if scale == "coarse" else vox
     offs = _OFFS[(_OFFS != 0).any(1)].to(frontier_keys.device)  # 26
-    c = voxel_center(K_.unpack(frontier_keys), beta).to(torch.float64)
+    c = voxel_center(cell_keys.unpack(frontier_keys), beta).to(torch.float64)
     pts = c[:, None, :] + offs[None].to(torch.float64) * h
     vals = torch.as_tensor(grid.query(voxel_index(pts.reshape(-1, 3), vox).cpu())).to(frontier_keys.device)
     w = torch.where(vals.reshape(-1, 26) == 0, 1.0, -1.0)

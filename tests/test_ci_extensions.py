@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from mapper import kernels as KN
+from mapper import kernels
 from mapper.occupancy import vdb_available
 
 IN_CI = os.environ.get("CI", "").lower() == "true"
@@ -28,5 +28,5 @@ def test_openvdb_extension_present():
 
 
 def test_kernel_module_present():
-    _need(KN.available(), "the C++ kernel module mapper._rfkernels", KN.IMPORT_ERROR)
-    assert KN.enabled() or not KN._enabled
+    _need(kernels.available(), "the C++ kernel module mapper._rfkernels", kernels.IMPORT_ERROR)
+    assert kernels.enabled() or not kernels._enabled

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from common.config import merge
-from apps.evaluation import raster as RA
-from apps.evaluation import shapes as S
+from apps.evaluation import raster
+from apps.evaluation import shapes
 
 pytestmark = pytest.mark.usefixtures("torch_two_threads")
 
@@ -33,37 +33,37 @@ def test_cones_balls_pyramids_equal_block_path(seed):
     rng = np.random.default_rng(seed)
     vox = [1.0, 0.5, 0.05, 0.3][seed % 4]
     ijk, o, d = _case(rng, vox)
-    grid = RA.RowGrid.around(ijk, vox)
+    grid = raster.RowGrid.around(ijk, vox)
     cells = grid.cells(ijk)
     xyz = (ijk.astype(np.float64) + 0.5) * vox
     for alpha in (45.0, [10.0, 30.0, 60.0, 80.0, 89.0][seed % 5]):
-        want = S.cone_counts(xyz, o, d, alpha).numpy()
-        np.testing.assert_array_equal(RA.cone_counts(grid, o, d, alpha, cells), want)
+        want = shapes.cone_counts(xyz, o, d, alpha).numpy()
+        np.testing.assert_array_equal(raster.cone_counts(grid, o, d, alpha, cells), want)
         assert want.max() > 0 or alpha != 45.0
     r = rng.uniform(0.5, 8, len(o)) * vox
     r[:3] = np.round(r[:3] / vox) * vox                      # voxel centres exactly on the sphere
-    want = S.ball_counts(xyz, o, r).numpy()
-    np.testing.assert_array_equal(RA.ball_counts(grid, o, r, cells), want)
+    want = shapes.ball_counts(xyz, o, r).numpy()
+    np.testing.assert_array_equal(raster.ball_counts(grid, o, r, cells), want)
     for s, alpha in ((4, 45.0), (5, 45.0), (2, 30.0)):
-        want = S.reference_cone_counts(xyz, o, d, vox, s, alpha).numpy()
-        np.testing.assert_array_equal(RA.reference_cone_counts(grid, o, d, s, alpha, cells=cells), want)
+        want = shapes.reference_cone_counts(xyz, o, d, vox, s, alpha).numpy()
+        np.testing.assert_array_equal(raster.reference_cone_counts(grid, o, d, s, alpha, cells=cells), want)
 
 
 def test_dense_grid_output_and_bad_input():
     ijk = np.array([[0, 0, 0], [3, 1, 1]])
-    grid = RA.RowGrid.around(ijk, 1.0)
+    grid = raster.RowGrid.around(ijk, 1.0)
     assert grid.axis == 0 and grid.n_rows == 4 and grid.row_len == 4
-    dense = RA.cone_counts(grid, [[-0.5, 0.5, 0.5]], [[1.0, 0, 0]], 30.0)
+    dense = raster.cone_counts(grid, [[-0.5, 0.5, 0.5]], [[1.0, 0, 0]], 30.0)
     assert dense.shape == (4, 2, 2)
     np.testing.assert_array_equal(dense[:, 0, 0], [1, 1, 1, 1])    # the axis row (y = z = 0.5) lies inside
     assert dense[:, 1, 1].sum() < 4
-    np.testing.assert_array_equal(RA.cone_counts(grid, [[-0.5, 0.5, 0.5]], [[1.0, 0, 0]], 30.0, grid.cells(ijk)),
+    np.testing.assert_array_equal(raster.cone_counts(grid, [[-0.5, 0.5, 0.5]], [[1.0, 0, 0]], 30.0, grid.cells(ijk)),
                                   [dense[0, 0, 0], dense[3, 1, 1]])
     with pytest.raises(ValueError, match="half-angle"):
-        RA.cone_counts(grid, [[0, 0, 0]], [[1.0, 0, 0]], 90.0)
+        raster.cone_counts(grid, [[0, 0, 0]], [[1.0, 0, 0]], 90.0)
     with pytest.raises(ValueError, match="outside"):
         grid.cells(np.array([[5, 0, 0]]))
-    assert RA.ball_counts(grid, np.empty((0, 3)), np.empty(0), grid.cells(ijk)).tolist() == [0, 0]
+    assert raster.ball_counts(grid, np.empty((0, 3)), np.empty(0), grid.cells(ijk)).tolist() == [0, 0]
 
 
 # ----------------------------------------------------------------------------- whole runs

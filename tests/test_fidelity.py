@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from mapper import keys as K_
+from mapper import keys as cell_keys
 from mapper.ray_frontiers import RayStore, bin_centre_dirs
 
 
@@ -18,7 +18,7 @@ def _unit(v):
 def test_b1_requeue_uses_stored_mean_direction(psi):
     """Re-queued rays of a vanished frontier keep the bin's weighted mean direction, not the
     bin centre (which for the single 360° bin is always +x)."""
-    fk = K_.pack(torch.tensor([[3, -2, 1], [0, 0, 5]]))
+    fk = cell_keys.pack(torch.tensor([[3, -2, 1], [0, 0, 5]]))
     fk, _ = torch.sort(fk)
     rs = RayStore(beta=2.0, psi=psi, feature_dim=4)
     d = torch.stack([_unit([0.1, 1.0, 0.05]), _unit([-0.1, 1.0, 0.1]), _unit([0.0, -0.3, 1.0])])
@@ -52,7 +52,7 @@ def test_b1_requeue_in_map_keeps_direction():
     cfg = map_config("online", {"vox_size": 1.0, "ray_tracing": True, "depth_limit": 10.0},
                      "spherical_semfronts")
     m = RayFrontsMap(cfg, 4, occupancy_backend="torch")
-    fk = K_.pack(torch.tensor([[2, 5, 0]]))
+    fk = cell_keys.pack(torch.tensor([[2, 5, 0]]))
     m.ray_store.merge(fk, fk, _unit([0.0, 1.0, 0.2])[None], torch.eye(4)[:1], torch.ones(1))
     out = m.ray_store.prune(torch.empty(0, dtype=torch.int64), requeue=True)
     assert out is not None and out[1].shape == (1, 3)
@@ -109,15 +109,15 @@ def test_b2_absolute_cost_can_pick_a_different_frontier():
 @pytest.mark.parametrize("seed,beta,max_dist,close", [(0, 1.0, 15.0, False), (1, 0.5, 8.0, True),
                                                       (2, 2.0, -1.0, False)])
 def test_b2_absolute_kernel_torch_bruteforce_identical(seed, beta, max_dist, close):
-    from mapper import kernels as KN
+    from mapper import kernels
     from mapper.ray_frontiers import associate, associate_bruteforce
     g = torch.Generator().manual_seed(seed)
     fr = torch.unique(torch.randint(-12, 12, (500, 3), generator=g), dim=0)
     o = (torch.rand(300, 3, generator=g, dtype=torch.float64) - 0.5) * 8
     d = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=1)
-    assert KN.available(), f"mapper._rfkernels not built: {KN.IMPORT_ERROR}"
+    assert kernels.available(), f"mapper._rfkernels not built: {kernels.IMPORT_ERROR}"
     k = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
-    with KN.disabled():
+    with kernels.disabled():
         t = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
     ref = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
     paper = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="paper")
@@ -140,7 +140,7 @@ def test_b2_map_weights_absolute_no_floor():
         cfg = map_config("online", {"vox_size": 1.0, "depth_limit": 10.0, "ray_tracing": False,
                                     "ray_cost_norm": mode})
         m = RayFrontsMap(cfg, 4, occupancy_backend="torch")
-        m.fronts.keys = torch.sort(K_.pack(torch.tensor([[2, 0, 0]])))[0]     # beta = 4: centre (10, 2, 2)
+        m.fronts.keys = torch.sort(cell_keys.pack(torch.tensor([[2, 0, 0]])))[0]     # beta = 4: centre (10, 2, 2)
         o, d = _one_ray()
         d = torch.nn.functional.normalize(torch.tensor([[10.0, 2.0, 1.0]], dtype=torch.float64), dim=1)
         m._cast(o, d.to(torch.float32), torch.eye(4)[:1], 0.0)

@@ -12,7 +12,7 @@ import torch
 
 from common.conventions import voxel_center
 from common.world import World
-from mapper import keys as K_
+from mapper import keys as cell_keys
 from mapper.config import map_config
 from mapper.frontiers import FrontierTable
 from mapper.map import RayFrontsMap
@@ -29,11 +29,11 @@ def one_thread():
 
 def _ref_replace(keys, counts, clo, chi, fine, s, min_fronti):
     if keys.numel():
-        c = K_.unpack(keys)
+        c = cell_keys.unpack(keys)
         inside = ((c >= clo) & (c <= chi)).all(1)
         keys, counts = keys[~inside], counts[~inside]
     if fine.numel():
-        uk, cnt = torch.unique(K_.pack(torch.div(fine, s, rounding_mode="floor")), return_counts=True)
+        uk, cnt = torch.unique(cell_keys.pack(torch.div(fine, s, rounding_mode="floor")), return_counts=True)
         keep = cnt > min_fronti
         k = torch.cat([keys, uk[keep]])
         n = torch.cat([counts, cnt[keep]])
@@ -81,7 +81,7 @@ class _RefStore(RayStore):
             return
         tb, pb = angle_bins(dirs, self.psi)
         nb = self.nt * self.np_
-        fi_new = K_.lookup(frontier_keys_sorted, fkeys)
+        fi_new = cell_keys.lookup(frontier_keys_sorted, fkeys)
         comp_new = fi_new * nb + tb * self.np_ + pb
         uc, inv = torch.unique(comp_new, return_inverse=True)
         m = uc.numel()
@@ -89,8 +89,8 @@ class _RefStore(RayStore):
         sw = torch.zeros(m).index_add_(0, inv, w32)
         sf = torch.zeros((m, self.dim)).index_add_(0, inv, feats.to(torch.float32) * w32[:, None])
         sd = torch.zeros((m, 3)).index_add_(0, inv, dirs.to(torch.float32) * w32[:, None])
-        fi_old = K_.lookup(frontier_keys_sorted, self.fkey)
-        pos = K_.lookup(fi_old * nb + self.tbin * self.np_ + self.pbin, uc)
+        fi_old = cell_keys.lookup(frontier_keys_sorted, self.fkey)
+        pos = cell_keys.lookup(fi_old * nb + self.tbin * self.np_ + self.pbin, uc)
         ex = pos >= 0
         if bool(ex.any()):
             rows = pos[ex]
@@ -110,7 +110,7 @@ class _RefStore(RayStore):
             self.feat = torch.cat([self.feat, (sf[nw] / sw[nw][:, None]).to(self.dtype)])
             self.weight = torch.cat([self.weight, sw[nw]])
             self.dsum = torch.cat([self.dsum, sd[nw]])
-            fi_all = K_.lookup(frontier_keys_sorted, self.fkey)
+            fi_all = cell_keys.lookup(frontier_keys_sorted, self.fkey)
             self._take(torch.argsort(fi_all * nb + self.tbin * self.np_ + self.pbin))
 
 
@@ -124,12 +124,12 @@ def _same_store(a, b):
 def test_ray_store_prune_keys_and_merge_match_full_scan(psi, dtype):
     g = torch.Generator().manual_seed(int(psi))
     new, ref = RayStore(1.2, psi, 6, dtype), _RefStore(1.2, psi, 6, dtype)
-    table = torch.unique(K_.pack(torch.randint(-6, 6, (40, 3), generator=g)))
+    table = torch.unique(cell_keys.pack(torch.randint(-6, 6, (40, 3), generator=g)))
     for step in range(40):
         # frontiers vanish and appear
         drop = torch.rand(table.numel(), generator=g) < 0.15
         gone = table[drop]
-        table = torch.unique(torch.cat([table[~drop], K_.pack(torch.randint(-6, 6, (8, 3), generator=g))]))
+        table = torch.unique(torch.cat([table[~drop], cell_keys.pack(torch.randint(-6, 6, (8, 3), generator=g))]))
         gone = gone[~torch.isin(gone, table)]
         ra = ref.prune(table, requeue=True)
         rb = new.prune_keys(torch.unique(gone), requeue=True)
@@ -148,7 +148,7 @@ def test_ray_store_prune_keys_and_merge_match_full_scan(psi, dtype):
         _same_store(ref, new)
     assert len(new) > 30
     with pytest.raises(ValueError):
-        new.merge(torch.tensor([K_.pack(torch.tensor([[99, 99, 99]]))[0]]), table, d[:1], fe[:1], w[:1])
+        new.merge(torch.tensor([cell_keys.pack(torch.tensor([[99, 99, 99]]))[0]]), table, d[:1], fe[:1], w[:1])
 
 
 @pytest.fixture(scope="module")
@@ -192,4 +192,4 @@ def test_map_with_incremental_rays_equals_full_scan(frames, kw):
     assert len(a.ray_store) > 0 and a.counters["ray_blocks"] >= 8
     if cfg.ray_tracing:
         assert requeued > 0  # frontiers vanished under rays, which were re-cast
-    assert torch.equal(voxel_center(K_.unpack(a.ray_store.fkey), cfg.beta), a.rays().origins)
+    assert torch.equal(voxel_center(cell_keys.unpack(a.ray_store.fkey), cfg.beta), a.rays().origins)

@@ -198,9 +198,9 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: i
         m.sem.fuse(xyz[a:b], torch.rand((b - a, 3), generator=g), torch.randn((b - a, pca.out_dim), generator=g))
     assert len(m.sem) == n_vox
     if n_rays > 0:
-        from mapper import keys as K_
+        from mapper import keys as cell_keys
 
-        fk = torch.unique(K_.pack(torch.randint(-400, 400, (n_rays, 3), generator=g)))
+        fk = torch.unique(cell_keys.pack(torch.randint(-400, 400, (n_rays, 3), generator=g)))
         r = fk.numel()
         z = torch.zeros(r, dtype=torch.int64)
         m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(),
