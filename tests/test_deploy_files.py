@@ -162,7 +162,7 @@ def test_dockerfiles():
     assert re.search(r"^FROM nvcr\.io/nvidia/l4t-jetpack:\$\{L4T_TAG\}", edge, re.M)
     assert re.search(r"^ARG L4T_TAG=r36\.", edge, re.M)
     edge_code = re.sub(r"#.*", "", edge)
-    assert "rerun" not in edge_code and "[mapper" not in edge_code and "pip install ." in edge_code
+    assert "rerun" not in edge_code and "[mapper" not in edge_code and 'pip install ".[edge]"' in edge_code
     assert re.search(r"^FROM nvidia/cuda:", mapper, re.M)
     assert "libopenvdb-dev" in mapper and "libboost-iostreams-dev" in mapper
     assert 'pip install ".[mapper,label]"' in mapper
@@ -171,6 +171,7 @@ def test_dockerfiles():
             for s in src.split():
                 assert (ROOT / s).exists(), f"COPY source {s} missing"
         assert 'ENTRYPOINT ["rayfronts"]' in text
+        assert "COPY apps ./apps" in text   # the rayfronts command is apps.cli:main
 
 
 def test_example_configs_use_existing_keys():
