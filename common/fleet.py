@@ -155,7 +155,8 @@ def decode_transform_reply(data) -> list[float] | None:
 
 # ------------------------------------------------------------------ shard info
 SHARD_INFO_KEYS = ("shard", "score_min", "ray_score_min", "half_angle_deg", "search_range_m", "search_cell_m",
-                   "search_samples", "search_rays", "cluster_rel_score", "vox_size")
+                   "search_samples", "search_rays", "cluster_rel_score", "vox_size", "region", "tile_m", "tiles",
+                   "robots")
 
 
 def encode_shard_info(info: dict) -> bytes:

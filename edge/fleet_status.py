@@ -54,6 +54,7 @@ class StatusWatcher:
         self._advice: dict[str, tuple[float, float]] = {}    # shard -> (advised hz, monotonic time)
         self.latest: dict[str, dict] = {}
         self.bad = 0
+        self._logged_rate = auto.current() if auto is not None else 0.0
         self._lock = threading.Lock()
 
     def on_sample(self, sample) -> None:
@@ -96,5 +97,10 @@ class StatusWatcher:
                 self.log.info("mapper%s: robot %s %s%s%s", where, self.robot, state,
                               f": {reason}" if reason else "", extra)
         if self.auto is not None and live:
-            self.auto.advise(min(live))
+            before = self.auto.current()
+            now_rate = self.auto.advise(min(live))
+            if abs(now_rate - self._logged_rate) > 0.2 * max(self._logged_rate, 0.1):
+                self._logged_rate = now_rate
+                self.log.info("publish rate (auto): %.1f Hz (mapper advises %.1f Hz, was %.1f Hz)",
+                              now_rate, min(live), before)
         return st

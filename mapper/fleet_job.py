@@ -3,15 +3,15 @@ mapper as one shard of several (module map: :mod:`mapper.state`).
 
 Hooks (the other jobs call them; pure parts in :mod:`mapper.fleet`, :mod:`mapper.shards`):
 
-* ingest, frame callback (``qlock`` held): :meth:`Fleet.admit` (robot cap) and
-  :meth:`Fleet.received` (rates, rate-limited drop warning with the rate);
+* ``MapperState.robot`` (a new robot id, ``qlock`` held): :meth:`Fleet.admit` (robot cap);
 * ingest, feature-space fetch: :meth:`Fleet.space_decided` — refuses another encoder family
   with one line, builds the :class:`mapper.fleet.Reprojection` of a robot with another PCA
   basis;
 * map worker, before integrating: :meth:`Fleet.prepare` — re-projects features into the
   map's basis, applies ``world_from_robot`` to the pose, and leaves out frames outside this
-  shard's region (counted ``outside_shard``); after: :meth:`Fleet.mapped`;
-* its own thread (:meth:`Fleet.loop`, every 0.5 s, waiting on ``stop``): evictions,
+  shard's region (counted ``outside_shard``);
+* its own thread (:meth:`Fleet.loop`, every 0.5 s, waiting on ``stop``): per-robot rates
+  from the counters ingest and the map worker keep, drop warnings with the rate, evictions,
   pending-frame expiry, per-robot status on ``mapper/robots/<robot>/status`` (on change,
   else at most every ``fleet.status_period_s``);
 * the ``mapper/robots/*/world_from_robot`` queryable (:meth:`Fleet.on_transform`);
@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -61,8 +61,7 @@ class FleetRobot:
     outside_shard: int = 0
     pending_expired: int = 0
     refused: str = ""               # why the robot is refused ("" = not refused)
-    transformed: bool = False
-    seqs: dict = field(default_factory=dict)
+    counts: tuple | None = None     # (received, mapped, dropped, rejected) at the last sample
 
     def as_dict(self, now: float | None = None) -> dict:
         d = {"reprojected": self.reprojection is not None, "outside_shard": self.outside_shard,
@@ -98,8 +97,9 @@ class Fleet:
         return fr
 
     def admit(self, name: str) -> bool:
-        """True when ``name`` is tracked or may be (caller holds ``qlock``); else counts the
-        frame under ``robot_cap`` (globally: nothing is kept per refused id)."""
+        """True when ``name`` is tracked or may be (caller holds ``qlock``; ``MapperState.robot``
+        asks for every new id); else counts the frame under ``robot_cap`` (globally: nothing is
+        kept per refused id)."""
         s = self.state
         if name in s.robots or len(s.robots) < max(1, self.cfg.max_robots):
             return True
@@ -112,15 +112,25 @@ class Fleet:
                         name, len(s.robots), self.capped)
         return False
 
-    def received(self, st, dropped: bool, now_wall: float | None = None) -> None:
-        """A frame of ``st`` was queued (``dropped``: the oldest one fell out). Caller holds ``qlock``."""
+    def sample_counts(self, st, now: float, now_wall: float) -> None:
+        """Turn the robot's counters (received / mapped / dropped / rejected, kept by ingest and
+        the map worker) into rates, warn about drops with their rate. Caller holds ``qlock``."""
         fr = self.robot_data(st)
-        now = time.monotonic()
-        fr.last_frame_at = time.time() if now_wall is None else now_wall
-        fr.rates.received.add(1, now)
-        if dropped:
-            fr.rates.dropped.add(1, now)
-            self.drops.dropped(st.name, 1, fr.rates.as_dict(now), len(st.queue), now)
+        cur = (st.received, st.mapped, st.dropped, int(sum(st.rejected.values())))
+        prev = fr.counts if fr.counts is not None else (0, 0, 0, 0)
+        fr.counts = cur
+        d_recv, d_map, d_drop, d_rej = (max(0, a - b) for a, b in zip(cur, prev))
+        if d_recv:
+            fr.rates.received.add(d_recv, now)
+            fr.last_frame_at = now_wall
+        if d_map:
+            fr.rates.mapped.add(d_map, now)
+            self.map_rate.add(d_map, now)
+        if d_rej:
+            fr.rates.rejected.add(d_rej, now)
+        if d_drop:
+            fr.rates.dropped.add(d_drop, now)
+            self.drops.dropped(st.name, d_drop, fr.rates.as_dict(now), len(st.queue), now)
 
     def space_decided(self, st, fs) -> str:
         """Decide on a robot's fetched feature space ``fs``: "" (accepted, possibly
@@ -151,11 +161,6 @@ class Fleet:
             if frame.global_feature is not None:
                 ch["global_feature"] = rp.vector(frame.global_feature)
         return replace(frame, **ch)
-
-    def mapped(self, st) -> None:
-        now = time.monotonic()
-        self.robot_data(st).rates.mapped.add(1, now)
-        self.map_rate.add(1, now)
 
     # ------------------------------------------------------------ status
     def _state_of(self, st) -> tuple[str, str]:
@@ -197,6 +202,8 @@ class Fleet:
         now, now_w = time.monotonic(), time.time()
         out = []
         with s.qlock:
+            for st in s.robots.values():
+                self.sample_counts(st, now, now_w)
             for name, n in expire_pending(s.robots.values(), now_w, self.cfg):
                 st = s.robots[name]
                 self.robot_data(st).pending_expired += n
@@ -270,6 +277,12 @@ class Fleet:
                 "search_cell_m": float(q.search_cell_m), "search_samples": int(q.search_samples),
                 "search_rays": int(q.search_rays), "cluster_rel_score": float(q.cluster_rel_score),
                 "vox_size": float(self.state.cfg.map.vox_size)}
+        sh = self.shard
+        if sh.lo is not None:
+            info["region"] = [float(v) if np.isfinite(v) else (1e9 if v > 0 else -1e9)
+                              for v in (*sh.lo, *sh.hi)]
+        if sh.tiles:
+            info["tile_m"], info["tiles"] = sh.tile_m, sorted([list(t) for t in sh.tiles])
         if res is not None:
             for k in ("score_min", "half_angle_deg"):
                 v = getattr(res, k, None)

@@ -306,16 +306,22 @@ class Ingest:
         with s.lock:
             if s.map is None:
                 s.create_map(fs, encode_feature_space(robot, body))
-            ok = fs_id == s.space_id
+            if s.fleet is not None:   # same encoder family: accepted (re-projected if another basis)
+                why = s.fleet.space_decided(st, fs)
+            else:
+                why = "" if fs_id == s.space_id else f"robot space {fs_id} differs from the map's {s.space_id}"
+            map_id = s.space_id
+        ok = not why
         with s.qlock:
             st.feature_space = fs_id
             st.space_ok = ok
-            st.space_error = "" if ok else f"robot space {fs_id} differs from the map's {s.space_id}"
+            st.space_error = why
         if ok:
-            log.info("robot %s feature space %s", robot, fs_id)
+            log.info("robot %s feature space %s%s", robot, fs_id,
+                     f" (re-projected into the map's {map_id})" if fs_id != map_id else "")
             s.wake.set()
         else:
-            log.error("robot %s: %s; its frames are rejected", robot, st.space_error)
+            log.error("robot %s refused: %s; its frames are rejected", robot, why)
 
     # ============================================================== queues
     def next_frame(self) -> tuple[RobotState, object, float] | None:

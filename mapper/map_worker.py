@@ -84,6 +84,14 @@ class MapWorker:
 
     def _integrate(self, st, frame, t_recv) -> bool:
         """Integrate one frame and account it; False if integration failed (counted)."""
+        if self.state.fleet is not None:   # re-projection into the map's basis, world_from_robot, shard
+            try:
+                frame = self.state.fleet.prepare(st, frame)
+            except Exception as e:
+                self.state.reject(st.name, "fleet_prepare", repr(e))
+                return False
+            if frame is None:
+                return False
         from mapper.service_map import integrate
 
         s = self.state
@@ -114,6 +122,8 @@ class MapWorker:
         e_cpu = frame.meta.get("cpu_s") if isinstance(frame.meta, dict) else None
         with s.qlock:
             st.mapped += 1
+            if frame.seq <= st.last_seq:
+                st.seq_regressions += 1
             st.last_seq = frame.seq
             s.mapped += 1
             if isinstance(e_cpu, (int, float)) and not isinstance(e_cpu, bool):

@@ -99,6 +99,7 @@ class QueryServer:
 
     def on_query(self, query) -> None:
         s = self.state
+        res = None
         try:
             try:
                 if query.payload is None:
@@ -120,7 +121,10 @@ class QueryServer:
             except Exception as e:
                 log.exception("query failed")
                 payload = encode_error(f"internal error: {e!r}")
-            query.reply(query.key_expr, payload)
+            if s.fleet is not None:   # shard info for the client-side merge (common.fleet)
+                query.reply(query.key_expr, payload, attachment=s.fleet.shard_info(res))
+            else:
+                query.reply(query.key_expr, payload)
         except Exception as e:
             log.warning("query callback: %s", e)
 
@@ -141,7 +145,8 @@ class QueryServer:
             try:
                 res = self.run_query(req)
                 res.id = qid
-                s.session.put(s.keys.mapper_queries(qid), encode_query_result(res))
+                att = s.fleet.shard_info(res) if s.fleet is not None else None
+                s.session.put(s.keys.mapper_queries(qid), encode_query_result(res), attachment=att)
             except Exception as e:
                 s.warn(f"standing:{qid}", "standing query %s failed: %s", qid, e)
 
@@ -171,6 +176,9 @@ class QueryServer:
             out["rss_mb"] = psutil.Process().memory_info().rss / 2 ** 20
         except Exception:
             pass
+        if s.fleet is not None:
+            with s.qlock:
+                out["fleet"] = s.fleet.stats()
         if s.map is not None:
             from mapper.service_map import map_stats
 

@@ -16,6 +16,8 @@ entities, threads, close); each job is its own module over one shared
     mapper/stats queryable         QueryServer.on_stats  (query_server) Zenoh callback
     mapper/snapshot queryable      SnapshotStore.on_snapshot (snapshot_store)
     mapper/layers/* put + get      LayerPublisher        (outputs.layers)
+    mapper/robots/<r>/status put   Fleet.loop            (fleet_job)    mapper-fleet
+    mapper/robots/*/world_from_robot queryable  Fleet.on_transform      Zenoh callback
     (rerun file / gRPC)            RerunOutput           (outputs.rerun)
     ROS 2 topics (rmw_zenoh/bridge) RosOutput            (outputs.ros)   mapper-ros, Zenoh callbacks
 
@@ -89,6 +91,9 @@ class MapperService:
         self.snapshots = SnapshotStore(self.state)
         self.layers = LayerPublisher(self.state)
         self.worker = MapWorker(self.state, self.ingest.next_frame, self.layers, self.snapshots)
+        from mapper.fleet_job import Fleet
+
+        self.fleet = Fleet(self.state)         # several robots: status, bounds, transforms, shard
         self.rerun = None                      # RerunOutput once started with rerun.file / rerun.serve_grpc
         self.ros = None                        # RosOutput once started with ros.enabled
         self._entities: list = []
@@ -106,6 +111,7 @@ class MapperService:
 
     # ================================================================== lifecycle
     def start(self) -> "MapperService":
+        from common.fleet import robot_transform_all
         from common.keys import KeySpace
         from common.zenoh_session import open_session
         from mapper.service_config import resolve_query_threads
@@ -130,13 +136,15 @@ class MapperService:
                 s.declare_queryable(k.stats, self.queries.on_stats),
                 s.declare_queryable(k.snapshot, self.snapshots.on_snapshot),
                 s.declare_queryable(k.layers_all, self.layers.on_layer_get),
+                s.declare_queryable(robot_transform_all(k), self.fleet.on_transform),
                 s.liveliness().declare_token(k.mapper_alive),
             ]
         except Exception:
             self.close()
             raise
         for name, fn in (("mapper-decode", self.ingest.decode_loop), ("mapper-map", self.worker.loop),
-                         ("mapper-space", self.ingest.space_loop), ("mapper-standing", self.queries.standing_loop)):
+                         ("mapper-space", self.ingest.space_loop), ("mapper-standing", self.queries.standing_loop),
+                         ("mapper-fleet", self.fleet.loop)):
             t = threading.Thread(target=fn, name=name, daemon=True)
             t.start()
             self._threads.append(t)

@@ -8,6 +8,8 @@ from typing import Literal
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
 from mapper.config import MapConfig
+from mapper.fleet import FleetSection
+from mapper.shards import ShardSection
 from mapper.outputs.ros import RosSection
 
 
@@ -101,6 +103,9 @@ class MapperConfig:
     query: QuerySection = section(QuerySection, "queries and standing queries")
     snapshots: SnapshotSection = section(SnapshotSection, "snapshots (atomic) and restore on start")
     rerun: RerunSection = section(RerunSection, "rerun logging")
+    fleet: FleetSection = section(FleetSection, "several robots in one map: PCA re-projection, world_from_robot, "
+                                                "per-robot status, bounds on per-robot state")
+    shard: ShardSection = section(ShardSection, "this mapper as one shard of several (region, tiles, robots)")
     ros: RosSection = section(RosSection, "the map and standing queries as ROS 2 topics over Zenoh (RViz2)")
 
 

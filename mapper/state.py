@@ -83,6 +83,8 @@ class RobotState:
     last_seq: int = -1
     edge_cpu: tuple | None = None    # (first, last) edge process CPU s (frame meta ``cpu_s``) of mapped frames
     edge_cpu_frames: int = 0         # mapped frames between them
+    seq_regressions: int = 0         # mapped frames whose seq was not above the last one (edge restart)
+    fleet: object = None             # mapper.fleet_job.FleetRobot (rates, re-projection, shard counts)
     edge_state: str = ""             # the edge's own state (robots/<robot>/edge_status): running, refused, ...
     edge_reason: str = ""            # why, for refused / failed
 
@@ -91,7 +93,10 @@ class RobotState:
              "rejected": dict(self.rejected), "queue": len(self.queue), "present": self.present,
              "seen_at": self.seen_at, "gone_at": self.gone_at, "feature_space": self.feature_space,
              "space_ok": self.space_ok, "space_error": self.space_error, "last_seq": self.last_seq,
-             "edge_state": self.edge_state, "edge_reason": self.edge_reason}
+             "edge_state": self.edge_state, "edge_reason": self.edge_reason,
+             "seq_regressions": self.seq_regressions}
+        if self.fleet is not None:
+            d.update(self.fleet.as_dict())
         if self.edge_cpu is not None and self.edge_cpu_frames > 0:
             # the robot's edge process CPU per frame, over its mapped frames (frame meta cpu_s)
             d["edge_cpu_ms_per_frame"] = (self.edge_cpu[1] - self.edge_cpu[0]) * 1e3 / self.edge_cpu_frames
@@ -155,6 +160,8 @@ class MapperState:
         self.wake = threading.Event()          # map worker: a frame or a robot changed
         self.space_wake = threading.Event()    # feature-space thread: a robot needs its space (re)fetched
         self.standing_due = threading.Event()  # query server: standing queries are due
+        self.fleet = None                      # mapper.fleet_job.Fleet (set by the service)
+        self._overflow: RobotState | None = None   # stands in for ids over fleet.max_robots
 
     @property
     def space_id(self) -> str:
@@ -169,6 +176,12 @@ class MapperState:
     def robot(self, name: str) -> RobotState:
         """The robot's state, created on first sight (caller holds ``qlock``)."""
         st = self.robots.get(name)
+        if st is None and self.fleet is not None and not self.fleet.admit(name):
+            # over fleet.max_robots: one shared stand-in, never in the robot table, never mapped,
+            # holding at most one frame (counted under robot_cap, nothing kept per id)
+            if self._overflow is None:
+                self._overflow = RobotState("_over_robot_cap", collections.deque(maxlen=1))
+            return self._overflow
         if st is None:
             st = RobotState(name, collections.deque(maxlen=max(1, self.cfg.queues.per_robot)))
             self.robots[name] = st

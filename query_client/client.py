@@ -275,6 +275,25 @@ class Client:
         r = self.query(text, top_k=top_k, timeout=timeout)
         return r.ray_origin, r.ray_direction, r.ray_score
 
+    def world_from_robot(self, robot: str, value=None, timeout: float | None = None):
+        """The mapper's ``world_from_robot`` of ``robot`` (4x4 array, or None: identity); with
+        ``value`` (a 4x4 rigid transform or 16 numbers) set it first, at run time. With several
+        shards every shard that answers sets it."""
+        from common.fleet import (
+            FleetMessageError, decode_transform_reply, encode_transform_request, robot_transform_key,
+        )
+
+        oks, errs = self._get_all(robot_transform_key(self.keys, robot),
+                                  encode_transform_request(None if value is None else np.asarray(value, float)),
+                                  timeout)
+        if not oks:
+            raise MapperUnavailable(f"no mapper answered world_from_robot for {robot}: {'; '.join(errs)}")
+        try:
+            vals = [decode_transform_reply(d) for d, _ in oks][0]
+        except FleetMessageError as e:
+            raise QueryError(str(e)) from None
+        return None if vals is None else np.asarray(vals, float).reshape(4, 4)
+
     def robots(self, timeout: float = 2.0) -> list[str]:
         """Robots whose edge is alive now (liveliness)."""
         out = []

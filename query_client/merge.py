@@ -11,6 +11,9 @@ merges (:func:`merge_results`), as one mapper holding the whole map would answer
   (``lo`` = the lowest shard minimum, ``hi`` the best cluster) and clusters of different
   shards whose boxes touch (within one voxel) are one cluster (the same object seen by the
   frames of two shards near a border): size-weighted centroid, box union, best score;
+* **rays**: a shard's map has frontiers where *its* frames stopped, also at its region's
+  border, where the neighbour's frames have explored; so each shard contributes only the
+  rays whose frontier (origin) lies in its own region, then all are re-ranked;
 * **search volume**: the union of the cones of the ``search_rays`` best rays over all
   shards, with the shards' cone half-angle and range (``common.cones``), not a sum.
 
@@ -60,6 +63,21 @@ def _merge_clusters(xyz, size, extent, score, shard, vox: float):
     return out
 
 
+def _in_region(xyz: np.ndarray, info: dict) -> np.ndarray:
+    """Rows of ``xyz`` inside the shard's region (box and/or tiles; all rows without one)."""
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    keep = np.ones(len(xyz), bool)
+    reg = info.get("region")
+    if isinstance(reg, list) and len(reg) == 6:
+        lo, hi = np.array(reg[:3], float), np.array(reg[3:], float)
+        keep &= np.all((xyz >= lo) & (xyz < hi), axis=1)
+    tiles, tm = info.get("tiles"), info.get("tile_m")
+    if tiles and tm:
+        ij = np.floor(xyz[:, :2] / float(tm)).astype(np.int64)
+        keep &= np.array([tuple(t) in {tuple(x) for x in tiles} for t in ij.tolist()], bool).reshape(-1)
+    return keep
+
+
 def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryResult:
     """One answer from the ``(result, shard info)`` replies of several shards (see module doc)."""
     if not replies:
@@ -98,10 +116,11 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
         out.cluster_size = np.array([c[1] for c in merged], np.int32)
         out.cluster_extent = np.array([c[2] for c in merged], np.float32).reshape(-1, 3)
         out.cluster_score = np.array([c[3] for c in merged], np.float32)
-    # rays and the search volume
-    rs = np.concatenate([r.ray_score for r in results]).astype(np.float32)
-    ro = np.concatenate([r.ray_origin for r in results]).astype(np.float32).reshape(-1, 3)
-    rd = np.concatenate([r.ray_direction for r in results]).astype(np.float32).reshape(-1, 3)
+    # rays and the search volume: each shard's rays whose frontier (origin) lies in its own region
+    own = [_in_region(r.ray_origin, i) for r, i in zip(results, infos)]
+    rs = np.concatenate([r.ray_score[k] for r, k in zip(results, own)]).astype(np.float32)
+    ro = np.concatenate([r.ray_origin[k] for r, k in zip(results, own)]).astype(np.float32).reshape(-1, 3)
+    rd = np.concatenate([r.ray_direction[k] for r, k in zip(results, own)]).astype(np.float32).reshape(-1, 3)
     t = _top(rs, k)
     out.ray_origin, out.ray_direction, out.ray_score = ro[t], rd[t], rs[t]
     info = next((i for i in infos if "half_angle_deg" in i and "search_range_m" in i), None)

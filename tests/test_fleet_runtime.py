@@ -161,7 +161,7 @@ def _transformed_recording(src: Path, dst: Path, frames, robot_from_world: np.nd
 
     info = yaml.safe_load((src / "recording.yaml").read_text())
     rd = RecordingReader(src)
-    with RecordingWriter(dst, robot="x", source=info.get("source", {}), overwrite=True) as wr:
+    with RecordingWriter(dst, robot=rd[0].robot, source=info.get("source", {}), overwrite=True) as wr:
         for j, i in enumerate(frames):
             f = rd[i]
             lab = np.array(f.labels)
@@ -185,7 +185,7 @@ def test_world_from_robot_two_frames_equal_one_frame(tmp_path, procs, recs, base
     """Robot a maps the first half of a lap in the world frame, robot b the second half in
     its own odometry frame (a known rigid transform away; set at run time through Zenoh for
     b): the map is the one of one robot mapping the whole lap in one frame."""
-    from common.fleet import decode_transform_reply, encode_transform_request, robot_transform_key
+    from query_client.client import QueryError
 
     T = _rigid(90.0, [250.0, -40.0, 0.0])             # world_from_robot of b
     half = FRAMES // 2
@@ -195,12 +195,14 @@ def test_world_from_robot_two_frames_equal_one_frame(tmp_path, procs, recs, base
     procs.append(Proc("tf-mapper", _mapper(ep, ["fleet.world_from_robot={a: [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]}"]),
                       tmp_path))
     with client(ep) as c:
-        key = robot_transform_key(c.keys, "b")
-        got = decode_transform_reply(c._get_one(key, encode_transform_request(T), 20.0))
-        np.testing.assert_allclose(np.reshape(got, (4, 4)), T)
-        assert decode_transform_reply(c._get_one(key, encode_transform_request(None), 20.0)) == got
-        with pytest.raises(Exception, match="rigid"):
-            c._get_one(key, encode_transform_request(np.diag([2.0, 1, 1, 1])), 20.0)
+        wait_for(lambda: c.stats(timeout=5.0), 60, what="mapper up")
+        np.testing.assert_allclose(c.world_from_robot("b", T), T)          # set at run time
+        np.testing.assert_allclose(c.world_from_robot("b"), T)             # read back
+        np.testing.assert_allclose(c.world_from_robot("a"), np.eye(4))     # from the config
+        assert c.world_from_robot("nobody") is None
+        with pytest.raises(QueryError, match="rigid"):
+            c.world_from_robot("b", np.diag([2.0, 1, 1, 1]))
+        np.testing.assert_allclose(c.world_from_robot("b"), T)             # a refused value changes nothing
         procs.append(Proc("tf-a", _edge(ep, "a", ra, bases[0]), tmp_path))
         wait_for(lambda: c.stats(timeout=5.0)["feature_space"], 120, what="map created")
         procs.append(Proc("tf-b", _edge(ep, "b", rb, bases[0]), tmp_path))

@@ -72,3 +72,95 @@ def test_shard_info_roundtrip_tolerant():
     got = decode_shard_info(encode_shard_info(info))
     assert got["shard"] == "s1" and got["score_min"] == 0.25 and "junk" not in got
     assert decode_shard_info(None) == {} and decode_shard_info(b"\xff") == {} and decode_shard_info(b"[1]") == {}
+
+
+# ------------------------------------------------------------------ real processes
+WEST = "shard.region=[-1000, -1000, 0, 1000]"
+EAST = "shard.region=[0, -1000, 1000, 1000]"
+
+
+@pytest.mark.timeout(300)
+def test_two_shards_answer_like_one_mapper(tmp_path):
+    """A router, two shard mappers (west / east of x = 0) and a third mapper holding every
+    frame, fed by one robot driving a lap across both halves. One ``get`` reaches all three
+    queryables; the two shards' merged answer matches the whole-map mapper's."""
+    from test_robustness import Proc, wait_for
+
+    from apps.bench.fleet import render_recordings
+    from common.fleet import decode_shard_info
+    from common.messages import QueryRequest, decode_query_result, encode_query_request
+    from common.zenoh_session import ZenohConfig, free_tcp_port
+    from query_client import Client
+
+    rec = render_recordings(tmp_path / "recs", 1, 16, "48x64")[0]
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    common_map = ["--mode", "client", "--connect", ep, "preset=throughput", "map.vox_size=0.5",
+                  "map.depth_limit=20", "layers.rate_hz=0", "snapshots.on_exit=false", "queues.per_robot=1000",
+                  "queues.idle_flush_s=0.5"]
+    procs = [Proc("router", ["router", "--listen", ep], tmp_path)]
+    try:
+        for name, extra in (("west", [WEST]), ("east", [EAST]), ("all", [])):
+            procs.append(Proc(name, ["mapper", *common_map, f"shard.name={name}", *extra], tmp_path))
+        with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=30.0) as c:
+            def mapped():
+                oks, _ = c._get_all(c.keys.stats, None, 5.0)
+                return len(oks) == 3
+            wait_for(mapped, 120, what="three mappers up")
+            edge = Proc("edge", ["edge", "--connect", ep, "robot=r1", "source.kind=recording",
+                                 f"source.path={rec}", "publish.rate_hz=10", "pca.out_dim=16",
+                                 "pca.fit_frames=3", "publish.linger_s=3"], tmp_path)
+            procs.append(edge)
+
+            def done():
+                from common.messages import decode_stats
+
+                if edge.p.poll() is None:
+                    return None
+                oks, _ = c._get_all(c.keys.stats, None, 5.0)
+                sts = {s.get("fleet", {}).get("shard"): s for s in (decode_stats(d) for d, _ in oks)}
+                if set(sts) != {"west", "east", "all"}:
+                    return None
+                for s in sts.values():
+                    r = s["robots"].get("r1", {})
+                    if not r or r["queue"] or r["mapped"] + r["outside_shard"] < r["received"] \
+                            or s["flushed_version"] != s["map_version"]:
+                        return None
+                return sts
+            parts = wait_for(done, 180, every=0.5, what="every frame mapped")
+            n = parts["all"]["robots"]["r1"]["mapped"]
+            assert n >= 12 and parts["all"]["robots"]["r1"]["outside_shard"] == 0
+            assert parts["west"]["frames"]["mapped"] > 0 and parts["east"]["frames"]["mapped"] > 0
+            assert parts["west"]["frames"]["mapped"] + parts["east"]["frames"]["mapped"] == n
+            for q in ("car", "tree", "building", "water tower"):
+                oks, errs = c._get_all(c.keys.mapper_query, encode_query_request(QueryRequest(text=q, top_k=20)),
+                                       60.0)
+                assert len(oks) == 3, errs
+                got = {decode_shard_info(att)["shard"]: (decode_query_result(d), decode_shard_info(att))
+                       for d, att in oks}
+                ref = got["all"][0]
+                m = merge_results([got["west"], got["east"]], 20)
+                # top voxels: the same best score, the best voxel of the merge among the whole map's top
+                assert abs(float(m.voxel_score[0]) - float(ref.voxel_score[0])) < 0.02, q
+                assert np.min(np.linalg.norm(ref.voxel_xyz - m.voxel_xyz[0], axis=1)) < 1.0, q
+                # best cluster within a voxel or two of the whole map's best cluster
+                if len(ref.cluster_xyz):
+                    d = np.linalg.norm(m.cluster_xyz[:3][:, None] - ref.cluster_xyz[None, :1], axis=2).min()
+                    assert d < 2.0, (q, m.cluster_xyz[:3], ref.cluster_xyz[:1])
+                # rays: frontiers near the border collect rays from the frames of both sides in the
+                # whole map but of one side in a shard, so ray scores of in-range classes differ
+                # there; for a class beyond range the best rays score alike (their directions are
+                # near-ties at this tiny resolution) and the search volume is alike
+                if q in ("water tower",):
+                    k = min(10, len(m.ray_score), len(ref.ray_score))
+                    assert abs(float(m.ray_score[0]) - float(ref.ray_score[0])) < 0.05, q
+                    assert abs(float(m.ray_score[:k].mean()) - float(ref.ray_score[:k].mean())) < 0.05, q
+                    assert m.search_volume_m3 == pytest.approx(ref.search_volume_m3, rel=0.35), q
+            # the Client does the same fan-out and merge (all three replies here: 'all' included)
+            r = c.query("car", top_k=5)
+            assert r.timings.get("shards") == 3.0
+    finally:
+        for p in reversed(procs):
+            try:
+                p.stop()
+            except AssertionError:
+                pass
