@@ -14,7 +14,9 @@ publisher per topic and, for rmw_zenoh, a node token and one publisher token per
 waits until ``--wait-subs`` of the topics have a matching subscriber (so no message is
 lost before the edge subscribed); then sends every message in bag order, sleeping the
 bag-time difference / ``--speed`` (messages with equal bag times go out back to back: a
-burst). Prints "READY" when its publishers are declared and "DONE <n>" at the end.
+burst). ``--latch TOPIC`` publishes that topic at once, before any subscriber, from an
+advanced publisher with a cache (transient local, as robot_state_publisher's /tf_static).
+Prints "READY" when its publishers are declared and "DONE <n>" at the end.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ import sys
 import time
 
 import zenoh
+import zenoh.ext
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
@@ -45,6 +48,8 @@ def main() -> int:
     ap.add_argument("--wait-subs", type=int, default=1)
     ap.add_argument("--wait-s", type=float, default=60.0)
     ap.add_argument("--linger", type=float, default=2.0)
+    ap.add_argument("--latch", action="append", default=[],
+                    help="topic published at once, before any subscriber, from a cache (transient local)")
     a = ap.parse_args()
 
     store = get_typestore(Stores.ROS2_JAZZY if a.distro == "jazzy" else Stores.ROS2_HUMBLE)
@@ -63,23 +68,32 @@ def main() -> int:
             name = c.topic.lstrip("/")
             h = store.hash_rihs01(c.msgtype) if a.distro == "jazzy" else "TypeHashNotSupported"
             key = f"{a.domain}/{name}/{dds_name(c.msgtype)}/{h}" if a.layout == "rmw_zenoh" else name
-            pubs[c.id] = (s.declare_publisher(key), c.topic)
+            if c.topic in a.latch:  # like rmw_zenoh's transient-local publishers: a cache late joiners query
+                pub = zenoh.ext.declare_advanced_publisher(s, key, cache=zenoh.ext.CacheConfig(max_samples=10),
+                                                           publisher_detection=True)
+            else:
+                pub = s.declare_publisher(key)
+            pubs[c.id] = (pub, c.topic)
             if a.layout == "rmw_zenoh":
                 tokens.append(s.liveliness().declare_token(
                     f"@ros2_lv/{a.domain}/{zid}/0/{i + 1}/MP/%/%/replay/{c.topic.replace('/', '%')}/"
                     f"{dds_name(c.msgtype)}/{h}/::,:,:,:,,"))
+        gid = bytes(range(16))
+        n = 0
+        for conn, ns, raw in reader.messages(connections=[c for c in conns if c.topic in a.latch]):
+            pubs[conn.id][0].put(bytes(raw))
+            n += 1
         print("READY", flush=True)
         end = time.monotonic() + a.wait_s
         while time.monotonic() < end:
-            if sum(p.matching_status.matching for p, _ in pubs.values()) >= a.wait_subs:
+            if sum(p.matching_status.matching for p, t in pubs.values() if t not in a.latch) >= a.wait_subs:
                 break
             time.sleep(0.05)
         else:
             print("no subscriber matched", file=sys.stderr, flush=True)
         time.sleep(0.3)
-        gid = bytes(range(16))
-        n, t_prev = 0, None
-        for conn, ns, raw in reader.messages():
+        t_prev = None
+        for conn, ns, raw in reader.messages(connections=[c for c in conns if c.topic not in a.latch]):
             if t_prev is not None and a.speed > 0:
                 time.sleep(max(0.0, (ns - t_prev) * 1e-9 / a.speed))
             t_prev = ns

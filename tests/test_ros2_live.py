@@ -12,6 +12,7 @@ import logging
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -35,12 +36,13 @@ class Replay:
     """The publisher process (router mode on a free loopback port)."""
 
     def __init__(self, bag: Path, tmp: Path, layout="rmw_zenoh", distro="humble", wait_subs=4, speed=2.0,
-                 linger=1.0):
+                 linger=1.0, latch=()):
         self.ep = f"tcp/127.0.0.1:{free_tcp_port()}"
         self.log = open(tmp / f"replay-{layout}-{distro}.log", "wb")
         self.p = subprocess.Popen([sys.executable, str(ROOT / "tests" / "ros2_replay.py"), str(bag), "--listen",
                                    self.ep, "--layout", layout, "--distro", distro, "--wait-subs", str(wait_subs),
-                                   "--speed", str(speed), "--linger", str(linger)],
+                                   "--speed", str(speed), "--linger", str(linger),
+                                   *[x for t in latch for x in ("--latch", t)]],
                                   stdout=subprocess.PIPE, stderr=self.log, env=zenoh_env(), cwd=str(ROOT))
         line = self.p.stdout.readline().decode()
         assert line.startswith("READY"), line
@@ -119,6 +121,20 @@ def test_live_frames_equal_bag_frames(bag, tmp_path, replays, layout, distro, po
     off = np.array([0.0, -0.1, 0.2]) if "camera_frame" in pose else np.zeros(3)
     for f in frames:
         np.testing.assert_allclose(f.pose, bagdata._expected_rdf(f.stamp, off), atol=1e-6)
+
+
+def test_latched_tf_static_and_camera_info_reach_a_late_edge(bag, tmp_path, replays):
+    """/tf_static and CameraInfo published once from a cache before the edge subscribes (as
+    robot_state_publisher does, transient local): the edge still gets them and builds the bag's frames."""
+    pose = dict(world_frame="map", camera_frame="camera_optical_frame")
+    ref = list(open_source(SourceConfig(kind="rosbag", path=str(bag), **BASE, **pose)))
+    r = Replay(bag, tmp_path, "rmw_zenoh", "jazzy", wait_subs=3, latch=("/tf_static", "/cam/depth/info"))
+    replays.append(r)
+    time.sleep(1.0)  # the latched messages are out before anyone listens
+    src, frames = live_frames(r.ep, "rmw_zenoh", **pose)
+    r.finish()
+    assert_same_frames(frames, ref)
+    assert src.stats()["topics"]["/tf_static"]["decoded"] >= 1
 
 
 def test_list_topics_from_graph_tokens_and_keys(bag, tmp_path, replays):

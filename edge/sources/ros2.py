@@ -36,9 +36,11 @@ Live behaviour (decisions):
   encoding is counted (``bad``) with one line naming the topic; a stream topic (colour,
   depth, pose, tf; not CameraInfo / tf_static, which may be sent once) silent for more
   than 2 s while the others flow is reported (``stalls``). ``stats()`` returns it all.
-* tf: ``/tf_static`` and CameraInfo are also fetched once with a Zenoh ``get`` at start
-  (publication caches answer it), since late joiners miss transient-local messages
-  otherwise. Pose and tf tracks keep the newest 2000 samples per track.
+* Latched topics: ``/tf_static`` and CameraInfo are subscribed with a Zenoh advanced
+  subscriber with history (late-publisher detection), so the caches of transient-local
+  publishers (rmw_zenoh's advanced publishers, e.g. robot_state_publisher's static tf sent
+  long before the edge starts) are fetched, and once more with a plain ``get`` for older
+  publication caches. Pose and tf tracks keep the newest 2000 samples per track.
 * Start-up waits for the first matched frame, logging every ``ros_log_every`` seconds
   which topics have been seen (with types and counts) and which not; with
   ``ros_startup_timeout`` > 0 it gives up with that listing as the error. The stream ends
@@ -205,12 +207,19 @@ class Ros2Source(FrameSource):
             self._guard = SessionGuard.open(self._zcfg, stop=self._stop, default_mode="client")
         except ZenohConnectError as e:
             raise SourceError(f"ros2: {e}") from None
+        import zenoh.ext
+
         s = self._guard.session
         for role, key in self._keys.items():
-            self._guard.add(s.declare_subscriber(key, lambda sample, role=role: self._on_sample(role, sample)))
+            cb = (lambda sample, role=role: self._on_sample(role, sample))
+            if role in ("tf_static", "info"):  # latched topics: also the publishers' caches (late joiner)
+                self._guard.add(zenoh.ext.declare_advanced_subscriber(
+                    s, key, cb, history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
+            else:
+                self._guard.add(s.declare_subscriber(key, cb))
         for role in ("tf_static", "info"):
             if role in self._keys:
-                try:  # publication caches of transient-local publishers answer a get
+                try:  # older publication caches (ze_publication_cache) answer a plain get
                     s.get(self._keys[role], lambda reply, role=role: self._on_reply(role, reply), timeout=2.0)
                 except Exception as e:
                     log.debug("ros2: get %s failed: %s", self._keys[role], e)
