@@ -166,19 +166,41 @@ from common.cones import _cone_frame, cone_union_volume  # noqa: E402,F401  (mov
 
 
 # ------------------------------------------------------------- query snapshots
+class _one_thread:
+    """torch runs single-threaded inside (the incremental copy is many small ops: on a loaded
+    machine every parallel region would wait on a descheduled OpenMP worker)."""
+
+    def __enter__(self):
+        self.n = torch.get_num_threads()
+        if self.n != 1:
+            torch.set_num_threads(1)
+
+    def __exit__(self, *exc):
+        if self.n != 1:
+            torch.set_num_threads(self.n)
+
+
 class QuerySnapshot:
-    """A consistent copy of what a query reads from the map, taken under the caller's map
-    lock (:meth:`take`: voxel features converted to float32, voxel keys and the rays, into
-    buffers reused across map versions — one O(N·dim) pass), and the query-independent
-    terms derived from it outside the lock (:meth:`prepared`: per-row inverse norms, see
-    ``FeatureSpace.prepare``, which uses the float32 copy in place).
+    """A consistent copy of what a query reads from the map, maintained *incrementally*.
+
+    :meth:`sync` (the caller holds the map lock) copies only the voxel rows the map wrote or
+    moved since the previous sync (``SemanticVoxels.take_changes``; everything on the first
+    sync, after a reload or when the journal overflowed) into float32 feature / int64 key
+    buffers reused across map versions, plus the rays (small). The query-independent terms
+    (:meth:`prepared`: per-row inverse norms, or the cached language-space rows of a space with
+    a language head, see ``FeatureSpace.prepare``) are likewise updated for the changed rows
+    only, outside the lock. So the first query after a map change costs about what a later
+    one does, and the lock is held for O(changed rows), not O(N·dim).
+
+    A query that cannot get the map lock within ``query.lock_timeout_s`` reads this copy as
+    it is: the last consistent state (``gen`` / ``frames_mapped`` say which).
 
     Memory: ``4·dim·N`` bytes (+25 % headroom for a growing map) for the features, ``8·N``
-    for the keys. :meth:`reserve` grows the buffers before the lock is taken, so the lock
-    is held for the copy only.
+    for the keys, ``4·N`` for the inverse norms. :meth:`reserve` grows the buffers (copying
+    their content) before the lock is taken, so the lock is held for the changed rows only.
 
-    Not thread-safe: the caller serialises queries (``MapperService.query_lock``). ``gen``
-    is the caller's map generation the copy belongs to; ``frames_mapped`` its frame count.
+    Not thread-safe: the caller serialises queries (``query_lock``). :meth:`take` is the
+    one-off full copy (no journal), for a map used once.
     """
 
     def __init__(self):
@@ -192,47 +214,84 @@ class QuerySnapshot:
         self.ray_feats = torch.empty(0)
         self.ray_origins = np.zeros((0, 3), np.float32)
         self.ray_dirs = np.zeros((0, 3), np.float32)
-        self._spare: tuple = (None, None)     # buffers allocated by reserve() for the next take()
-        self._prep: dict = {}                 # (space id, device) -> (voxels, rays) PreparedFeatures
+        self._prep: dict = {}                 # (space id, device) -> per-space prepared state
+        self._sem = None                      # the SemanticVoxels the copy follows
         self.take_ms = 0.0
+        self.changed_rows = 0                 # rows copied by the last sync (-1: everything)
 
     @staticmethod
-    def _fits(buf: torch.Tensor | None, n: int, tail: tuple, dtype, device) -> bool:
-        return (buf is not None and buf.dtype == dtype and buf.device == device
-                and tuple(buf.shape[1:]) == tail and buf.shape[0] >= n)
+    def _grow(buf: torch.Tensor, n: int, tail: tuple, dtype, device, keep: int) -> torch.Tensor:
+        """``buf`` if it holds ``n`` rows of that kind, else a bigger one with its first ``keep`` rows."""
+        if (buf.dtype == dtype and buf.device == device and tuple(buf.shape[1:]) == tail
+                and buf.shape[0] >= n):
+            return buf
+        new = torch.zeros((max(n + n // 4, 1024), *tail), dtype=dtype, device=device)
+        if keep and tuple(buf.shape[1:]) == tail and buf.dtype == dtype:
+            k = min(keep, buf.shape[0])
+            new[:k].copy_(buf[:k])
+        return new
 
-    def _buffers(self, m):
-        """Buffers that fit map ``m``: the current ones, reserve()'s spares, or new ones."""
-        sem = m.sem
-        n, dev = len(sem), sem.keys.device
-        out = []
-        for cur, spare, tail, dt in ((self._vfeat, self._spare[0], (int(sem.dim),), torch.float32),
-                                     (self._vkeys, self._spare[1], (), torch.int64)):
-            if self._fits(cur, n, tail, dt, dev):
-                out.append(cur)
-            elif self._fits(spare, n, tail, dt, dev):
-                out.append(spare)
-            else:   # zeroed: the pages are touched here, not during the copy under the lock
-                out.append(torch.zeros((max(n + n // 4, 1024), *tail), dtype=dt, device=dev))
-        return out
+    def _fit(self, sem, n: int, keep: int) -> None:
+        dev = sem.keys.device
+        self._vfeat = self._grow(self._vfeat, n, (int(sem.dim),), torch.float32, dev, keep)
+        self._vkeys = self._grow(self._vkeys, n, (), torch.int64, dev, keep)
 
     def reserve(self, m) -> "QuerySnapshot":
-        """Allocate buffers big enough for map ``m``'s current size ahead of :meth:`take`
-        (no lock needed: a size hint), leaving the current snapshot intact."""
-        f, k = self._buffers(m)
-        self._spare = (f if f is not self._vfeat else self._spare[0], k if k is not self._vkeys else self._spare[1])
+        """Grow the buffers for map ``m``'s current size ahead of :meth:`sync` (no lock
+        needed: a size hint; the copy's content is kept)."""
+        sem = m.sem
+        if sem is self._sem:
+            self._fit(sem, len(sem), self.n_voxels)
+        return self
+
+    def sync(self, m, gen: int, frames_mapped: int = 0) -> "QuerySnapshot":
+        """Bring the copy up to map ``m`` (the caller holds the map lock): changed rows only."""
+        with _one_thread():
+            return self._sync(m, gen, frames_mapped)
+
+    def _sync(self, m, gen: int, frames_mapped: int) -> "QuerySnapshot":
+        t = time.perf_counter()
+        sem = m.sem
+        n = len(sem)
+        rows = sem.take_changes(self) if sem is self._sem else None
+        if rows is None:
+            sem.take_changes(self)           # this copy now owns the journal
+            self._fit(sem, n, 0)
+            self._vfeat[:n].copy_(sem.feat)
+            self._vkeys[:n].copy_(sem.keys)
+            self._prep = {}
+            self.changed_rows = -1
+        else:
+            self._fit(sem, n, min(self.n_voxels, n))
+            if rows.numel():
+                self._vfeat.index_copy_(0, rows, sem.feat.index_select(0, rows).to(torch.float32))
+                self._vkeys.index_copy_(0, rows, sem.keys.index_select(0, rows))
+            for st in self._prep.values():
+                st["rows"].append(rows)
+            self.changed_rows = int(rows.numel())
+        self._sem = sem
+        self.n_voxels = n
+        self._copy_rest(m, gen, frames_mapped)
+        self.take_ms = (time.perf_counter() - t) * 1e3
         return self
 
     def take(self, m, gen: int, frames_mapped: int = 0) -> "QuerySnapshot":
-        """Copy the map's query arrays (the caller holds the map lock). Drops derived terms."""
+        """A full copy of the map's query arrays (the caller holds the map lock), without
+        touching the map's change journal (for a map queried once)."""
         t = time.perf_counter()
-        self._vfeat, self._vkeys = self._buffers(m)
-        self._spare = (None, None)
-        self._prep = {}
         sem = m.sem
         n = self.n_voxels = len(sem)
+        self._fit(sem, n, 0)
         self._vfeat[:n].copy_(sem.feat)
         self._vkeys[:n].copy_(sem.keys)
+        self._prep = {}
+        self._sem = None
+        self.changed_rows = -1
+        self._copy_rest(m, gen, frames_mapped)
+        self.take_ms = (time.perf_counter() - t) * 1e3
+        return self
+
+    def _copy_rest(self, m, gen: int, frames_mapped: int) -> None:
         self.vox = float(m.cfg.vox_size)
         rs = m.ray_store
         self.ray_feats = rs.feat.clone()
@@ -240,8 +299,8 @@ class QuerySnapshot:
         self.ray_dirs = _np(rs.directions()).astype(np.float32).reshape(-1, 3)
         self.half_angle = float(m.cone_half_angle())
         self.gen, self.frames_mapped = gen, frames_mapped
-        self.take_ms = (time.perf_counter() - t) * 1e3
-        return self
+        for st in self._prep.values():
+            st["rays"] = None
 
     @property
     def voxel_feats(self) -> torch.Tensor:
@@ -255,13 +314,57 @@ class QuerySnapshot:
         return _np(voxel_center(K_.unpack(k), self.vox)).astype(np.float32, copy=False).reshape(-1, 3)
 
     def prepared(self, fs, device="cpu"):
-        """``(voxels, rays)`` PreparedFeatures for space ``fs`` (built once per snapshot)."""
+        """``(voxels, rays)`` PreparedFeatures for space ``fs``: built in full once per copy,
+        then updated for the rows each :meth:`sync` changed."""
         key = (fs.id, str(device))
-        if key not in self._prep:
+        dev = torch.device(device)
+        n = self.n_voxels
+        st = self._prep.get(key)
+        if st is None:
             v = fs.prepare(self.voxel_feats, device=device)
-            r = fs.prepare(self.ray_feats, device=device)
-            self._prep[key] = (v, r)
-        return self._prep[key]
+            kind = ("raw" if v._y is None else "head" if v._inv is None else
+                    "norm" if v._y.data_ptr() == self._vfeat.data_ptr() else "full")
+            st = self._prep[key] = {"kind": kind, "rows": [], "rays": None, "v": v, "aux": None, "cap": n}
+            if kind == "norm":     # keep the inverse norms in a buffer with the copy's headroom
+                aux = torch.zeros(max(self._vfeat.shape[0], 1), dtype=torch.float32, device=dev)
+                aux[:n] = v._inv
+                st["aux"] = aux
+            elif kind == "head":
+                aux = torch.zeros((max(self._vfeat.shape[0], 1), v._y.shape[1]), dtype=torch.float32, device=dev)
+                aux[:n] = v._y
+                st["aux"] = aux
+        elif st["rows"] or st["v"].n != n:
+            with _one_thread():
+                self._update_prepared(fs, st, n, dev, device)
+        if st["rays"] is None:
+            st["rays"] = fs.prepare(self.ray_feats, device=device)
+        return st["v"], st["rays"]
+
+    def _update_prepared(self, fs, st: dict, n: int, dev, device) -> None:
+        """The prepared terms of the rows the syncs since the last query changed."""
+        from common.feature_space import PreparedFeatures
+
+        rows = torch.unique(torch.cat(st["rows"])) if st["rows"] else torch.empty(0, dtype=torch.int64)
+        rows = rows[rows < n]
+        st["rows"] = []
+        kind = st["kind"]
+        if kind == "raw":
+            st["v"] = PreparedFeatures(fs, dev, n, None, None, None, raw=self.voxel_feats)
+        elif kind == "full":
+            st["v"] = fs.prepare(self.voxel_feats, device=device)
+        else:
+            aux = st["aux"]
+            if aux.shape[0] < n:
+                new = torch.zeros((self._vfeat.shape[0], *aux.shape[1:]), dtype=aux.dtype, device=dev)
+                new[: aux.shape[0]] = aux
+                aux = st["aux"] = new
+            if rows.numel():
+                sub = fs.prepare(self._vfeat.index_select(0, rows), device=device)
+                aux.index_copy_(0, rows.to(dev), sub._inv if kind == "norm" else sub._y)
+            if kind == "norm":
+                st["v"] = PreparedFeatures(fs, dev, n, self._vfeat[:n], aux[:n], None)
+            else:
+                st["v"] = PreparedFeatures(fs, dev, n, aux[:n], None, None)
 
 
 _NEGATIVES: dict = {}

@@ -1,12 +1,16 @@
 """The mapper's query side: the query and stats queryables, standing queries and ``stats()``
 (module map: :mod:`mapper.state`; ARCHITECTURE.md).
 
-A query holds the map lock only to copy the arrays it reads into a
-:class:`mapper.query_answer.QuerySnapshot` (an O(N·dim) memcpy into reused buffers, once per
-map generation: ``state.map_gen``); it scores, clusters and measures outside the lock, so
-mapping goes on meanwhile. A query waits at most ``query.lock_timeout_s`` for the map lock
-(held while one frame is integrated); after that it is answered from the last snapshot
-(``timings.stale = 1``, ``frames_mapped`` says which map state). Queries are serialised by
+A query holds the map lock only to bring its copy of the map
+(:class:`mapper.query_answer.QuerySnapshot`) up to date: the copy is maintained
+incrementally (only the voxel rows the map changed since the last query are copied, and
+their prepared norms recomputed outside the lock), so the lock is held for O(changed rows),
+not O(N·dim), and the first query after a change costs about what a later one does. It
+scores, clusters and measures outside the lock, so mapping goes on meanwhile. A query waits
+at most ``query.lock_timeout_s`` for the map lock (held while one frame is integrated);
+after that it is answered from the last consistent copy and the reply says so:
+``timings.stale = 1``, ``timings.stale_gens`` = map changes it does not include,
+``frames_mapped`` = the map state it reflects. Queries are serialised by
 ``state.query_lock`` (taken before the map lock) and run with ``query.threads`` torch threads
 (auto: all CPUs; scoring is one big matrix product). Standing queries run on their own thread
 (``mapper-standing``), woken by the map worker through ``state.standing_due``.
@@ -65,14 +69,18 @@ class QueryServer:
         timings["lock_wait"] = (time.perf_counter() - t) * 1e3
         if not got:
             timings["stale"] = 1.0
+            timings["stale_gens"] = float(max(0, s.map_gen - snap.gen))
+            log.debug("query answered from the copy of map generation %d (map at %d): lock busy > %.2f s",
+                      snap.gen, s.map_gen, s.cfg.query.lock_timeout_s)
             return snap
         try:
             if s.map is None:
                 raise MessageError("the map is empty (no frames mapped yet)")
             if snap is None or snap.gen != s.map_gen:
-                snap = fresh.take(s.map, s.map_gen, s.mapped)
+                snap = fresh.sync(s.map, s.map_gen, s.mapped)
                 self.qsnap = snap
                 timings["snapshot"] = snap.take_ms
+                timings["snapshot_rows"] = float(snap.changed_rows)
         finally:
             s.lock.release()
         return snap

@@ -6,6 +6,7 @@ processes (client mode) and talks to them with ``query_client.Client``.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -29,11 +30,11 @@ def _cmd(*args):
 
 
 class Proc:
-    def __init__(self, name, args, logdir: Path):
+    def __init__(self, name, args, logdir: Path, nice: int = 0):
         self.name = name
         self.log = open(logdir / f"{name}.log", "ab")
         self.p = subprocess.Popen(_cmd(*args), stdout=self.log, stderr=subprocess.STDOUT, env=zenoh_env(),
-                                  cwd=str(ROOT))
+                                  cwd=str(ROOT), preexec_fn=(lambda: os.nice(nice)) if nice else None)
 
     def stop(self, sig=signal.SIGINT, timeout=30.0) -> int:
         if self.p.poll() is None:
