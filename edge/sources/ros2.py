@@ -51,6 +51,7 @@ rmw_zenoh graph tokens (``@ros2_lv/<domain>/...``) plus the data keys seen for a
 """
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -211,7 +212,7 @@ class Ros2Source(FrameSource):
 
         s = self._guard.session
         for role, key in self._keys.items():
-            cb = (lambda sample, role=role: self._on_sample(role, sample))
+            cb = functools.partial(self._on_sample, role)
             if role in ("tf_static", "info"):  # latched topics: also the publishers' caches (late joiner)
                 self._guard.add(zenoh.ext.declare_advanced_subscriber(
                     s, key, cb, history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
