@@ -617,3 +617,53 @@ def test_incremental_query_copy_answers_as_a_full_copy():
         _change(m, 16, g, 28)
         if step == 2:
             m.sem.remove(m.sem.keys[:500].clone())         # a prune moves rows
+
+
+def test_frame_callback_only_enqueues_and_the_queue_is_bounded(monkeypatch):
+    """13.2: the Zenoh frame callback does not decode (a hostile payload costs it a copy);
+    the decode thread validates and counts; a full queue waits, then drops the oldest, counted."""
+    import threading
+
+    import mapper.ingest as ingest_mod
+    from common.keys import KeySpace
+    from mapper.ingest import RAW_QUEUE_MAX, Ingest
+    from mapper.service_config import MapperConfig
+    from mapper.state import MapperState
+
+    class Payload:
+        def __init__(self, b):
+            self.b = b
+
+        def to_bytes(self):
+            return self.b
+
+    class Sample:
+        def __init__(self, key, b):
+            self.key_expr, self.payload = key, Payload(b)
+
+    s = MapperState(MapperConfig(), threading.Event())
+    s.keys = KeySpace("rayfronts")
+    ing = Ingest(s)
+    key = s.keys.frames("r1")
+    hostile = next(d for name, d in _hostile_headers() if name == "8.9 MB map")
+    t = time.process_time()
+    ing.on_frame(Sample(key, hostile))
+    cb_ms = (time.process_time() - t) * 1e3
+    assert s.received == 1 and sum(s.rejected.values()) == 0      # not decoded in the callback
+    print(f"callback with an 8.9 MB hostile payload: {cb_ms:.2f} ms CPU")
+    monkeypatch.setattr(ingest_mod, "RAW_WAIT_S", 0.05)
+    for _ in range(RAW_QUEUE_MAX + 9):                            # nobody decodes: the queue fills
+        ing.on_frame(Sample(key, b"\x00" * 16))
+    assert len(ing._raw) == RAW_QUEUE_MAX and ing.raw_dropped == 10 and s.dropped == 10
+    th = threading.Thread(target=ing.decode_loop, daemon=True)
+    th.start()
+    try:
+        end = time.monotonic() + 30
+        while sum(s.rejected.values()) < RAW_QUEUE_MAX and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        s.stop.set()
+        th.join(5)
+    assert sum(s.rejected.values()) == RAW_QUEUE_MAX and s.received == RAW_QUEUE_MAX + 10
+    assert s.received == sum(s.rejected.values()) + s.dropped
+    assert set(s.rejected) <= {"header", "message"}, s.rejected
