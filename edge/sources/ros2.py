@@ -424,7 +424,7 @@ class Ros2Source(FrameSource):
             if topic not in streams:  # CameraInfo / tf_static may be latched (sent once)
                 continue
             silent = now - t
-            if silent > STALL_S and now - freshest < STALL_S:
+            if silent > STALL_S and now - freshest < STALL_S / 4:  # silent while another stream still flows
                 if topic not in self._stalled:
                     self._stalled.add(topic)
                     self._tstats[topic]["stalls"] += 1
