@@ -99,6 +99,12 @@ def check_inputs(args) -> None:
         raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
     if args.text is not None and args.image is not None:
         raise ConfigError("give either a query text or --image PATH, not both")
+    if args.rerun or args.rerun_connect:
+        import importlib.util
+
+        if importlib.util.find_spec("rerun") is None:  # the [client] install has no rerun
+            raise ConfigError("--rerun / --rerun-connect need the rerun SDK, which this install lacks: "
+                              "pip install rerun-sdk (or install the [mapper] extra)")
     if args.image is not None:
         import os
 

@@ -115,6 +115,16 @@ def test_cli_query_from_client_venv(client_python, mapper):
     np.testing.assert_allclose(np.asarray(got["voxel_score"]), want.voxel_score, atol=1e-6)
 
 
+def test_cli_rerun_option_in_client_venv_is_one_clear_error(client_python, mapper, tmp_path):
+    _, ep, _ = mapper
+    p = _run(client_python, "-m", "apps.cli", "query", "water tower", "--connect", ep, "--rerun",
+             str(tmp_path / "q.rrd"), "--timeout", "30")
+    assert p.returncode == 2, (p.returncode, p.stderr[-2000:])
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and "rerun-sdk" in lines[0] and "Traceback" not in p.stderr, p.stderr
+    assert not (tmp_path / "q.rrd").exists()
+
+
 def test_python_client_from_client_venv(client_python, mapper):
     svc, ep, tower = mapper
     script = f"""
