@@ -21,7 +21,8 @@ line on stderr, ``rayfronts NAME: error: <cause and what to do>``, and a non-zer
 (2 for usage/config errors, 1 otherwise). Errors from Zenoh are rephrased
 (:func:`common.zenoh_errors.explain_zenoh_error`). An unexpected exception (a bug) is also one
 line, naming the exception; ``--log-level DEBUG`` or ``RAYFRONTS_TRACEBACK=1`` shows the
-traceback.
+traceback. If threads are still running after the error (an open Zenoh session), the
+process exits at once with that code instead of hanging at interpreter shutdown.
 """
 from __future__ import annotations
 
@@ -140,6 +141,18 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _exit_if_threads_linger(code: int) -> None:
+    """After an error line: a process whose Zenoh session or worker threads are still alive
+    would hang at interpreter exit (Zenoh 1.10 pitfall), so leave at once with ``code``."""
+    import threading
+
+    if threading.active_count() > 1:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        logging.shutdown()
+        os._exit(code)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     # Load only the requested subcommand's module (fast start, and a broken optional part
@@ -165,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         line, code = error_line(prog, e)
         print(line, file=sys.stderr)
+        _exit_if_threads_linger(code)
         return code
 
 

@@ -67,7 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pca-dim", type=int, default=64, help="PCA dimension of the features on the wire (default 64)")
     parser.add_argument("--query", action="append", default=None, metavar="TEXT",
                         help="query to run (repeatable; default: " + ", ".join(DEFAULT_QUERIES) + ")")
-    parser.add_argument("--timeout", type=float, default=170.0, help="give up mapping after this many seconds")
+    parser.add_argument("--timeout", type=float, default=170.0,
+                        help="give up when mapping has not progressed for this many seconds (default 170)")
     parser.add_argument("--no-shm", action="store_true", help="turn Zenoh shared memory off (network path)")
 
 
@@ -197,9 +198,11 @@ class Progress:
             self._open = False
 
 
-def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, others=()) -> dict:
+def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, others=(),
+                stall_s: float | None = None) -> dict:
     """Poll the mapper's stats until the edge has exited and every frame it sent is mapped,
-    dropped or rejected, and the map is flushed."""
+    dropped or rejected, and the map is flushed. With ``stall_s`` the deadline moves on
+    whenever the counts change (a slow, loaded machine gets time; a stuck one does not)."""
     last = None
     stable_since = None
     line = Progress() if progress else None
@@ -219,6 +222,8 @@ def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, 
         done_edge = edge.poll() is not None
         settled = sum(st.get("queues", {}).values()) == 0
         key = (fr["received"], fr["mapped"], st.get("map_version"), st.get("flushed_version"))
+        if stall_s is not None and key != last:
+            deadline = max(deadline, time.monotonic() + stall_s)
         if line is not None:
             line.update(f"  frames received {fr['received']:4d}  mapped {fr['mapped']:4d}  dropped {fr['dropped']}"
                         f"  rejected {fr['rejected_total']}  edge {'done' if done_edge else 'running'}",
@@ -240,7 +245,8 @@ def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, 
         time.sleep(0.5)
     if line is not None:
         line.end()
-    raise TimeoutError("the mapper did not finish mapping in time")
+    raise TimeoutError("the mapper made no progress for too long (see mapper.log / edge.log in the output "
+                       "directory; --timeout S gives a loaded machine more time)")
 
 
 def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
@@ -283,7 +289,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
             if progress:
                 print(f"rayfronts demo: router {ep}; mapper, edge started (logs in {out})")
             st = wait_mapped(client, edge, t_start + cfg.timeout_s, progress,
-                             others=(("router", router), ("mapper", mapper)))
+                             others=(("router", router), ("mapper", mapper)), stall_s=cfg.timeout_s)
             results["frames"] = int(st["frames"]["mapped"])
             for text, cid in zip(cfg.queries, classes):
                 res = client.query(text, top_k=10)
