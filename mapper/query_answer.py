@@ -21,7 +21,6 @@ Query defaults are the paper's (``query.*`` config keys):
 """
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
