@@ -36,6 +36,7 @@ TARGETS = {
     "e2e": "apps.bench.e2e",
     "gpu": "apps.bench.gpu",
     "fleet": "apps.bench.fleet",
+    "query": "apps.bench.query",
 }
 
 #: (name, argv, quick argv) of every figure the README quotes, in table order. A name's
@@ -55,6 +56,8 @@ ALL: list[tuple[str, list[str], list[str]]] = [
     ("encoder_radio_b", ["encoder", "--model", "radio_v2.5-b", "--frames", "5"],
      ["encoder", "--model", "radio_v2.5-b", "--frames", "1", "--warmup", "0", "--resolution", "64x64"]),
     ("e2e", ["e2e"], ["e2e", "--frames", "6", "--only", "stream", "--resolution", "64x64"]),
+    ("query", ["query", "--voxels", "100k,1M,5M"], ["query", "--voxels", "20k", "--queries", "3", "--changes", "2",
+                                                    "--rays", "200"]),
 ]
 
 

@@ -8,7 +8,10 @@ For each map size (``--voxels 100k,1M,5M``) a map is filled with that many seman
   under a lock (:meth:`mapper.query_answer.QuerySnapshot.sync`) and the query answered
   (:func:`mapper.query_answer.answer_snapshot`); ``steady`` = repeated queries on an
   unchanged map, ``after_change`` = the first query after each map change (one frame's worth
-  of fused points, a few hundred new voxels), p50 / p95 of each and their ratio.
+  of fused points, a few hundred new voxels), p50 / p95 of each and their ratio, the process
+  CPU per query (``*_cpu_ms``: the load-robust figure on a shared machine), the stages' p50
+  and the one-off cost of embedding a text the mapper has not seen (``encode_new_text_ms``;
+  embeddings are cached per text, so ``steady`` measures the map side).
 * **client** (``--client``, default on): the same map served by an in-process
   :class:`mapper.service.MapperService` on loopback, queried with ``query_client.Client``
   (one session for all queries); round trip vs the mapper's own ``timings.total``, the reply
@@ -112,23 +115,34 @@ def in_process(cfg, m, fs, args, n: int) -> dict:
 
     lock = threading.Lock()
     snap = QuerySnapshot()
-    gen = [0]
+    gen = [1]
+
+    cpu = []
 
     def one(text):
         t0 = time.perf_counter()
-        snap.reserve(m)
-        with lock:
-            snap.sync(m, gen[0])
-        sync_ms = snap.take_ms
+        c0 = time.process_time()
+        sync_ms = 0.0
+        if snap.gen != gen[0]:                    # as the mapper: sync only when the map changed
+            snap.reserve(m)
+            with lock:
+                snap.sync(m, gen[0])
+            sync_ms = snap.take_ms
         res = answer_snapshot(snap, fs, QueryRequest(text=text, top_k=10), cfg.query, device="cpu")
+        cpu.append((time.process_time() - c0) * 1e3)
         return (time.perf_counter() - t0) * 1e3, sync_ms, res.timings
 
     first_ms, _, _ = one(TEXTS[0])                # builds the copy and the prepared terms
-    steady, steady_sync = [], []
+    enc = [one(t)[2].get("encode", 0.0) for t in TEXTS[1:]]   # each text embedded once (then cached)
+    cpu.clear()
+    steady, steady_sync, steady_timings = [], [], []
     for i in range(args.queries):
-        t, s, _ = one(TEXTS[i % len(TEXTS)])
+        t, s, tim = one(TEXTS[i % len(TEXTS)])
         steady.append(t)
         steady_sync.append(s)
+        steady_timings.append(tim)
+    steady_cpu = list(cpu)
+    cpu.clear()
     g = torch.Generator().manual_seed(1)
     side = int(np.ceil(n ** (1 / 3)))
     after, after_sync, after_timings = [], [], []
@@ -141,7 +155,11 @@ def in_process(cfg, m, fs, args, n: int) -> dict:
         after_sync.append(s)
         after_timings.append(tim)
     st, af = _pct(steady), _pct(after)
+    stages = sorted({k for t in steady_timings for k in t})
     return {"initial_copy_ms": first_ms, "steady_ms": st, "steady_lock_held_ms": _pct(steady_sync),
+            "steady_cpu_ms": _pct(steady_cpu), "after_change_cpu_ms": _pct(cpu),
+            "steady_stage_p50_ms": {k: float(np.median([t.get(k, 0.0) for t in steady_timings])) for k in stages},
+            "encode_new_text_ms": _pct(enc),
             "after_change_ms": af, "after_change_lock_held_ms": _pct(after_sync),
             "after_change_over_steady_p50": af["p50"] / max(st["p50"], 1e-9),
             "after_change_prepare_ms": _pct([t.get("prepare", 0.0) for t in after_timings]),
@@ -149,7 +167,7 @@ def in_process(cfg, m, fs, args, n: int) -> dict:
 
 
 def client_round_trip(cfg, m, fs, args) -> dict:
-    from common.messages import encode_feature_space
+    from common.messages import encode_feature_space, encode_query_result
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from mapper.service import MapperService
     from query_client import Client
@@ -165,17 +183,18 @@ def client_round_trip(cfg, m, fs, args) -> dict:
             svc.mapped = 1
         rtt, inside, size = [], [], []
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=30_000), timeout=60.0) as c:
-            c.query(TEXTS[0], top_k=10)            # warm: the copy, the text model
+            for t in TEXTS:                          # warm: the copy, the text model, each text
+                c.query(t, top_k=10)
             for i in range(args.queries):
                 t0 = time.perf_counter()
                 r = c.query(TEXTS[i % len(TEXTS)], top_k=10)
                 rtt.append((time.perf_counter() - t0) * 1e3)
                 inside.append(float(r.timings.get("total", 0.0)))
-                size.append(int(getattr(c, "last_reply_bytes", 0) or 0))
+                size.append(len(encode_query_result(r)))       # what went over the wire (re-encoded)
         over = np.asarray(rtt) - np.asarray(inside)
         return {"round_trip_ms": _pct(rtt), "mapper_total_ms": _pct(inside), "overhead_ms": _pct(over),
                 "overhead_p50_ms": float(np.percentile(over, 50)),
-                "reply_bytes": int(np.median(size)) if any(size) else None}
+                "reply_bytes": int(np.median(size))}
     finally:
         svc.close()
 

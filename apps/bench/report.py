@@ -88,7 +88,21 @@ def _generic(d: dict) -> tuple[str, str]:
     return ", ".join(f"{k} {_f(d[k], 2)}" for k in keys), _f(d.get("cpu_ms_per_frame"))
 
 
-FORMATTERS = {"mapper": _mapper, "world": _world, "encoder": _encoder, "e2e": _e2e}
+def _query(d: dict) -> tuple[str, str]:
+    parts = []
+    for size, row in (d.get("sizes") or {}).items():
+        ip = row.get("in_process") or {}
+        st, af = ip.get("steady_ms") or {}, ip.get("after_change_ms") or {}
+        txt = (f"{size}: p50 {_f(st.get('p50'))} / p95 {_f(st.get('p95'))} ms, first after a change p50 "
+               f"{_f(af.get('p50'))} ms")
+        cl = row.get("client") or {}
+        if cl.get("round_trip_ms"):
+            txt += f", client round trip p50 {_f(cl['round_trip_ms'].get('p50'))} ms (+{_f(cl.get('overhead_p50_ms'))})"
+        parts.append(txt)
+    return "; ".join(parts), "–"
+
+
+FORMATTERS = {"mapper": _mapper, "world": _world, "encoder": _encoder, "e2e": _e2e, "query": _query}
 
 
 def _order(src: Path) -> list[Path]:
