@@ -73,6 +73,11 @@ class PublishSection:
     linger_s: float = field_(1.0, "after the source ends, keep serving the feature space this long so the "
                                   "last frames can be fetched/mapped")
     connect_retry_s: float = field_(0.5, "retry period after a failed session open")
+    jpeg_quality: int = field_(80, "JPEG quality of the RGB image on the wire (the map only colours voxels with it; "
+                                   "80 halves a noisy 640x480 image against 90)")
+    feature_codec: str = field_("q16z", "features on the wire (frame v2, common.wire.frame): 'q16z' (per-channel "
+                                        "int16 + zlib: ~8 KB for a 640x480 PCA-100 label frame, cosine change ~2e-5), "
+                                        "'q8z' (int8 + zlib, ~4 KB, changes up to ~0.006) or 'f16' (float16, 240 KB)")
     status_wait_s: float = field_(3.0, "when the edge refuses to start or fails: how long it waits for the "
                                        "Zenoh session to put the reason on robots/<robot>/edge_status")
 
@@ -190,6 +195,10 @@ def check_setup(cfg, encoder, pca) -> None:
     where = _combo(cfg)
     if k < 0:
         raise EdgeRefused(f"{where}: pca.out_dim must be >= 0 (0 = no PCA)")
+    if cfg.publish.feature_codec not in ("q16z", "q8z", "f16"):
+        raise EdgeRefused(f"publish.feature_codec={cfg.publish.feature_codec!r}: choose q16z, q8z or f16")
+    if not 1 <= cfg.publish.jpeg_quality <= 100:
+        raise EdgeRefused(f"publish.jpeg_quality={cfg.publish.jpeg_quality}: must be in 1..100")
     if k > d:
         raise EdgeRefused(f"{where}: pca.out_dim={k} exceeds the encoder's {d}-d features; use at most {d}")
     if pca is not None:
@@ -571,7 +580,8 @@ class EdgeRuntime:
                     # t_send: hand-off wall clock (latency); cpu_s: this process's CPU time so far
                     # (the mapper reports the edge's CPU per frame from it)
                     out.meta = {**(out.meta or {}), "t_send": time.time(), "cpu_s": time.process_time()}
-                    data = encode_frame(out)
+                    data = encode_frame(out, feature_codec=cfg.publish.feature_codec,
+                                       jpeg_quality=cfg.publish.jpeg_quality)
                     self.stats.encode_ms_last = (time.perf_counter() - t0) * 1e3
                     seq += 1
                     if rate > 0:

@@ -444,7 +444,7 @@ def _del(key):
     "fn, words",
     [
         (_set("schema", "rayfronts.query"), ["schema", "rayfronts.frame"]),
-        (_set("v", 2), ["v", "expected 1"]),
+        (_set("v", 3), ["v", "expected"]),
         (_del("robot"), ["robot", "missing"]),
         (_set("robot", "bad id!"), ["robot"]),
         (_set("robot", "r" * 65), ["robot"]),

@@ -392,7 +392,7 @@ def structural_mutation(rnd: random.Random, data: bytes) -> tuple[str, bytes, bo
             h["schema"] = rnd.choice(["rayfronts.frames", "rayfronts.query", "", "RAYFRONTS.FRAME"])
             return "schema", repack(h, region), True
         if k == 1:
-            h["v"] = rnd.choice([0, 2, 99, -1])
+            h["v"] = rnd.choice([0, 3, 99, -1])  # v1 and v2 are valid frame versions
             return "version", repack(h, region), True
         if k == 2:
             h["seq"] = -rnd.randint(1, 2**63)

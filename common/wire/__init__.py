@@ -26,7 +26,15 @@ from common.wire.envelope import (
     decode_message,
     encode_message,
 )
-from common.wire.frame import FRAME_SCHEMA, FRAME_VERSION, decode_frame, encode_frame, validate_robot_id
+from common.wire.frame import (
+    FEATURE_CODECS,
+    FRAME_SCHEMA,
+    FRAME_VERSION,
+    FRAME_VERSIONS,
+    decode_frame,
+    encode_frame,
+    validate_robot_id,
+)
 from common.wire.images import DEPTH_CODECS, PNG16MM_MAX_DEPTH, RGB_CODECS
 
 __all__ = [
@@ -38,6 +46,8 @@ __all__ = [
     "decode_message",
     "FRAME_SCHEMA",
     "FRAME_VERSION",
+    "FRAME_VERSIONS",
+    "FEATURE_CODECS",
     "DEPTH_CODECS",
     "RGB_CODECS",
     "PNG16MM_MAX_DEPTH",
