@@ -25,7 +25,11 @@ Measures, in one run:
   when the Zenoh/decode threads have another core);
 * ``latency_ms``: edge hand-off to the publisher → integrated in the map (p50 / p95; both
   processes share this host's clock);
-* ``bytes_per_frame``: frame message size on the wire (mean / max), seen by a subscriber;
+* ``bytes_per_frame``: frame message size on the wire (mean / max), seen by a subscriber,
+  with the edge's ``publish.feature_codec`` / ``publish.jpeg_quality``;
+  ``bytes_per_frame_local.f16_features_mean`` the same frames with float16 features, and
+  ``score_change_vs_f16`` what the codec changes in the query scores per feature cell (max
+  |Δ cosine| over the demo's queries; share of cells with the same top-1 class);
 * ``query_rtt_ms``: query round trip from a client (embedding query: no text encoding) on
   a map of ``--query-voxels`` voxels and ``--query-rays`` ray bins, restored into a mapper
   from a snapshot written here (the first query, which copies the map and prepares its
@@ -119,7 +123,7 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, items=(), edg
 
     from apps.bench.encoder import edge_encoder
     from common.pca import OnlinePCAFitter
-    from common.wire import encode_frame
+    from common.wire import decode_frame, encode_frame
     from edge.runtime import check_setup, compress_features
     from edge.sources import SourceConfig, open_source
 
@@ -139,7 +143,9 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, items=(), edg
             pca = fit.fit()
             pca.save(pca_path)
         check_setup(ecfg, enc, pca)
-        sizes = []
+        codec, jq = ecfg.publish.feature_codec, ecfg.publish.jpeg_quality
+        sizes, sizes_f16 = [], []
+        cmp = _ScoreChange(enc, pca, src.class_names) if codec != "f16" else None
         enc_s = enc_cpu = 0.0
         t0, c0 = time.perf_counter(), time.process_time()
         for f in frames:
@@ -152,7 +158,14 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, items=(), edg
             out = dataclasses.replace(f, features=compress_features(pca, x), feature_space="bench",
                                       global_feature=compress_features(pca, g.reshape(-1, 1, 1)).reshape(-1))
             out.meta = {**(out.meta or {}), "t_send": time.time(), "cpu_s": time.process_time()}
-            sizes.append(len(encode_frame(out)))
+            data = encode_frame(out, feature_codec=codec, jpeg_quality=jq)
+            sizes.append(len(data))
+            if cmp is not None:   # outside the timed work below: subtract it
+                t2, c2 = time.perf_counter(), time.process_time()
+                sizes_f16.append(len(encode_frame(out, feature_codec="f16", jpeg_quality=jq)))
+                cmp.add(out.features, decode_frame(data).features)
+                t0 += time.perf_counter() - t2
+                c0 += time.process_time() - c2
         dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     finally:
         torch.set_num_threads(old_threads)
@@ -160,7 +173,50 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, items=(), edg
     return {"encoder_fps": k / enc_s, "pipeline_fps": k / dt, "edge_alone_fps": k / (dt + src_s),
             "source_ms": 1e3 * src_s / k, "threads": threads, "feature_shape": list(x.shape),
             "cpu_ms": {"encoder_alone": 1e3 * enc_cpu / k, "edge_alone": 1e3 * (cpu + src_cpu) / k},
-            "sizes": {"mean": float(np.mean(sizes)), "max": int(np.max(sizes))}}
+            "sizes": {"mean": float(np.mean(sizes)), "max": int(np.max(sizes)), "feature_codec": codec,
+                      "jpeg_quality": jq,
+                      "f16_features_mean": float(np.mean(sizes_f16)) if sizes_f16 else None},
+            "score_change_vs_f16": cmp.result() if cmp is not None else None}
+
+
+class _ScoreChange:
+    """Per-cell query-score change of the wire's feature codec against float16: max |Δ cosine|
+    over the demo's queries and the share of cells whose top-1 class is unchanged (label
+    encoder: MiniLM texts; NARADIO has no text tower offline: random language-space queries,
+    no classes)."""
+
+    def __init__(self, enc, pca, class_names):
+        import torch
+
+        from apps.demo import DEFAULT_QUERIES
+        from common.feature_space import FeatureSpace
+
+        self.fs = FeatureSpace.for_encoder(enc, pca)
+        if enc.name == "label":
+            self.q = enc.text.encode(list(DEFAULT_QUERIES)).float()
+            self.cls = enc.table.float()
+            self.what = f"demo queries {list(DEFAULT_QUERIES)}"
+        else:
+            g = torch.Generator().manual_seed(0)
+            self.q = torch.randn((len(DEFAULT_QUERIES), self.fs.lang_dim), generator=g)
+            self.cls = None
+            self.what = "random language-space queries"
+        self.dmax, self.same, self.n = 0.0, 0, 0
+
+    def add(self, f16, decoded) -> None:
+        import torch
+
+        a = torch.as_tensor(np.asarray(f16, np.float32)).reshape(f16.shape[0], -1).T
+        b = torch.as_tensor(np.asarray(decoded, np.float32)).reshape(f16.shape[0], -1).T
+        self.dmax = max(self.dmax, float((self.fs.similarity(a, self.q) - self.fs.similarity(b, self.q)).abs().max()))
+        if self.cls is not None:
+            ta, tb = self.fs.similarity(a, self.cls).argmax(0), self.fs.similarity(b, self.cls).argmax(0)
+            self.same += int((ta == tb).sum())
+            self.n += int(ta.numel())
+
+    def result(self) -> dict:
+        return {"queries": self.what, "max_abs_dcos_per_cell": self.dmax,
+                "top1_class_same_fraction_per_cell": (self.same / self.n) if self.n else None}
 
 
 def _random_pca(path: Path, in_dim: int, out_dim: int) -> None:
@@ -270,6 +326,7 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
     enc_fps = alone["encoder_fps"]
     out["feature_shape"] = alone["feature_shape"]
     out["bytes_per_frame_local"] = alone["sizes"]
+    out["score_change_vs_f16"] = alone["score_change_vs_f16"]
     out["encoder_fps"] = enc_fps
     out["edge_alone_fps"] = alone["edge_alone_fps"]
     out["source_ms_per_frame"] = alone["source_ms"]
