@@ -40,7 +40,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Literal
 
 import numpy as np
 
@@ -64,8 +64,10 @@ class PcaSection:
 
 @dataclass
 class PublishSection:
-    rate_hz: float = field_(-1.0, "frames per second to pace the source; 0 = as fast as possible; "
-                                  "-1 = auto (10 Hz for the synthetic world, as fast as possible for datasets)")
+    rate_hz: float | Literal["auto"] = field_(
+        -1.0, "frames per second to pace the source; 0 = as fast as possible; -1 = per source (10 Hz for the "
+              "synthetic world, as fast as possible for datasets); auto = the rate the mapper advises on "
+              "mapper/robots/<robot>/status (what it maps of this robot without dropping), from 10 Hz")
     loop: bool = field_(False, "restart the source when it ends")
     max_frames: int = field_(0, "stop after this many frames (0 = until the source ends)")
     block_wait_s: float = field_(30.0, "how long a blocked put may wait before Zenoh closes the link "
@@ -293,6 +295,12 @@ class EdgeRuntime:
         self.keys = None
         self._recorder = None
         self._threads: list[threading.Thread] = []
+        from edge.fleet_status import AutoRate, StatusWatcher
+
+        # the mapper's per-robot status: logged on change; publish.rate_hz=auto follows its advice
+        self.auto_rate = AutoRate() if cfg.publish.rate_hz == "auto" else None
+        self.mapper_status = StatusWatcher(cfg.robot, self.auto_rate)
+        self._mapper_status_sub = None
         self._started = False
         self._status_q = None
         self._status_pub = None
@@ -309,6 +317,7 @@ class EdgeRuntime:
     def _connect_loop(self) -> None:
         import zenoh
 
+        from common.fleet import robot_status_key
         from common.keys import KeySpace
         from common.zenoh_session import open_session
 
@@ -334,6 +343,9 @@ class EdgeRuntime:
                 self._status_pub = s.declare_publisher(self.keys.edge_status(robot))
                 self._status_q = s.declare_queryable(self.keys.edge_status(robot), self._on_status)
                 self._token = s.liveliness().declare_token(self.keys.alive(robot))
+                # what the mapper does with our frames (logged on change; publish.rate_hz=auto)
+                self._mapper_status_sub = s.declare_subscriber(robot_status_key(self.keys, robot),
+                                                               self.mapper_status.on_sample)
             except Exception:
                 s.close()
                 raise
@@ -428,6 +440,8 @@ class EdgeRuntime:
 
     def _rate(self) -> float:
         r = self.cfg.publish.rate_hz
+        if r == "auto":
+            return self.auto_rate.current()
         if r >= 0:
             return r
         return 10.0 if getattr(self.cfg.source, "kind", "") == "synthetic" else 0.0
@@ -584,6 +598,8 @@ class EdgeRuntime:
                                        jpeg_quality=cfg.publish.jpeg_quality)
                     self.stats.encode_ms_last = (time.perf_counter() - t0) * 1e3
                     seq += 1
+                    if self.auto_rate is not None:
+                        rate = self.auto_rate.current()
                     if rate > 0:
                         next_t += 1.0 / rate
                         delay = next_t - time.monotonic()
@@ -631,7 +647,8 @@ class EdgeRuntime:
     def _close_session(self) -> None:
         s, self.session = self.session, None
         if s is not None:
-            for ent in (self._token, self._queryable, self._status_q, self._status_pub, self._publisher):
+            for ent in (self._mapper_status_sub,
+                        self._token, self._queryable, self._status_q, self._status_pub, self._publisher):
                 try:
                     if ent is not None:
                         ent.undeclare()

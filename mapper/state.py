@@ -103,6 +103,13 @@ class RobotState:
         return d
 
 
+class _DiscardQueue(collections.deque):
+    """A queue that keeps nothing (the stand-in robot of ids over ``fleet.max_robots``)."""
+
+    def append(self, item) -> None:
+        pass
+
+
 class Percentiles:
     """Ring buffer of recent samples with percentiles (ms)."""
 
@@ -178,9 +185,9 @@ class MapperState:
         st = self.robots.get(name)
         if st is None and self.fleet is not None and not self.fleet.admit(name):
             # over fleet.max_robots: one shared stand-in, never in the robot table, never mapped,
-            # holding at most one frame (counted under robot_cap, nothing kept per id)
+            # whose queue keeps nothing (counted under robot_cap, nothing kept per id)
             if self._overflow is None:
-                self._overflow = RobotState("_over_robot_cap", collections.deque(maxlen=1))
+                self._overflow = RobotState("_over_robot_cap", _DiscardQueue())
             return self._overflow
         if st is None:
             st = RobotState(name, collections.deque(maxlen=max(1, self.cfg.queues.per_robot)))
