@@ -89,9 +89,12 @@ else
   say "upgrading pip"
   "$VPY" -m pip install -q --upgrade pip
 fi
-pip_progress() {  # pip with its download lines shown, the "already satisfied" noise dropped
+# pip with its download lines shown, the "already satisfied" noise dropped; --no-compile: no
+# byte-compiling of the ~15k installed .py files up front (minutes on 2 busy cores; Python
+# compiles what it imports, once, on first use)
+pip_progress() {
   FILTER='^(Collecting|Downloading|Installing collected|Successfully installed|ERROR|error:)' \
-    filtered "$VPY" -m pip install --progress-bar off "$@"
+    filtered "$VPY" -m pip install --progress-bar off --no-compile "$@"
 }
 if "$VPY" -c "import torch" 2>/dev/null; then
   say "torch $("$VPY" -c 'import torch; print(torch.__version__)') present (skipped)"
