@@ -190,6 +190,18 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     restore = install_signal_handlers(stop)
     try:
-        return EdgeRuntime(cfg, stop).run()
+        rc = EdgeRuntime(cfg, stop).run()
     finally:
         restore()
+    if rc:
+        # refused / failed (the reason is logged and on edge_status): leave without interpreter
+        # finalisation, which can race Zenoh's native threads after torch has run (seen: abort
+        # "FATAL: exception not rethrown" instead of the exit code)
+        import os
+        import sys
+
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    return rc
