@@ -244,3 +244,20 @@ def test_expire_pending_ttl_and_global_cap():
     assert [t for _, t in a.queue] == [12.0, 13.0] and [t for _, t in b.queue] == [14.0, 15.0, 16.0]
     assert len(ok.queue) == 3                                  # robots with a space are not touched
     assert math.isclose(sum(len(s.queue) for s in (a, b)), 5)
+
+
+def test_synthetic_robots_in_one_town_take_their_own_laps():
+    """source.seed is the world (and by default the lap); trajectory_seed gives a second robot
+    another lap in the same town (a different source.seed would map another town)."""
+    from edge.sources.config import SourceConfig
+    from edge.sources.synthetic import SyntheticSource
+
+    kw = dict(kind="synthetic", resolution="24x32", n_frames=3)
+    a = SyntheticSource(SourceConfig(**kw))
+    b = SyntheticSource(SourceConfig(**kw, trajectory_seed=7))
+    c = SyntheticSource(SourceConfig(**kw, seed=1))
+    assert not np.allclose(a.poses, b.poses)
+
+    def lamps(src):
+        return [i.center.tolist() for i in src.world.instances_of(src.world.class_id("street lamp"))]
+    assert lamps(a) == lamps(b) and lamps(a) != lamps(c)

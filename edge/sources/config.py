@@ -41,6 +41,9 @@ class SourceConfig:
     trajectory: str = field_("ground", "synthetic: camera trajectory kind, 'ground' or 'drone'")
     hfov: float = field_(90.0, "synthetic: horizontal field of view in degrees")
     n_frames: int = field_(100, "synthetic: number of trajectory frames")
+    trajectory_seed: int | None = field_(
+        None, "synthetic: seed of the lap (start point, direction); null = source.seed. Several robots in one "
+              "town: the same seed (the world), different trajectory_seed")
 
     # datasets
     scene: str = field_("", "replica/scannet/tartanair: scene (environment) directory under path ('' = path is the scene)")

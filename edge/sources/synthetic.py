@@ -40,7 +40,8 @@ class SyntheticSource(FrameSource):
                 raise SourceError(f"synthetic: cannot generate world seed={cfg.seed} preset={cfg.preset!r}: {e}") from None
         self.world = world
         try:
-            self.poses = np.asarray(world.trajectory(cfg.trajectory, cfg.n_frames), dtype=np.float64).reshape(-1, 4, 4)
+            self.poses = np.asarray(world.trajectory(cfg.trajectory, cfg.n_frames, seed=cfg.trajectory_seed),
+                                    dtype=np.float64).reshape(-1, 4, 4)
         except (ValueError, KeyError) as e:
             raise SourceError(f"synthetic: bad trajectory {cfg.trajectory!r}: {e}") from None
         self.native_hw = self.out_hw or DEFAULT_HW
