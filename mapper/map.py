@@ -107,8 +107,15 @@ class RayFrontsMap:
                              voxel_blocks=0, ray_blocks=0)
         self.last_fov_deg = (90.0, 90.0)
         self._reset_buffers()
+        self._rng_state_source = None  # set by mapper.pipeline.MapPipeline while it runs
         self.timings: dict[str, float] = {}
         self.timings_total: dict[str, float] = {}
+
+    def rng_state(self) -> torch.Tensor:
+        """The budget generator's state after the last committed frame (what a snapshot
+        saves): with frames prepared ahead by a pipeline, the state before the oldest one."""
+        src = self._rng_state_source
+        return src() if src is not None else self.generator.get_state()
 
     def _reset_buffers(self) -> None:
         self._buf_occ: list[tuple[torch.Tensor, torch.Tensor]] = []

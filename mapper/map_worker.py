@@ -10,13 +10,22 @@ idle for ``queues.idle_flush_s`` the map's buffered accumulation is flushed.
 
 torch runs with ``cfg.threads`` intra-op threads here (auto: 1 on small machines, see
 :func:`mapper.service_config.resolve_threads`); the thread waits on ``state.wake`` (set by
-each frame), never polls. What integration does to the map (fusion, frontiers, rays) lives in
+each frame), never polls.
+
+With ``cfg.pipeline`` (default) frames go through :class:`mapper.pipeline.MapPipeline`: a
+frame's validation, geometry and sampling run on the ``map-prepare`` thread (no map lock)
+while the previous frame is committed here under the map lock; a frame is accounted when it
+is committed. Whenever no frame is queued the pipeline is drained first (a slow robot's
+frame is never held back), and before a periodic snapshot; snapshots taken from other
+threads meanwhile still save the exact committed state (:meth:`RayFrontsMap.rng_state`). What integration does to the map (fusion, frontiers, rays) lives in
 :mod:`mapper.map` via :func:`mapper.service_map.integrate`.
 """
 from __future__ import annotations
 
 import logging
 import time
+
+import numpy as np
 
 from mapper.service_config import set_torch_threads
 from mapper.state import MapperState
@@ -37,6 +46,7 @@ class MapWorker:
         self.layers = layers
         self.snapshots = snapshots
         self.rerun = rerun
+        self._pipe = None
 
     def loop(self) -> None:
         s = self.state
@@ -48,9 +58,17 @@ class MapWorker:
         standing_version = -1
         layers_version = -1
         idle_since = time.monotonic()
+        try:
+            self._loop(s, cfg, last_layers, last_standing, last_snap, standing_version, layers_version, idle_since)
+        finally:
+            self._close_pipe()
+
+    def _loop(self, s, cfg, last_layers, last_standing, last_snap, standing_version, layers_version, idle_since):
         while not s.stop.is_set():
             item = self.next_frame()
-            if item is None:
+            if item is None and self._pipe is not None and len(self._pipe):
+                self._account_all(self._pipe.drain())  # input idle: commit what is in flight first
+            elif item is None:
                 s.wake.wait(0.05)
                 s.wake.clear()
                 idle_s = cfg.queues.idle_flush_s
@@ -77,13 +95,54 @@ class MapWorker:
             scfg = cfg.snapshots
             if scfg.dir and scfg.period_s > 0 and now - last_snap >= scfg.period_s and s.version != s.snap_version:
                 last_snap = now
+                if self._pipe is not None:
+                    self._account_all(self._pipe.drain())
                 try:
                     self.snapshots.save()
                 except Exception as e:
                     log.error("periodic snapshot failed: %s", e)
 
+    # ---------------------------------------------------------------- pipeline
+    def _commit(self, prepared) -> dict:
+        """Commit one prepared frame into the current map under the map lock (pipeline path)."""
+        s = self.state
+        with s.lock:
+            try:
+                return s.map.commit(prepared)
+            finally:
+                s.map_gen += 1
+                s.version += 1
+
+    def _pipeline(self):
+        """The pipeline of the current map (a new one when the map object changed)."""
+        s = self.state
+        if self._pipe is not None and self._pipe.map is not s.map:
+            self._close_pipe()
+        if self._pipe is None:
+            from mapper.pipeline import MapPipeline
+            from mapper.service_config import resolve_threads
+
+            self._pipe = MapPipeline(s.map, depth=1, prepare_threads=resolve_threads(int(getattr(s.cfg, "threads", 0))),
+                                     commit=self._commit)
+        return self._pipe
+
+    def _close_pipe(self) -> None:
+        if self._pipe is not None:
+            pipe, self._pipe = self._pipe, None
+            self._account_all(pipe.close())
+
+    def _account_all(self, done) -> None:
+        for c in done:
+            st, frame, t0 = c.tag
+            if c.error is not None:
+                log.error("integrating frame %s/%d failed: %r", st.name, frame.seq, c.error)
+                self.state.reject(st.name, "integrate_failed", repr(c.error))
+                continue
+            self._account(st, frame, (time.perf_counter() - t0) * 1e3, c.cpu_ms)
+
     def _integrate(self, st, frame, t_recv) -> bool:
-        """Integrate one frame and account it; False if integration failed (counted)."""
+        """Integrate one frame (pipelined: submit it; frames committed meanwhile are
+        accounted) and account it; False if integration failed (counted)."""
         if self.state.fleet is not None:   # re-projection into the map's basis, world_from_robot, shard
             try:
                 frame = self.state.fleet.prepare(st, frame)
@@ -92,9 +151,20 @@ class MapWorker:
                 return False
             if frame is None:
                 return False
+        s = self.state
+        if getattr(s.cfg, "pipeline", False) and s.map is not None:
+            g = None if frame.global_feature is None else np.array(frame.global_feature)
+            try:
+                done = self._pipeline().submit(frame.pose, frame.intrinsics, frame.depth, np.array(frame.rgb),
+                                               np.array(frame.features), g, tag=(st, frame, time.perf_counter()))
+            except Exception as e:
+                log.exception("integrating frame %s/%d failed", st.name, frame.seq)
+                s.reject(st.name, "integrate_failed", repr(e))
+                return False
+            self._account_all(done)
+            return True
         from mapper.service_map import integrate
 
-        s = self.state
         t0 = time.perf_counter()
         c0 = time.thread_time()
         try:
@@ -108,9 +178,14 @@ class MapWorker:
             log.exception("integrating frame %s/%d failed", st.name, frame.seq)
             s.reject(st.name, "integrate_failed", repr(e))
             return False
-        dt = (time.perf_counter() - t0) * 1e3
-        s.timings["integrate_ms"].add(dt)
-        s.timings["integrate_cpu_ms"].add((time.thread_time() - c0) * 1e3)
+        self._account(st, frame, (time.perf_counter() - t0) * 1e3, (time.thread_time() - c0) * 1e3)
+        return True
+
+    def _account(self, st, frame, dt_ms: float, cpu_ms: float) -> None:
+        """Timings, latency, counters and rerun of one integrated frame."""
+        s = self.state
+        s.timings["integrate_ms"].add(dt_ms)
+        s.timings["integrate_cpu_ms"].add(cpu_ms)
         t_send = frame.meta.get("t_send") if isinstance(frame.meta, dict) else None
         if isinstance(t_send, (int, float)):
             s.timings["latency_ms"].add((time.time() - t_send) * 1e3)
@@ -133,13 +208,14 @@ class MapWorker:
                     st.edge_cpu, st.edge_cpu_frames = (st.edge_cpu[0], float(e_cpu)), st.edge_cpu_frames + 1
         if self.rerun is not None:
             self.rerun.frame_mapped(st.name, frame)
-        return True
 
     def flush(self) -> None:
         """Integrate what the map buffers (accumulation periods) when the input is idle."""
         from mapper.service_map import flush
 
         s = self.state
+        if self._pipe is not None:
+            self._account_all(self._pipe.drain())
         with s.lock:
             v = s.version
             try:

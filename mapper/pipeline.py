@@ -23,9 +23,15 @@ Decisions:
 * A frame whose prepare raises (bad input) is reported in its :class:`Committed` entry
   (``error``) at the point it would have been committed; nothing is added to the map and
   later frames are unaffected.
-* Anything that reads or replaces the generator or the pending buffers (snapshots,
-  restores) must run after :meth:`drain` (or inside ``with pipeline.paused():``), because a
-  frame in flight has already drawn its random numbers.
+* Snapshots stay exact while frames are in flight: the worker records the generator's
+  state before each prepare (under a lock it holds while preparing), and the map's
+  :meth:`~mapper.map.RayFrontsMap.rng_state` (what :mod:`mapper.snapshot` saves) answers the
+  state before the oldest uncommitted frame — the state the sequential path would have
+  after the last committed frame. Replacing the map's generator (a restore) must run after
+  :meth:`drain`.
+* ``commit`` (default ``map.commit``) is what the caller's thread runs per prepared frame;
+  the mapper service passes its own (lock, versions); an exception there is reported in
+  that frame's :class:`Committed` entry like a prepare error.
 * The worker thread sets its own torch intra-op thread count (``prepare_threads``, default 1:
   on a 2-core machine one core per stage).
 """
@@ -47,6 +53,7 @@ class Committed:
     tag: Any
     timings: dict | None
     error: BaseException | None = None
+    cpu_ms: float = 0.0   # thread CPU of this frame's prepare + commit
 
 
 def _init_worker(n: int) -> None:
@@ -59,20 +66,43 @@ class MapPipeline:
     ``lock`` (optional) is held around every commit, for callers that query the map from
     other threads; prepares never need it."""
 
-    def __init__(self, m, depth: int = 1, prepare_threads: int = 1, lock: threading.Lock | None = None):
+    def __init__(self, m, depth: int = 1, prepare_threads: int = 1, lock: threading.Lock | None = None,
+                 commit=None):
         if depth < 1:
             raise ValueError(f"pipeline depth must be >= 1, got {depth}")
         self.map = m
         self.depth = int(depth)
         self.lock = lock
+        self._commit = commit
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="map-prepare", initializer=_init_worker,
                                         initargs=(prepare_threads,))
-        self._inflight: deque[tuple[Any, Future]] = deque()
+        self._inflight: deque[tuple[Any, Future, int]] = deque()
+        self._seq = 0
+        self._gen_lock = threading.Lock()
+        self._before: dict[int, torch.Tensor] = {}
         self._closed = False
+        m._rng_state_source = self.committed_rng_state
 
     def __len__(self) -> int:
         """Frames submitted and not yet committed."""
         return len(self._inflight)
+
+    def committed_rng_state(self) -> torch.Tensor:
+        """The generator state after the last committed frame (see module docstring)."""
+        with self._gen_lock:
+            for _, _, seq in self._inflight:  # oldest first
+                if seq in self._before:
+                    return self._before[seq].clone()
+                break
+            return self.map.generator.get_state()
+
+    def _prepare(self, seq: int, args) -> tuple:
+        import time
+        c0 = time.thread_time()
+        with self._gen_lock:
+            self._before[seq] = self.map.generator.get_state()
+            p = self.map.prepare(*args)
+        return p, (time.thread_time() - c0) * 1e3
 
     def submit(self, pose, intrinsics, depth, rgb=None, features=None, global_feature=None, confidence=None,
                *, tag: Any = None) -> list[Committed]:
@@ -80,23 +110,44 @@ class MapPipeline:
         frames beyond ``depth`` in flight and return them."""
         if self._closed:
             raise RuntimeError("pipeline is closed")
-        fut = self._pool.submit(self.map.prepare, pose, intrinsics, depth, rgb, features, global_feature, confidence)
-        self._inflight.append((tag, fut))
+        seq = self._seq
+        self._seq += 1
+        with self._gen_lock:  # committed_rng_state() reads the queue from other threads
+            fut = self._pool.submit(self._prepare, seq,
+                                    (pose, intrinsics, depth, rgb, features, global_feature, confidence))
+            self._inflight.append((tag, fut, seq))
         out = []
         while len(self._inflight) > self.depth:
             out.append(self._commit_oldest())
         return out
 
     def _commit_oldest(self) -> Committed:
-        tag, fut = self._inflight.popleft()
+        import time
+        tag, fut, seq = self._inflight[0]
         try:
-            prepared = fut.result()
+            prepared, cpu = fut.result()
         except Exception as e:  # bad input: reported, nothing added
+            self._pop(seq)
             return Committed(tag, None, e)
-        if self.lock is not None:
-            with self.lock:
-                return Committed(tag, self.map.commit(prepared))
-        return Committed(tag, self.map.commit(prepared))
+        c0 = time.thread_time()
+        try:
+            if self._commit is not None:
+                tm = self._commit(prepared)
+            elif self.lock is not None:
+                with self.lock:
+                    tm = self.map.commit(prepared)
+            else:
+                tm = self.map.commit(prepared)
+        except Exception as e:
+            self._pop(seq)
+            return Committed(tag, None, e, cpu + (time.thread_time() - c0) * 1e3)
+        self._pop(seq)
+        return Committed(tag, tm, None, cpu + (time.thread_time() - c0) * 1e3)
+
+    def _pop(self, seq: int) -> None:
+        with self._gen_lock:
+            self._inflight.popleft()
+            self._before.pop(seq, None)
 
     def drain(self) -> list[Committed]:
         """Commit every frame in flight (in order) and return them."""
@@ -118,6 +169,8 @@ class MapPipeline:
         out = self.drain()
         self._closed = True
         self._pool.shutdown(wait=True)
+        if getattr(self.map, "_rng_state_source", None) == self.committed_rng_state:
+            self.map._rng_state_source = None
         return out
 
     def __enter__(self) -> "MapPipeline":

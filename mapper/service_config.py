@@ -97,6 +97,9 @@ class MapperConfig:
                              "on machines with <= 4 cores (a frame's tensors are small: more threads only fight "
                              "the edge/router processes and the Zenoh threads for the cores), else half the "
                              "cores, at most 8. Queries use query.threads")
+    pipeline: bool = field_(True, "two-stage integration (mapper.pipeline): the next frame's geometry and sampling "
+                                  "run on a second thread while the current one is fused; same map, drained "
+                                  "whenever the input queue is empty")
     zenoh: ZenohConfig = section(ZenohConfig, "Zenoh session (router mode = this process is the base station router)")
     queues: QueueSection = section(QueueSection, "per-robot input queues")
     layers: LayersSection = section(LayersSection, "map layers published for viewers and planners")

@@ -46,7 +46,7 @@ def save_map(m, path) -> Path:
         arrays["front_" + k] = _np(v)
     for k, v in m.ray_store.state().items():
         arrays["ray_" + k] = _np(v)
-    arrays["rng_state"] = _np(m.generator.get_state())
+    arrays["rng_state"] = _np(m.rng_state())  # after the last committed frame (mapper.pipeline)
     # pending buffers
     buf_meta = {"occ": len(m._buf_occ), "sem": len(m._buf_sem), "rays": len(m._buf_rays),
                 "prune": len(m._pending_prune)}

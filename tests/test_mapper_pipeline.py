@@ -151,3 +151,26 @@ def test_pipeline_rejects_use_after_close(frames):
         pp.submit(*frames[1])
     with pytest.raises(ValueError):
         MapPipeline(m, depth=0)
+
+
+def test_snapshot_with_frames_in_flight_equals_sequential(frames, tmp_path):
+    """A snapshot taken while a prepared frame waits saves the state after the last committed
+    frame (generator included), and the restored map continues exactly like the sequential one."""
+    cfg = _cfg("throughput", max_empty_pts_per_frame=500)
+    ref = _sequential(cfg, frames[:9])
+    m = RayFrontsMap(cfg, 8, "t")
+    with MapPipeline(m, depth=2) as pp:
+        for f in frames[:11]:
+            pp.submit(*f)
+        assert len(pp) == 2 and m.counters["frames"] == 9
+        pp._inflight[-1][1].result()  # both in-flight prepares have drawn their random numbers
+        assert not torch.equal(m.generator.get_state(), ref.generator.get_state())
+        assert torch.equal(m.rng_state(), ref.generator.get_state())
+        m.save(tmp_path / "snap")
+    assert m._rng_state_source is None
+    restored = RayFrontsMap.load(tmp_path / "snap")
+    _assert_same(ref, restored)
+    for f in frames[9:]:
+        ref.integrate(*f)
+        restored.integrate(*f)
+    _assert_same(ref, restored)
