@@ -93,7 +93,8 @@ class StatusWatcher:
             if state in ("refused", "evicted"):
                 self.log.warning("mapper%s %s this robot's frames: %s", where, state, reason or "no reason given")
             else:
-                extra = " (re-projected into the map's PCA basis)" if st.get("reprojected") else ""
+                extra = " (re-projected into the map's PCA basis)" if st.get("reprojected") and "re-projected" \
+                    not in key[1] else ""
                 self.log.info("mapper%s: robot %s %s%s%s", where, self.robot, state,
                               f": {reason}" if reason else "", extra)
         if self.auto is not None and live:

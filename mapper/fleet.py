@@ -329,12 +329,13 @@ def robot_status(name: str, state: str, reason: str, st, rates: dict, map_space:
 
 def advised_rate(mapped_total_hz: float, active_robots: int, robot: dict, per_robot_queue: int) -> float | None:
     """The rate a robot may publish at: its fair share of what the mapper maps when frames
-    are being dropped or queue up, else 25 % above its current rate (probing upwards).
-    None before anything was mapped."""
+    are being dropped or more than one waits in its queue (a queue kept short keeps the
+    latency at about one frame per robot), else 25 % above its current rate (probing
+    upwards). None before anything was mapped."""
     if mapped_total_hz <= 0 or active_robots <= 0:
         return None
     share = mapped_total_hz / active_robots
-    congested = robot.get("dropped_hz", 0.0) > 0 or robot.get("queue", 0) > max(1, per_robot_queue // 2)
+    congested = robot.get("dropped_hz", 0.0) > 0 or robot.get("queue", 0) > 1
     if congested:
         return 0.9 * min(share, max(robot.get("mapped_hz", 0.0), 0.1))
     return max(share, 1.25 * max(robot.get("mapped_hz", 0.0), 0.1))

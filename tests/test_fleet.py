@@ -209,6 +209,8 @@ def test_advised_rate_fair_share_and_probe():
     # a robot below its share may go up
     assert advised_rate(10.0, 4, {"mapped_hz": 1.0, "queue": 0}, 8) == pytest.approx(2.5)
     assert advised_rate(10.0, 1, {"mapped_hz": 10.0, "queue": 0}, 8) == pytest.approx(12.5)
+    # frames waiting in its queue (latency) count as congestion, before anything is dropped
+    assert advised_rate(10.0, 1, {"mapped_hz": 10.0, "queue": 3}, 8) == pytest.approx(9.0)
 
 
 def _st(name, **kw):
