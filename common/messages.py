@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from common.wire import WireError, decode_message, encode_message
+from common.wire import WireError, WireLimits, decode_message, encode_message
 
 SCHEMA_FEATURE_SPACE = "rayfronts.feature_space"
 SCHEMA_QUERY_REQUEST = "rayfronts.query_request"
@@ -34,6 +34,12 @@ VERSION = 1
 #: limits on query requests (a request over them is rejected, not truncated)
 MAX_TEXT_CHARS = 1000
 MAX_IMAGE_BYTES = 20 * 1024 * 1024
+#: the header profile a query request is decoded under (the mapper decodes requests from any
+#: operator): an image travels as one binary (a memcpy), everything else is a few small
+#: fields, so the cost of rejecting any request is bounded (containers, strings, nesting)
+QUERY_REQUEST_LIMITS = WireLimits(max_message_bytes=MAX_IMAGE_BYTES + (1 << 20),
+                                  max_header_bytes=MAX_IMAGE_BYTES + (64 << 10), max_container_len=64,
+                                  max_nesting=4, max_containers=64, max_str_bytes=64 << 10)
 MAX_TOP_K = 100_000
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{0,64}$")
 
@@ -164,7 +170,7 @@ def encode_query_request(req: QueryRequest) -> bytes:
 
 
 def decode_query_request(data, limits=None) -> QueryRequest:
-    body = _decode(data, SCHEMA_QUERY_REQUEST, limits)
+    body = _decode(data, SCHEMA_QUERY_REQUEST, limits or QUERY_REQUEST_LIMITS)
     unknown = set(body) - {"text", "image", "embedding", "top_k", "softmax", "standing", "cancel", "id"}
     if unknown:
         raise MessageError(f"{SCHEMA_QUERY_REQUEST}: unknown fields {sorted(unknown)}")

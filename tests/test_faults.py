@@ -674,3 +674,33 @@ def test_frame_callback_only_enqueues_and_the_queue_is_bounded(monkeypatch):
     assert sum(s.rejected.values()) == RAW_QUEUE_MAX and s.received == RAW_QUEUE_MAX + 10
     assert s.received == sum(s.rejected.values()) + s.dropped
     assert set(s.rejected) <= {"header", "message"}, s.rejected
+
+
+def test_rejected_query_request_costs_bounded_cpu():
+    """13.2 for the query queryable: hostile request headers are rejected cheaply too."""
+    import struct
+
+    import msgpack
+
+    from common.messages import MessageError, QueryRequest, decode_query_request, encode_query_request
+
+    assert decode_query_request(encode_query_request(QueryRequest(text="car"))).text == "car"
+    H = {"schema": "rayfronts.query_request", "v": 1}
+
+    def m(hdr: bytes) -> bytes:
+        return struct.pack("<I", len(hdr)) + hdr
+
+    worst = 0.0
+    for data in (m(msgpack.packb({**H, **{f"k{i}": i for i in range(700_000)}})),
+                 m(msgpack.packb({**H, "text": [[[{}] * 60] * 60] * 60})),
+                 m(b"\x91" * 2_000_000 + b"\xc0"),
+                 m(msgpack.packb({**H, "text": "a" * 5_000_000}))):
+        best = 1e9
+        for _ in range(3):
+            t = time.process_time()
+            with pytest.raises(MessageError):
+                decode_query_request(data)
+            best = min(best, time.process_time() - t)
+        worst = max(worst, best * 1e3)
+    print(f"worst rejected query request: {worst:.2f} ms CPU")
+    assert worst <= 25.0

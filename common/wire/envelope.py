@@ -350,8 +350,27 @@ def _byte_view(data: Any) -> memoryview:
     return mv
 
 
+class _TooMany(Exception):
+    pass
+
+
+def _counting_hooks(limit: int) -> dict:
+    """msgpack hooks that abort the unpack at the ``limit+1``-th map/list it completes, so a
+    header made of many tiny containers costs ``limit`` steps, not one per container."""
+    left = [limit]
+
+    def hook(obj):
+        left[0] -= 1
+        if left[0] < 0:
+            raise _TooMany
+        return obj
+
+    return {"object_hook": hook, "list_hook": hook}
+
+
 def _unpack_header(raw: memoryview, lim: WireLimits) -> Any:
     n = len(raw)
+    hooks = _counting_hooks(lim.max_containers) if lim.max_containers <= 4096 else {}
     try:
         return msgpack.unpackb(
             raw,
@@ -363,7 +382,10 @@ def _unpack_header(raw: memoryview, lim: WireLimits) -> Any:
             max_array_len=min(n, lim.max_container_len),
             max_map_len=min(n, lim.max_container_len),
             max_ext_len=0,
+            **hooks,
         )
+    except _TooMany:
+        raise WireError(f"header: more than {lim.max_containers} maps/lists") from None
     except msgpack.ExtraData as e:
         raise WireError(f"header: {len(e.extra)} bytes of trailing data after the msgpack map") from e
     except UnicodeDecodeError as e:
