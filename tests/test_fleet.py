@@ -263,3 +263,31 @@ def test_synthetic_robots_in_one_town_take_their_own_laps():
     def lamps(src):
         return [i.center.tolist() for i in src.world.instances_of(src.world.class_id("street lamp"))]
     assert lamps(a) == lamps(b) and lamps(a) != lamps(c)
+
+
+def test_edge_status_watcher_logs_changes_and_auto_rate(caplog):
+    """The edge logs a line per change of the mapper's status (WARNING when refused) and
+    publish.rate_hz=auto follows the advised rate, smoothed, within its bounds."""
+    import logging
+
+    from common.fleet import encode_robot_status
+    from edge.fleet_status import AutoRate, StatusWatcher
+
+    st = SimpleNamespace(received=1, mapped=0, dropped=0, rejected={}, queue=(), feature_space="s1")
+    auto = AutoRate(start_hz=10.0, min_hz=0.5, max_hz=50.0)
+    w = StatusWatcher("r1", auto, logger=logging.getLogger("t.edge"))
+    with caplog.at_level(logging.INFO, "t.edge"):
+        for _ in range(3):
+            w.on_payload(encode_robot_status(robot_status("r1", "pending", "waiting", st, {}, "s0")))
+        assert auto.current() == 10.0                              # no advice while pending
+        for _ in range(6):
+            w.on_payload(encode_robot_status(robot_status("r1", "accepted", "", st, {}, "s0", advised_hz=2.0)))
+        w.on_payload(encode_robot_status(robot_status("r1", "refused", "different encoder family: x", st, {}, "s0")))
+        w.on_payload(encode_robot_status(robot_status("other", "refused", "not me", st, {}, "s0")))
+        assert w.on_payload(b"garbage") is None and w.bad == 1
+    states = [r.getMessage() for r in caplog.records if "robot r1" in r.getMessage() or "refused" in r.getMessage()]
+    assert len([m for m in states if "pending" in m]) == 1 and len([m for m in states if "accepted" in m]) == 1
+    refused = [r for r in caplog.records if "refused this robot's frames" in r.getMessage()]
+    assert len(refused) == 1 and refused[0].levelno == logging.WARNING and "not me" not in caplog.text
+    assert 2.0 < auto.current() < 2.5                              # 10 -> 2 Hz, half way per update
+    assert AutoRate(min_hz=1.0).advise(0.01) == pytest.approx(5.5)    # clamped to min_hz before smoothing
