@@ -292,7 +292,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
                              others=(("router", router), ("mapper", mapper)), stall_s=cfg.timeout_s)
             results["frames"] = int(st["frames"]["mapped"])
             for text, cid in zip(cfg.queries, classes):
-                res = client.query(text, top_k=10)
+                res = client.query(text, top_k=10, timeout=cfg.timeout_s)  # the first loads the text model
                 entry = {"query": text, "class": world.classes[cid],
                          "in_range": class_in_range(world, cid, traj, cfg.depth_limit)}
                 entry.update(score_result(world, res, cid))
