@@ -44,8 +44,9 @@ filtered() {
 }
 
 say "start: venv $VENV, extras [$EXTRAS], $(nproc 2>/dev/null || echo ?) CPUs"
-say "expect on a 2-core machine: first time about 6-8 min (pip downloads ~1.5 GB: torch, rerun, transformers;"
-say "  the C++ build ~3-4 min); with pip's cache and the C++ cache warm about 1.5-2.5 min; a re-run seconds"
+say "expect (measured, 2 cores shared with other jobs): ~1 GB of wheels to install (torch, rerun, transformers ...)"
+say "  in 2-3 min, then the C++ build ~2.5-8 min depending on load, skipped when cached from an earlier"
+say "  build of the same sources (then ~3 min in all); a re-run skips everything in seconds"
 
 # ---------------------------------------------------------------- system packages
 need_apt=""
@@ -198,7 +199,7 @@ else
     FILTER='(reusing prebuilt|Successfully installed|ERROR|CMake Error)' \
       filtered "$VPY" -m pip install "${PIP_EXT[@]}" -Ccmake.define.RAYFRONTS_PREBUILT="$EXT_CACHE" || rc=$?
   else
-    say "installing the project and building its C++ extensions ($CMAKE_BUILD_PARALLEL_LEVEL jobs; ~3-4 min on 2 cores)"
+    say "installing the project and building its C++ extensions ($CMAKE_BUILD_PARALLEL_LEVEL jobs; ~2.5 min on 2 idle cores)"
     rc=0
     FILTER='(^ *\[ *[0-9]+%\]|^ *\[[0-9]+/[0-9]+\]|^ *\*\*\* (Configuring|Building|Installing)|will NOT be built|CMake Error|error:|Successfully installed|ERROR)' \
       filtered "$VPY" -m pip install "${PIP_EXT[@]}" || rc=$?
