@@ -80,7 +80,8 @@ def main() -> int:
                     f"{dds_name(c.msgtype)}/{h}/::,:,:,:,,"))
         gid = bytes(range(16))
         n = 0
-        for conn, ns, raw in reader.messages(connections=[c for c in conns if c.topic in a.latch]):
+        latched = [c for c in conns if c.topic in a.latch]
+        for conn, ns, raw in (reader.messages(connections=latched) if latched else ()):  # [] would mean all
             pubs[conn.id][0].put(bytes(raw))
             n += 1
         print("READY", flush=True)

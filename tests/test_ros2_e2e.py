@@ -134,7 +134,7 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
             _wait(lambda: c.mapper_alive(), 60, "mapper alive")
             procs.append(_run(["edge", "--connect", ep_m, "--rate", "4", "--record", str(rec), "robot=r1", "threads=1",
                                "source.kind=ros2", f"source.ros_connect=[{ep_r}]", "source.ros_idle_timeout=3",
-                               f"source.ros_keys={layout}",
+                               f"source.ros_keys={layout}", "publish.linger_s=8",
                                *TOPICS, *enc_args], logs[1]))
             _wait(lambda: "r1" in c.robots(), 60, "edge r1 alive")
             procs.append(subprocess.Popen([sys.executable, str(ROOT / "tests" / "ros2_replay.py"), str(world_bag),
@@ -177,10 +177,14 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     reader = RecordingReader(rec)
     sent = [decode_frame(reader.read_bytes(i)) for i in range(len(reader))]
     assert len(sent) == N
+    from common.config import load_config
+    from edge.runtime import EdgeConfig
+
+    pub = load_config(EdgeConfig, None, []).publish  # the edge's wire settings (defaults)
     local = []
     for f, x, s in zip(ref, feats, sent):
-        g = decode_frame(encode_frame(type(f)(**{**f.__dict__, "features": x, "feature_space": fs.id,
-                                                 "meta": {}})))
+        g = decode_frame(encode_frame(type(f)(**{**f.__dict__, "features": x, "feature_space": fs.id, "meta": {}}),
+                                      feature_codec=pub.feature_codec, jpeg_quality=pub.jpeg_quality))
         assert s.stamp == g.stamp
         np.testing.assert_array_equal(s.pose, g.pose)
         np.testing.assert_array_equal(s.intrinsics, g.intrinsics)
