@@ -116,7 +116,8 @@ def _expected_rdf(t, optical_offset=np.zeros(3)):
     return M
 
 
-def write_bag(path: Path, *, pose_kind: str = "odom", depth_encoding: str = "32FC1") -> Path:
+def write_bag(path: Path, *, pose_kind: str = "odom", depth_encoding: str = "32FC1",
+              corrupt_depth: int | None = None) -> Path:
     with Writer(path, version=9) as w:
         c_rgb = w.add_connection("/cam/color", "sensor_msgs/msg/Image", typestore=TS)
         c_d = w.add_connection("/cam/depth", "sensor_msgs/msg/Image", typestore=TS)
@@ -149,7 +150,10 @@ def write_bag(path: Path, *, pose_kind: str = "odom", depth_encoding: str = "32F
         msgs.sort(key=lambda m: m[0])
         for t, conn, typ, msg in msgs:
             # receive time = stamp + 3 ms, so header stamps and bag times differ.
-            w.write(conn, int((t + 0.003) * 1e9), TS.serialize_cdr(msg, typ))
+            raw = TS.serialize_cdr(msg, typ)
+            if corrupt_depth is not None and conn is c_d and t == DEPTH_T[corrupt_depth]:
+                raw = raw[:40]                       # a truncated message: does not deserialise
+            w.write(conn, int((t + 0.003) * 1e9), raw)
     return path
 
 
@@ -292,3 +296,13 @@ def test_rosbag_compressed_images_and_static_intrinsics(tmp_path):
     with pytest.raises(SourceError, match="no intrinsics"):
         open_source(SourceConfig(kind="rosbag", path=str(path), rgb_topic="/rgb/compressed",
                                  depth_topic="/depth/compressedDepth", pose_topic="/pose"))
+
+
+def test_rosbag_corrupt_depth_message_skipped_and_counted(tmp_path):
+    """A depth message that does not deserialise is skipped and counted; the frames after it come."""
+    src = open_source(_cfg(write_bag(tmp_path / "corrupt_bag", corrupt_depth=1), pose_topic="/odom"))
+    assert src.skipped["corrupt frame"] == 1
+    frames = list(src)
+    assert [f.meta["index"] for f in frames] == [0, 2, 5]
+    for f in frames:
+        _check_images(f)

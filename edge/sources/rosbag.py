@@ -151,7 +151,17 @@ class RosbagSource(FrameSource):
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
             except Exception as e:  # rosbags raises several serde errors
-                raise SourceError(f"rosbag: cannot deserialize a {conn.msgtype} message on {conn.topic}: {e}") from None
+                err = SourceError(f"rosbag: cannot deserialize a {conn.msgtype} message on {conn.topic}: {e}")
+                if role == "depth":   # a corrupt frame message: skip it, keep the ordinals aligned
+                    self._skip_corrupt(f"depth message {len(depth_t)}", err)
+                    depth_t.append(ns * 1e-9)
+                    depth_ok.append(None)
+                    continue
+                if role == "rgb":
+                    self._skip_corrupt(f"colour message {len(rgb_t)}", err)
+                    rgb_t.append(float("inf"))   # never within sync_tolerance of a depth stamp
+                    continue
+                raise err from None
             if role == "rgb":
                 rgb_t.append(self._stamp(msg, ns))
             elif role == "depth":
@@ -159,7 +169,10 @@ class RosbagSource(FrameSource):
                 try:
                     d = decode_depth(msg, mtype, cfg.depth_scale)
                 except ValueError as e:
-                    raise SourceError(f"rosbag: depth message {len(depth_t) - 1} on {conn.topic}: {e}") from None
+                    self._skip_corrupt(f"depth message {len(depth_t) - 1}",
+                                       SourceError(f"rosbag: depth message {len(depth_t) - 1} on {conn.topic}: {e}"))
+                    depth_ok.append(None)
+                    continue
                 depth_ok.append(has_valid_depth(d))
                 if self.native_hw is None:
                     self.native_hw = d.shape
@@ -187,6 +200,8 @@ class RosbagSource(FrameSource):
         plans = []
         for i in kept:
             t = depth_t[i]
+            if depth_ok[i] is None:   # corrupt: already counted
+                continue
             if not depth_ok[i]:
                 self._skip("no valid depth pixel")
                 continue
@@ -238,8 +253,11 @@ class RosbagSource(FrameSource):
                     try:
                         depth = decode_depth(reader.deserialize(draw, dconn.msgtype), types[dconn.id], self.cfg.depth_scale)
                         rgb = decode_rgb(reader.deserialize(rraw, rconn.msgtype), types[rconn.id])
-                    except ValueError as e:
-                        raise SourceError(f"rosbag: frame {p.index} ({dconn.topic}, {rconn.topic}): {e}") from None
+                    except Exception as e:  # a message that does not deserialise/decode: skip it
+                        self._skip_corrupt(p.index, SourceError(
+                            f"rosbag: frame {p.index} ({dconn.topic}, {rconn.topic}): {e}"))
+                        pos += 1
+                        continue
                     yield native_frame(p.index, p.stamp, p.pose, self.native_K, depth, rgb, rgb_index=p.rgb_ord)
                     pos += 1
                 if pos == len(plans):
