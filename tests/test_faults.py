@@ -704,3 +704,17 @@ def test_rejected_query_request_costs_bounded_cpu():
         worst = max(worst, best * 1e3)
     print(f"worst rejected query request: {worst:.2f} ms CPU")
     assert worst <= 25.0
+
+
+def test_bench_query_smoke(tmp_path):
+    """``rayfronts bench query`` runs (tiny map, no figures asserted: speed belongs to the bench)."""
+    from apps.cli import main
+
+    out = tmp_path / "q.json"
+    assert main(["bench", "query", "--voxels", "3k", "--queries", "2", "--changes", "2", "--rays", "50",
+                 "--dim", "8", "--no-client", "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    ip = d["sizes"]["3k"]["in_process"]
+    assert ip["voxels"] >= 3000 and ip["steady_ms"]["n"] == 2 and ip["after_change_ms"]["n"] == 2
+    assert ip["after_change_lock_held_ms"]["n"] == 2 and "similarity" in ip["steady_stage_p50_ms"]
+    assert "machine" in d["meta"]
