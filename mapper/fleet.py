@@ -27,7 +27,7 @@ queue. Robots that never serve a feature space are evicted after ``no_space_evic
 robots that went away after ``gone_evict_s``; at most ``max_robots`` ids are tracked
 (frames of further ids are rejected, counted globally, not per id); frames held for a
 robot whose space is not known yet expire after ``pending_ttl_s`` and at most
-``pending_max_frames`` are held over all robots (oldest first dropped).
+``max(pending_max_frames, queues.per_robot)`` are held over all robots (oldest first dropped).
 """
 from __future__ import annotations
 
@@ -63,10 +63,10 @@ class FleetSection:
                                            "its first frame (s)")
     gone_evict_s: float = field_(300.0, "forget a robot whose edge went away (liveliness) and sent nothing for "
                                         "this long (s); its mapped frames stay in the map")
-    pending_ttl_s: float = field_(10.0, "frames held while a robot's feature space is fetched expire after "
+    pending_ttl_s: float = field_(60.0, "frames held while a robot's feature space is fetched expire after "
                                         "this long (s)")
-    pending_max_frames: int = field_(32, "frames held over all robots whose feature space is not known yet "
-                                         "(oldest dropped first)")
+    pending_max_frames: int = field_(32, "frames held over all robots whose feature space is not known yet, at "
+                                         "least queues.per_robot (one robot's queue); oldest dropped first")
     status_period_s: float = field_(1.0, "per-robot status (mapper/robots/<robot>/status) is published on every "
                                          "change of state and at most this often otherwise")
     drop_warn_s: float = field_(10.0, "warn about a robot's dropped frames at most this often (s), with the rate")
@@ -383,10 +383,11 @@ def evictions(robots: dict, now_wall: float, cfg: FleetSection) -> list[tuple[st
     return out
 
 
-def expire_pending(robots: Iterable, now_wall: float, cfg: FleetSection) -> list[tuple[str, int]]:
+def expire_pending(robots: Iterable, now_wall: float, cfg: FleetSection, per_robot: int = 0) -> list[tuple[str, int]]:
     """Drop held frames (``(frame, t_recv)`` in ``st.queue``) of robots whose space is not
-    known yet: older than ``pending_ttl_s``, then the oldest over ``pending_max_frames`` in
-    total. Returns ``[(robot, n_dropped)]``."""
+    known yet: older than ``pending_ttl_s``, then the oldest over ``max(pending_max_frames,
+    per_robot)`` in total (one robot may always fill its own queue). Returns
+    ``[(robot, n_dropped)]``."""
     waiting = [st for st in robots if not st.space_ok and st.queue]
     out = collections.Counter()
     for st in waiting:
@@ -394,7 +395,7 @@ def expire_pending(robots: Iterable, now_wall: float, cfg: FleetSection) -> list
             st.queue.popleft()
             out[st.name] += 1
     total = sum(len(st.queue) for st in waiting)
-    while total > max(0, cfg.pending_max_frames):
+    while total > max(0, cfg.pending_max_frames, int(per_robot)):
         st = min((s for s in waiting if s.queue), key=lambda s: s.queue[0][1])
         st.queue.popleft()
         out[st.name] += 1

@@ -204,7 +204,7 @@ class Fleet:
         with s.qlock:
             for st in s.robots.values():
                 self.sample_counts(st, now, now_w)
-            for name, n in expire_pending(s.robots.values(), now_w, self.cfg):
+            for name, n in expire_pending(s.robots.values(), now_w, self.cfg, s.cfg.queues.per_robot):
                 st = s.robots[name]
                 self.robot_data(st).pending_expired += n
                 st.rejected["pending_expired"] += n

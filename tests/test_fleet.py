@@ -246,6 +246,9 @@ def test_expire_pending_ttl_and_global_cap():
     assert [t for _, t in a.queue] == [12.0, 13.0] and [t for _, t in b.queue] == [14.0, 15.0, 16.0]
     assert len(ok.queue) == 3                                  # robots with a space are not touched
     assert math.isclose(sum(len(s.queue) for s in (a, b)), 5)
+    # one robot may always fill its own queue (queues.per_robot above the global cap)
+    c = _st("c", queue=collections.deque([(None, 19.0)] * 9))
+    assert dict(expire_pending([c], 20.0, cfg, per_robot=8)) == {"c": 1} and len(c.queue) == 8
 
 
 def test_synthetic_robots_in_one_town_take_their_own_laps():

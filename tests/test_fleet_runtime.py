@@ -260,7 +260,8 @@ def test_many_robot_ids_bounded_and_evicted(tmp_path, procs):  # noqa: F811
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs.append(Proc("ids-mapper", _mapper(ep, ["fleet.max_robots=200", "fleet.no_space_evict_s=15",
-                                                 "fleet.pending_max_frames=16", "fleet.pending_ttl_s=30"]),
+                                                 "fleet.pending_max_frames=16", "fleet.pending_ttl_s=30",
+                                                 "queues.per_robot=4"]),
                       tmp_path))
     g = np.random.default_rng(0)
     h, w = 120, 160
