@@ -174,7 +174,15 @@ def run_all(out_dir: Path, quick: bool = False, only: str = "", timeout: float =
         if rc != 0:
             status[name]["error"] = (err or "").strip().splitlines()[-1:] or [""]
             print(f"[bench all] {name} failed (rc {rc}): {status[name]['error'][0]}", file=sys.stderr, flush=True)
-    (out_dir / "all.json").write_text(_dump({"quick": quick, "runs": status}) + "\n")
+    if want and (out_dir / "all.json").exists():  # a subset rerun keeps the other runs' records
+        try:
+            prev = json.loads((out_dir / "all.json").read_text())
+            status = {**prev.get("runs", {}), **status}
+        except (ValueError, OSError):
+            pass
+    order = [n for n in names if n in status] + [n for n in status if n not in names]
+    # "order": the table order (the JSON's keys are sorted)
+    (out_dir / "all.json").write_text(_dump({"quick": quick, "order": order, "runs": status}) + "\n")
     table = report.render(out_dir)
     (out_dir / "table.md").write_text(table)
     print(table)

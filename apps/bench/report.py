@@ -110,7 +110,8 @@ def _order(src: Path) -> list[Path]:
     follow ``apps.bench.ALL``), then any others by name. Read from the directory, so this module
     does not import ``apps.bench`` (which imports it)."""
     try:
-        names = list(json.loads((src / "all.json").read_text()).get("runs", {}))
+        allj = json.loads((src / "all.json").read_text())
+        names = list(allj.get("order") or allj.get("runs", {}))
     except (ValueError, OSError, AttributeError):
         names = []
     files = {p.stem: p for p in sorted(src.glob("*.json")) if p.stem != "all"}
