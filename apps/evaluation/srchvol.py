@@ -114,6 +114,12 @@ class SrchvolConfig:
     device: str = field_("cpu", "torch device of the maps")
     plots: bool = field_(True, "write SCVR-over-time PNG plots")
     progress: bool = field_(True, "tqdm progress bars")
+    variants: dict = field_({}, "extra RayFronts variants evaluated on the same frames and GT (ablations): name -> "
+                                "MapConfig overrides, e.g. variants={rayfronts_absolute: {ray_cost_norm: absolute}}")
+
+    def all_methods(self) -> list[str]:
+        """The evaluated methods: ``methods`` then the ``variants`` (RayFronts with overrides)."""
+        return list(self.methods) + [v for v in self.variants if v not in self.methods]
 
     def validate(self) -> "SrchvolConfig":
         from mapper.config import METHODS, PRESETS
@@ -128,6 +134,9 @@ class SrchvolConfig:
             raise ConfigError(f"depth_limits must be a non-empty list of numbers >= 0, got {self.depth_limits}")
         if self.vox <= 0 or self.every < 1 or self.gt_range <= 0:
             raise ConfigError("need vox > 0, every >= 1 and gt_range > 0")
+        for name, over in self.variants.items():
+            if name in ALL_METHODS or not isinstance(over, dict):
+                raise ConfigError(f"variant {name!r} must be a new name with a dict of MapConfig overrides")
         assert set(ALL_METHODS) <= set(METHODS) | {"rayfronts"}
         return self
 
@@ -149,12 +158,16 @@ def method_map_config(cfg: SrchvolConfig, method: str, depth: float, width: int)
         from mapper.config import PRESETS
         base = PRESETS[cfg.preset].get("ray_erosion", 4)
         over["ray_erosion"] = int(round(base * width / 640))
+    variant = cfg.variants.get(method)
+    if variant is not None:
+        method = "rayfronts"
     name = method
     if method == "rayfronts" and depth <= 0:
         name = "rayfronts_zero_depth"
     mc = map_config(cfg.preset, None, name)
     from common.config import merge
-    return merge(mc, over).validate()
+    mc = merge(mc, over)
+    return (merge(mc, variant) if variant else mc).validate()
 
 
 # ----------------------------------------------------------------------------- per-step scoring
@@ -347,8 +360,8 @@ def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
     evals: list[tuple[float, str, tuple[float, str], bool]] = []   # (depth, method, map key, with rays)
     first = encode(frames[0])
     for d in cfg.depth_limits:
-        for m in cfg.methods:
-            if not applicable(m, d):
+        for m in cfg.all_methods():
+            if not applicable("rayfronts" if m in cfg.variants else m, d):
                 continue
             if m == "semantic_voxels" and cfg.share_maps and "rayfronts" in cfg.methods:
                 evals.append((d, m, (d, "rayfronts"), False))
@@ -399,7 +412,7 @@ def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
     for d in cfg.depth_limits:
         dk = depth_key(d)
         summary[dk] = {}
-        for m in cfg.methods:
+        for m in cfg.all_methods():
             summary[dk][m] = summarize(rows[(d, m)], cfg.stop_frac) if (d, m) in rows else None
     info = dict(
         config=to_dict(cfg), class_names=class_names, classes_evaluated=[class_names[c] for c in classes],
@@ -455,7 +468,7 @@ def write_outputs(out: Path, rows: dict, summary: dict, info: dict, cfg: Srchvol
     top = summary[depth_key(cfg.depth_limits[0])] if single else summary
     (out / "summary.json").write_text(json.dumps(_json_safe(top), indent=2))
     (out / "run_info.json").write_text(json.dumps(_json_safe(dict(info, kind="srchvol")), indent=2))
-    (out / "table.md").write_text(table_markdown(summary, cfg.methods, [depth_key(d) for d in cfg.depth_limits]))
+    (out / "table.md").write_text(table_markdown(summary, cfg.all_methods(), [depth_key(d) for d in cfg.depth_limits]))
     if cfg.plots:
         plot_scvr(out, rows, cfg)
         from apps.evaluation.figures import write_figures  # methods compared per depth; table.csv
