@@ -64,7 +64,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-limit", type=float, default=20.0, help="simulated depth range in m (default 20)")
     parser.add_argument("--seed", type=int, default=0, help="synthetic world seed (default 0)")
     parser.add_argument("--vox-size", type=float, default=0.5, help="voxel size in m (default 0.5)")
-    parser.add_argument("--pca-dim", type=int, default=64, help="PCA dimension of the features on the wire (default 64)")
+    parser.add_argument("--pca-dim", type=int, default=64,
+                        help="PCA dimension of the features on the wire (default 64)")
     parser.add_argument("--query", action="append", default=None, metavar="TEXT",
                         help="query to run (repeatable; default: " + ", ".join(DEFAULT_QUERIES) + ")")
     parser.add_argument("--timeout", type=float, default=170.0,
@@ -271,7 +272,8 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
     try:
         router = procs.start("router", _py("router", "--listen", ep, *shm_flag), env)
         mapper = procs.start("mapper", _py("mapper", "--mode", "client", "--connect", ep, "--rerun", str(rrd),
-                                  f"preset={cfg.preset}", f"map.vox_size={cfg.vox_size}", f"map.depth_limit={cfg.depth_limit}",
+                                  f"preset={cfg.preset}", f"map.vox_size={cfg.vox_size}",
+                                  f"map.depth_limit={cfg.depth_limit}",
                                   "queues.per_robot=100000", "layers.rate_hz=0.5", "snapshots.on_exit=false",
                                   *shm, *cfg.map_overrides), env)
         edge = procs.start("edge", _py("edge", "--connect", ep, "--rate", "0", "robot=demo1",

@@ -43,8 +43,8 @@ def format_result(r, top_k: int = 5) -> str:
         for i in range(min(top_k, len(r.cluster_xyz))):
             x, y, z = r.cluster_xyz[i]
             ex = r.cluster_extent[i]
-            lines.append(f"   {i + 1:2d}  {r.cluster_score[i]:.4f} {x:8.2f} {y:8.2f} {z:8.2f} {int(r.cluster_size[i]):6d}"
-                         f"  {ex[0]:.1f}x{ex[1]:.1f}x{ex[2]:.1f}")
+            lines.append(f"   {i + 1:2d}  {r.cluster_score[i]:.4f} {x:8.2f} {y:8.2f} {z:8.2f} "
+                         f"{int(r.cluster_size[i]):6d}  {ex[0]:.1f}x{ex[1]:.1f}x{ex[2]:.1f}")
     else:
         lines.append("  no voxel answers")
     if len(r.ray_origin):

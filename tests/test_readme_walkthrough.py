@@ -147,7 +147,8 @@ def _wait_text(p: subprocess.Popen, log: Path, text: str, timeout: float) -> Non
         if text in out:
             return
         if p.poll() is not None:
-            raise AssertionError(f"{shlex.join(p.args)} exited ({p.returncode}) before printing {text!r}:\n{out[-3000:]}")
+            raise AssertionError(f"{shlex.join(p.args)} exited ({p.returncode}) before printing {text!r}:\n"
+                                 f"{out[-3000:]}")
         time.sleep(0.2)
     raise AssertionError(f"{text!r} not printed within {timeout} s:\n{log.read_text(errors='replace')[-3000:]}")
 
