@@ -96,8 +96,9 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
             def done():
                 s = c.stats(timeout=10.0)
                 seen[:] = [s]
+                # voxels become visible at the map's voxel block / idle flush: wait for it
                 return s if ed.poll() is not None and s["frames"]["mapped"] >= FRAMES \
-                    and not sum(s["queues"].values()) else None
+                    and not sum(s["queues"].values()) and s["map_version"] == s["flushed_version"] else None
 
             try:
                 st = _wait(done, 600, f"{name}: {FRAMES} frames mapped")
