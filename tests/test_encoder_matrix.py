@@ -26,6 +26,7 @@ import pytest
 
 from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
+from test_robustness import wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAMES = 4
@@ -63,17 +64,7 @@ def _edge_items(kind: str, mdir: Path, output: str = "radio", pca: bool = True, 
 
 
 def _wait(fn, timeout, what):
-    end = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except Exception as e:
-            last = e
-        time.sleep(0.5)
-    raise AssertionError(f"timed out waiting for {what} (last {last!r})")
+    return wait_for(fn, timeout, every=0.5, what=what)
 
 
 def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
 from edge.sources import SourceConfig, open_source
 from edge.sources.transforms import matrix_to_quat
+from test_robustness import wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 TS = get_typestore(Stores.ROS2_HUMBLE)
@@ -94,17 +94,7 @@ def _run(args, log):
 
 
 def _wait(fn, timeout, what):
-    end = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except Exception as e:
-            last = e
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
+    return wait_for(fn, timeout, what=what)
 
 
 @pytest.mark.slow

@@ -19,6 +19,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
+from test_robustness import wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
@@ -69,17 +70,7 @@ class Latest:
 
 
 def _wait(fn, timeout, what):
-    end = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except Exception as e:
-            last = e
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
+    return wait_for(fn, timeout, what=what)
 
 
 @pytest.mark.slow
