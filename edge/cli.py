@@ -193,15 +193,15 @@ def run(args: argparse.Namespace) -> int:
         rc = EdgeRuntime(cfg, stop).run()
     finally:
         restore()
-    if rc:
-        # refused / failed (the reason is logged and on edge_status): leave without interpreter
-        # finalisation, which can race Zenoh's native threads after torch has run (seen: abort
-        # "FATAL: exception not rethrown" instead of the exit code)
-        import os
-        import sys
+    # Leave without interpreter finalisation, whatever the exit code. The runtime has closed its
+    # recording and Zenoh session; a worker thread still inside torch or a Zenoh callback when
+    # Python finalises is killed with a forced unwind, and the process aborts with SIGABRT
+    # ("FATAL: exception not rethrown") instead of returning its code (seen: CI, rc -6 after a
+    # clean "done").
+    import os
+    import sys
 
-        logging.shutdown()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(rc)
-    return rc
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(rc)
