@@ -30,6 +30,7 @@ from scipy.sparse.csgraph import connected_components
 
 from common.conventions import voxel_center, voxel_index
 from common.messages import MessageError, QueryRequest, QueryResult
+from mapper.query_snapshot import SCORE_ATOL, HalfFeatures, QuerySnapshot, _one_thread  # noqa: F401  (re-exported)
 
 #: generic phrases of ``query.softmax_set=negatives`` (relevancy-style; not the paper's default)
 SOFTMAX_NEGATIVES = ("object", "things", "stuff", "texture")
@@ -98,14 +99,15 @@ def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "", temp
 def scores_for(fs, feats: torch.Tensor, q: torch.Tensor, softmax: bool, negatives: torch.Tensor | None,
                device="cpu") -> np.ndarray:
     """(N,) float32 score of query ``q`` per feature row: cosine, or with ``softmax`` its
-    softmax(100·cos) share against ``negatives``. ``feats`` raw ``(N, dim)`` or a
-    :class:`common.feature_space.PreparedFeatures`."""
+    softmax(100·cos) share against ``negatives``. ``feats`` raw ``(N, dim)``, a
+    :class:`common.feature_space.PreparedFeatures` or a :class:`HalfFeatures` (the query
+    copy's float16 rows: within :data:`SCORE_ATOL` of the float32 cosine)."""
     from common.feature_space import PreparedFeatures
 
     if len(feats) == 0:
         return np.zeros((0,), np.float32)
     qs = torch.cat([q, negatives]) if softmax and negatives is not None else q
-    if isinstance(feats, PreparedFeatures):
+    if isinstance(feats, (PreparedFeatures, HalfFeatures)):
         sim = feats.similarity(qs)
     else:
         sim = fs.similarity(feats, qs, device=device)
@@ -116,8 +118,13 @@ def scores_for(fs, feats: torch.Tensor, q: torch.Tensor, softmax: bool, negative
 
 def top_stable(s: np.ndarray, k: int) -> np.ndarray:
     """Indices of the ``k`` largest values of ``s``, best first, ties by lower index —
-    exactly ``np.argsort(-s, kind="stable")[:k]`` (NaN ranks last), in O(N + m log m)
-    (partition, then a stable sort of the m >= k values not below the k-th largest)."""
+    exactly ``np.argsort(-s, kind="stable")[:k]`` (NaN ranks last), in O(N + m log m).
+
+    A strided sample of ``s`` gives a threshold that about ``2k`` values reach; one pass
+    collects those (``s >= thr``), a partition of the few finds the k-th largest among them
+    — exact, as every value above the k-th largest is in the set once the set holds ``k``
+    values (else a full partition of ``s``). Then a stable sort of the m >= k values not
+    below the k-th largest."""
     n = len(s)
     k = min(int(k), n)
     if k <= 0:
@@ -126,8 +133,21 @@ def top_stable(s: np.ndarray, k: int) -> np.ndarray:
         s = np.where(np.isnan(s), -np.inf, s)
     if k >= n or n <= 4096:
         return np.argsort(-s, kind="stable")[:k]
-    kth = np.partition(s, n - k)[n - k]
-    cand = np.flatnonzero(s >= kth)          # ascending indices: stable sort keeps index order on ties
+    c = None
+    stride = 32
+    if n >= 64 * k:
+        sample = s[::stride]
+        ks = min(len(sample), 2 * (k // stride + 1) + 16)
+        thr = np.partition(sample, len(sample) - ks)[len(sample) - ks]
+        c = np.flatnonzero(s >= thr)
+        if len(c) < k:
+            c = None
+    if c is None:
+        kth = np.partition(s, n - k)[n - k]
+    else:
+        vals = s[c]
+        kth = np.partition(vals, len(vals) - k)[len(vals) - k]
+    cand = np.flatnonzero(s >= kth) if c is None else c[s[c] >= kth]   # ascending: ties keep index order
     return cand[np.argsort(-s[cand], kind="stable")[:k]]
 
 
@@ -162,208 +182,6 @@ def cluster_voxels(ijk: np.ndarray) -> np.ndarray:
 
 
 from common.cones import _cone_frame, cone_union_volume  # noqa: E402,F401  (moved there; names kept)
-
-
-# ------------------------------------------------------------- query snapshots
-class _one_thread:
-    """torch runs single-threaded inside (the incremental copy is many small ops: on a loaded
-    machine every parallel region would wait on a descheduled OpenMP worker)."""
-
-    def __enter__(self):
-        self.n = torch.get_num_threads()
-        if self.n != 1:
-            torch.set_num_threads(1)
-
-    def __exit__(self, *exc):
-        if self.n != 1:
-            torch.set_num_threads(self.n)
-
-
-class QuerySnapshot:
-    """A consistent copy of what a query reads from the map, maintained *incrementally*.
-
-    :meth:`sync` (the caller holds the map lock) copies only the voxel rows the map wrote or
-    moved since the previous sync (``SemanticVoxels.take_changes``; everything on the first
-    sync, after a reload or when the journal overflowed) into float32 feature / int64 key
-    buffers reused across map versions, plus the rays (small). The query-independent terms
-    (:meth:`prepared`: per-row inverse norms, or the cached language-space rows of a space with
-    a language head, see ``FeatureSpace.prepare``) are likewise updated for the changed rows
-    only, outside the lock. So the first query after a map change costs about what a later
-    one does, and the lock is held for O(changed rows), not O(N·dim).
-
-    A query that cannot get the map lock within ``query.lock_timeout_s`` reads this copy as
-    it is: the last consistent state (``gen`` / ``frames_mapped`` say which).
-
-    Memory: ``4·dim·N`` bytes (+25 % headroom for a growing map) for the features, ``8·N``
-    for the keys, ``4·N`` for the inverse norms. :meth:`reserve` grows the buffers (copying
-    their content) before the lock is taken, so the lock is held for the changed rows only.
-
-    Not thread-safe: the caller serialises queries (``query_lock``). :meth:`take` is the
-    one-off full copy (no journal), for a map used once.
-    """
-
-    def __init__(self):
-        self.gen = -1
-        self.frames_mapped = 0
-        self.vox = 1.0
-        self.half_angle = 45.0
-        self.n_voxels = 0
-        self._vfeat = torch.empty((0, 0))     # float32 copy of the voxel features (capacity >= n)
-        self._vkeys = torch.empty(0, dtype=torch.int64)
-        self.ray_feats = torch.empty(0)
-        self.ray_origins = np.zeros((0, 3), np.float32)
-        self.ray_dirs = np.zeros((0, 3), np.float32)
-        self._prep: dict = {}                 # (space id, device) -> per-space prepared state
-        self._sem = None                      # the SemanticVoxels the copy follows
-        self.take_ms = 0.0
-        self.changed_rows = 0                 # rows copied by the last sync (-1: everything)
-
-    @staticmethod
-    def _grow(buf: torch.Tensor, n: int, tail: tuple, dtype, device, keep: int) -> torch.Tensor:
-        """``buf`` if it holds ``n`` rows of that kind, else a bigger one with its first ``keep`` rows."""
-        if (buf.dtype == dtype and buf.device == device and tuple(buf.shape[1:]) == tail
-                and buf.shape[0] >= n):
-            return buf
-        new = torch.zeros((max(n + n // 4, 1024), *tail), dtype=dtype, device=device)
-        if keep and tuple(buf.shape[1:]) == tail and buf.dtype == dtype:
-            k = min(keep, buf.shape[0])
-            new[:k].copy_(buf[:k])
-        return new
-
-    def _fit(self, sem, n: int, keep: int) -> None:
-        dev = sem.keys.device
-        self._vfeat = self._grow(self._vfeat, n, (int(sem.dim),), torch.float32, dev, keep)
-        self._vkeys = self._grow(self._vkeys, n, (), torch.int64, dev, keep)
-
-    def reserve(self, m) -> "QuerySnapshot":
-        """Grow the buffers for map ``m``'s current size ahead of :meth:`sync` (no lock
-        needed: a size hint; the copy's content is kept)."""
-        sem = m.sem
-        if sem is self._sem:
-            self._fit(sem, len(sem), self.n_voxels)
-        return self
-
-    def sync(self, m, gen: int, frames_mapped: int = 0) -> "QuerySnapshot":
-        """Bring the copy up to map ``m`` (the caller holds the map lock): changed rows only."""
-        with _one_thread():
-            return self._sync(m, gen, frames_mapped)
-
-    def _sync(self, m, gen: int, frames_mapped: int) -> "QuerySnapshot":
-        t = time.perf_counter()
-        sem = m.sem
-        n = len(sem)
-        rows = sem.take_changes(self) if sem is self._sem else None
-        if rows is None:
-            sem.take_changes(self)           # this copy now owns the journal
-            self._fit(sem, n, 0)
-            self._vfeat[:n].copy_(sem.feat)
-            self._vkeys[:n].copy_(sem.keys)
-            self._prep = {}
-            self.changed_rows = -1
-        else:
-            self._fit(sem, n, min(self.n_voxels, n))
-            if rows.numel():
-                self._vfeat.index_copy_(0, rows, sem.feat.index_select(0, rows).to(torch.float32))
-                self._vkeys.index_copy_(0, rows, sem.keys.index_select(0, rows))
-            for st in self._prep.values():
-                st["rows"].append(rows)
-            self.changed_rows = int(rows.numel())
-        self._sem = sem
-        self.n_voxels = n
-        self._copy_rest(m, gen, frames_mapped)
-        self.take_ms = (time.perf_counter() - t) * 1e3
-        return self
-
-    def take(self, m, gen: int, frames_mapped: int = 0) -> "QuerySnapshot":
-        """A full copy of the map's query arrays (the caller holds the map lock), without
-        touching the map's change journal (for a map queried once)."""
-        t = time.perf_counter()
-        sem = m.sem
-        n = self.n_voxels = len(sem)
-        self._fit(sem, n, 0)
-        self._vfeat[:n].copy_(sem.feat)
-        self._vkeys[:n].copy_(sem.keys)
-        self._prep = {}
-        self._sem = None
-        self.changed_rows = -1
-        self._copy_rest(m, gen, frames_mapped)
-        self.take_ms = (time.perf_counter() - t) * 1e3
-        return self
-
-    def _copy_rest(self, m, gen: int, frames_mapped: int) -> None:
-        self.vox = float(m.cfg.vox_size)
-        rs = m.ray_store
-        self.ray_feats = rs.feat.clone()
-        self.ray_origins = _np(rs.origins()).astype(np.float32).reshape(-1, 3)
-        self.ray_dirs = _np(rs.directions()).astype(np.float32).reshape(-1, 3)
-        self.half_angle = float(m.cone_half_angle())
-        self.gen, self.frames_mapped = gen, frames_mapped
-        for st in self._prep.values():
-            st["rays"] = None
-
-    @property
-    def voxel_feats(self) -> torch.Tensor:
-        return self._vfeat[: self.n_voxels]
-
-    def voxel_xyz(self, rows: np.ndarray) -> np.ndarray:
-        """(len(rows), 3) float32 voxel centres of snapshot rows."""
-        from mapper import keys as K_
-
-        k = self._vkeys[: self.n_voxels][torch.as_tensor(np.asarray(rows, np.int64))]
-        return _np(voxel_center(K_.unpack(k), self.vox)).astype(np.float32, copy=False).reshape(-1, 3)
-
-    def prepared(self, fs, device="cpu"):
-        """``(voxels, rays)`` PreparedFeatures for space ``fs``: built in full once per copy,
-        then updated for the rows each :meth:`sync` changed."""
-        key = (fs.id, str(device))
-        dev = torch.device(device)
-        n = self.n_voxels
-        st = self._prep.get(key)
-        if st is None:
-            v = fs.prepare(self.voxel_feats, device=device)
-            kind = ("raw" if v._y is None else "head" if v._inv is None else
-                    "norm" if v._y.data_ptr() == self._vfeat.data_ptr() else "full")
-            st = self._prep[key] = {"kind": kind, "rows": [], "rays": None, "v": v, "aux": None, "cap": n}
-            if kind == "norm":     # keep the inverse norms in a buffer with the copy's headroom
-                aux = torch.zeros(max(self._vfeat.shape[0], 1), dtype=torch.float32, device=dev)
-                aux[:n] = v._inv
-                st["aux"] = aux
-            elif kind == "head":
-                aux = torch.zeros((max(self._vfeat.shape[0], 1), v._y.shape[1]), dtype=torch.float32, device=dev)
-                aux[:n] = v._y
-                st["aux"] = aux
-        elif st["rows"] or st["v"].n != n:
-            with _one_thread():
-                self._update_prepared(fs, st, n, dev, device)
-        if st["rays"] is None:
-            st["rays"] = fs.prepare(self.ray_feats, device=device)
-        return st["v"], st["rays"]
-
-    def _update_prepared(self, fs, st: dict, n: int, dev, device) -> None:
-        """The prepared terms of the rows the syncs since the last query changed."""
-        from common.feature_space import PreparedFeatures
-
-        rows = torch.unique(torch.cat(st["rows"])) if st["rows"] else torch.empty(0, dtype=torch.int64)
-        rows = rows[rows < n]
-        st["rows"] = []
-        kind = st["kind"]
-        if kind == "raw":
-            st["v"] = PreparedFeatures(fs, dev, n, None, None, None, raw=self.voxel_feats)
-        elif kind == "full":
-            st["v"] = fs.prepare(self.voxel_feats, device=device)
-        else:
-            aux = st["aux"]
-            if aux.shape[0] < n:
-                new = torch.zeros((self._vfeat.shape[0], *aux.shape[1:]), dtype=aux.dtype, device=dev)
-                new[: aux.shape[0]] = aux
-                aux = st["aux"] = new
-            if rows.numel():
-                sub = fs.prepare(self._vfeat.index_select(0, rows), device=device)
-                aux.index_copy_(0, rows.to(dev), sub._inv if kind == "norm" else sub._y)
-            if kind == "norm":
-                st["v"] = PreparedFeatures(fs, dev, n, self._vfeat[:n], aux[:n], None)
-            else:
-                st["v"] = PreparedFeatures(fs, dev, n, aux[:n], None, None)
 
 
 _NEGATIVES: dict = {}

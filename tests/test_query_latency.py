@@ -17,6 +17,7 @@ from common.messages import QueryRequest
 from common.pca import PCA
 from common.text.heads import MLP2, MLP2Config
 from mapper import keys as cell_keys
+from mapper.query_answer import SCORE_ATOL
 from mapper.service_map import QuerySnapshot, answer_snapshot, cone_union_volume, create_map, top_stable
 
 
@@ -129,13 +130,16 @@ def test_answer_snapshot_matches_bruteforce():
     qcfg = cfg.query
     qcfg.cluster_candidates = 300
     q = np.asarray(X[7], np.float32)
-    res = answer_snapshot(QuerySnapshot().take(m, 1), fs, QueryRequest(embedding=q, top_k=5), qcfg)
-    feats, keys = m.sem.feat.float(), m.sem.keys
+    snap = QuerySnapshot().take(m, 1)
+    res = answer_snapshot(snap, fs, QueryRequest(embedding=q, top_k=5), qcfg)
+    # the brute force scores the rows as the query copy holds them (float16, per-row scaled:
+    # their distance to the float32 / float64 cosine is tests/test_query_half.py's subject)
+    feats, keys = snap.voxel_feats, m.sem.keys
     xyz = voxel_center(cell_keys.unpack(keys), 0.5).numpy()
     vs = _slow_cos(fs, feats, torch.from_numpy(q)[None])[0].numpy()
     order = np.argsort(-vs, kind="stable")
     np.testing.assert_array_equal(res.voxel_xyz, xyz[order[:5]])
-    np.testing.assert_allclose(res.voxel_score, vs[order[:5]], atol=1e-5)
+    np.testing.assert_allclose(res.voxel_score, vs[order[:5]], atol=SCORE_ATOL)   # float16 product
     # clusters: candidates above the relative score, 26-connected, best first
     cand = order[:300]
     keep = cand[vs[cand] >= vs.min() + qcfg.cluster_rel_score * (vs[cand[0]] - vs.min())]
@@ -143,7 +147,7 @@ def test_answer_snapshot_matches_bruteforce():
     lab = _bfs_components(ijk)
     best = np.array([vs[keep][lab == c].max() for c in range(lab.max() + 1)])
     cl = np.argsort(-best, kind="stable")[:5]
-    np.testing.assert_allclose(res.cluster_score, best[cl], atol=1e-5)
+    np.testing.assert_allclose(res.cluster_score, best[cl], atol=SCORE_ATOL)
     np.testing.assert_array_equal(res.cluster_size, [(lab == c).sum() for c in cl])
     for i, c in enumerate(cl):
         ctr = (ijk[lab == c] + 0.5) * 0.5
