@@ -400,6 +400,10 @@ class RayFrontsMap:
         self.ray_store.merge(fk[fi], fk, dr[ri], fe[ri], w)
         self._tick("ray_merge", t)
 
+    def has_buffered(self) -> bool:
+        """Frames committed but not yet in a voxel / ray block (what :meth:`flush` integrates)."""
+        return bool(self._buf_occ or self._buf_sem or self._buf_rays)
+
     def flush(self) -> None:
         """Run the voxel block and then the ray block now, whatever the counters say (the
         ray block also runs without buffered rays when rays exist: it prunes rays of

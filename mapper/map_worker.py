@@ -6,7 +6,8 @@ integrate it under the map lock, account it (timings, latency, edge CPU per fram
 rerun every ``rerun.every_n_frames``; then, on the map's version changing: signal standing
 queries (``query.standing_rate_hz``), publish layers (``layers.rate_hz``; while frames queue at
 most every 5 periods), write a periodic snapshot (``snapshots.period_s``). When the input is
-idle for ``queues.idle_flush_s`` the map's buffered accumulation is flushed.
+idle for ``queues.idle_flush_s`` the map's buffered accumulation is flushed, and so it is
+when a one-shot query asks (:meth:`MapWorker.serve_flush`, checked before each frame).
 
 torch runs with ``cfg.threads`` intra-op threads here (auto: 1 on small machines, see
 :func:`mapper.service_config.resolve_threads`); the thread waits on ``state.wake`` (set by
@@ -65,6 +66,9 @@ class MapWorker:
 
     def _loop(self, s, cfg, last_layers, last_standing, last_snap, standing_version, layers_version, idle_since):
         while not s.stop.is_set():
+            ticket = s.flush_wanted()
+            if ticket:
+                self.serve_flush(ticket)
             item = self.next_frame()
             if item is None and self._pipe is not None and len(self._pipe):
                 self._account_all(self._pipe.drain())  # input idle: commit what is in flight first
@@ -208,6 +212,17 @@ class MapWorker:
                     st.edge_cpu, st.edge_cpu_frames = (st.edge_cpu[0], float(e_cpu)), st.edge_cpu_frames + 1
         if self.rerun is not None:
             self.rerun.frame_mapped(st.name, frame)
+
+    def serve_flush(self, ticket: int) -> None:
+        """A query asked for the map's buffered frames: commit the frames in flight and
+        flush (only if the map buffers something: then it costs one voxel / ray block)."""
+        s = self.state
+        try:
+            m = s.map
+            if m is not None and getattr(m, "has_buffered", lambda: True)():
+                self.flush()
+        finally:
+            s.flush_done(ticket)
 
     def flush(self) -> None:
         """Integrate what the map buffers (accumulation periods) when the input is idle."""

@@ -10,7 +10,17 @@ scores, clusters and measures outside the lock, so mapping goes on meanwhile. A 
 at most ``query.lock_timeout_s`` for the map lock (held while one frame is integrated);
 after that it is answered from the last consistent copy and the reply says so:
 ``timings.stale = 1``, ``timings.stale_gens`` = map changes it does not include,
-``frames_mapped`` = the map state it reflects. Queries are serialised by
+``frames_mapped`` = the map state it reflects.
+
+A one-shot query sees every frame mapped before it arrived: frames are committed into the
+map's accumulation buffers (``map.vox_accum_period`` / ``ray_accum_period`` frames per
+block) and only become voxels at the next block or the idle flush, so when the map buffers
+frames the query first asks the map worker to flush them (``MapperState.request_flush``;
+the worker serves it before its next frame: at most one frame's integration plus one
+voxel and one ray block). That wait and the lock wait share the ``query.lock_timeout_s``
+budget; past it the query goes on (``timings.flush_pending = 1``; ``flush_wait`` = ms
+waited). Standing queries do not flush (they re-run on each map change anyway), so the
+map's block schedule is left alone by them. Queries are serialised by
 ``state.query_lock`` (taken before the map lock) and run with ``query.threads`` torch threads
 (auto: all CPUs; scoring is one big matrix product). Standing queries run on their own thread
 (``mapper-standing``), woken by the map worker through ``state.standing_due``.
@@ -50,11 +60,20 @@ class QueryServer:
         self.rerun = rerun
         self.qsnap = None                    # QuerySnapshot of the last query
 
-    def snapshot(self, timings: dict):
-        """The QuerySnapshot of the current map generation (caller holds ``query_lock``)."""
+    def snapshot(self, timings: dict, flush: bool = False):
+        """The QuerySnapshot of the current map generation (caller holds ``query_lock``);
+        with ``flush`` the map worker first integrates the frames the map buffers."""
         from mapper.query_answer import QuerySnapshot
 
         s = self.state
+        budget = max(0.0, float(s.cfg.query.lock_timeout_s))
+        deadline = time.monotonic() + budget
+        m = s.map
+        if flush and m is not None and getattr(m, "has_buffered", lambda: False)():
+            t = time.perf_counter()
+            if not s.request_flush(budget):
+                timings["flush_pending"] = 1.0
+            timings["flush_wait"] = (time.perf_counter() - t) * 1e3
         snap = self.qsnap
         if snap is not None and snap.gen == s.map_gen:
             return snap
@@ -63,7 +82,7 @@ class QueryServer:
         if m is not None:
             fresh.reserve(m)                      # allocations outside the lock (size hint)
         t = time.perf_counter()
-        got = s.lock.acquire(timeout=max(0.0, float(s.cfg.query.lock_timeout_s)))
+        got = s.lock.acquire(timeout=max(0.0, deadline - time.monotonic()))
         if not got and snap is None:
             got = s.lock.acquire()            # nothing to fall back on: wait for the frame
         timings["lock_wait"] = (time.perf_counter() - t) * 1e3
@@ -85,7 +104,7 @@ class QueryServer:
             s.lock.release()
         return snap
 
-    def run_query(self, req: QueryRequest) -> QueryResult:
+    def run_query(self, req: QueryRequest, flush: bool = False) -> QueryResult:
         from mapper.query_answer import answer_snapshot
 
         s = self.state
@@ -95,7 +114,7 @@ class QueryServer:
         with s.query_lock:
             set_torch_threads(s.cfg, query=True)
             timings: dict = {}
-            snap = self.snapshot(timings)
+            snap = self.snapshot(timings, flush=flush)
             res = answer_snapshot(snap, s.space, req, s.cfg.query, device=s.cfg.device,
                                   model_dir=s.cfg.text_model_dir, standing=list(s.standing.values()))
             res.frames_mapped = snap.frames_mapped
@@ -117,7 +136,7 @@ class QueryServer:
                     s.standing.pop(req.id, None)
                     payload = encode_query_result(QueryResult(id=req.id, query="<cancelled>"))
                 else:
-                    res = self.run_query(req)
+                    res = self.run_query(req, flush=True)
                     res.id = req.id
                     if req.standing:
                         s.standing[req.id] = req

@@ -26,7 +26,10 @@ flush, create and restore.
 Events: every thread waits on its own event, so no thread polls while frames queue: ``wake``
 (map worker: a frame or a robot changed), ``space_wake`` (ingest's feature-space thread: a
 robot needs its space fetched), ``standing_due`` (query server: the map changed and standing
-queries are due).
+queries are due). A one-shot query first asks the map worker to flush the frames the map
+still buffers (``request_flush`` / ``flush_wanted`` / ``flush_done`` under ``flush_cv``), so it
+sees every frame counted in ``frames.mapped`` before it arrived (see
+:mod:`mapper.query_server`).
 """
 from __future__ import annotations
 
@@ -167,6 +170,10 @@ class MapperState:
         self.wake = threading.Event()          # map worker: a frame or a robot changed
         self.space_wake = threading.Event()    # feature-space thread: a robot needs its space (re)fetched
         self.standing_due = threading.Event()  # query server: standing queries are due
+        # a one-shot query asks the map worker to flush what the map buffers (request_flush)
+        self.flush_cv = threading.Condition()
+        self.flush_asked = 0                   # tickets handed out (under flush_cv)
+        self.flush_served = 0                  # tickets the map worker has served (under flush_cv)
         self.fleet = None                      # mapper.fleet_job.Fleet (set by the service)
         self._overflow: RobotState | None = None   # stands in for ids over fleet.max_robots
 
@@ -196,6 +203,28 @@ class MapperState:
             self.wake.set()
             self.space_wake.set()
         return st
+
+    def request_flush(self, timeout: float) -> bool:
+        """Ask the map worker to integrate what the map buffers (frames committed but not yet
+        in a voxel / ray block) and wait at most ``timeout`` s; True once it has."""
+        with self.flush_cv:
+            self.flush_asked += 1
+            ticket = self.flush_asked
+        self.wake.set()
+        with self.flush_cv:
+            return bool(self.flush_cv.wait_for(lambda: self.flush_served >= ticket or self.stop.is_set(),
+                                               max(0.0, timeout))) and self.flush_served >= ticket
+
+    def flush_wanted(self) -> int:
+        """The newest flush ticket not yet served (0: none)."""
+        with self.flush_cv:
+            return self.flush_asked if self.flush_asked > self.flush_served else 0
+
+    def flush_done(self, ticket: int) -> None:
+        """The map worker has served every ticket up to ``ticket``."""
+        with self.flush_cv:
+            self.flush_served = max(self.flush_served, ticket)
+            self.flush_cv.notify_all()
 
     def reject(self, robot: str | None, reason: str, detail: str) -> None:
         """Count a rejected frame (globally and for its robot) and log it, rate-limited."""
