@@ -4,9 +4,18 @@ Process faults: a mapper SIGKILLed and restarted from its snapshot answers as be
 corrupt latest snapshot falls back to the older intact one; a SIGSTOPped edge and an edge
 cut off by a network partition (network namespaces) are marked gone within 3 s with the
 CLI defaults; an edge replaying a recording with a corrupt frame skips it and goes on; a
-query during a 3-edge flood is bounded by ``query.lock_timeout_s``.
+query during a 3-edge flood is answered (from the last consistent copy when the map lock is
+busy) with bounded queues and memory.
 
-Helpers (processes, the PCA basis, waits) are the robustness suite's.
+Helpers (processes, the PCA basis, waits, the shared text-embedding cache) are the
+robustness suite's. Speed is not asserted here: the query latency under flood against the
+unloaded one (issue 13.6's p95 bound) and the measured gone-after-kill / -freeze times are
+``rayfronts bench faults`` figures. What stays are functional contracts, and the only time
+bound is one the configuration sets: a robot whose link goes silent is marked gone when the
+link lease expires, so "within the lease + slack" is the lease doing its job, not a speed
+figure (see :data:`GONE_S`). Processes that do not interfere share one run: the restore and
+the snapshot-fallback tests start their mappers from copies of one module-scoped run's
+snapshots.
 """
 from __future__ import annotations
 
@@ -24,13 +33,16 @@ import pytest
 import test_robustness as _rb
 from test_robustness import ROOT, Proc, client, edge_args, mapped, mapper_args, wait_for
 
-from apps.demo import zenoh_env
-from common.zenoh_session import free_tcp_port
+from common.zenoh_session import DEFAULT_LEASE_MS, free_tcp_port
 
 pca_file = _rb.pca_file   # fixtures shared with the robustness suite
 procs = _rb.procs
 
-GONE_S = 3.0   # issue 13.4: a frozen / partitioned edge is marked gone within this, CLI defaults
+#: issue 13.4: a frozen / partitioned edge is marked gone within 3 s with the CLI defaults.
+#: The link lease (``DEFAULT_LEASE_MS`` = 2 s, keep-alives every 0.5 s) closes a silent link
+#: one lease after the last message; 1 s of slack covers the keep-alive phase and a loaded
+#: machine. A contract derived from the configured lease, not a speed figure.
+GONE_S = DEFAULT_LEASE_MS / 1000 + 1.0
 
 
 def _gone_state(c, robot="r1"):
@@ -39,30 +51,60 @@ def _gone_state(c, robot="r1"):
     return st if r and not r["present"] else None
 
 
+@pytest.fixture(scope="module")
+def shared_mapper(tmp_path_factory):
+    """One mapper (CLI defaults, idle flush 0.5 s) for the tests that only need a mapper to
+    talk to: each uses its own robot id and compares the mapper's global counters before and
+    after (the tests run one at a time), so they do not interfere. Yields its endpoint."""
+    logdir = tmp_path_factory.mktemp("shared_mapper")
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    m = Proc("mapper", mapper_args(ep, ["queues.idle_flush_s=0.5"]), logdir)
+    try:
+        yield ep
+        assert m.p.poll() is None, "the shared mapper died"
+        assert m.stop() == 0
+    finally:
+        if m.p.poll() is None:
+            m.p.kill()
+            m.p.wait()
+        m.log.close()
+
+
+def _counters(c) -> dict:
+    fr = c.stats()["frames"]
+    return {"rejected": dict(fr["rejected"]), "rejected_total": fr["rejected_total"]}
+
+
+def _delta(now: dict, before: dict) -> dict:
+    out = {k: v - before["rejected"].get(k, 0) for k, v in now["rejected"].items()}
+    return {k: v for k, v in out.items() if v}
+
+
 # --------------------------------------------------------------------- 13.4 freeze
 @pytest.mark.slow
 @pytest.mark.timeout(180)
-def test_sigstop_edge_marked_gone_within_3s(tmp_path, procs, pca_file):
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    procs.append(Proc("mapper", mapper_args(ep), tmp_path))
-    edge = Proc("edge", edge_args(ep, pca_file, frames=400, rate=4.0, extra=["publish.loop=true"]), tmp_path)
+def test_sigstop_edge_marked_gone_within_3s(tmp_path, procs, pca_file, shared_mapper):
+    """A frozen edge (its sockets stay open: no FIN) is gone when the lease expires: within
+    :data:`GONE_S` of the SIGSTOP; thawed, it comes back by itself."""
+    ep = shared_mapper
+    edge = Proc("edge", edge_args(ep, pca_file, robot="frozen", frames=400, rate=8.0,
+                                  extra=["publish.loop=true"]), tmp_path)
     procs.append(edge)
     with client(ep) as c:
-        wait_for(lambda: mapped(c, "r1") >= 2, 120, what="2 frames mapped")
+        wait_for(lambda: mapped(c, "frozen") >= 2, 120, what="2 frames mapped")
         edge.p.send_signal(signal.SIGSTOP)
         t_stop = time.time()
         try:
-            st = wait_for(lambda: _gone_state(c), 15, every=0.05, what="frozen robot gone")
+            st = wait_for(lambda: _gone_state(c, "frozen"), 15, every=0.05, what="frozen robot gone")
         finally:
             edge.p.send_signal(signal.SIGCONT)
-        gone_after = st["robots"]["r1"]["gone_at"] - t_stop
+        gone_after = st["robots"]["frozen"]["gone_at"] - t_stop
         print(f"gone after SIGSTOP: {gone_after:.2f} s")
         assert 0 < gone_after <= GONE_S, f"frozen edge marked gone {gone_after:.2f} s after SIGSTOP"
         # thawed, the same edge process comes back by itself
-        wait_for(lambda: c.stats()["robots"]["r1"]["present"], 60, what="robot back after SIGCONT")
+        wait_for(lambda: c.stats()["robots"]["frozen"]["present"], 60, what="robot back after SIGCONT")
     edge.p.kill()
     edge.p.wait()
-    assert procs[0].stop() == 0
 
 
 # -------------------------------------------------------------------- 13.4 partition
@@ -129,7 +171,7 @@ WATCHER = textwrap.dedent("""
 @pytest.mark.timeout(240)
 def test_partitioned_edge_marked_gone_within_3s(tmp_path, two_namespaces, pca_file):
     a, b, va = two_namespaces
-    env = zenoh_env()
+    env = _rb.proc_env()
     logs, ps = [], []
 
     def spawn(ns, name, args):
@@ -143,7 +185,7 @@ def test_partitioned_edge_marked_gone_within_3s(tmp_path, two_namespaces, pca_fi
     shm = ["--zenoh-set", "transport/shared_memory/enabled=false"]
     try:
         mapper = spawn(b, "mapper", mapper_args("tcp/0.0.0.0:7447", shm))
-        spawn(a, "edge", edge_args("tcp/10.79.0.2:7447", pca_file, frames=400, rate=4.0,
+        spawn(a, "edge", edge_args("tcp/10.79.0.2:7447", pca_file, frames=400, rate=8.0,
                                    extra=["publish.loop=true", *shm]))
         w = subprocess.Popen(["ip", "netns", "exec", b, sys.executable, "-c", WATCHER, "tcp/127.0.0.1:7447"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=str(ROOT))
@@ -173,7 +215,7 @@ def test_partitioned_edge_marked_gone_within_3s(tmp_path, two_namespaces, pca_fi
 # ----------------------------------------------------------- 13.5 corrupt recording
 @pytest.mark.slow
 @pytest.mark.timeout(180)
-def test_edge_skips_corrupt_recording_frame(tmp_path, procs, pca_file):
+def test_edge_skips_corrupt_recording_frame(tmp_path, procs, pca_file, shared_mapper):
     from common.recording import RecordingWriter, frame_file_name
     from edge.sources import SourceConfig, open_source
 
@@ -188,22 +230,23 @@ def test_edge_skips_corrupt_recording_frame(tmp_path, procs, pca_file):
     data[len(data) // 2:] = b"\0" * (len(data) - len(data) // 2)     # the second half zeroed: corrupt
     bad.write_bytes(bytes(data))
 
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    procs.append(Proc("mapper", mapper_args(ep), tmp_path))
+    ep = shared_mapper
     with client(ep) as c:
         wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
-        edge = Proc("edge", ["edge", "--connect", ep, "--rate", "5", "robot=r1", "source.kind=recording",
-                             f"source.path={rec}", f"pca.basis={pca_file}", "pca.out_dim=16"], tmp_path)
+        before = _counters(c)
+        edge = Proc("edge", ["edge", "--connect", ep, "--rate", "5", "robot=rec1", "source.kind=recording",
+                             f"source.path={rec}", f"pca.basis={pca_file}", "pca.out_dim=16",
+                             "zenoh.connect_retry_s=0.2"], tmp_path)
         procs.append(edge)
         assert edge.p.wait(150) == 0, (tmp_path / "edge.log").read_text()[-3000:]
-        st = wait_for(lambda: (lambda s: s if s["frames"]["mapped"] >= 5 else None)(c.stats()), 60,
+        st = wait_for(lambda: (lambda s: s if s["robots"]["rec1"]["mapped"] >= 5 else None)(c.stats()), 60,
                       what="the 5 good frames mapped")
-        assert st["frames"]["mapped"] == 5 and st["frames"]["rejected_total"] == 0
+        r = st["robots"]["rec1"]
+        assert r["mapped"] == 5 and r["received"] == 5 and _delta(_counters(c), before) == {}, (r, st["frames"])
     log = (tmp_path / "edge.log").read_text()
     assert "Traceback" not in log
     assert sum("skipping frame 2" in ln for ln in log.splitlines()) == 1, log[-3000:]
     assert "'frames_skipped': 1" in log and "'frames_sent': 5" in log
-    assert procs[0].stop() == 0
 
 
 # ------------------------------------------------- 13.2 / 13.7 codec (unit level)
@@ -411,30 +454,58 @@ def _flushed(c, n=None):
     return st if ok else None
 
 
+@pytest.fixture(scope="module")
+def snapshot_run(tmp_path_factory, pca_file):
+    """One mapper with periodic snapshots, SIGKILLed (no clean shutdown: only the periodic
+    snapshots survive) after its edge's 8 frames were mapped, flushed and snapshotted: the
+    snapshot directory (several generations; the 8-frame one taken while the map still
+    buffered frames: the idle flush comes 3 s after the last frame, the snapshot within
+    0.5 s), and the stats and answers before the kill. The restore and the fallback tests
+    each start a mapper from their own copy of it."""
+    logdir = tmp_path_factory.mktemp("snapshot_run")
+    snaps = logdir / "snaps"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    started: list[Proc] = []
+    try:
+        m1 = Proc("mapper1", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0.5", "snapshots.keep=4",
+                                              "queues.idle_flush_s=3"]), logdir)
+        started.append(m1)
+        with client(ep) as c:
+            wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
+            edge = Proc("edge", edge_args(ep, pca_file, frames=8, rate=4.0), logdir)
+            started.append(edge)
+            before_st = wait_for(lambda: _flushed(c, 8), 150, what="8 frames mapped and flushed")
+            wait_for(lambda: c.snapshot().get("frames_mapped") == 8, 30, what="a snapshot of the 8 frames")
+            before = _answers(c)
+            assert edge.p.wait(60) == 0
+        m1.p.kill()
+        m1.p.wait()
+        yield {"snaps": snaps, "before": before, "before_st": before_st}
+    finally:
+        for p in reversed(started):
+            if p.p.poll() is None:
+                p.p.kill()
+                p.p.wait()
+            p.log.close()
+
+
+def _snap_copy(run, tmp_path):
+    dst = tmp_path / "snaps"
+    shutil.copytree(run["snaps"], dst)
+    return dst
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(240)
-def test_sigkilled_mapper_restored_answers_the_same(tmp_path, procs, pca_file):
+def test_sigkilled_mapper_restored_answers_the_same(tmp_path, procs, snapshot_run):
     import numpy as np
 
-    snaps = tmp_path / "snaps"
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    # the periodic snapshot is taken while the map still buffers frames (idle flush after 3 s)
-    snap_args = [f"snapshots.dir={snaps}", "snapshots.period_s=0.5", "queues.idle_flush_s=3"]
-    m1 = Proc("mapper1", mapper_args(ep, snap_args), tmp_path)
-    procs.append(m1)
-    with client(ep) as c:
-        wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
-        edge = Proc("edge", edge_args(ep, pca_file, frames=8, rate=4.0), tmp_path)
-        procs.append(edge)
-        before_st = wait_for(lambda: _flushed(c, 8), 150, what="8 frames mapped and flushed")
-        wait_for(lambda: c.snapshot().get("frames_mapped") == 8, 30, what="a snapshot of the 8 frames")
-        before = _answers(c)
-        assert edge.p.wait(60) == 0
+    before, before_st = snapshot_run["before"], snapshot_run["before_st"]
     assert any(len(a["voxel_xyz"]) for a in before.values())
-    m1.p.kill()                      # no clean shutdown: only the periodic snapshot survives
-    m1.p.wait()
+    snaps = _snap_copy(snapshot_run, tmp_path)
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0",
-                                          "queues.idle_flush_s=3"]), tmp_path)
+                                          "queues.idle_flush_s=0.5"]), tmp_path)
     procs.append(m2)
     with client(ep) as c:
         st = wait_for(lambda: _flushed(c), 60, what="restored mapper flushed")
@@ -455,38 +526,24 @@ def test_sigkilled_mapper_restored_answers_the_same(tmp_path, procs, pca_file):
 
 @pytest.mark.slow
 @pytest.mark.timeout(240)
-def test_corrupt_latest_snapshot_falls_back_to_older(tmp_path, procs, pca_file):
-    snaps = tmp_path / "snaps"
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    m1 = Proc("mapper1", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=1", "snapshots.keep=3"]),
-              tmp_path)
-    procs.append(m1)
-    edge = Proc("edge", edge_args(ep, pca_file, frames=400, rate=4.0, extra=["publish.loop=true"]), tmp_path)
-    procs.append(edge)
+def test_corrupt_latest_snapshot_falls_back_to_older(tmp_path, procs, snapshot_run):
+    from mapper.snapshot import snapshot_generations
 
-    def gens():
-        from mapper.snapshot import snapshot_generations
-
-        out = []
-        for g in snapshot_generations(snaps):
-            try:
-                out.append((g, json.loads((g / "meta.json").read_text())["frames_mapped"]))
-            except (OSError, ValueError, KeyError):
-                pass
-        return out if len(out) >= 2 and out[0][1] > out[1][1] > 0 else None
-
-    with client(ep) as c:
-        wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
-        wait_for(gens, 150, what="two snapshot generations")
-    edge.p.kill()
-    edge.p.wait()
-    m1.p.kill()
-    m1.p.wait()
-    (newest, _), (older, older_frames) = gens()[:2]
+    snaps = _snap_copy(snapshot_run, tmp_path)
+    gens = []
+    for g in snapshot_generations(snaps):
+        try:
+            gens.append((g, json.loads((g / "meta.json").read_text())["frames_mapped"]))
+        except (OSError, ValueError, KeyError):
+            pass
+    assert len(gens) >= 2 and gens[0][1] > gens[1][1] > 0, gens
+    (newest, _), (older, older_frames) = gens[:2]
     arrays = newest / "map" / "arrays.npz"
     data = arrays.read_bytes()
     arrays.write_bytes(data[: len(data) // 2])            # the newest generation is corrupt
-    m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0"]), tmp_path)
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0",
+                                          "queues.idle_flush_s=0.5"]), tmp_path)
     procs.append(m2)
     with client(ep) as c:
         st = wait_for(lambda: _flushed(c), 60, what="restarted mapper, flushed")
@@ -503,19 +560,20 @@ def test_corrupt_latest_snapshot_falls_back_to_older(tmp_path, procs, pca_file):
 # ------------------------------------------------ 13.3 frames in a wrong feature space
 @pytest.mark.slow
 @pytest.mark.timeout(240)
-def test_wrong_feature_space_frames_cost_no_real_frames(tmp_path, procs, pca_file):
+def test_wrong_feature_space_frames_cost_no_real_frames(tmp_path, procs, pca_file, shared_mapper):
     import zenoh
 
     from common.wire import decode_frame, encode_frame
 
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    procs.append(Proc("mapper", mapper_args(ep), tmp_path))
+    ep = shared_mapper
     rec = tmp_path / "rec"
     with client(ep) as c:
         wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
-        edge = Proc("edge", edge_args(ep, pca_file, frames=20, rate=4.0, extra=[f"recording.dir={rec}"]), tmp_path)
+        before = _counters(c)
+        edge = Proc("edge", edge_args(ep, pca_file, robot="rw", frames=20, rate=8.0, extra=[f"recording.dir={rec}"]),
+                    tmp_path)
         procs.append(edge)
-        wait_for(lambda: mapped(c, "r1") >= 1, 120, every=0.05, what="first real frame mapped")
+        wait_for(lambda: mapped(c, "rw") >= 1, 120, every=0.05, what="first real frame mapped")
         from common.recording import RecordingReader
 
         real = decode_frame(RecordingReader(rec).read_bytes(0))
@@ -523,7 +581,7 @@ def test_wrong_feature_space_frames_cost_no_real_frames(tmp_path, procs, pca_fil
         bad = encode_frame(real)
         s = zenoh.open(_rb._zcfg(ep))
         try:
-            pub = s.declare_publisher("rayfronts/robots/r1/frames", congestion_control=zenoh.CongestionControl.BLOCK)
+            pub = s.declare_publisher("rayfronts/robots/rw/frames", congestion_control=zenoh.CongestionControl.BLOCK)
             n_bad = 0
             while edge.p.poll() is None and n_bad < 400:
                 pub.put(bad)
@@ -533,65 +591,75 @@ def test_wrong_feature_space_frames_cost_no_real_frames(tmp_path, procs, pca_fil
         finally:
             s.close()
         assert edge.p.wait(120) == 0
-        st = wait_for(lambda: (lambda s: s if s["robots"]["r1"]["mapped"] == 20 else None)(c.stats()), 60,
+        st = wait_for(lambda: (lambda s: s if s["robots"]["rw"]["mapped"] == 20 else None)(c.stats()), 60,
                       what="all 20 real frames mapped")
-        r1 = st["robots"]["r1"]
+        r1 = st["robots"]["rw"]
         assert r1["dropped"] == 0 and r1["space_ok"] and r1["queue"] == 0, r1
-        assert st["frames"]["rejected"] == {"feature_space_mismatch": n_bad}, st["frames"]["rejected"]
-    assert procs[0].stop() == 0
+        rej = wait_for(lambda: (lambda d: d if sum(d.values()) >= n_bad else None)(_delta(_counters(c), before)), 30,
+                       what="every bad frame counted")
+        assert rej == {"feature_space_mismatch": n_bad}, rej
 
 
 # ----------------------------------------------------------- 13.6 flood query bound
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-def test_query_bounded_during_three_edge_flood(tmp_path, procs, pca_file):
+def test_queries_answered_during_three_edge_flood(tmp_path, procs, pca_file, shared_mapper):
+    """13.6, the functional part: while 3 edges flood the mapper at full rate, every query
+    is answered with the mapped voxels (from the last consistent copy when the map lock is
+    busy for longer than ``query.lock_timeout_s``, flagged ``stale``), queues stay within
+    ``queues.per_robot`` (defaults: 0.25 s, 8), every frame a robot sent is mapped or
+    dropped (counted), and the mapper's memory stays bounded. How long the
+    queries take against the unloaded ones (the issue's p95 <= lock_timeout + 3 x unloaded)
+    is ``rayfronts bench faults``' figure; the per-query times are printed here only."""
     import numpy as np
 
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    lock_timeout = 0.25
-    procs.append(Proc("mapper", mapper_args(ep, ["queues.idle_flush_s=0.5", f"query.lock_timeout_s={lock_timeout}"]),
-                      tmp_path))
+    from apps.bench.faults import timed_queries
 
-    def timed(c):
-        t = time.perf_counter()
-        r = c.query("car", top_k=5)
-        return time.perf_counter() - t, r
-
+    ep = shared_mapper
+    per_robot = 8                     # the default queues.per_robot of the shared mapper
+    robots = ["r0", "f1", "f2", "f3"]
     with client(ep) as c:
         wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
-        e0 = Proc("edge0", edge_args(ep, pca_file, robot="r0", frames=10, rate=5.0), tmp_path)
+        e0 = Proc("edge0", edge_args(ep, pca_file, robot="r0", frames=10, rate=10.0), tmp_path)
         procs.append(e0)
-        assert e0.p.wait(150) == 0
-        wait_for(lambda: _flushed(c, 10), 60, what="the first 10 frames mapped")
-        timed(c)
-        unloaded = float(np.median([timed(c)[0] for _ in range(7)]))
         for i in (1, 2, 3):   # the edges stand for robots' own computers: niced, so they load the
             # mapper with frames without starving its process of CPU on this one machine
             procs.append(Proc(f"flood{i}", edge_args(ep, pca_file, robot=f"f{i}", frames=400, rate=0.0,
                                                      extra=["publish.loop=true"]), tmp_path, nice=10))
+        assert e0.p.wait(150) == 0
+        wait_for(lambda: (lambda r: r.get("mapped", 0) + r.get("dropped", 0) == 10)(c.stats()["robots"]["r0"]), 60,
+                 what="r0's 10 frames accounted for")
         wait_for(lambda: all(mapped(c, f"f{i}") >= 2 for i in (1, 2, 3)), 150, what="three floods mapping")
-        times, stale, rss, inside = [], 0, [], []
-        for _ in range(20):
-            dt, r = timed(c)
-            times.append(dt)
-            inside.append(r.timings)
-            stale += int(r.timings.get("stale", 0))
-            rss.append(c.stats().get("rss_mb", 0.0))
+        qs = timed_queries(c, 12)
         st = c.stats()
-    p95 = float(np.percentile(times, 95))
-    bound = lock_timeout + 3 * unloaded
-    print(f"query unloaded {unloaded * 1e3:.0f} ms, under flood p50 {np.median(times) * 1e3:.0f} ms "
-          f"p95 {p95 * 1e3:.0f} ms (bound {bound * 1e3:.0f} ms), stale answers {stale}/20, "
-          f"mapper RSS max {max(rss):.0f} MB, mapped {st['frames']['mapped']}, dropped {st['frames']['dropped']}")
-    worst = inside[int(np.argmax(times))]
-    print("slowest query, mapper timings (ms):", {k: round(v, 1) for k, v in worst.items()})
-    assert p95 <= bound, (times, unloaded)
-    assert st["frames"]["mapped"] > 10
-    for p in procs[1:]:
-        if p.p.poll() is None:
+        for p in procs[1:]:                                            # the floods end
             p.p.kill()
             p.p.wait()
-    assert procs[0].stop() == 0
+
+        def settled():
+            rs = c.stats()["robots"]
+            ok = all(rs[r]["queue"] == 0 and rs[r]["received"] == rs[r]["mapped"] + rs[r]["dropped"]
+                     + sum(rs[r]["rejected"].values()) for r in robots)
+            return rs if ok else None
+
+        # nothing lost: once the floods stop, every frame received is mapped or dropped (counted)
+        rs = wait_for(settled, 60, what="every received frame accounted for")
+        assert all(not rs[r]["rejected"] for r in robots), {r: rs[r]["rejected"] for r in robots}
+        assert sum(rs[r]["mapped"] for r in robots) > 10
+    times = [q["s"] for q in qs]
+    stale = sum(q["stale"] for q in qs)
+    print(f"under flood (not asserted): query p50 {np.median(times) * 1e3:.0f} ms, max {max(times) * 1e3:.0f} ms, "
+          f"stale answers {stale}/{len(qs)}, mapper RSS max {max(q['rss_mb'] for q in qs):.0f} MB, "
+          f"mapped {st['frames']['mapped']}, dropped {st['frames']['dropped']}")
+    # answered, with the map: the frames mapped so far, never fewer than an earlier answer saw
+    assert all(q["voxels"] > 0 for q in qs), [q["voxels"] for q in qs]
+    seen = [q["frames_mapped"] for q in qs]
+    assert seen == sorted(seen) and seen[0] >= 10, seen
+    assert all(q["stats"]["frames"]["mapped"] >= q["frames_mapped"] for q in qs)
+    # bounded: every robot's queue within queues.per_robot, memory within a fixed ceiling
+    for q in qs:
+        assert max(q["stats"]["queues"].values()) <= per_robot, q["stats"]["queues"]
+    assert max(q["rss_mb"] for q in qs) < 4000
 
 
 def test_incremental_query_copy_answers_as_a_full_copy():

@@ -2,27 +2,64 @@
 
 Each test starts ``rayfronts mapper`` (router mode, the base station) and ``rayfronts edge``
 processes (client mode) and talks to them with ``query_client.Client``.
+
+Speed (these helpers are shared by the process-level test files): every process started
+through :class:`Proc` (and the PCA fit) gets ``RAYFRONTS_TEXT_CACHE`` pointing at one
+directory per pytest session, so only the first edge of a session loads the MiniLM text
+model to embed its class names, and a mapper loads it only for a query text no earlier
+process embedded (``common.text.base``; the embeddings read back are the exact float32
+rows). The PCA basis is fitted once per session. Clients retry their connection every
+0.2 s (the mapper is usually still starting when a test opens one). Tests wait for
+conditions, never for fixed times; the only time bounds asserted are functional contracts
+derived from a configured setting (the liveliness lease), never speed figures, which
+belong to ``rayfronts bench`` (``bench faults``).
 """
 from __future__ import annotations
 
+import atexit
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from common.zenoh_session import ZenohConfig, free_tcp_port
+from common.zenoh_session import DEFAULT_LEASE_MS, ZenohConfig, free_tcp_port
 from apps.demo import zenoh_env
 
 ROOT = Path(__file__).resolve().parents[1]
 RES = "96x128"
 FAST_MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0",
             "rerun.file=", "snapshots.on_exit=false"]
+
+
+#: a robot whose edge died is marked gone within the link lease (the CLI default, when the
+#: FIN/RST of a killed process is lost) plus 1 s of slack for a loaded machine: a functional
+#: contract derived from the configured lease, not a speed figure (those are in bench faults)
+GONE_BOUND_S = DEFAULT_LEASE_MS / 1000 + 1.0
+
+_TEXT_CACHE: list[str] = []
+
+
+def text_cache_dir() -> str:
+    """The session's shared text-embedding cache directory (created on first use, removed
+    at exit)."""
+    if not _TEXT_CACHE:
+        d = tempfile.mkdtemp(prefix="rayfronts-text-cache-")
+        atexit.register(shutil.rmtree, d, True)
+        _TEXT_CACHE.append(d)
+    return _TEXT_CACHE[0]
+
+
+def proc_env() -> dict:
+    """The environment of the processes the tests start (Zenoh settings + the text cache)."""
+    return {**zenoh_env(), "RAYFRONTS_TEXT_CACHE": text_cache_dir()}
 
 
 def _cmd(*args):
@@ -33,7 +70,7 @@ class Proc:
     def __init__(self, name, args, logdir: Path, nice: int = 0):
         self.name = name
         self.log = open(logdir / f"{name}.log", "ab")
-        self.p = subprocess.Popen(_cmd(*args), stdout=self.log, stderr=subprocess.STDOUT, env=zenoh_env(),
+        self.p = subprocess.Popen(_cmd(*args), stdout=self.log, stderr=subprocess.STDOUT, env=proc_env(),
                                   cwd=str(ROOT), preexec_fn=(lambda: os.nice(nice)) if nice else None)
 
     def stop(self, sig=signal.SIGINT, timeout=30.0) -> int:
@@ -59,21 +96,29 @@ def procs():
             p.p.wait()
 
 
+_PCA: list[Path] = []
+
+
 @pytest.fixture(scope="module")
 def pca_file(tmp_path_factory):
-    """A fixed PCA basis (``rayfronts edge fit-pca``) so restarted edges share one feature space."""
+    """A fixed PCA basis (``rayfronts edge fit-pca``) so restarted edges share one feature
+    space; fitted once per session (the modules that re-export this fixture share it)."""
+    if _PCA and _PCA[0].is_file():
+        return _PCA[0]
     out = tmp_path_factory.mktemp("pca") / "pca.npz"
     r = subprocess.run(_cmd("edge", "fit-pca", "--out", str(out), "--frames", "4", f"source.resolution={RES}",
                             "source.n_frames=40", "pca.out_dim=16"),
-                       env=zenoh_env(), cwd=str(ROOT), capture_output=True, timeout=120)
+                       env=proc_env(), cwd=str(ROOT), capture_output=True, timeout=120)
     assert r.returncode == 0, r.stderr.decode()[-2000:]
     assert out.is_file()
+    _PCA[:] = [out]
     return out
 
 
 def edge_args(ep, pca, robot="r1", frames=40, rate=5.0, extra=()):
     return ["edge", "--connect", ep, "--rate", str(rate), f"robot={robot}", f"source.resolution={RES}",
-            f"source.n_frames={frames}", "source.depth_limit=20", f"pca.basis={pca}", "pca.out_dim=16", *extra]
+            f"source.n_frames={frames}", "source.depth_limit=20", f"pca.basis={pca}", "pca.out_dim=16",
+            "zenoh.connect_retry_s=0.2", *extra]
 
 
 def mapper_args(ep, extra=()):
@@ -83,7 +128,7 @@ def mapper_args(ep, extra=()):
 def client(ep):
     from query_client import Client
 
-    return Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0)
+    return Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000, connect_retry_s=0.2), timeout=20.0)
 
 
 def wait_for(fn, timeout=60.0, every=0.2, what="condition"):
@@ -108,9 +153,13 @@ def mapped(c, robot=None) -> int:
 # --------------------------------------------------------------------------- tests
 @pytest.mark.timeout(180)
 def test_edge_sigkill_robot_gone_and_restart(tmp_path, procs, pca_file):
+    """A SIGKILLed edge's robot is marked gone within :data:`GONE_BOUND_S` (the lease plus
+    slack: the bound the lease guarantees even if the killed socket's FIN were lost; the
+    measured time is ``rayfronts bench faults``' figure), the mapper keeps answering, and a
+    restarted edge of the same robot is taken back and its map grows again."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs.append(Proc("mapper", mapper_args(ep), tmp_path))
-    edge = Proc("edge", edge_args(ep, pca_file, frames=200, rate=4.0, extra=["publish.loop=true"]), tmp_path)
+    edge = Proc("edge", edge_args(ep, pca_file, frames=200, rate=8.0, extra=["publish.loop=true"]), tmp_path)
     procs.append(edge)
     with client(ep) as c:
         wait_for(lambda: mapped(c, "r1") >= 3, 120, what="3 frames mapped")
@@ -131,13 +180,13 @@ def test_edge_sigkill_robot_gone_and_restart(tmp_path, procs, pca_file):
         st = wait_for(lambda: (lambda s: s if not s["robots"]["r1"]["present"] else None)(c.stats()), 10,
                       every=0.05, what="robot gone")
         gone_after = st["robots"]["r1"]["gone_at"] - t_kill
-        assert gone_after <= 2.0, f"robot reported gone {gone_after:.2f} s after SIGKILL"
+        assert gone_after <= GONE_BOUND_S, f"robot reported gone {gone_after:.2f} s after SIGKILL"
         # the mapper keeps serving queries (once it flushed what it buffered)
         wait_for(lambda: (lambda s: s["flushed_version"] == s["map_version"])(c.stats()), 30, what="flush")
         r = c.query("car", top_k=3)
         assert len(r.voxel_xyz) > 0
         n_before = mapped(c, "r1")
-        procs.append(Proc("edge2", edge_args(ep, pca_file, frames=200, rate=4.0), tmp_path))
+        procs.append(Proc("edge2", edge_args(ep, pca_file, frames=200, rate=8.0), tmp_path))
         wait_for(lambda: c.stats()["robots"]["r1"]["present"], 60, what="robot back")
         wait_for(lambda: mapped(c, "r1") >= n_before + 3, 120, what="map growing again")
         st = c.stats()
@@ -160,13 +209,13 @@ def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pc
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs.append(Proc("mapper", mapper_args(ep, ["queues.per_robot=100000", "layers.max_voxels=100000000",
-                                                  # no flush between the 2 Hz frames: the local reference
-                                                  # map below is flushed once, at the end
-                                                  "queues.idle_flush_s=4"]), tmp_path))
+                                                  # no flush between the 4 Hz frames (0.25 s apart): the
+                                                  # local reference map below is flushed once, at the end
+                                                  "queues.idle_flush_s=3"]), tmp_path))
     rec = tmp_path / "rec"
     with client(ep) as c:
         wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
-        procs.append(Proc("edge", edge_args(ep, pca_file, frames=12, rate=2.0, extra=[f"recording.dir={rec}"]),
+        procs.append(Proc("edge", edge_args(ep, pca_file, frames=12, rate=4.0, extra=[f"recording.dir={rec}"]),
                           tmp_path))
         # flood the same key while the good edge runs (once its first frame arrived)
         wait_for(lambda: c.stats()["frames"]["received"] >= 1, 120, every=0.05, what="first good frame")
@@ -272,9 +321,9 @@ def test_fast_edge_bounded_queue_counts_drops(tmp_path, procs, pca_file):
 def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, pca_file):
     snaps = tmp_path / "snaps"
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    m1 = Proc("mapper1", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=2"]), tmp_path)
+    m1 = Proc("mapper1", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0.5"]), tmp_path)
     procs.append(m1)
-    edge = Proc("edge", edge_args(ep, pca_file, frames=400, rate=3.0, extra=["publish.loop=true"]), tmp_path)
+    edge = Proc("edge", edge_args(ep, pca_file, frames=400, rate=6.0, extra=["publish.loop=true"]), tmp_path)
     procs.append(edge)
     with client(ep) as c:
         wait_for(lambda: c.snapshot().get("frames_mapped", 0) >= 4, 150, what="a periodic snapshot of >= 4 frames")

@@ -37,6 +37,7 @@ TARGETS = {
     "gpu": "apps.bench.gpu",
     "fleet": "apps.bench.fleet",
     "query": "apps.bench.query",
+    "faults": "apps.bench.faults",
 }
 
 #: (name, argv, quick argv) of every figure the README quotes, in table order. A name's

@@ -1,0 +1,195 @@
+"""``rayfronts bench faults``: the timing figures of the fault tests (issue 13).
+
+``tests/test_faults.py`` and ``tests/test_robustness.py`` assert what is functional (queries
+answered during a flood, nothing lost, bounded queues and memory, a dead or frozen robot
+marked gone within the configured lease); the speed figures live here, measured with the
+same real processes over loopback:
+
+* ``query``: a ``rayfronts mapper`` (router, ``query.lock_timeout_s`` = ``--lock-timeout``)
+  maps ``--frames`` frames of one edge; ``--queries`` text queries are timed on the idle
+  mapper (unloaded), then ``--floods`` edges (niced: they stand for the robots' own
+  computers) flood it with looping frames at full rate and the same queries are timed
+  again. Reported: p50 / p95 / max ms of both, the issue's bound ``lock_timeout + 3 x the
+  unloaded median`` and whether the flood p95 is within it, stale answers (served from the
+  last consistent copy), the mapper's RSS, frames mapped / dropped.
+* ``gone``: seconds from SIGKILL and from SIGSTOP of a looping edge to the ``gone_at`` the
+  mapper reports (CLI defaults: the 2 s lease of ``common.zenoh_session``).
+
+The PCA basis is fitted first (``rayfronts edge fit-pca``, not timed). Processes get
+``RAYFRONTS_TEXT_CACHE`` (a directory in the work dir) so edges after the first do not load
+the text model. Wall-clock figures: the load average is in the meta block.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HELP = "fault timings: query latency unloaded vs during an edge flood, gone-after-SIGKILL/SIGSTOP (real processes)"
+
+MAP_ARGS = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0", "rerun.file=",
+            "snapshots.on_exit=false"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--floods", type=int, default=3, help="flooding edges (default 3)")
+    parser.add_argument("--frames", type=int, default=10, help="frames of the first (unloaded) edge (default 10)")
+    parser.add_argument("--queries", type=int, default=20, help="timed queries per phase (default 20)")
+    parser.add_argument("--lock-timeout", type=float, default=0.25, help="mapper query.lock_timeout_s (default 0.25)")
+    parser.add_argument("--resolution", default="96x128", help="frame size HxW (default 96x128)")
+    parser.add_argument("--pca-dim", type=int, default=16, help="PCA dimension (default 16)")
+    parser.add_argument("--only", choices=("query", "gone"), default=None, help="run one part only")
+    parser.add_argument("--workdir", type=Path, default=None, help="keep logs here")
+
+
+def timed_queries(c, n: int, text: str = "car", top_k: int = 5) -> list[dict]:
+    """``n`` queries through client ``c``, each followed by a stats call: per query the wall
+    seconds, the reply's voxel count, ``stale``, its server timings and the mapper's RSS.
+    Shared with the flood test (which asserts only what is functional about them)."""
+    out = []
+    for _ in range(n):
+        t = time.perf_counter()
+        r = c.query(text, top_k=top_k)
+        dt = time.perf_counter() - t
+        st = c.stats()
+        out.append({"s": dt, "voxels": len(r.voxel_xyz), "frames_mapped": r.frames_mapped,
+                    "stale": bool(r.timings.get("stale", 0)), "timings": dict(r.timings),
+                    "rss_mb": float(st.get("rss_mb", 0.0)), "stats": st})
+    return out
+
+
+def _ms(xs) -> dict:
+    a = np.asarray(xs, float) * 1e3
+    return {"n": int(a.size), "p50": round(float(np.median(a)), 2), "p95": round(float(np.percentile(a, 95)), 2),
+            "max": round(float(a.max()), 2)}
+
+
+class _Procs:
+    def __init__(self, work: Path, env: dict):
+        self.work, self.env, self.items = work, env, []
+
+    def start(self, name: str, args: list[str], nice: int = 0) -> subprocess.Popen:
+        f = open(self.work / f"{name}.log", "ab")
+        p = subprocess.Popen([sys.executable, "-m", "apps.cli", *args], stdout=f, stderr=subprocess.STDOUT,
+                             env=self.env, preexec_fn=(lambda: os.nice(nice)) if nice else None)
+        self.items.append((p, f))
+        return p
+
+    def stop_all(self) -> None:
+        for p, f in reversed(self.items):
+            if p.poll() is None:
+                p.send_signal(signal.SIGCONT)
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(20)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+            f.close()
+        self.items.clear()
+
+
+def _wait(fn, timeout: float, what: str, every: float = 0.05):
+    end = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < end:
+        try:
+            last = fn()
+            if last:
+                return last
+        except Exception as e:  # the mapper is still starting
+            last = e
+        time.sleep(every)
+    raise RuntimeError(f"bench faults: timed out waiting for {what} (last: {last!r})")
+
+
+def run(args: argparse.Namespace) -> dict:
+    from apps.bench.meta import timed
+    from apps.demo import zenoh_env
+    from common.zenoh_session import DEFAULT_LEASE_MS, ZenohConfig, free_tcp_port
+    from query_client import Client
+
+    work = Path(args.workdir or tempfile.mkdtemp(prefix="rayfronts-bench-faults-"))
+    work.mkdir(parents=True, exist_ok=True)
+    env = {**zenoh_env(), "RAYFRONTS_TEXT_CACHE": str(work / "text-cache")}
+    pca = work / f"pca{args.pca_dim}.npz"
+    src = [f"source.resolution={args.resolution}", "source.depth_limit=20"]
+    if not pca.is_file():
+        r = subprocess.run([sys.executable, "-m", "apps.cli", "edge", "fit-pca", "--out", str(pca), "--frames", "4",
+                            *src, "source.n_frames=40", f"pca.out_dim={args.pca_dim}"],
+                           env=env, capture_output=True, text=True, timeout=300)
+        if r.returncode != 0:
+            raise RuntimeError(f"edge fit-pca failed: {r.stderr.strip()[-500:]}")
+
+    def edge(ep, robot, frames, rate, loop=False):
+        return ["edge", "--connect", ep, "--rate", str(rate), f"robot={robot}", *src, f"source.n_frames={frames}",
+                f"pca.basis={pca}", f"pca.out_dim={args.pca_dim}", "zenoh.connect_retry_s=0.2",
+                *(["publish.loop=true"] if loop else [])]
+
+    def robot(c, name):
+        return c.stats(timeout=5.0)["robots"].get(name, {})
+
+    out: dict = {"lock_timeout_s": args.lock_timeout, "resolution": args.resolution, "workdir": str(work)}
+    ps = _Procs(work, env)
+    try:
+        if args.only in (None, "query"):
+            ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+            ps.start("mapper", ["mapper", "--mode", "router", "--listen", ep, *MAP_ARGS, "queues.idle_flush_s=0.5",
+                                f"query.lock_timeout_s={args.lock_timeout}"])
+            with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000, connect_retry_s=0.2), timeout=30) as c:
+                _wait(c.mapper_alive, 120, "the mapper")
+                e0 = ps.start("edge0", edge(ep, "r0", args.frames, 10.0))
+                e0.wait(300)
+                _wait(lambda: (lambda s: s["frames"]["mapped"] >= args.frames
+                               and s["flushed_version"] == s["map_version"])(c.stats()), 120, "the first frames")
+                timed_queries(c, 1)                                   # the text model / first copy
+                with timed("unloaded queries"):
+                    unloaded = timed_queries(c, args.queries)
+                floods = [f"f{i}" for i in range(1, args.floods + 1)]
+                for f in floods:
+                    ps.start(f"flood-{f}", edge(ep, f, 400, 0.0, loop=True), nice=10)
+                _wait(lambda: all(robot(c, f).get("mapped", 0) >= 2 for f in floods), 300, "the floods mapping")
+                with timed("queries under flood"):
+                    loaded = timed_queries(c, args.queries)
+                st = c.stats()
+            u = _ms([q["s"] for q in unloaded])
+            fl = _ms([q["s"] for q in loaded])
+            bound = args.lock_timeout * 1e3 + 3 * u["p50"]
+            slowest = max(loaded, key=lambda q: q["s"])
+            out["query"] = {
+                "floods": args.floods, "unloaded_ms": u, "flood_ms": fl, "bound_ms": round(bound, 2),
+                "flood_p95_within_bound": fl["p95"] <= bound,
+                "stale_answers": sum(q["stale"] for q in loaded),
+                "mapper_rss_mb_max": round(max(q["rss_mb"] for q in loaded), 1),
+                "frames_mapped": st["frames"]["mapped"], "frames_dropped": st["frames"]["dropped"],
+                "slowest_query_timings_ms": {k: round(float(v), 2) for k, v in slowest["timings"].items()},
+            }
+            ps.stop_all()
+        if args.only in (None, "gone"):
+            ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+            ps.start("mapper-gone", ["mapper", "--mode", "router", "--listen", ep, *MAP_ARGS])
+            gone: dict = {"lease_ms": DEFAULT_LEASE_MS}
+            with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000, connect_retry_s=0.2), timeout=30) as c:
+                for how, sig in (("sigkill", signal.SIGKILL), ("sigstop", signal.SIGSTOP)):
+                    name = f"g{how}"
+                    p = ps.start(f"edge-{how}", edge(ep, name, 400, 5.0, loop=True))
+                    _wait(lambda: robot(c, name).get("mapped", 0) >= 2, 300, f"{name} mapping")
+                    p.send_signal(sig)
+                    t = time.time()
+                    r = _wait(lambda: (lambda r: r if not r["present"] else None)(robot(c, name)), 60,
+                              f"{name} gone")
+                    gone[f"after_{how}_s"] = round(r["gone_at"] - t, 3)
+                    p.send_signal(signal.SIGCONT)
+                    p.kill()
+                    p.wait()
+            out["gone"] = gone
+    finally:
+        ps.stop_all()
+    return out
