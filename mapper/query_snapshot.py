@@ -19,6 +19,7 @@ stored row.
 """
 from __future__ import annotations
 
+import contextlib
 import time
 
 import numpy as np
@@ -26,6 +27,10 @@ import torch
 
 #: max |score − float64 cosine| of the half-precision copy (see the module docstring)
 SCORE_ATOL = 2e-3
+#: below this many feature elements a query's product runs on one thread (the parallel
+#: region's hand-off costs more than it saves; on a loaded machine a descheduled OpenMP
+#: worker stalls it), and the elementwise terms after it always do (one pass over N each)
+PARALLEL_MIN_ELEMENTS = 1 << 25
 #: rows converted to float32 per block when several queries are scored at once on CPU
 #: (float16 matrix products with Q > 1 have no fast CPU kernel; the block stays in cache)
 HALF_BLOCK_ROWS = 16384
@@ -99,8 +104,16 @@ class HalfFeatures:
             q64 = qn.double()
             qn, qm = (q64 @ v.double()).float(), (q64 @ m.double()).float()
         h = self._h
+        small = self.n * h.shape[1] <= PARALLEL_MIN_ELEMENTS
         if nq == 1:
-            out = torch.mv(h, qn[0].to(torch.float16)).to(torch.float32)[None]      # (1, N)
+            with (_one_thread() if small else contextlib.nullcontext()):
+                out = torch.mv(h, qn[0].to(torch.float16))
+            with _one_thread():
+                out = out.to(torch.float32)[None]                                    # (1, N)
+                out *= self._a
+                if qm is not None:
+                    out.addcmul_(qm[:, None].expand(nq, self.n), self._b.expand(nq, self.n))
+            return out
         elif self.device.type != "cpu":
             out = (h @ qn.to(torch.float16).T).to(torch.float32).T.contiguous()
         else:

@@ -113,6 +113,11 @@ def in_process(cfg, m, fs, args, n: int) -> dict:
     from common.messages import QueryRequest
     from mapper.query_answer import QuerySnapshot, answer_snapshot
 
+    from mapper.service_config import resolve_query_threads
+
+    # as the mapper does per query: a MapperService run before (client_round_trip) leaves
+    # this thread's torch thread count at its map thread's
+    torch.set_num_threads(args.threads or resolve_query_threads(0))
     lock = threading.Lock()
     snap = QuerySnapshot()
     gen = [1]

@@ -89,9 +89,11 @@ def _generic(d: dict) -> tuple[str, str]:
 
 
 def _query(d: dict) -> tuple[str, str]:
-    parts = []
+    parts, cpu = [], []
     for size, row in (d.get("sizes") or {}).items():
         ip = row.get("in_process") or {}
+        if (ip.get("steady_cpu_ms") or {}).get("p50") is not None:
+            cpu.append(f"{size}: {_f(ip['steady_cpu_ms']['p50'])}/query")
         st, af = ip.get("steady_ms") or {}, ip.get("after_change_ms") or {}
         txt = (f"{size}: p50 {_f(st.get('p50'))} / p95 {_f(st.get('p95'))} ms, first after a change p50 "
                f"{_f(af.get('p50'))} ms")
@@ -99,7 +101,7 @@ def _query(d: dict) -> tuple[str, str]:
         if cl.get("round_trip_ms"):
             txt += f", client round trip p50 {_f(cl['round_trip_ms'].get('p50'))} ms (+{_f(cl.get('overhead_p50_ms'))})"
         parts.append(txt)
-    return "; ".join(parts), "–"
+    return "; ".join(parts), ", ".join(cpu) or "–"
 
 
 FORMATTERS = {"mapper": _mapper, "world": _world, "encoder": _encoder, "e2e": _e2e, "query": _query}
