@@ -617,22 +617,17 @@ def test_queries_answered_during_three_edge_flood(tmp_path, procs, pca_file, sha
 
     ep = shared_mapper
     per_robot = 8                     # the default queues.per_robot of the shared mapper
-    robots = ["r0", "f1", "f2", "f3"]
+    robots = ["f1", "f2", "f3"]
     with client(ep) as c:
         wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
-        e0 = Proc("edge0", edge_args(ep, pca_file, robot="r0", frames=10, rate=10.0), tmp_path)
-        procs.append(e0)
         for i in (1, 2, 3):   # the edges stand for robots' own computers: niced, so they load the
             # mapper with frames without starving its process of CPU on this one machine
             procs.append(Proc(f"flood{i}", edge_args(ep, pca_file, robot=f"f{i}", frames=400, rate=0.0,
                                                      extra=["publish.loop=true"]), tmp_path, nice=10))
-        assert e0.p.wait(150) == 0
-        wait_for(lambda: (lambda r: r.get("mapped", 0) + r.get("dropped", 0) == 10)(c.stats()["robots"]["r0"]), 60,
-                 what="r0's 10 frames accounted for")
         wait_for(lambda: all(mapped(c, f"f{i}") >= 2 for i in (1, 2, 3)), 150, what="three floods mapping")
         qs = timed_queries(c, 12)
         st = c.stats()
-        for p in procs[1:]:                                            # the floods end
+        for p in procs:                                                # the floods end
             p.p.kill()
             p.p.wait()
 
@@ -645,7 +640,7 @@ def test_queries_answered_during_three_edge_flood(tmp_path, procs, pca_file, sha
         # nothing lost: once the floods stop, every frame received is mapped or dropped (counted)
         rs = wait_for(settled, 60, what="every received frame accounted for")
         assert all(not rs[r]["rejected"] for r in robots), {r: rs[r]["rejected"] for r in robots}
-        assert sum(rs[r]["mapped"] for r in robots) > 10
+        assert all(rs[r]["mapped"] >= 2 for r in robots)
     times = [q["s"] for q in qs]
     stale = sum(q["stale"] for q in qs)
     print(f"under flood (not asserted): query p50 {np.median(times) * 1e3:.0f} ms, max {max(times) * 1e3:.0f} ms, "
@@ -654,7 +649,7 @@ def test_queries_answered_during_three_edge_flood(tmp_path, procs, pca_file, sha
     # answered, with the map: the frames mapped so far, never fewer than an earlier answer saw
     assert all(q["voxels"] > 0 for q in qs), [q["voxels"] for q in qs]
     seen = [q["frames_mapped"] for q in qs]
-    assert seen == sorted(seen) and seen[0] >= 10, seen
+    assert seen == sorted(seen) and seen[0] >= 6, seen
     assert all(q["stats"]["frames"]["mapped"] >= q["frames_mapped"] for q in qs)
     # bounded: every robot's queue within queues.per_robot, memory within a fixed ceiling
     for q in qs:
