@@ -251,39 +251,9 @@ def test_edge_skips_corrupt_recording_frame(tmp_path, procs, pca_file, shared_ma
 
 # ------------------------------------------------- 13.2 / 13.7 codec (unit level)
 def _frame_bytes(**kw):
-    import numpy as np
+    from apps.bench.faults import sample_frame_bytes
 
-    from common.frame import Frame
-    from common.wire import encode_frame
-
-    return encode_frame(Frame("r1", 0, 0.0, np.eye(4), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]),
-                              np.ones((48, 64), np.float32), np.zeros((48, 64, 3), np.uint8),
-                              features=np.zeros((16, 6, 8), np.float16), feature_space="x", **kw))
-
-
-def _hostile_headers():
-    """Headers built to be expensive, each within the frame header's 64 KiB (or just over)."""
-    import struct
-
-    import msgpack
-
-    H = {"schema": "rayfronts.frame", "v": 1}
-
-    def m(hdr: bytes) -> bytes:
-        return struct.pack("<I", len(hdr)) + hdr
-
-    yield "8.9 MB map", m(msgpack.packb({**H, **{f"k{i}": i for i in range(700_000)}}))
-    yield "2 MB nested list", m(b"\x91" * 2_000_000 + b"\xc0")
-    yield "64 KiB nested list", m(b"\x91" * 65_535 + b"\xc0")
-    yield "64 KiB nested maps", m(b"\x81\xa1a" * 21_000 + b"\xc0")
-    yield "tree of ints", m(msgpack.packb({**H, "x": [[[1] * 127] * 127] * 3 + [[[1] * 127] * 120]}))
-    yield "tree of empty lists", m(msgpack.packb({**H, "x": [[[[]] * 127] * 127] * 3 + [[[[]] * 127] * 120]}))
-    yield "tree of empty maps", m(msgpack.packb({**H, "x": [[[{}] * 127] * 127] * 3 + [[[{}] * 127] * 120]}))
-    yield "one long list", m(msgpack.packb({**H, "x": list(range(20_000))}))
-    yield "64 KiB of strings", m(msgpack.packb({**H, "x": ["a" * 16_000] * 4}))
-    yield "huge shape", m(msgpack.packb({**H, "robot": "r1", "seq": 0, "stamp": 0.0,
-                                         "pose": {"__nd__": ["<f8", list(range(10_000)), 0, 8]}}))
-    yield "binary in header", m(msgpack.packb({**H, "robot": "r1", "x": b"\0" * 60_000}, use_bin_type=True))
+    return sample_frame_bytes(**kw)
 
 
 def test_rejected_header_costs_bounded_cpu():
@@ -296,8 +266,10 @@ def test_rejected_header_costs_bounded_cpu():
     t = time.process_time()
     decode_frame(ok)
     real_ms = (time.process_time() - t) * 1e3
+    from apps.bench.faults import hostile_frame_headers
+
     worst = (0.0, "")
-    for name, data in _hostile_headers():
+    for name, data in hostile_frame_headers():
         best = 1e9
         for _ in range(5):
             t = time.process_time()
@@ -715,7 +687,9 @@ def test_frame_callback_only_enqueues_and_the_queue_is_bounded(monkeypatch):
     s.keys = KeySpace("rayfronts")
     ing = Ingest(s)
     key = s.keys.frames("r1")
-    hostile = next(d for name, d in _hostile_headers() if name == "8.9 MB map")
+    from apps.bench.faults import hostile_frame_headers
+
+    hostile = next(d for name, d in hostile_frame_headers() if name == "8.9 MB map")
     t = time.process_time()
     ing.on_frame(Sample(key, hostile))
     cb_ms = (time.process_time() - t) * 1e3

@@ -59,6 +59,13 @@ ALL: list[tuple[str, list[str], list[str]]] = [
     ("e2e", ["e2e"], ["e2e", "--frames", "6", "--only", "stream", "--resolution", "64x64"]),
     ("query", ["query", "--voxels", "100k,1M,5M"], ["query", "--voxels", "20k", "--queries", "3", "--changes", "2",
                                                     "--rays", "200"]),
+    ("e2e_radio_b", ["e2e", "--model", "radio_v2.5-b", "--only", "stream", "--frames", "12"],
+     ["e2e", "--model", "radio_v2.5-b", "--only", "stream", "--frames", "3", "--resolution", "64x64"]),
+    ("e2e_480x640", ["e2e", "--resolution", "480x640", "--only", "stream"],
+     ["e2e", "--resolution", "96x128", "--only", "stream", "--frames", "4"]),
+    ("fleet", ["fleet", "--robots", "1,2,4", "--fake-ids", "1000"],
+     ["fleet", "--robots", "1,2", "--frames", "8", "--warmup", "1", "--seconds", "3"]),
+    ("faults", ["faults"], ["faults", "--only", "decode"]),
 ]
 
 

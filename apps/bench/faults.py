@@ -14,6 +14,8 @@ same real processes over loopback:
   last consistent copy), the mapper's RSS, frames mapped / dropped.
 * ``gone``: seconds from SIGKILL and from SIGSTOP of a looping edge to the ``gone_at`` the
   mapper reports (CLI defaults: the 2 s lease of ``common.zenoh_session``).
+* ``decode``: CPU ms to reject each of :func:`hostile_frame_headers` (best of 5; the worst
+  one is the figure) beside the CPU ms to decode a real frame, in this process.
 
 The PCA basis is fitted first (``rayfronts edge fit-pca``, not timed). Processes get
 ``RAYFRONTS_TEXT_CACHE`` (a directory in the work dir) so edges after the first do not load
@@ -45,8 +47,75 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lock-timeout", type=float, default=0.25, help="mapper query.lock_timeout_s (default 0.25)")
     parser.add_argument("--resolution", default="96x128", help="frame size HxW (default 96x128)")
     parser.add_argument("--pca-dim", type=int, default=16, help="PCA dimension (default 16)")
-    parser.add_argument("--only", choices=("query", "gone"), default=None, help="run one part only")
+    parser.add_argument("--only", choices=("query", "gone", "decode"), default=None, help="run one part only")
     parser.add_argument("--workdir", type=Path, default=None, help="keep logs here")
+
+
+def sample_frame_bytes(**kw) -> bytes:
+    """A small valid frame message (48×64, 16-d features): the decode cost's reference."""
+    from common.frame import Frame
+    from common.wire import encode_frame
+
+    return encode_frame(Frame("r1", 0, 0.0, np.eye(4), np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]]),
+                              np.ones((48, 64), np.float32), np.zeros((48, 64, 3), np.uint8),
+                              features=np.zeros((16, 6, 8), np.float16), feature_space="x", **kw))
+
+
+def hostile_frame_headers():
+    """(name, message bytes): frame headers built to be expensive to decode, each within the
+    frame header's 64 KiB limit or just over it (the old decoder took 0.7-3.4 s on the first
+    two). Shared with ``tests/test_faults.py``."""
+    import struct
+
+    import msgpack
+
+    H = {"schema": "rayfronts.frame", "v": 1}
+
+    def m(hdr: bytes) -> bytes:
+        return struct.pack("<I", len(hdr)) + hdr
+
+    yield "8.9 MB map", m(msgpack.packb({**H, **{f"k{i}": i for i in range(700_000)}}))
+    yield "2 MB nested list", m(b"\x91" * 2_000_000 + b"\xc0")
+    yield "64 KiB nested list", m(b"\x91" * 65_535 + b"\xc0")
+    yield "64 KiB nested maps", m(b"\x81\xa1a" * 21_000 + b"\xc0")
+    yield "tree of ints", m(msgpack.packb({**H, "x": [[[1] * 127] * 127] * 3 + [[[1] * 127] * 120]}))
+    yield "tree of empty lists", m(msgpack.packb({**H, "x": [[[[]] * 127] * 127] * 3 + [[[[]] * 127] * 120]}))
+    yield "tree of empty maps", m(msgpack.packb({**H, "x": [[[{}] * 127] * 127] * 3 + [[[{}] * 127] * 120]}))
+    yield "one long list", m(msgpack.packb({**H, "x": list(range(20_000))}))
+    yield "64 KiB of strings", m(msgpack.packb({**H, "x": ["a" * 16_000] * 4}))
+    yield "huge shape", m(msgpack.packb({**H, "robot": "r1", "seq": 0, "stamp": 0.0,
+                                         "pose": {"__nd__": ["<f8", list(range(10_000)), 0, 8]}}))
+    yield "binary in header", m(msgpack.packb({**H, "robot": "r1", "x": b"\0" * 60_000}, use_bin_type=True))
+
+
+def reject_costs(repeats: int = 5) -> dict:
+    """CPU ms (best of ``repeats``) to reject each hostile header and to decode a real frame;
+    every hostile header must raise ``WireError`` (anything else is a bug and propagates)."""
+    from common.wire import WireError, decode_frame
+
+    def best_ms(data: bytes, hostile: bool) -> tuple[float, str]:
+        best, reason = 1e9, ""
+        for _ in range(repeats):
+            t = time.process_time()
+            try:
+                decode_frame(data)
+            except WireError as e:
+                if not hostile:
+                    raise
+                reason = e.reason
+            else:
+                if hostile:
+                    raise AssertionError("a hostile frame header was accepted")
+            best = min(best, time.process_time() - t)
+        return round(best * 1e3, 3), reason
+
+    real_ms, _ = best_ms(sample_frame_bytes(), hostile=False)
+    rows = {}
+    for name, data in hostile_frame_headers():
+        ms, reason = best_ms(data, hostile=True)
+        rows[name] = {"cpu_ms": ms, "reason": reason, "bytes": len(data)}
+    worst = max(rows, key=lambda k: rows[k]["cpu_ms"])
+    return {"real_frame_cpu_ms": real_ms, "worst": worst, "worst_cpu_ms": rows[worst]["cpu_ms"], "headers": rows}
 
 
 def timed_queries(c, n: int, text: str = "car", top_k: int = 5) -> list[dict]:
@@ -118,6 +187,12 @@ def run(args: argparse.Namespace) -> dict:
 
     work = Path(args.workdir or tempfile.mkdtemp(prefix="rayfronts-bench-faults-"))
     work.mkdir(parents=True, exist_ok=True)
+    out: dict = {"lock_timeout_s": args.lock_timeout, "resolution": args.resolution, "workdir": str(work)}
+    if args.only in (None, "decode"):
+        with timed("rejecting hostile headers"):
+            out["decode"] = reject_costs()
+        if args.only == "decode":
+            return out
     env = {**zenoh_env(), "RAYFRONTS_TEXT_CACHE": str(work / "text-cache")}
     pca = work / f"pca{args.pca_dim}.npz"
     src = [f"source.resolution={args.resolution}", "source.depth_limit=20"]
@@ -136,7 +211,6 @@ def run(args: argparse.Namespace) -> dict:
     def robot(c, name):
         return c.stats(timeout=5.0)["robots"].get(name, {})
 
-    out: dict = {"lock_timeout_s": args.lock_timeout, "resolution": args.resolution, "workdir": str(work)}
     ps = _Procs(work, env)
     try:
         if args.only in (None, "query"):

@@ -70,10 +70,25 @@ def _encoder(d: dict) -> tuple[str, str]:
 def _e2e(d: dict) -> tuple[str, str]:
     parts = []
     if d.get("e2e_fps") is not None:
-        parts.append(f"{_f(d['e2e_fps'])} frames/s end to end (encoder alone {_f(d.get('encoder_fps'))})")
+        nd = 1 if d["e2e_fps"] >= 1 else 3
+        parts.append(f"{_f(d['e2e_fps'], nd)} frames/s end to end (encoder alone {_f(d.get('encoder_fps'), nd)})")
+    r = d.get("ratios") or {}
+    if d.get("e2e_fps") is not None and r.get("edge_alone_vs_encoder_alone") is not None:
+        parts.append(f"edge alone {_f(d.get('edge_alone_fps'), nd)}; ratios edge/encoder "
+                     f"{_f(r.get('edge_alone_vs_encoder_alone'), 2)}, e2e/encoder {_f(r.get('e2e_vs_encoder_alone'), 2)}, "
+                     f"e2e/edge {_f(r.get('e2e_vs_edge_alone'), 2)}")
     b = d.get("bytes_per_frame") or {}
     if b.get("mean"):
-        parts.append(f"{_f(b['mean'] / 1000)} KB per frame")
+        parts.append(f"{_f(b['mean'] / 1000)} KB per frame (max {_f(b.get('max', 0) / 1000)})")
+    loc = d.get("bytes_per_frame_local") or {}
+    if loc.get("f16_features_mean"):
+        parts.append(f"{loc.get('feature_codec')} features; float16 features would be "
+                     f"{_f(loc['f16_features_mean'] / 1000)} KB")
+    sc = d.get("score_change_vs_f16") or {}
+    if sc.get("max_abs_dcos_per_cell") is not None:
+        same = sc.get("top1_class_same_fraction_per_cell")
+        parts.append(f"max |Δ cosine| vs float16 {sc['max_abs_dcos_per_cell']:.1e}"
+                     + (f", top-1 class unchanged on {_f(100 * same, 2)} % of cells" if same is not None else ""))
     q = d.get("query_rtt_ms") or {}
     if q.get("p50") is not None:
         parts.append(f"query round trip on {d.get('query_map_voxels')} voxels p50 {_f(q['p50'])} ms")
@@ -104,7 +119,42 @@ def _query(d: dict) -> tuple[str, str]:
     return "; ".join(parts), ", ".join(cpu) or "–"
 
 
-FORMATTERS = {"mapper": _mapper, "world": _world, "encoder": _encoder, "e2e": _e2e, "query": _query}
+def _fleet(d: dict) -> tuple[str, str]:
+    parts = []
+    for n, r in (d.get("runs") or {}).items():
+        lat = r.get("latency_ms") or {}
+        parts.append(f"{n} robot{'s' if n != '1' else ''}: {_f(r.get('total_fused_hz'))} Hz total "
+                     f"(fairness min/max {_f(r.get('fairness_min_over_max'), 2)}), latency p50 {_f(lat.get('p50'), 0)} / "
+                     f"p95 {_f(lat.get('p95'), 0)} ms, mapper {_f(r.get('mapper_rss_mb'), 0)} MB")
+    fk = d.get("fake_ids") or {}
+    if fk.get("rss_mb_after_ids") is not None:
+        parts.append(f"{fk.get('ids', '?')} ids without a feature space: mapper {_f(fk.get('rss_mb_before'), 0)} → "
+                     f"{_f(fk.get('rss_mb_after_ids'), 0)} MB, {fk.get('robots_tracked_after_ids')} tracked")
+    return "; ".join(parts), "–"
+
+
+def _faults(d: dict) -> tuple[str, str]:
+    parts = []
+    dc = d.get("decode") or {}
+    if dc:
+        parts.append(f"worst hostile frame header rejected in {_f(dc.get('worst_cpu_ms'), 3)} CPU-ms ({dc.get('worst')}; "
+                     f"a real frame decodes in {_f(dc.get('real_frame_cpu_ms'), 2)})")
+    q = d.get("query") or {}
+    if q:
+        u, f = q.get("unloaded_ms") or {}, q.get("flood_ms") or {}
+        parts.append(f"query p50 / p95 {_f(u.get('p50'))} / {_f(u.get('p95'))} ms unloaded, {_f(f.get('p50'))} / "
+                     f"{_f(f.get('p95'))} ms during a {q.get('floods')}-edge flood (bound {_f(q.get('bound_ms'))} ms: "
+                     f"{'met' if q.get('flood_p95_within_bound') else 'NOT met'}), {q.get('stale_answers')} stale answers, "
+                     f"mapper RSS max {_f(q.get('mapper_rss_mb_max'), 0)} MB")
+    g = d.get("gone") or {}
+    if g:
+        parts.append(f"edge marked gone {_f(g.get('after_sigkill_s'), 2)} s after SIGKILL, "
+                     f"{_f(g.get('after_sigstop_s'), 2)} s after SIGSTOP (lease {g.get('lease_ms')} ms)")
+    return "; ".join(parts), "–"
+
+
+FORMATTERS = {"mapper": _mapper, "world": _world, "encoder": _encoder, "e2e": _e2e, "query": _query,
+              "fleet": _fleet, "faults": _faults}
 
 
 def _order(src: Path) -> list[Path]:
