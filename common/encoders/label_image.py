@@ -12,17 +12,20 @@ is mapped into the same space by the synthetic world's class *appearance*
   A pixel takes the class of the nearest family (RGB distance to the family's (s, f) box, by
   least squares) and is unclassified when every family is farther than
   :data:`MAX_RGB_DISTANCE`. At most :data:`MAX_PIXELS` pixels are classified (a regular subsample).
-* **Image vector.** ``g = Σ_c p_c · e_c`` over the classes found, where ``e_c`` is the
-  MiniLM embedding of class ``c``'s name (the label encoder's own table) and ``p_c`` the
-  share of the classified pixels of class ``c`` — exactly the label encoder's ``encode_global``
-  (``pooling='mean'``) with the classified pixels as labels — except that class 0 (sky,
-  "nothing there") is background: it counts only when no other class is found. So a crop of
-  the water tower against the sky answers "water tower", a crop of a car answers "car".
+* **Image vector.** The embedding ``e_c`` (the MiniLM embedding of class ``c``'s name, the
+  label encoder's own table) of the class ``c`` with the largest share of the classified
+  pixels, class 0 (sky, "nothing there") counting only when no other class is found: the
+  image shows its dominant class, as a real encoder's global feature is dominated by the
+  salient object. So a crop of the water tower answers exactly as the text "water tower",
+  a crop of a car as "car". (The share-weighted mix ``Σ_c p_c · e_c`` that the label
+  encoder's ``encode_global`` computes for a frame was the first definition: a tower's
+  bounding-box crop holds ~40 % building, rock-grey shadow and ground pixels, and that mix
+  answered with building rays on the README walkthrough's map.)
 
 Classes the world shades alike (car and radio tower are both red; the grey road, rock,
-street lamp and a water tower's shadowed side) are partly confused pixel by pixel; the mix of
-text embeddings then leans to the dominant class, and a query answers with the map's
-classes: a car crop finds car voxels in range (radio towers exist only as far rays).
+street lamp and a water tower's shadowed side) are partly confused pixel by pixel; the
+dominant class decides, and a query answers with the map's classes: a car crop finds car
+voxels in range (radio towers exist only as far rays).
 """
 from __future__ import annotations
 
@@ -119,7 +122,7 @@ def class_shares(rgb: np.ndarray, n_classes: int = len(CLASS_NAMES)) -> np.ndarr
 
 
 def label_image_embedding(rgb: np.ndarray, class_embeddings) -> np.ndarray:
-    """The image vector ``Σ_c p_c · e_c`` (module docstring) for class embeddings ``(K, D)``
+    """The image vector (module docstring: the dominant class's embedding) for class embeddings ``(K, D)``
     (row ``c`` = the text embedding of ``CLASS_NAMES[c]``); ``ValueError`` when no pixel
     looks like any class of the world."""
     e = np.asarray(class_embeddings, np.float32)
@@ -127,4 +130,4 @@ def label_image_embedding(rgb: np.ndarray, class_embeddings) -> np.ndarray:
     if p.sum() <= 0:
         raise ValueError("the image matches none of the synthetic world's class appearances "
                          f"(no pixel within {MAX_RGB_DISTANCE:.0f} RGB levels of a class colour)")
-    return (p.astype(np.float32) @ e).astype(np.float32)
+    return e[int(np.argmax(p))].copy()
