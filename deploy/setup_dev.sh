@@ -44,9 +44,9 @@ filtered() {
 }
 
 say "start: venv $VENV, extras [$EXTRAS], $(nproc 2>/dev/null || echo ?) CPUs"
-say "expect (measured, 2 cores shared with other jobs): ~1 GB of wheels to install (torch, rerun, transformers ...)"
-say "  in 2-3 min, then the C++ build ~2.5-8 min depending on load, skipped when cached from an earlier"
-say "  build of the same sources (then ~3 min in all); a re-run skips everything in seconds"
+say "expect (measured on 2-core machines): ~1 GB of wheels (torch, rerun, transformers ...) in 0.5-4 min,"
+say "  then the C++ build 0.5 min on 2 idle cores, up to 8 min when other jobs share them; skipped when"
+say "  cached from an earlier build of the same sources; a re-run skips everything in seconds"
 
 # ---------------------------------------------------------------- system packages
 need_apt=""
@@ -199,7 +199,7 @@ else
     FILTER='(reusing prebuilt|Successfully installed|ERROR|CMake Error)' \
       filtered "$VPY" -m pip install "${PIP_EXT[@]}" -Ccmake.define.RAYFRONTS_PREBUILT="$EXT_CACHE" || rc=$?
   else
-    say "installing the project and building its C++ extensions ($CMAKE_BUILD_PARALLEL_LEVEL jobs; ~2.5 min on 2 idle cores)"
+    say "installing the project and building its C++ extensions ($CMAKE_BUILD_PARALLEL_LEVEL jobs; 0.5-1 min on 2 idle cores, longer under load)"
     rc=0
     FILTER='(^ *\[ *[0-9]+%\]|^ *\[[0-9]+/[0-9]+\]|^ *\*\*\* (Configuring|Building|Installing)|will NOT be built|CMake Error|error:|Successfully installed|ERROR)' \
       filtered "$VPY" -m pip install "${PIP_EXT[@]}" || rc=$?
