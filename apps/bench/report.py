@@ -70,13 +70,13 @@ def _encoder(d: dict) -> tuple[str, str]:
 def _e2e(d: dict) -> tuple[str, str]:
     parts = []
     if d.get("e2e_fps") is not None:
-        nd = 1 if d["e2e_fps"] >= 1 else 3
+        nd = 1 if d["e2e_fps"] >= 1 else 3            # slow encoders: keep three decimals
         parts.append(f"{_f(d['e2e_fps'], nd)} frames/s end to end (encoder alone {_f(d.get('encoder_fps'), nd)})")
-    r = d.get("ratios") or {}
-    if d.get("e2e_fps") is not None and r.get("edge_alone_vs_encoder_alone") is not None:
-        parts.append(f"edge alone {_f(d.get('edge_alone_fps'), nd)}; ratios edge/encoder "
-                     f"{_f(r.get('edge_alone_vs_encoder_alone'), 2)}, e2e/encoder {_f(r.get('e2e_vs_encoder_alone'), 2)}, "
-                     f"e2e/edge {_f(r.get('e2e_vs_edge_alone'), 2)}")
+        r = d.get("ratios") or {}
+        if r.get("edge_alone_vs_encoder_alone") is not None:
+            parts.append(f"edge alone {_f(d.get('edge_alone_fps'), nd)}; ratios edge/encoder "
+                         f"{_f(r.get('edge_alone_vs_encoder_alone'), 2)}, e2e/encoder "
+                         f"{_f(r.get('e2e_vs_encoder_alone'), 2)}, e2e/edge {_f(r.get('e2e_vs_edge_alone'), 2)}")
     b = d.get("bytes_per_frame") or {}
     if b.get("mean"):
         parts.append(f"{_f(b['mean'] / 1000)} KB per frame (max {_f(b.get('max', 0) / 1000)})")
