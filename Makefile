@@ -13,7 +13,7 @@ EXTRAS  ?= all,test
 DEMO_EXTRAS ?= all
 OUT     ?= out/demo
 PYTEST_ARGS ?=
-SETUP_DEPS := pyproject.toml CMakeLists.txt $(wildcard mapper/csrc/*) deploy/setup_dev.sh
+SETUP_DEPS := pyproject.toml CMakeLists.txt $(wildcard semantic_map/csrc/*) deploy/setup_dev.sh
 STAMP      := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(EXTRAS))
 DEMO_STAMP := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(DEMO_EXTRAS))
 

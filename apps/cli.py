@@ -39,7 +39,7 @@ SUBCOMMANDS: dict[str, str] = {
     "mapper": "mapper.cli",
     "query": "query_client.cli",
     "router": "common.router",
-    "world": "common.world.cli",
+    "world": "synthetic_world.cli",
     "bench": "apps.bench",
     "eval": "apps.evaluation.cli",
     "models": "edge.models_cli",

@@ -124,7 +124,7 @@ def query_classes(world, texts) -> list[int]:
     """Nearest world class (by MiniLM embedding of the class names) for each query text."""
     import torch
 
-    from common.text_encoders import MiniLMText
+    from encoders.text import MiniLMText
 
     enc = MiniLMText()
     names = list(world.classes)
@@ -251,7 +251,7 @@ def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, 
 
 
 def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
-    from common.world import World
+    from synthetic_world import World
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from query_client.client import Client
 

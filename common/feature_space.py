@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from common.pca import PCA
-from common.text.heads import MLP2, MLP2Config
+from common.language_head import MLP2, MLP2Config
 
 BODY_VERSION = 1
 

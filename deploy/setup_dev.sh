@@ -7,7 +7,7 @@
 # Progress: one line per stage with the elapsed time ([setup m:ss]); pip's downloads and
 # the C++ build show their own progress lines (filtered, so nothing is silent for minutes).
 #
-# The C++ build (mapper._vdbocc with OpenVDB, mapper._rfkernels) is the one slow step that
+# The C++ build (semantic_map._vdbocc with OpenVDB, semantic_map._rfkernels) is the one slow step that
 # need not be repeated: its outputs are cached under $RAYFRONTS_CACHE (default
 # ~/.cache/rayfronts/ext/<key>), keyed by the C++ sources, the CMake files, the Python ABI,
 # nanobind, the compiler and the OpenVDB package version. A fresh clone on a machine that
@@ -163,7 +163,7 @@ fi
 KEY=$("$VPY" - <<'PYEOF'
 import glob, hashlib, subprocess, sys, sysconfig
 h = hashlib.sha256()
-for f in sorted(["CMakeLists.txt", *glob.glob("mapper/csrc/*")]):
+for f in sorted(["CMakeLists.txt", *glob.glob("semantic_map/csrc/*")]):
     h.update(f.encode()); h.update(open(f, "rb").read())
 try:  # of pyproject.toml only what the build reads (not the dependency lists)
     import tomllib
@@ -203,8 +203,8 @@ else
     rc=0
     FILTER='(^ *\[ *[0-9]+%\]|^ *\[[0-9]+/[0-9]+\]|^ *\*\*\* (Configuring|Building|Installing)|will NOT be built|CMake Error|error:|Successfully installed|ERROR)' \
       filtered "$VPY" -m pip install "${PIP_EXT[@]}" || rc=$?
-    if [ "$rc" = 0 ] && [ -z "${RAYFRONTS_NO_EXT_CACHE:-}" ] && ls "$SITE"/mapper/_*.so >/dev/null 2>&1; then
-      mkdir -p "$EXT_CACHE" && cp "$SITE"/mapper/_*.so "$EXT_CACHE"/ && say "cached the built extensions in $EXT_CACHE"
+    if [ "$rc" = 0 ] && [ -z "${RAYFRONTS_NO_EXT_CACHE:-}" ] && ls "$SITE"/semantic_map/_*.so >/dev/null 2>&1; then
+      mkdir -p "$EXT_CACHE" && cp "$SITE"/semantic_map/_*.so "$EXT_CACHE"/ && say "cached the built extensions in $EXT_CACHE"
     fi
   fi
   if [ "$rc" != 0 ]; then
@@ -215,7 +215,7 @@ else
 fi
 "$VPY" - <<'PYEOF'
 try:
-    from mapper.occupancy import backend_name
+    from semantic_map.occupancy import backend_name
     print(f"[setup] occupancy backend: {backend_name()}")
 except Exception as e:  # the mapper may not be importable yet on a partial checkout
     print(f"[setup] occupancy backend: unknown ({e})")

@@ -120,7 +120,7 @@ def check_inputs(cfg) -> None:
         if d and not Path(d).expanduser().is_dir():
             raise ConfigError(f"{key} directory not found: {d} (see `rayfronts models check --help`)")
     if enc.kind == "naradio":
-        from edge.encoders.files import find_radio_checkpoint
+        from encoders.files import find_radio_checkpoint
 
         find_radio_checkpoint(enc.model, enc.model_dir or None, enc.checkpoint)
 

@@ -15,7 +15,7 @@ def fit_pca(cfg, out: str | Path, frames: int = 50, samples_per_frame: int = 409
     import torch
 
     from common.pca import OnlinePCAFitter
-    from edge.encoders import make_encoder
+    from encoders import make_encoder
 
     names = None
     if source is None:

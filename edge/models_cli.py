@@ -47,14 +47,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _model_dir(p: Path | None) -> Path:
-    from edge.encoders.files import default_model_dir
+    from encoders.files import default_model_dir
     return Path(p).expanduser() if p else default_model_dir()
 
 
 def _convert(args) -> int:
     import torch
 
-    from edge.encoders.radio import read_checkpoint, save_flat
+    from encoders.radio import read_checkpoint, save_flat
 
     ck = read_checkpoint(args.src)
     name = args.model or {768: "radio_v2.5-b", 1024: "radio_v2.5-l", 1280: "radio_v2.5-h"}.get(
@@ -64,7 +64,7 @@ def _convert(args) -> int:
         raise ValueError(f"output must end in .safetensors, got {dst}")
     dtype = {"keep": None, "float32": torch.float32, "float16": torch.float16}[args.dtype]
     # verify it loads strictly before writing
-    from edge.encoders.radio import build_radio
+    from encoders.radio import build_radio
     build_radio(ck)
     out = save_flat(ck, dst, dtype)
     print(json.dumps({"written": str(out), "config": str(out.with_suffix(".json")),
@@ -75,9 +75,9 @@ def _convert(args) -> int:
 
 def check_dir(d: Path, need: list[str], load: bool = False) -> dict:
     """What ``d`` provides: {part: {"ok": bool, "path"/"problem": str}}."""
-    from common.text.errors import ModelFileError
-    from common.text.siglip import check_siglip_dir
-    from edge.encoders.files import SIGLIP_TEXT_DIR, find_radio_checkpoint
+    from common.model_files import ModelFileError
+    from encoders.text.siglip import check_siglip_dir
+    from encoders.files import SIGLIP_TEXT_DIR, find_radio_checkpoint
 
     rep: dict = {}
     for m in ("radio_v2.5-b", "radio_v2.5-l"):
@@ -85,7 +85,7 @@ def check_dir(d: Path, need: list[str], load: bool = False) -> dict:
             p = find_radio_checkpoint(m, d)
             rep[m] = {"ok": True, "path": str(p)}
             if load:
-                from edge.encoders.radio import build_radio, read_checkpoint
+                from encoders.radio import build_radio, read_checkpoint
                 ck = read_checkpoint(p)
                 build_radio(ck)
                 ck.head_for("siglip")
@@ -94,7 +94,7 @@ def check_dir(d: Path, need: list[str], load: bool = False) -> dict:
     probs = check_siglip_dir(d / SIGLIP_TEXT_DIR)
     rep["siglip"] = {"ok": not probs, **({"problem": "; ".join(probs)} if probs else {"path": str(d / SIGLIP_TEXT_DIR)})}
     try:
-        from common.text.minilm import minilm_model_dir
+        from encoders.text.minilm import minilm_model_dir
         rep["minilm"] = {"ok": True, "path": str(minilm_model_dir())}
     except ModelFileError as e:
         rep["minilm"] = {"ok": False, "problem": str(e)}
@@ -103,7 +103,7 @@ def check_dir(d: Path, need: list[str], load: bool = False) -> dict:
 
 
 def _download(args) -> int:
-    from edge.encoders.files import PUBLISHED_NAMES, PUBLISHED_URLS, SIGLIP_TEXT_DIR
+    from encoders.files import PUBLISHED_NAMES, PUBLISHED_URLS, SIGLIP_TEXT_DIR
     d = _model_dir(args.dir)
     fname = PUBLISHED_NAMES[args.model]
     if args.run:

@@ -46,7 +46,7 @@ import numpy as np
 
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
-from edge.encoders.config import EncoderConfig
+from encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
 
 log = logging.getLogger("rayfronts.edge")
@@ -482,7 +482,7 @@ class EdgeRuntime:
         2 refused at start-up, 1 failed while running (state and reason on ``edge_status``)."""
         from common.config import ConfigError
         from common.pca import PCAError
-        from common.text.errors import ModelFileError
+        from common.model_files import ModelFileError
 
         try:
             return self._run()
@@ -517,7 +517,7 @@ class EdgeRuntime:
 
         from common.pca import PCA
         from common.wire import encode_frame
-        from edge.encoders import make_encoder
+        from encoders import make_encoder
 
         cfg = self.cfg
         n_threads = resolve_threads(cfg)

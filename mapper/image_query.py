@@ -6,7 +6,7 @@ decompressed through the map's PCA and, for RADIO-space maps, mapped by the lang
 
 * **Label-encoder maps** (``encoder_name == "label"``, MiniLM space): the image's pixels are
   classified by the synthetic world's class appearance and the class-name embeddings mixed
-  by their shares (:mod:`common.encoders.label_image` gives the exact definition); the class
+  by their shares (:mod:`encoders.label_image` gives the exact definition); the class
   names are embedded by the map's text model, as the edge's label encoder embeds them.
 * **NARADIO maps**: the mapper builds the same NARADIO the edge runs, from the edge's
   encoder settings in the feature space (``FeatureSpace.encoder_config``) and a RADIO
@@ -93,8 +93,7 @@ def embed_image(fs, data: bytes, device="cpu", text_model_dir: str = "", image_m
 
 
 def _label_vector(fs, rgb, device, text_model_dir, text_encoder) -> torch.Tensor:
-    from common.encoders.label_image import label_image_embedding
-    from common.world.classes import CLASS_NAMES
+    from encoders.label_image import label_image_embedding, label_vocabulary
 
     key = ("label", fs.text_model, str(device), text_model_dir)
     with _LOCK:
@@ -103,7 +102,7 @@ def _label_vector(fs, rgb, device, text_model_dir, text_encoder) -> torch.Tensor
             if text_encoder is None:
                 raise MessageError("no text encoder for the label space")
             te = text_encoder(fs.text_model, device, text_model_dir)
-            table = te.encode_labels(list(CLASS_NAMES), templates="none").float().cpu().numpy()
+            table = te.encode_labels(label_vocabulary(), templates="none").float().cpu().numpy()
             _ENCODERS[key] = table
     if table.shape[1] != fs.lang_dim:
         raise MessageError(f"class embeddings are {table.shape[1]}-d, the map's language space {fs.lang_dim}-d")
@@ -115,9 +114,9 @@ def _label_vector(fs, rgb, device, text_model_dir, text_encoder) -> torch.Tensor
 
 
 def _naradio(fs, device, image_model_dir: str):
-    from common.encoders.config import EncoderConfig
-    from common.encoders.naradio import NaradioEncoder
-    from common.text.errors import ModelFileError
+    from encoders.config import EncoderConfig
+    from encoders.naradio import NaradioEncoder
+    from common.model_files import ModelFileError
 
     key = ("naradio", fs.id, str(device), image_model_dir)
     with _LOCK:

@@ -19,7 +19,7 @@ while the previous frame is committed here under the map lock; a frame is accoun
 is committed. Whenever no frame is queued the pipeline is drained first (a slow robot's
 frame is never held back), and before a periodic snapshot; snapshots taken from other
 threads meanwhile still save the exact committed state (:meth:`RayFrontsMap.rng_state`). What integration does to the map (fusion, frontiers, rays) lives in
-:mod:`mapper.map` via :func:`mapper.service_map.integrate`.
+:mod:`semantic_map.map` via :func:`mapper.service_map.integrate`.
 """
 from __future__ import annotations
 

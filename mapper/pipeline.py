@@ -7,7 +7,7 @@ map's configuration and its random generator; ``commit`` (buffering, the voxel b
 occupancy, fusion, pruning, frontiers; the ray block: prune, association, merge) owns all
 map state. :class:`MapPipeline` runs ``prepare`` on one worker thread, in submission order,
 and ``commit`` on the thread that calls :meth:`MapPipeline.submit`, so two cores work at
-once: torch operations and the C++ kernels (``mapper._rfkernels``, the OpenVDB extension)
+once: torch operations and the C++ kernels (``semantic_map._rfkernels``, the OpenVDB extension)
 release the GIL while they compute.
 
 Maps are identical to the sequential path: prepares run one at a time in frame order, so
@@ -25,7 +25,7 @@ Decisions:
   later frames are unaffected.
 * Snapshots stay exact while frames are in flight: the worker records the generator's
   state before each prepare (under a lock it holds while preparing), and the map's
-  :meth:`~mapper.map.RayFrontsMap.rng_state` (what :mod:`mapper.snapshot` saves) answers the
+  :meth:`~semantic_map.map.RayFrontsMap.rng_state` (what :mod:`mapper.snapshot` saves) answers the
   state before the oldest uncommitted frame — the state the sequential path would have
   after the last committed frame. Replacing the map's generator (a restore) must run after
   :meth:`drain`.
@@ -61,7 +61,7 @@ def _init_worker(n: int) -> None:
 
 
 class MapPipeline:
-    """Prepare-ahead integration into one :class:`~mapper.map.RayFrontsMap` (module docstring).
+    """Prepare-ahead integration into one :class:`~semantic_map.map.RayFrontsMap` (module docstring).
 
     ``lock`` (optional) is held around every commit, for callers that query the map from
     other threads; prepares never need it."""

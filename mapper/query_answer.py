@@ -30,7 +30,7 @@ from scipy.sparse.csgraph import connected_components
 
 from common.conventions import voxel_center, voxel_index
 from common.messages import MessageError, QueryRequest, QueryResult
-from mapper.query_snapshot import SCORE_ATOL, HalfFeatures, QuerySnapshot, _one_thread  # noqa: F401  (re-exported)
+from semantic_map.query_snapshot import SCORE_ATOL, HalfFeatures, QuerySnapshot, _one_thread  # noqa: F401  (re-exported)
 
 #: generic phrases of ``query.softmax_set=negatives`` (relevancy-style; not the paper's default)
 SOFTMAX_NEGATIVES = ("object", "things", "stuff", "texture")
@@ -50,7 +50,7 @@ def text_encoder(name: str, device="cpu", model_dir: str = ""):
     """The text model the feature space names (cached per process)."""
     key = (name, str(device), model_dir)
     if key not in _TEXT_ENCODERS:
-        from common.text_encoders import make_text_encoder
+        from encoders.text import make_text_encoder
 
         _TEXT_ENCODERS[key] = make_text_encoder(name, model_dir=model_dir or None, device=device)
     return _TEXT_ENCODERS[key]

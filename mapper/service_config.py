@@ -7,7 +7,7 @@ from typing import Literal
 
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
-from mapper.config import MapConfig
+from semantic_map.config import MapConfig
 from mapper.fleet import FleetSection
 from mapper.shards import ShardSection
 from mapper.outputs.ros import RosSection
@@ -89,7 +89,7 @@ class MapperConfig:
     """Configuration of ``rayfronts mapper``."""
 
     preset: str = field_("default", "map preset under the map section (default, online, throughput, offline)")
-    map: MapConfig = section(MapConfig, "RayFronts map parameters (mapper.config.MapConfig)")
+    map: MapConfig = section(MapConfig, "RayFronts map parameters (semantic_map.config.MapConfig)")
     device: str = field_("cpu", "torch device of the map and the text encoder (cpu, cuda, cuda:1)")
     occupancy_backend: str = field_("auto", "occupancy grid: auto (OpenVDB if built, else torch), vdb, torch")
     text_model_dir: str = field_("", "directory of the text model when the feature space needs one on disk")
@@ -167,7 +167,7 @@ def mapper_config_schema():
 def load_mapper_config(path=None, overrides=()):
     """Defaults → preset (from ``preset=`` in the file or overrides) → YAML → overrides."""
     from common.config import load_config, load_yaml, parse_override
-    from mapper.config import PRESETS
+    from semantic_map.config import PRESETS
 
     schema = mapper_config_schema()
     preset = "default"

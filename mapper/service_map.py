@@ -30,15 +30,17 @@ from mapper.query_answer import (  # noqa: F401  (re-exported: the query side us
 # ------------------------------------------------------------------- map life
 def create_map(cfg, fs):
     """A new RayFrontsMap for feature space ``fs`` with the service config's map section."""
-    from mapper.map import RayFrontsMap
+    from semantic_map.map import RayFrontsMap
 
     return RayFrontsMap(cfg.map, fs.dim, fs.id, device=cfg.device, occupancy_backend=cfg.occupancy_backend)
 
 
-def load_map(path, cfg, fs):
-    from mapper.map import RayFrontsMap
+def restore_map(path, cfg, fs):
+    """The map saved at ``path`` (a snapshot's ``map`` directory), checked against space ``fs``."""
+    from mapper.snapshot import load_map
+    from semantic_map.map import RayFrontsMap
 
-    m = RayFrontsMap.load(path, device=cfg.device, occupancy_backend=cfg.occupancy_backend)
+    m = load_map(path, RayFrontsMap, device=cfg.device, occupancy_backend=cfg.occupancy_backend)
     got_id = getattr(m, "feature_space", "")
     if got_id and got_id != fs.id:
         raise MessageError(f"snapshot map space {got_id} != its feature_space file {fs.id}")
@@ -86,7 +88,7 @@ def layer_arrays(m, layer: str, lcfg) -> tuple[dict, dict]:
     rng = np.random.default_rng(0)
     if layer == "voxels":
         # straight from the voxel store: only the kept rows are decoded (no feature copies)
-        from mapper import keys as cell_keys
+        from semantic_map import cell_keys
 
         sem = m.sem
         n = len(sem)

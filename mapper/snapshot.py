@@ -93,10 +93,10 @@ def read_manifest(path) -> dict:
 
 
 def load_map(path, map_cls, device="cpu", occupancy_backend: str = "auto"):
-    """A ``map_cls`` (:class:`mapper.map.RayFrontsMap`, passed in by ``RayFrontsMap.load`` so this
+    """A ``map_cls`` (:class:`semantic_map.map.RayFrontsMap`, passed in by ``RayFrontsMap.load`` so this
     module does not import the map) restored from the snapshot at ``path``."""
-    from mapper.config import MapConfig
-    from mapper.occupancy import from_state
+    from semantic_map.config import MapConfig
+    from semantic_map.occupancy import from_state
 
     path = Path(path)
     man = read_manifest(path)

@@ -37,6 +37,7 @@ from common.messages import (
     encode_error,
     encode_snapshot_reply,
 )
+from mapper.snapshot import save_map
 from mapper.state import MapperState, jsonable
 
 log = logging.getLogger("rayfronts.mapper")
@@ -73,7 +74,7 @@ class SnapshotStore:
         """Load the newest intact snapshot generation, if any (before the Zenoh entities
         exist); a broken newer one is logged and skipped (module docstring)."""
         from common.feature_space import FeatureSpace
-        from mapper.service_map import load_map
+        from mapper.service_map import restore_map
         from mapper.snapshot import check_generation, snapshot_generations
 
         s = self.state
@@ -90,7 +91,7 @@ class SnapshotStore:
                 envelope = (path / "feature_space.bin").read_bytes()
                 _, body = decode_feature_space(envelope)
                 fs = FeatureSpace.from_body(body)
-                m = load_map(path / "map", s.cfg, fs)
+                m = restore_map(path / "map", s.cfg, fs)
             except Exception as e:
                 log.error("snapshot %s is broken (%s); trying the generation before it", path, e)
                 broken.append(str(path))
@@ -149,7 +150,7 @@ def write_snapshot(root: Path, m, space_envelope: bytes, meta: dict, keep: int =
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir()
-    m.save(tmp / "map")
+    save_map(m, tmp / "map")
     (tmp / "feature_space.bin").write_bytes(space_envelope)
     (tmp / "meta.json").write_text(json.dumps(meta))
     os.replace(tmp, root / name)

@@ -16,7 +16,7 @@ Mapper module map (the service is a thin composition of jobs; see ARCHITECTURE.m
     mapper/outputs/rerun.py    rerun recording (RerunLogger) and the service's rerun output
     mapper/service_map.py      Zenoh-free map life: create/load/integrate/flush, layer arrays
     mapper/query_answer.py     Zenoh-free query answering: embed, score, cluster, search volume
-    mapper/query_snapshot.py   the query's incremental float16 copy of the map and its scoring
+    semantic_map/query_snapshot.py   the query's incremental float16 copy of the map and its scoring
     mapper/service_config.py   the mapper config schema, thread counts
 
 Locking: ``lock`` (the map lock) guards the map and its feature space; ``qlock`` the robot

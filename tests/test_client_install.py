@@ -57,7 +57,7 @@ def mapper():
     import torch
 
     from common.feature_space import FeatureSpace
-    from common.text import make_text_encoder
+    from encoders.text import make_text_encoder
     from common.zenoh_session import free_tcp_port
     from mapper.service import MapperService
     from mapper.service_config import load_mapper_config

@@ -7,7 +7,7 @@ import torch
 
 from common.feature_space import FeatureSpace
 from common.pca import PCA
-from edge.encoders import EncoderConfig, make_encoder
+from encoders import EncoderConfig, make_encoder
 
 CLASSES = ["sky", "ground", "road", "building", "tree", "car", "fence", "chimney", "water tower",
            "radio tower", "street lamp", "bench"]
@@ -87,9 +87,9 @@ def test_image_vector_is_the_dominant_class_of_a_rendered_crop():
     that instance's class; a sky-only image gives the sky's; an image of no class is refused.
     (Classes the renderer shades alike are confused by colour: the largest building view reads
     as ground, a street lamp as road; see the module docstring.)"""
-    from common.encoders.label_image import class_shares, label_image_embedding
-    from common.world import World
-    from common.world.classes import CLASS_NAMES
+    from encoders.label_image import class_shares, label_image_embedding
+    from synthetic_world import World
+    from synthetic_world.classes import CLASS_NAMES
 
     w = World.generate(0)
     res = (240, 320)

@@ -1,4 +1,4 @@
-"""Simulated ViT-like encoder (edge.encoders.sim): each degradation checked against an
+"""Simulated ViT-like encoder (encoders.sim): each degradation checked against an
 independent computation on hand-made label images."""
 import math
 
@@ -7,16 +7,16 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from common.world import CLASS_NAMES
-from edge.encoders import EncoderConfig, make_encoder
-from edge.encoders.sim import SimEncoder
+from synthetic_world import CLASS_NAMES
+from encoders import EncoderConfig, make_encoder
+from encoders.sim import SimEncoder
 
 B, T = CLASS_NAMES.index("building"), CLASS_NAMES.index("tree")
 
 
 @pytest.fixture(scope="module")
 def text():
-    from common.text.minilm import MiniLMText
+    from encoders.text.minilm import MiniLMText
     return MiniLMText()
 
 

@@ -41,8 +41,8 @@ def _tiny_siglip(d, words):
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
-    from edge.encoders.radio import RadioConfig, save_flat
-    from edge.encoders.random_init import random_checkpoint
+    from encoders.radio import RadioConfig, save_flat
+    from encoders.random_init import random_checkpoint
 
     d = tmp_path_factory.mktemp("models")
     rc = RadioConfig(embed_dim=32, depth=1, num_heads=2, pos_grid=8, mlp_hidden=64)
@@ -57,15 +57,15 @@ def _enc_cfg(models):
 
 @pytest.fixture(scope="module")
 def world():
-    from common.world import World
+    from synthetic_world import World
     return World.generate(0)
 
 
 def test_language_plumbing(models):
     """Class texts come from the SigLIP text model; map features go through the head after
     averaging (independently: head(mean) vs the similarity callable)."""
-    from common.text.siglip import SiglipText
-    from edge.encoders import EncoderConfig, make_encoder
+    from encoders.text.siglip import SiglipText
+    from encoders import EncoderConfig, make_encoder
     from apps.evaluation.language import eval_language, text_model_dir
 
     enc = make_encoder(EncoderConfig(**_enc_cfg(models)))
@@ -85,14 +85,14 @@ def test_language_plumbing(models):
     enc.cfg.model_dir = models["dir"]
     assert text_model_dir(enc) == str(__import__("pathlib").Path(models["dir"]) / "siglip_text")
     assert eval_language(enc, names).text.shape == (3, LANG)
-    from common.text.errors import ModelFileError
+    from common.model_files import ModelFileError
     enc.cfg.model_dir = models["dir"] + "/nowhere"
     with pytest.raises(ModelFileError, match="siglip_text"):
         eval_language(enc, names)
 
 
 def test_language_dim_mismatch(models, tmp_path):
-    from edge.encoders import EncoderConfig, make_encoder
+    from encoders import EncoderConfig, make_encoder
     from apps.evaluation.language import eval_language
 
     enc = make_encoder(EncoderConfig(**_enc_cfg(models)))

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from common.config import merge
-from common.world import World
+from synthetic_world import World
 from apps.evaluation.semseg import SemsegConfig, run_semseg
 from apps.evaluation.srchvol import ALL_METHODS, SrchvolConfig, run_srchvol
 
@@ -81,9 +81,9 @@ def test_srchvol_paper_shape(sv_run):
 def test_shared_semantic_voxels_equal_separate_map(world):
     """Semantic Voxels evaluated on the RayFronts map (share_maps) is exact: the separate
     semantic_voxels map has the same voxels and occupancy."""
-    from edge.encoders import EncoderConfig, make_encoder
+    from encoders import EncoderConfig, make_encoder
     from apps.evaluation.srchvol import method_map_config
-    from mapper.map import RayFrontsMap
+    from semantic_map.map import RayFrontsMap
 
     cfg = SrchvolConfig()
     enc = make_encoder(EncoderConfig(kind="label"), world.classes)

@@ -69,7 +69,7 @@ def test_dense_grid_output_and_bad_input():
 # ----------------------------------------------------------------------------- whole runs
 @pytest.fixture(scope="module")
 def world():
-    from common.world import World
+    from synthetic_world import World
     return World.generate(0)
 
 

@@ -344,7 +344,7 @@ def test_semantic_change_journal_keeps_a_copy_exact():
     mix of fuses and prunes; a second owner, a reload or an overflow asks for everything."""
     import torch
 
-    from mapper.semantic_voxels import SemanticVoxels
+    from semantic_map.semantic_voxels import SemanticVoxels
 
     g = torch.Generator().manual_seed(0)
     sem = SemanticVoxels(0.5, 8)

@@ -7,7 +7,7 @@ import torch
 
 from common.feature_space import FeatureSpace, FeatureSpaceError
 from common.pca import PCA
-from common.text.heads import MLP2, MLP2Config
+from common.language_head import MLP2, MLP2Config
 
 
 def _pca(d=32, k=8, seed=0):

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from mapper import keys as cell_keys
-from mapper.ray_frontiers import RayStore, bin_centre_dirs
+from semantic_map import cell_keys
+from semantic_map.ray_frontiers import RayStore, bin_centre_dirs
 
 
 def _unit(v):
@@ -47,8 +47,8 @@ def test_b1_requeue_uses_stored_mean_direction(psi):
 def test_b1_requeue_in_map_keeps_direction():
     """End to end on the map: a spherical-baseline map with ray tracing on re-casts the rays
     of a vanished frontier along their mean direction (audit: 40/40 went along +x)."""
-    from mapper.config import map_config
-    from mapper.map import RayFrontsMap
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
     cfg = map_config("online", {"vox_size": 1.0, "ray_tracing": True, "depth_limit": 10.0},
                      "spherical_semfronts")
     m = RayFrontsMap(cfg, 4, occupancy_backend="torch")
@@ -70,7 +70,7 @@ def test_b2_paper_cost_lone_candidate_and_second_candidate():
     """Paper mode: a lone candidate costs 1; a worse second candidate lowers the chosen one's
     cost (the audit's 0.05 -> 0.256 weight jump). Absolute mode: the chosen cost is the same
     hand-computed value with or without the second candidate."""
-    from mapper.ray_frontiers import associate
+    from semantic_map.ray_frontiers import associate
     beta, D = 2.0, 40.0
     o, d = _one_ray()
     near = torch.tensor([[3, 0, 0]])                  # centre (7, 1, 1): d_ortho = sqrt(2), d_orig = sqrt(51)
@@ -92,7 +92,7 @@ def test_b2_absolute_cost_can_pick_a_different_frontier():
     max_dist 100: A = centre (2.5, .5, -.5) (d_ortho .906, d_orig 2.658), B = centre
     (29.5, .5, .5) (d_ortho .141, d_orig 29.5). Paper: A (1 + .090)/2 = .545 < B (.156 + 1)/2
     = .578 -> A. Absolute: A (.906 + .027)/2 = .466 > B (.141 + .295)/2 = .218 -> B."""
-    from mapper.ray_frontiers import associate
+    from semantic_map.ray_frontiers import associate
     o = torch.tensor([[0.0, 0.4, 0.4]], dtype=torch.float64)
     d = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
     fr = torch.tensor([[2, 0, -1], [29, 0, 0]])
@@ -109,13 +109,13 @@ def test_b2_absolute_cost_can_pick_a_different_frontier():
 @pytest.mark.parametrize("seed,beta,max_dist,close", [(0, 1.0, 15.0, False), (1, 0.5, 8.0, True),
                                                       (2, 2.0, -1.0, False)])
 def test_b2_absolute_kernel_torch_bruteforce_identical(seed, beta, max_dist, close):
-    from mapper import kernels
-    from mapper.ray_frontiers import associate, associate_bruteforce
+    from semantic_map import kernels
+    from semantic_map.ray_frontiers import associate, associate_bruteforce
     g = torch.Generator().manual_seed(seed)
     fr = torch.unique(torch.randint(-12, 12, (500, 3), generator=g), dim=0)
     o = (torch.rand(300, 3, generator=g, dtype=torch.float64) - 0.5) * 8
     d = torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=torch.float64), dim=1)
-    assert kernels.available(), f"mapper._rfkernels not built: {kernels.IMPORT_ERROR}"
+    assert kernels.available(), f"semantic_map._rfkernels not built: {kernels.IMPORT_ERROR}"
     k = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
     with kernels.disabled():
         t = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="absolute")
@@ -133,8 +133,8 @@ def test_b2_absolute_kernel_torch_bruteforce_identical(seed, beta, max_dist, clo
 
 def test_b2_map_weights_absolute_no_floor():
     """Map level: absolute mode stores 1 - c (no 0.05 floor); paper mode floors lone candidates."""
-    from mapper.config import map_config
-    from mapper.map import RayFrontsMap
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
     ws = {}
     for mode in ("paper", "absolute"):
         cfg = map_config("online", {"vox_size": 1.0, "depth_limit": 10.0, "ray_tracing": False,
@@ -168,9 +168,9 @@ def test_b3_subsampling_one_keeps_every_fine_frontier():
     """fronti_subsampling=1 with the default min_fronti (12) gave 0 frontiers silently; now,
     as the reference, subsampling is skipped at 1 and every fine frontier voxel is a frontier."""
     import numpy as np
-    from mapper.config import map_config
-    from mapper.frontiers import subsample
-    from mapper.map import RayFrontsMap
+    from semantic_map.config import map_config
+    from semantic_map.frontiers import subsample
+    from semantic_map.map import RayFrontsMap
     fine = torch.tensor([[0, 0, 0], [1, 0, 0], [1, 0, 0], [5, 5, 5]])
     ijk, cnt = subsample(fine, 1, 12)
     assert sorted(ijk.tolist()) == [[0, 0, 0], [1, 0, 0], [5, 5, 5]] and cnt.tolist() == [1, 2, 1]
@@ -193,14 +193,14 @@ def test_b3_subsampling_one_keeps_every_fine_frontier():
 
 def test_b5_occ_observ_weight_names_the_int8_bound():
     from common.config import ConfigError
-    from mapper.config import map_config
+    from semantic_map.config import map_config
     with pytest.raises(ConfigError, match=r"occ_observ_weight must be in 1\.\.128 .*int8.*got 200"):
         map_config("default", {"occ_observ_weight": 200})
     with pytest.raises(ConfigError, match="occ_observ_weight"):
         map_config("default", {"occ_observ_weight": 0})
     # the bound itself is usable: a voxel block with increment +127 runs
     import numpy as np
-    from mapper.map import RayFrontsMap
+    from semantic_map.map import RayFrontsMap
     cfg = map_config("default", {"occ_observ_weight": 128, "max_occ_cnt": 127, "vox_accum_period": 1,
                                  "depth_limit": 6.0, "vox_size": 0.5})
     m = RayFrontsMap(cfg, 4, occupancy_backend="torch")

@@ -92,8 +92,8 @@ def test_label_encoder_reprojection_error_is_rounding_only():
     """With the label encoder (what the demo and tests run) every feature is a mix of the
     world's class embeddings, which any basis of >= the class count keeps: the error is
     float16 rounding only."""
-    from common.text_encoders import make_text_encoder
-    from common.world.classes import CLASS_NAMES
+    from encoders.text import make_text_encoder
+    from synthetic_world.classes import CLASS_NAMES
 
     enc = make_text_encoder("minilm-l6")
     emb = enc.encode_labels(list(CLASS_NAMES)).float().numpy()            # (C, 384)
@@ -128,7 +128,7 @@ def test_compatibility_one_line_reasons():
 
 
 def test_head_difference_is_refused():
-    from common.text.heads import MLP2, MLP2Config
+    from common.language_head import MLP2, MLP2Config
 
     cfg = MLP2Config(in_dim=32, hidden_dim=16, out_dim=8, num_inner=0)
     torch.manual_seed(0)

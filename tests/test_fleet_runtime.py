@@ -42,8 +42,8 @@ def bases(recs, tmp_path_factory):
 
     from common.pca import PCA
     from common.recording import RecordingReader
-    from edge.encoders import make_encoder
-    from edge.encoders.config import EncoderConfig
+    from encoders import make_encoder
+    from encoders.config import EncoderConfig
 
     out = []
     d = tmp_path_factory.mktemp("bases")
@@ -232,7 +232,7 @@ def test_frames_of_two_robots_never_mix(tmp_path, procs, recs, bases):  # noqa: 
     """Robot a sees only cars, robot b only trees, 1 km apart (world_from_robot): every car
     voxel is where a drove and every tree voxel where b drove, and each robot's frames are
     mapped in its own order (seq) and all of them."""
-    from common.world.scene import World
+    from synthetic_world.scene import World
 
     names = _class_names(recs[0])
     car, tree = names.index("car"), names.index("tree")

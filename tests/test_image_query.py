@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from apps.demo import zenoh_env
-from common.world import World
+from synthetic_world import World
 from common.zenoh_session import ZenohConfig, free_tcp_port
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,19 +13,27 @@ import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("common", "edge", "mapper", "query_client", "apps")
+PACKAGES = ("common", "semantic_map", "synthetic_world", "encoders", "edge", "mapper", "query_client", "apps")
 ALLOWED = {
     "common": {"common"},
-    "edge": {"common", "edge"},
-    "mapper": {"common", "mapper"},
+    "semantic_map": {"common", "semantic_map"},
+    "synthetic_world": {"common", "synthetic_world"},
+    "encoders": {"common", "synthetic_world", "encoders"},
+    "edge": {"common", "synthetic_world", "encoders", "edge"},
+    "mapper": {"common", "semantic_map", "encoders", "mapper"},
     "query_client": {"common", "query_client"},
     "apps": set(PACKAGES),
 }
 
 
+#: compiled extension modules (no Python source: they import nothing of ours)
+EXTENSIONS = {"semantic_map._rfkernels": "semantic_map/csrc/rfkernels.cpp",
+              "semantic_map._vdbocc": "semantic_map/csrc/vdbocc.cpp"}
+
+
 def _modules() -> dict[str, Path]:
     """Dotted name → file of every module of our packages."""
-    out = {}
+    out = {name: ROOT / src for name, src in EXTENSIONS.items()}
     for pkg in PACKAGES:
         for p in sorted((ROOT / pkg).rglob("*.py")):
             rel = p.relative_to(ROOT).with_suffix("")
@@ -79,7 +87,7 @@ def _imports(mod: str, path: Path, modules: dict) -> list[tuple[str, int, str]]:
 @functools.lru_cache(maxsize=1)
 def _graph() -> tuple[dict, dict]:
     modules = _modules()
-    edges = {m: _imports(m, p, modules) for m, p in modules.items()}
+    edges = {m: ([] if m in EXTENSIONS else _imports(m, p, modules)) for m, p in modules.items()}
     return modules, edges
 
 
@@ -171,3 +179,54 @@ def test_checker_sees_lazy_forbidden_imports_and_cycles(tmp_path):
     assert [t for t, _, _ in edges["common.b"]] == ["common.a"]
     assert edges["mapper.x"] == []            # ``mapper.y`` is not a module here, numpy not ours
     assert _cycles(edges) == [["common.a", "common.b"]]
+
+
+# The pure map: computation only. Its own modules, and every module of ours they reach, import
+# none of these (ARCHITECTURE.md, "The pure map").
+PURE_MAP_FORBIDDEN = {"zenoh", "msgpack", "rerun", "threading", "concurrent", "multiprocessing", "socket",
+                      "asyncio", "subprocess", "json", "pickle", "shutil", "psutil", "cv2"}
+
+
+def _external_imports(path: Path) -> set[str]:
+    """Top-level names of every module an ``import`` statement in ``path`` names (ours or not)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+def test_pure_map_imports_no_io_transport_or_threads():
+    modules, edges = _graph()
+    reach = [m for m in modules if m.split(".")[0] == "semantic_map"]
+    seen = set(reach)
+    while reach:  # every module of ours the pure map reaches, lazily or not
+        m = reach.pop()
+        for target, _, _ in edges[m]:
+            if target not in seen:
+                seen.add(target)
+                reach.append(target)
+    assert {m.split(".")[0] for m in seen} <= {"semantic_map", "common"}
+    bad = {m: sorted(_external_imports(modules[m]) & PURE_MAP_FORBIDDEN) for m in sorted(seen) if m not in EXTENSIONS}
+    bad = {m: v for m, v in bad.items() if v}
+    assert not bad, f"the pure map reaches I/O, transport or threads: {bad}"
+
+
+def test_pure_map_loads_without_transport():
+    """Importing every module of the pure map loads no Zenoh, msgpack or rerun (checked in a fresh
+    interpreter: torch itself starts threads, so only our own imports are held to 'no threading')."""
+    import subprocess
+    import sys
+
+    mods = [m for m in _modules() if m.split(".")[0] == "semantic_map" and m not in EXTENSIONS]
+    code = ("import importlib, sys\n"
+            f"for m in {mods!r}: importlib.import_module(m)\n"
+            "print(sorted(n for n in ('zenoh', 'msgpack', 'rerun') if n in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout
+    from semantic_map import RayFrontsMap  # the package's public entry
+    assert RayFrontsMap.__module__ == "semantic_map.map"

@@ -4,8 +4,8 @@ import torch
 
 from common.conventions import voxel_index
 from common.geometry import intrinsics_from_fov, look_at
-from mapper.depth_geometry import aggregate_samples, erode_out_of_range, frame_geometry, sample_image
-from mapper.traversal import segment_cells, unique_cells
+from semantic_map.depth_geometry import aggregate_samples, erode_out_of_range, frame_geometry, sample_image
+from semantic_map.traversal import segment_cells, unique_cells
 
 
 def _slab_cells(o, e, vox, exclude_end=False):

@@ -11,12 +11,12 @@ import pytest
 import torch
 
 from common.conventions import voxel_center
-from common.world import World
-from mapper import keys as cell_keys
-from mapper.config import map_config
-from mapper.frontiers import FrontierTable
-from mapper.map import RayFrontsMap
-from mapper.ray_frontiers import RayStore, angle_bins
+from synthetic_world import World
+from semantic_map import cell_keys
+from semantic_map.config import map_config
+from semantic_map.frontiers import FrontierTable
+from semantic_map.map import RayFrontsMap
+from semantic_map.ray_frontiers import RayStore, angle_bins
 
 
 @pytest.fixture(autouse=True, scope="module")

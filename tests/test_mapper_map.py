@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from common.geometry import intrinsics_from_fov, look_at
-from mapper import keys as cell_keys
-from mapper.config import METHODS, PRESETS, map_config
-from mapper.map import RayFrontsMap
-from mapper.snapshot import SnapshotError
+from semantic_map import cell_keys
+from semantic_map.config import METHODS, PRESETS, map_config
+from semantic_map.map import RayFrontsMap
+from mapper.snapshot import SnapshotError, load_map, save_map
 
 HW = (24, 32)
 
@@ -116,8 +116,8 @@ def test_bad_input_raises_clear_errors():
 def test_snapshot_round_trip_exact(tmp_path):
     frames = _frames(12)
     m = _run(_cfg(feature_dtype="float16"), frames[:7])  # pending buffers inside
-    m.save(tmp_path / "snap")
-    m2 = RayFrontsMap.load(tmp_path / "snap")
+    save_map(m, tmp_path / "snap")
+    m2 = load_map(tmp_path / "snap", RayFrontsMap)
     q = torch.randn(3, 4, generator=torch.Generator().manual_seed(1))
     a, b = m.query(q, top_k=5), m2.query(q, top_k=5)
     assert torch.equal(a.voxel_sim, b.voxel_sim) and torch.equal(a.ray_sim, b.ray_sim)
@@ -133,11 +133,11 @@ def test_snapshot_round_trip_exact(tmp_path):
     # versioning and missing files
     (tmp_path / "snap" / "arrays.npz").unlink()
     with pytest.raises(SnapshotError, match="arrays.npz"):
-        RayFrontsMap.load(tmp_path / "snap")
+        load_map(tmp_path / "snap", RayFrontsMap)
     man = (tmp_path / "snap" / "manifest.json")
     man.write_text(man.read_text().replace('"version": 1', '"version": 99'))
     with pytest.raises(SnapshotError, match="version"):
-        RayFrontsMap.load(tmp_path / "snap")
+        load_map(tmp_path / "snap", RayFrontsMap)
 
 
 def test_baseline_modes():
@@ -200,7 +200,7 @@ def test_semantic_poses_voxels_take_global_feature():
 
 @pytest.mark.slow
 def test_synthetic_world_labels_and_landmark_rays():
-    from common.world import World
+    from synthetic_world import World
     w = World.generate(0)
     n, hw = 40, (72, 96)
     poses = w.trajectory("ground", n)

@@ -1,7 +1,7 @@
-"""C++ kernels (mapper._rfkernels) vs their torch twins vs independent brute force.
+"""C++ kernels (semantic_map._rfkernels) vs their torch twins vs independent brute force.
 
 Every kernel-backed function is run twice, with the kernels enabled and disabled
-(:func:`mapper.kernels.disabled`), and the results must be identical (``torch.equal``);
+(:func:`semantic_map.kernels.disabled`), and the results must be identical (``torch.equal``);
 where an independent reference exists (brute-force association, slab traversal, dense
 unique), both are compared with it too. Without the extension each test checks the torch
 path against the references first and then *skips* (reported with the reason, never a
@@ -15,21 +15,21 @@ import pytest
 import torch
 
 from common.conventions import sanitize_depth, voxel_index
-from mapper import kernels as KN
-from mapper import keys as K_
-from mapper.config import map_config
-from mapper.depth_geometry import aggregate_samples, erode_out_of_range, frame_geometry, sample_image
-from mapper.map import RayFrontsMap
-from mapper.ray_frontiers import associate, associate_bruteforce
-from mapper.traversal import segment_cells, unique_cells
+from semantic_map import kernels
+from semantic_map import cell_keys
+from semantic_map.config import map_config
+from semantic_map.depth_geometry import aggregate_samples, erode_out_of_range, frame_geometry, sample_image
+from semantic_map.map import RayFrontsMap
+from semantic_map.ray_frontiers import associate, associate_bruteforce
+from semantic_map.traversal import segment_cells, unique_cells
 
-needs_kernels = pytest.mark.skipif(not KN.available(), reason=f"mapper._rfkernels not built: {KN.IMPORT_ERROR}")
+needs_kernels = pytest.mark.skipif(not kernels.available(), reason=f"semantic_map._rfkernels not built: {kernels.IMPORT_ERROR}")
 
 
 def both(fn):
     """(kernel result, torch result) of ``fn()``; kernel result is None without the module."""
-    k = fn() if KN.available() else None
-    with KN.disabled():
+    k = fn() if kernels.available() else None
+    with kernels.disabled():
         t = fn()
     return k, t
 
@@ -38,7 +38,7 @@ def kernel_same(*pairs):
     """Kernel result == torch result for each ``(k, t)``; called last in a test: without the
     kernel module (``k is None``) the test is skipped here, after its torch checks ran."""
     if any(k is None for k, _ in pairs):
-        pytest.skip(f"mapper._rfkernels not built ({KN.IMPORT_ERROR}): only the torch path was checked")
+        pytest.skip(f"semantic_map._rfkernels not built ({kernels.IMPORT_ERROR}): only the torch path was checked")
     for k, t in pairs:
         assert_same(k, t)
 
@@ -55,11 +55,11 @@ def assert_same(a, b):
 
 
 def test_switch_and_env():
-    assert KN.enabled() == (KN.available() and KN._enabled)
-    with KN.disabled():
-        assert not KN.enabled()
-    old = KN.set_enabled(True)
-    assert KN.set_enabled(old) is True
+    assert kernels.enabled() == (kernels.available() and kernels._enabled)
+    with kernels.disabled():
+        assert not kernels.enabled()
+    old = kernels.set_enabled(True)
+    assert kernels.set_enabled(old) is True
 
 
 # ------------------------------------------------------------------------- association
@@ -104,7 +104,7 @@ def test_associate_far_from_origin_and_float32_rays():
 def test_associate_many_rays_uses_one_base_point(monkeypatch):
     # more rays than the torch path's ray chunk (8192) and the kernel's (set to 2500): all
     # chunks share the base point, so the result is the brute force's exactly
-    import mapper.ray_frontiers as RF
+    import semantic_map.ray_frontiers as RF
     monkeypatch.setattr(RF, "KERNEL_RAY_CHUNK", 2500)
     o, d, fr = _rays(6, 9000, 300, 8, far=3.0)
     o[:4500] += torch.tensor([30.0, 0, 0], dtype=torch.float64)
@@ -139,7 +139,7 @@ def test_unique_keys_matches_torch_unique():
     g = torch.Generator().manual_seed(0)
     for n, hi in ((0, 5), (1, 5), (1000, 7), (50000, 1 << 40), (20000, 30000)):
         x = torch.randint(-hi, hi, (n,), generator=g)
-        a = KN.unique_keys(x)
+        a = kernels.unique_keys(x)
         b = torch.unique(x, sorted=True, return_inverse=True, return_counts=True)
         assert_same(a, tuple(b))
 
@@ -150,14 +150,14 @@ def test_voxel_keys_and_range_errors():
     x[:100] = torch.round(x[:100] / 0.3) * 0.3  # on (or next to) voxel boundaries
     pairs = []
     for xx in (x, x.to(torch.float32)):
-        k, t = both(lambda: KN.voxel_keys(xx, 0.3))
-        assert torch.equal(t, K_.pack(voxel_index(xx.to(torch.float64), 0.3)))
+        k, t = both(lambda: kernels.voxel_keys(xx, 0.3))
+        assert torch.equal(t, cell_keys.pack(voxel_index(xx.to(torch.float64), 0.3)))
         pairs.append((k, t))
     far = torch.tensor([[4e6, 0.0, 0.0]], dtype=torch.float64)
     with pytest.raises(ValueError, match="packable range"):
-        KN.voxel_keys(far, 1.0)
-    with KN.disabled(), pytest.raises(ValueError, match="packable range"):
-        KN.voxel_keys(far, 1.0)
+        kernels.voxel_keys(far, 1.0)
+    with kernels.disabled(), pytest.raises(ValueError, match="packable range"):
+        kernels.voxel_keys(far, 1.0)
     kernel_same(*pairs)
 
 
@@ -173,20 +173,20 @@ def test_unique_cells_kernel_torch_dense_sparse():
     pairs = []
     for chunk in (397, 1 << 22):
         k, t = both(lambda: unique_cells(o, e, 0.5, exclude_end=excl, chunk=chunk))
-        with KN.disabled():
+        with kernels.disabled():
             sparse = unique_cells(o, e, 0.5, exclude_end=excl, chunk=chunk, max_dense=0)
         pairs.append((k, t))
         assert torch.equal(t, sparse)
         # independent: union of the per-segment pairs
         rid, c = segment_cells(o, e, 0.5, exclude_end=excl, chunk=chunk)
-        ref = K_.unpack(torch.unique(K_.pack(c)))
+        ref = cell_keys.unpack(torch.unique(cell_keys.pack(c)))
         assert torch.equal(t, ref)
     kernel_same(*pairs)
 
 
 # ------------------------------------------------------------------------- frame geometry
 def _world_frames(n, hw, seed=0):
-    from common.world import World
+    from synthetic_world import World
     w = World.generate(seed)
     poses = w.trajectory("ground", n, seed=seed)
     K = w.camera(hw, 90.0)
@@ -240,7 +240,7 @@ def test_aggregate_kernel_torch_and_reference(src_hw, dtype, mode):
         up = torch.nn.functional.interpolate(img.float()[None], size=(H, W), mode="bilinear", align_corners=False)[0]
         ref2 = torch.zeros(37, 6).index_add_(0, grp, up.reshape(6, -1).T[pix])
         torch.testing.assert_close(t, ref2, atol=1e-4, rtol=1e-4)
-    with KN.disabled():
+    with kernels.disabled():
         sparse = aggregate_samples(img, pix, (H, W), grp, 37, mode, max_dense=0)
     torch.testing.assert_close(sparse, t, atol=1e-5, rtol=1e-5)
     kernel_same((k, t))
@@ -248,7 +248,7 @@ def test_aggregate_kernel_torch_and_reference(src_hw, dtype, mode):
 
 @needs_kernels
 def test_kernel_bad_inputs_raise():
-    from mapper import _rfkernels as R
+    from semantic_map import _rfkernels as R
     with pytest.raises(IndexError):
         R.sample_pairs(np.array([0, 5]), np.array([0, 1]), 4, 4, 2, 2, False, 3)  # group 5 >= 3
     with pytest.raises(IndexError):

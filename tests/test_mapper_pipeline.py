@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from common.world import World
-from mapper.config import map_config
-from mapper.map import RayFrontsMap
+from synthetic_world import World
+from semantic_map.config import map_config
+from semantic_map.map import RayFrontsMap
+from mapper.snapshot import load_map, save_map
 from mapper.pipeline import MapPipeline
 
 HW = (48, 64)
@@ -166,9 +167,9 @@ def test_snapshot_with_frames_in_flight_equals_sequential(frames, tmp_path):
         pp._inflight[-1][1].result()  # both in-flight prepares have drawn their random numbers
         assert not torch.equal(m.generator.get_state(), ref.generator.get_state())
         assert torch.equal(m.rng_state(), ref.generator.get_state())
-        m.save(tmp_path / "snap")
+        save_map(m, tmp_path / "snap")
     assert m._rng_state_source is None
-    restored = RayFrontsMap.load(tmp_path / "snap")
+    restored = load_map(tmp_path / "snap", RayFrontsMap)
     _assert_same(ref, restored)
     for f in frames[9:]:
         ref.integrate(*f)

@@ -4,8 +4,8 @@ import math
 import pytest
 import torch
 
-from mapper import keys as cell_keys
-from mapper.ray_frontiers import (
+from semantic_map import cell_keys
+from semantic_map.ray_frontiers import (
     RayStore,
     angle_bins,
     associate,
@@ -110,7 +110,7 @@ def test_weighted_merge_and_prune_requeue():
 
 
 def test_infer_direction_points_to_unobserved():
-    from mapper.occupancy import make_occupancy
+    from semantic_map.occupancy import make_occupancy
 
     grid = make_occupancy(1.0, -5, 30, backend="torch")
     # observed (free) half-space x < 2; neighbours sampled at +-beta around the centre

@@ -2,10 +2,10 @@
 import torch
 
 from common.conventions import voxel_index
-from mapper import keys as cell_keys
-from mapper.frontiers import FrontierTable, subsample
-from mapper.occupancy import make_occupancy
-from mapper.semantic_voxels import SemanticVoxels
+from semantic_map import cell_keys
+from semantic_map.frontiers import FrontierTable, subsample
+from semantic_map.occupancy import make_occupancy
+from semantic_map.semantic_voxels import SemanticVoxels
 
 
 def test_fusion_equals_bruteforce_weighted_mean_with_removals():
@@ -50,8 +50,8 @@ def test_float16_storage():
 
 
 def test_map_pruning_removes_exactly_voxels_at_or_below_threshold():
-    from mapper.config import map_config
-    from mapper.map import RayFrontsMap
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
 
     cfg = map_config("default", dict(vox_size=1.0, vox_accum_period=1, sem_pruning_period=1,
                                      occ_pruning_period=-1, sem_pruning_thresh=2, semantic_rays=False))

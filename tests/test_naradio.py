@@ -14,10 +14,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from common.text.errors import ModelFileError
-from edge.encoders import EncoderConfig, make_encoder
-from edge.encoders.naclip import NaclipAttention, gaussian_bias
-from edge.encoders.radio import (
+from common.model_files import ModelFileError
+from encoders import EncoderConfig, make_encoder
+from encoders.naclip import NaclipAttention, gaussian_bias
+from encoders.radio import (
     RadioConfig,
     RadioModel,
     build_radio,
@@ -298,7 +298,7 @@ def test_gaussian_bias_brute_force(h, w, npre):
 
 
 def test_naclip_attention_hand_reference():
-    from edge.encoders.radio import Attention
+    from encoders.radio import Attention
     torch.manual_seed(0)
     attn = Attention(16, 2)
     na = NaclipAttention(attn, n_prefix=2, gauss_std=1.0)

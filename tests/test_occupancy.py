@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from common.conventions import voxel_index
-from mapper.occupancy import TorchOccupancy, VdbOccupancy, backend_name, from_state, make_occupancy, vdb_available
+from semantic_map.occupancy import TorchOccupancy, VdbOccupancy, backend_name, from_state, make_occupancy, vdb_available
 
 BACKENDS = [
     "torch",
     pytest.param("vdb", marks=pytest.mark.skipif(
-        not vdb_available(), reason="mapper._vdbocc not built (OpenVDB missing)")),
+        not vdb_available(), reason="semantic_map._vdbocc not built (OpenVDB missing)")),
 ]
 
 

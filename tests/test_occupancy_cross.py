@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from mapper.occupancy import TorchOccupancy, vdb_available
+from semantic_map.occupancy import TorchOccupancy, vdb_available
 
 pytestmark = pytest.mark.skipif(not vdb_available(),
-                                reason="mapper._vdbocc not built (OpenVDB missing)")
+                                reason="semantic_map._vdbocc not built (OpenVDB missing)")
 
 
 def pair(vox=0.1, lo=-5, hi=30):
-    from mapper.occupancy import VdbOccupancy
+    from semantic_map.occupancy import VdbOccupancy
     return TorchOccupancy(vox, lo, hi), VdbOccupancy(vox, lo, hi)
 
 
@@ -121,7 +121,7 @@ def test_prune_twice_and_rewrite_matches():
 
 
 def test_vdb_file_round_trip(tmp_path):
-    from mapper.occupancy import VdbOccupancy
+    from semantic_map.occupancy import VdbOccupancy
     rng = np.random.default_rng(13)
     _, v = pair(vox=0.05, lo=-4, hi=20)
     v.update(rng.integers(-50, 50, size=(20000, 3)), rng.choice([-1, 5], size=20000))

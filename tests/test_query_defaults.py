@@ -8,7 +8,7 @@ import torch
 from common.config import ConfigError, merge
 from common.feature_space import FeatureSpace
 from common.messages import QueryRequest
-from edge.encoders.label import LabelEncoder
+from encoders.label import LabelEncoder
 from mapper.query_answer import SOFTMAX_NEGATIVES, query_templates, scores_for, softmax_set
 from mapper.service_config import QuerySection
 
@@ -31,7 +31,7 @@ def test_templates_auto_per_encoder(space):
     assert query_templates(SimpleNamespace(head_config=None, text_model="siglip")) == "imagenet80"
     assert query_templates(SimpleNamespace(head_config=object(), text_model="x")) == "imagenet80"
     assert query_templates(fs, "single") == "single"
-    from common.text.templates import IMAGENET_TEMPLATES
+    from encoders.text.templates import IMAGENET_TEMPLATES
     assert len(IMAGENET_TEMPLATES) == 80 and len(set(IMAGENET_TEMPLATES)) == 80
 
 

@@ -1,5 +1,5 @@
 """The query copy's float16 scoring against a float64 brute-force cosine, and the sampled
-top-k against a full stable sort (mapper.query_snapshot, mapper.query_answer.top_stable)."""
+top-k against a full stable sort (semantic_map.query_snapshot, mapper.query_answer.top_stable)."""
 import numpy as np
 import pytest
 import torch

@@ -15,8 +15,8 @@ from common.conventions import voxel_center
 from common.feature_space import FeatureSpace
 from common.messages import QueryRequest
 from common.pca import PCA
-from common.text.heads import MLP2, MLP2Config
-from mapper import keys as cell_keys
+from common.language_head import MLP2, MLP2Config
+from semantic_map import cell_keys
 from mapper.query_answer import SCORE_ATOL
 from mapper.service_map import QuerySnapshot, answer_snapshot, cone_union_volume, create_map, top_stable
 

@@ -7,7 +7,7 @@ Speed (these helpers are shared by the process-level test files): every process 
 through :class:`Proc` (and the PCA fit) gets ``RAYFRONTS_TEXT_CACHE`` pointing at one
 directory per pytest session, so only the first edge of a session loads the MiniLM text
 model to embed its class names, and a mapper loads it only for a query text no earlier
-process embedded (``common.text.base``; the embeddings read back are the exact float32
+process embedded (``encoders.text.base``; the embeddings read back are the exact float32
 rows). The PCA basis is fitted once per session. Clients retry their connection every
 0.2 s (the mapper is usually still starting when a test opens one). Tests wait for
 conditions, never for fixed times; the only time bounds asserted are functional contracts

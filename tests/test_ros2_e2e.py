@@ -80,8 +80,8 @@ def world_bag(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def radio(tmp_path_factory):
-    from edge.encoders.radio import RadioConfig, save_flat
-    from edge.encoders.random_init import random_checkpoint
+    from encoders.radio import RadioConfig, save_flat
+    from encoders.random_init import random_checkpoint
 
     rc = RadioConfig(embed_dim=32, depth=1, num_heads=2, pos_grid=8, mlp_hidden=64)
     return str(save_flat(random_checkpoint(rc, head_hidden=32, head_out=16),
@@ -106,7 +106,7 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     from common.feature_space import FeatureSpace
     from common.recording import RecordingReader
     from common.wire import decode_frame, encode_frame
-    from edge.encoders import EncoderConfig, make_encoder
+    from encoders import EncoderConfig, make_encoder
     from edge.runtime import compress_features
     from mapper.service_config import load_mapper_config
     from mapper.service_map import create_map, flush, integrate, layer_arrays

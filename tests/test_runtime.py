@@ -100,7 +100,7 @@ def test_cli_help_lists_every_config_key(capsys):
 
 def test_mapper_config_preset_and_overrides():
     from common.config import ConfigError
-    from mapper.config import PRESETS
+    from semantic_map.config import PRESETS
     from mapper.service_config import load_mapper_config
 
     cfg = load_mapper_config(None, ["preset=online", "map.vox_size=0.7", "queues.per_robot=3"])

@@ -7,7 +7,7 @@ import pytest
 from common.geometry import camera_rays, intrinsics_from_fov
 from edge.sources import SourceConfig, SourceError, open_source, select_indices
 
-import common.world as world_mod
+import synthetic_world as world_mod
 
 
 @pytest.fixture(scope="module")

@@ -6,19 +6,20 @@ import json
 import pytest
 import torch
 
-from common.text import IMAGENET_TEMPLATES, ModelFileError, make_text_encoder
-from common.text.siglip import SiglipText, canonicalize
+from common.model_files import ModelFileError
+from encoders.text import IMAGENET_TEMPLATES, make_text_encoder
+from encoders.text.siglip import SiglipText, canonicalize
 
 
 @pytest.fixture(scope="module")
 def minilm():
-    from common.text.minilm import MiniLMText
+    from encoders.text.minilm import MiniLMText
     return MiniLMText()
 
 
 def test_minilm_matches_sentence_transformers(minilm):
     import sentence_transformers as st  # independent reference (test extra)
-    from common.text.minilm import minilm_model_dir
+    from encoders.text.minilm import minilm_model_dir
     ref = st.SentenceTransformer(str(minilm_model_dir()), device="cpu")
     texts = ["car", "antenna mast", "a red door on a brick wall"]
     want = torch.from_numpy(ref.encode(texts, normalize_embeddings=True))
@@ -99,8 +100,8 @@ def test_siglip_missing_files(tmp_path):
 def test_minilm_disk_cache_exact_and_skips_the_model(tmp_path, monkeypatch, minilm):
     """RAYFRONTS_TEXT_CACHE: a second process-like encoder reads the embeddings the first
     wrote (bit-exact) without loading the model; a string not cached loads it then."""
-    from common.text.base import ENV_TEXT_CACHE
-    from common.text.minilm import MiniLMText
+    from encoders.text.base import ENV_TEXT_CACHE
+    from encoders.text.minilm import MiniLMText
 
     monkeypatch.setenv(ENV_TEXT_CACHE, str(tmp_path))
     first = MiniLMText()

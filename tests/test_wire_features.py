@@ -113,12 +113,12 @@ def test_640x480_label_frames_under_100kb_and_the_map_answers_the_same():
     from apps.demo import DEFAULT_QUERIES
     from common.feature_space import FeatureSpace
     from common.pca import OnlinePCAFitter
-    from common.text_encoders import MiniLMText
-    from edge.encoders import EncoderConfig, make_encoder
+    from encoders.text import MiniLMText
+    from encoders import EncoderConfig, make_encoder
     from edge.runtime import compress_features
     from edge.sources import SourceConfig, open_source
-    from mapper.config import map_config
-    from mapper.map import RayFrontsMap
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
 
     src = open_source(SourceConfig(kind="synthetic", n_frames=10, resolution="480x640", depth_limit=20.0))
     frames = list(src)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from apps.cli import main
-from common.world import World
+from synthetic_world import World
 
 
 def test_rayfronts_world_writes_recording_and_rrd(tmp_path, capsys):

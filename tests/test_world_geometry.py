@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from common.geometry import intrinsics_from_fov, pixel_grid
-from common.world import Box, Cone, Cylinder, Part, Sphere, World
+from synthetic_world import Box, Cone, Cylinder, Part, Sphere, World
 
 CLASSES = ["sky", "ground", "thing", "other"]
 

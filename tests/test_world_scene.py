@@ -7,7 +7,7 @@ import pytest
 
 from common.conventions import is_rigid, sanitize_depth
 from common.geometry import camera_rays, scale_intrinsics
-from common.world import FAR_CLASSES, IN_RANGE_CLASSES, World
+from synthetic_world import FAR_CLASSES, IN_RANGE_CLASSES, World
 
 
 @pytest.fixture(scope="module")

@@ -254,7 +254,7 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: i
         m.sem.fuse(xyz[a:b], torch.rand((b - a, 3), generator=g), torch.randn((b - a, pca.out_dim), generator=g))
     assert len(m.sem) == n_vox
     if n_rays > 0:
-        from mapper import keys as cell_keys
+        from semantic_map import cell_keys
 
         fk = torch.unique(cell_keys.pack(torch.randint(-400, 400, (n_rays, 3), generator=g)))
         r = fk.numel()

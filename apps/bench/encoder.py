@@ -1,6 +1,6 @@
 """``rayfronts bench encoder``: the image encoder as the edge runs it (JSON result).
 
-NARADIO: the model is built exactly as ``rayfronts edge`` builds it — :func:`edge.encoders.make_encoder`
+NARADIO: the model is built exactly as ``rayfronts edge`` builds it — :func:`encoders.make_encoder`
 on an ``EncoderConfig`` (``--output``, ``--dtype``, ``--device``) reading a checkpoint from a
 model directory (``--model-dir``; default: random weights of the real architecture written to
 a temporary model directory as ``<model>.safetensors``, i.e. the file a user gets from
@@ -98,8 +98,8 @@ def _label_image(h: int, w: int, rng) -> np.ndarray:
 def random_model_dir(model: str, root: Path, dtype=None) -> Path:
     """Write random weights of ``model``'s real architecture as ``<root>/<model>.safetensors``
     (our flat layout, what ``rayfronts models convert`` writes); returns ``root``."""
-    from edge.encoders.radio import RadioConfig, save_flat
-    from edge.encoders.random_init import random_checkpoint
+    from encoders.radio import RadioConfig, save_flat
+    from encoders.random_init import random_checkpoint
 
     path = Path(root) / f"{model}.safetensors"
     if not path.is_file():
@@ -111,7 +111,7 @@ def edge_encoder(cfg_items: list[str], class_names=None):
     """``(encoder, edge config, torch threads)`` built exactly as ``rayfronts edge`` builds them
     from the config overrides ``cfg_items`` (thread count: ``edge.runtime.resolve_threads``)."""
     from common.config import load_config
-    from edge.encoders import make_encoder
+    from encoders import make_encoder
     from edge.runtime import EdgeConfig, resolve_threads
 
     ecfg = load_config(EdgeConfig, None, list(cfg_items))
@@ -165,8 +165,8 @@ def run(args: argparse.Namespace) -> dict:
         feat, gl = enc.encode_with_global(rgb, global_space="features")
         if not args.no_in_memory:
             # the same weights built in memory (no file): timed in alternation with the loaded model
-            from common.encoders.naradio import NaradioEncoder
-            from common.encoders.radio import read_checkpoint
+            from encoders.naradio import NaradioEncoder
+            from encoders.radio import read_checkpoint
 
             mem = NaradioEncoder(ecfg.encoder, device=dev, ckpt=read_checkpoint(enc.checkpoint_path))
             reps = max(3, args.frames)

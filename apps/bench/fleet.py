@@ -62,7 +62,7 @@ def render_recordings(root: Path, n: int, frames: int, resolution: str, depth_li
     from common.conventions import sanitize_depth
     from common.frame import Frame
     from common.recording import RecordingWriter
-    from common.world.scene import World
+    from synthetic_world.scene import World
 
     h, w = (int(v) for v in resolution.lower().split("x"))
     out = []
@@ -187,7 +187,7 @@ def fake_ids_probe(k: int, args, work: Path, evict_s: float = 8.0, legacy: bool 
     from common.conventions import sanitize_depth
     from common.frame import Frame
     from common.wire import encode_frame
-    from common.world.scene import World
+    from synthetic_world.scene import World
     from common.zenoh_session import ZenohConfig, free_tcp_port, open_session
     from query_client.client import Client
 

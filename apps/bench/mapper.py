@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trajectory", choices=["ground", "drone"], default="ground", help="camera trajectory")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE", help="map config overrides")
     parser.add_argument("--no-kernels", action="store_true",
-                        help="use the pure-torch paths instead of the C++ kernels (mapper._rfkernels); same results")
+                        help="use the pure-torch paths instead of the C++ kernels (semantic_map._rfkernels); same results")
     parser.add_argument("--no-pipeline", action="store_true",
                         help="integrate sequentially on one thread instead of the two-stage pipeline; same map")
     parser.add_argument("--compare", choices=["kernels", "pipeline"], default=None,
@@ -75,7 +75,7 @@ class _Side:
 
     def feed(self, frames, K) -> None:
         from apps.bench import meta
-        from mapper import kernels
+        from semantic_map import kernels
         old = kernels.set_enabled(self.kernels_on)
         try:
             c0, t0 = meta.cpu_seconds(), time.perf_counter()
@@ -137,11 +137,11 @@ def run(args: argparse.Namespace) -> dict:
 
     from apps.bench import meta
     from common.config import parse_override
-    from common.world import World
-    from mapper import kernels
-    from mapper.config import map_config
-    from mapper.map import RayFrontsMap
-    from mapper.occupancy import backend_name
+    from synthetic_world import World
+    from semantic_map import kernels
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
+    from semantic_map.occupancy import backend_name
 
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")

@@ -64,7 +64,7 @@ def build_map(n: int, dim: int, n_rays: int, fs, seed: int = 0):
     """A RayFrontsMap (default mapper config) holding ``n`` voxels and ``n_rays`` rays."""
     import torch
 
-    from mapper import keys as K_
+    from semantic_map import cell_keys
     from mapper.service_config import MapperConfig
     from mapper.service_map import create_map
 
@@ -77,10 +77,10 @@ def build_map(n: int, dim: int, n_rays: int, fs, seed: int = 0):
         idx = torch.arange(s0, min(n, s0 + chunk), dtype=torch.int64)
         ijk = torch.stack([idx % side, (idx // side) % side, idx // (side * side)], 1)
         k = idx.numel()
-        m.sem.fuse_sums(K_.pack(ijk), torch.rand((k, 3), generator=g), torch.randn((k, dim), generator=g),
+        m.sem.fuse_sums(cell_keys.pack(ijk), torch.rand((k, 3), generator=g), torch.randn((k, dim), generator=g),
                         torch.ones(k))
     rs = m.ray_store
-    fk = K_.pack(torch.randint(0, 200, (n_rays, 3), generator=g))
+    fk = cell_keys.pack(torch.randint(0, 200, (n_rays, 3), generator=g))
     d = torch.nn.functional.normalize(torch.randn((n_rays, 3), generator=g), dim=1)
     rs.load_state({"fkey": torch.sort(fk).values, "tbin": torch.zeros(n_rays, dtype=torch.int64),
                    "pbin": torch.zeros(n_rays, dtype=torch.int64), "feat": torch.randn((n_rays, dim), generator=g),
@@ -92,10 +92,10 @@ def _change(m, dim: int, g, side_hint: int) -> None:
     """One frame's worth of fusion: 3000 points, most on existing voxels, a few hundred new."""
     import torch
 
-    from mapper import keys as K_
+    from semantic_map import cell_keys
 
     ijk = torch.randint(0, side_hint + 2, (3000, 3), generator=g)
-    m.sem.fuse_sums(K_.pack(ijk), torch.rand((3000, 3), generator=g), torch.randn((3000, dim), generator=g),
+    m.sem.fuse_sums(cell_keys.pack(ijk), torch.rand((3000, 3), generator=g), torch.randn((3000, dim), generator=g),
                     torch.ones(3000))
 
 

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     from apps.bench import meta
-    from common.world.scene import World
+    from synthetic_world.scene import World
 
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames}")

@@ -46,7 +46,7 @@ class GroundTruth:
 
 
 def pack(ijk) -> np.ndarray:
-    from mapper import keys as cell_keys
+    from semantic_map import cell_keys
     return cell_keys.pack(torch.as_tensor(np.asarray(ijk), dtype=torch.int64)).numpy()
 
 
@@ -80,8 +80,8 @@ def ground_truth(frames: list[Frame], class_names: list[str], vox: float, gt_ran
                  world=None, frame_stride: int = 1, pixel_stride: int = 1, scene_volume: str = "observed",
                  occupancy_backend: str = "auto", progress: bool = False) -> GroundTruth:
     """Scene volume and GT classes (see module doc)."""
-    from mapper.config import map_config
-    from mapper.map import RayFrontsMap
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
 
     if scene_volume not in ("observed", "bbox"):
         raise ValueError(f"scene_volume must be 'observed' or 'bbox', got {scene_volume!r}")

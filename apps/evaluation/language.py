@@ -42,7 +42,7 @@ def text_model_dir(enc, configured: str = "") -> str | None:
     if configured:
         return configured
     if getattr(enc, "text_model", "minilm-l6") == "siglip":
-        from edge.encoders.files import SIGLIP_TEXT_DIR, default_model_dir
+        from encoders.files import SIGLIP_TEXT_DIR, default_model_dir
         md = getattr(getattr(enc, "cfg", None), "model_dir", "") or ""
         return str((Path(md).expanduser() if md else default_model_dir()) / SIGLIP_TEXT_DIR)
     return None
@@ -73,7 +73,7 @@ def eval_language(enc, class_names: Sequence[str], templates: bool = False, mode
     else:
         te = getattr(enc, "text", None)
         if te is None or getattr(te, "name", None) != fs.text_model:
-            from common.text_encoders import make_text_encoder
+            from encoders.text import make_text_encoder
             te = make_text_encoder(fs.text_model, model_dir=text_model_dir(enc, model_dir), device=device)
         text = te.encode_labels(names, templates="imagenet80" if templates else "none").to(torch.float32)
     if text.shape[1] != fs.lang_dim:

@@ -7,7 +7,7 @@ intervals are computed analytically: one of the shape grown by ``pad`` metres (h
 voxel the exact test accepts) and one of the shape shrunk by ``pad`` (every voxel in it is
 accepted). Voxels of the shrunk interval are counted without a test; only the few voxels
 between the two (within ``pad`` of the surface) go through the shape's **exact per-point
-test** — the very test the block path (:func:`mapper.search_volume.membership_counts`)
+test** — the very test the block path (:func:`semantic_map.search_volume.membership_counts`)
 applies, so the counts are identical to it, bit for bit. Intervals are accumulated as
 +1/−1 into a difference array along the rows; a cumulative sum gives the counts.
 
@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from mapper import search_volume
+from semantic_map import search_volume
 
 ExactTest = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 #: interval function: (shape indices (S,), pad metres) -> (lo_out, hi_out, lo_in, hi_in) float64

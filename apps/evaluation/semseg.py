@@ -32,7 +32,7 @@ from apps.evaluation.data import load_frames
 from apps.evaluation.language import eval_language
 from apps.evaluation.srchvol import _json_safe
 from common.config import ConfigError, field_, section, to_dict
-from edge.encoders.config import EncoderConfig
+from encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
 
 #: the reference's background classes (Replica; ScanNet adds the three "other*" classes), brief §6.1
@@ -97,7 +97,7 @@ def predict_labels(feats: torch.Tensor, text: torch.Tensor, temperature: float =
     classes whose maximum probability over **all** rows is < ``denoise`` disabled, 0 where
     the best probability is < ``thresh`` (class 0 itself is a valid prediction only if it
     names a real class; callers treat 0 as "none")."""
-    from mapper.query import run_query
+    from semantic_map.query import run_query
 
     n = feats.shape[0]
     if n == 0:
@@ -125,9 +125,9 @@ def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
     """Map, predict, align and score one sequence; write ``summary.json`` (and
     ``run_info.json``) into ``out_dir``; return the summary."""
     cfg.validate()
-    from edge.encoders import make_encoder
-    from mapper.config import map_config
-    from mapper.map import RayFrontsMap
+    from encoders import make_encoder
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Search-volume shapes of the online benchmark, rasterised on voxel centres.
 
-* ``true`` cones: :func:`mapper.search_volume.cone_membership_counts` (half-angle α, apex at
+* ``true`` cones: :func:`semantic_map.search_volume.cone_membership_counts` (half-angle α, apex at
   the ray origin, infinite).
 * ``reference`` "cones" (brief §6.2, §10.2 #18): the reference evaluation's six-sided open
   pyramid. Local frame: +z along the ray, x/y from the Rodrigues rotation taking +z to the
@@ -10,8 +10,8 @@
   plane ``z = vox`` kept, far plane dropped. A point is inside when ``z >= vox`` and its
   local (x, y) lies in the hexagon of radius ``r(z)`` (:func:`metrics.reference_cone_radius`).
 * balls around ray-bearing frontiers (Spherical Semantic Frontiers):
-  :func:`mapper.search_volume.ball_membership_counts` with radii from
-  :func:`mapper.search_volume.frontier_ball_radii`.
+  :func:`semantic_map.search_volume.ball_membership_counts` with radii from
+  :func:`semantic_map.search_volume.frontier_ball_radii`.
 
 All functions take (V, 3) voxel centres in metres and return (V,) int64 counts.
 """
@@ -22,7 +22,7 @@ import math
 import numpy as np
 import torch
 
-from mapper import search_volume
+from semantic_map import search_volume
 
 
 def rotation_z_to(dirs: torch.Tensor) -> torch.Tensor:
@@ -49,7 +49,7 @@ def rotation_z_to(dirs: torch.Tensor) -> torch.Tensor:
 
 def reference_pyramid_tests(origins, dirs, vox: float, subsampling: float, half_angle_deg: float,
                             num_segs: int = 6):
-    """(block_test, exact_test) for :func:`mapper.search_volume.membership_counts`."""
+    """(block_test, exact_test) for :func:`semantic_map.search_volume.membership_counts`."""
     o = torch.as_tensor(origins, dtype=torch.float64).reshape(-1, 3)
     R = rotation_z_to(torch.as_tensor(dirs, dtype=torch.float64).reshape(-1, 3))
     r0 = vox * subsampling

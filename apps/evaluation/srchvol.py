@@ -1,6 +1,6 @@
 """Online search-volume benchmark (paper §IV-A, Table I; reference brief §6.2).
 
-For every depth limit and method a :class:`mapper.map.RayFrontsMap` is fed the same frames
+For every depth limit and method a :class:`semantic_map.map.RayFrontsMap` is fed the same frames
 (read / rendered and encoded once). Every ``every`` frames and at the end, per GT class:
 
 1. observed = the method's active occupancy voxels; unobserved = scene-volume voxels not
@@ -35,7 +35,7 @@ exactly the evaluated class names (the dataset's classes incl. class 0, no inven
 negatives), temperature 100.
 
 Encoders: ``label`` (every pixel its class's name embedding — measures geometry only),
-``sim`` (those embeddings degraded like a ViT's, :mod:`edge.encoders.sim` — measures
+``sim`` (those embeddings degraded like a ViT's, :mod:`encoders.sim` — measures
 open-vocabulary mapping under realistic feature errors) or ``naradio``.
 """
 from __future__ import annotations
@@ -53,7 +53,7 @@ import numpy as np
 import torch
 
 from common.config import ConfigError, field_, section, to_dict
-from edge.encoders.config import EncoderConfig
+from encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
 from apps.evaluation import metrics as M
 from apps.evaluation import raster as R
@@ -79,9 +79,9 @@ class SrchvolConfig:
     map: dict = field_({"max_rays_per_frame": 1000},
                        "MapConfig overrides for every method, e.g. map.fronti_subsampling=5 (default: the "
                        "CPU scaling of the online preset, 1000 rays per frame as the authors' own fallback)")
-    preset: str = field_("online", "map preset (mapper.config.PRESETS); 'online' = the paper's online table")
+    preset: str = field_("online", "map preset (semantic_map.config.PRESETS); 'online' = the paper's online table")
     depth_limits: list[float] = field_([0.0, 10.0, 20.0], "simulated depth ranges (m); 0 = no depth")
-    methods: list[str] = field_(list(ALL_METHODS), "methods to evaluate (mapper.config.METHODS names)")
+    methods: list[str] = field_(list(ALL_METHODS), "methods to evaluate (semantic_map.config.METHODS names)")
     vox: float = field_(1.0, "voxel size (m) of maps and GT")
     every: int = field_(10, "evaluate every this many frames (and after the last)")
     gt_range: float = field_(50.0, "GT pass: depth beyond this is out of range (reference: 50 m TartanAir cutoff)")
@@ -122,7 +122,7 @@ class SrchvolConfig:
         return list(self.methods) + [v for v in self.variants if v not in self.methods]
 
     def validate(self) -> "SrchvolConfig":
-        from mapper.config import METHODS, PRESETS
+        from semantic_map.config import METHODS, PRESETS
         bad = [m for m in self.methods if m not in ALL_METHODS]
         if bad:
             raise ConfigError(f"unknown method(s) {bad}; choose from {ALL_METHODS}")
@@ -149,13 +149,13 @@ def applicable(method: str, depth: float) -> bool:
 
 
 def method_map_config(cfg: SrchvolConfig, method: str, depth: float, width: int):
-    from mapper.config import map_config
+    from semantic_map.config import map_config
 
     over = dict(cfg.map)
     over["vox_size"] = cfg.vox
     over["depth_limit"] = float(depth)
     if cfg.ray_erosion_scale and "ray_erosion" not in cfg.map:
-        from mapper.config import PRESETS
+        from semantic_map.config import PRESETS
         base = PRESETS[cfg.preset].get("ray_erosion", 4)
         over["ray_erosion"] = int(round(base * width / 640))
     variant = cfg.variants.get(method)
@@ -316,8 +316,8 @@ def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
     ``out_dir``. Returns ``{depth_key: {method: {metric: value}}}`` (values in [0, 1] or
     ``None`` for N/A)."""
     cfg.validate()
-    from edge.encoders import make_encoder
-    from mapper.map import RayFrontsMap
+    from encoders import make_encoder
+    from semantic_map.map import RayFrontsMap
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""The synthetic world (``common.world``) as a frame source.
+"""The synthetic world (``synthetic_world``) as a frame source.
 
 Renders the world along one of its trajectories, directly at the requested resolution
 (``resolution``, default 240×320 when null) with horizontal FoV ``hfov``; frames carry
@@ -23,7 +23,7 @@ class SyntheticSource(FrameSource):
     default_fps = 10.0
 
     def __init__(self, cfg: SourceConfig, world=None):
-        """``world``: an already built ``common.world.World`` (else ``World.generate(seed, preset)``)."""
+        """``world``: an already built ``synthetic_world.World`` (else ``World.generate(seed, preset)``)."""
         super().__init__(cfg)
         if cfg.n_frames < 0:
             raise SourceError(f"synthetic: n_frames must be >= 0, got {cfg.n_frames}")
@@ -31,9 +31,9 @@ class SyntheticSource(FrameSource):
             raise SourceError(f"synthetic: hfov must be in (0, 180) degrees, got {cfg.hfov}")
         if world is None:
             try:
-                from common.world import World
+                from synthetic_world import World
             except ImportError as e:
-                raise SourceError(f"synthetic: the synthetic world (common.world) is not available: {e}") from None
+                raise SourceError(f"synthetic: the synthetic world (synthetic_world) is not available: {e}") from None
             try:
                 world = World.generate(cfg.seed, cfg.preset)
             except (ValueError, KeyError) as e:

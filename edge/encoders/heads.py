@@ -1,7 +1,0 @@
-"""Moved to :mod:`common.encoders.heads` (the mapper needs it for image queries); this name is
-the same module object, kept for the edge and existing imports."""
-import sys
-
-from common.encoders import heads as _impl
-
-sys.modules[__name__] = _impl

@@ -1,0 +1,23 @@
+"""The RayFronts map: semantic voxels, occupancy, frontiers and semantic ray frontiers.
+
+Computation only — no I/O, no transport, no threads (``tests/test_layers.py`` holds it to
+that). Usable on its own::
+
+    from semantic_map import RayFrontsMap, MapConfig
+    m = RayFrontsMap(MapConfig(), feature_dim=384)
+
+Conventions (frames, units, voxel indexing) are those of ``docs/conventions.md``.
+"""
+from __future__ import annotations
+
+__all__ = ["RayFrontsMap", "MapConfig"]
+
+
+def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` loads no map
+    if name == "RayFrontsMap":
+        from semantic_map.map import RayFrontsMap
+        return RayFrontsMap
+    if name == "MapConfig":
+        from semantic_map.config import MapConfig
+        return MapConfig
+    raise AttributeError(name)

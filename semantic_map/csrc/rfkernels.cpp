@@ -1,0 +1,657 @@
+// semantic_map._rfkernels: small CPU kernels for the mapper's hot loops (no OpenVDB).
+//
+// Every kernel has a pure-torch twin in mapper/*.py that gives the same result; the
+// Python side (semantic_map/kernels.py) picks the kernel when this module imports. Kernels take
+// C-contiguous CPU numpy arrays / torch tensors (DLPack), release the GIL, run on one
+// thread and return numpy arrays (zero-copy for torch.from_numpy).
+//
+// * unique_i64(keys) -> (sorted unique, inverse, counts): torch.unique(sorted=True,
+//   return_inverse=True, return_counts=True) by open-addressing hashing (O(N) + sort of
+//   the unique keys), not by sorting all N keys.
+// * associate_rays(...) + argmin_cost(...): for rays (o, d, length) and coarse frontier
+//   cells of size beta, the association of semantic_map.ray_frontiers (test t > 0,
+//   |p - o - t d| <= beta, |p - o| <= max_dist (and >= 2 beta with reject_close); per-ray
+//   normalised cost; argmin) with bit-identical results (the two square roots per pair
+//   are taken by torch in between). Rays are walked (3-D DDA) through a grid of blocks
+//   of `block`^3 coarse cells; a block lists the frontiers whose cell lies in the block
+//   grown by one cell, which holds every frontier within beta of any point of the block,
+//   so the walk has half a cell of slack and needs no exact grazing.
+// * group_pairs(group, idx, wt, n_groups, n_src): the non-zeros of the (group x source)
+//   sampling matrix of semantic_map.depth_geometry.aggregate_samples, as its bincount path;
+//   sample_pairs(...) also computes the bilinear / nearest corners (_corners) itself.
+// * segment_cells_unique(...): the unique cells of semantic_map.traversal.unique_cells (same
+//   crossing enumeration and float32 arithmetic), hashed instead of a dense mask / sort.
+// * voxel_keys_f32/_f64(xyz, vox): packed keys of floor(xyz / vox) (float64 division).
+// * surface_samples(...): semantic surface points and the unique occupied voxels of a
+//   frame (semantic_map.depth_geometry), with the torch code's float64 operations.
+
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/tuple.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <numeric>
+#include <stdexcept>
+#include <vector>
+
+namespace nb = nanobind;
+
+namespace {
+
+using I64In = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using F64In = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using F32In = nb::ndarray<const float, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using F64x3In = nb::ndarray<const double, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+using I64x3In = nb::ndarray<const int64_t, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+
+template <typename T>
+nb::ndarray<nb::numpy, T> to_numpy(std::vector<T>&& v, std::initializer_list<size_t> shape) {
+    if (v.capacity() == 0) v.reserve(1);  // never hand out a null data pointer
+    auto* heap = new std::vector<T>(std::move(v));
+    nb::capsule owner(heap, [](void* p) noexcept { delete static_cast<std::vector<T>*>(p); });
+    return nb::ndarray<nb::numpy, T>(heap->data(), shape, owner);
+}
+
+inline uint64_t mix(uint64_t x) {  // splitmix64 finaliser
+    x ^= x >> 31;
+    x *= 0x7fb5d329728ea185ULL;
+    x ^= x >> 27;
+    x *= 0x81dadef4bc2dd44dULL;
+    x ^= x >> 33;
+    return x;
+}
+
+// Open-addressing (linear probing) map int64 key -> dense id in first-seen order.
+class KeyIds {
+public:
+    explicit KeyIds(size_t expected) {
+        size_t cap = 16;
+        while (cap < 2 * expected + 1) cap <<= 1;
+        mask_ = cap - 1;
+        slot_key_.resize(cap);
+        slot_id_.assign(cap, -1);
+    }
+    // id of key, inserting it if new
+    int64_t insert(int64_t key) {
+        size_t h = mix(uint64_t(key)) & mask_;
+        while (true) {
+            int64_t id = slot_id_[h];
+            if (id < 0) {
+                id = int64_t(keys_.size());
+                slot_id_[h] = id;
+                slot_key_[h] = key;
+                keys_.push_back(key);
+                if (keys_.size() * 2 > mask_) grow();
+                return id;
+            }
+            if (slot_key_[h] == key) return id;
+            h = (h + 1) & mask_;
+        }
+    }
+    int64_t find(int64_t key) const {
+        size_t h = mix(uint64_t(key)) & mask_;
+        while (true) {
+            int64_t id = slot_id_[h];
+            if (id < 0) return -1;
+            if (slot_key_[h] == key) return id;
+            h = (h + 1) & mask_;
+        }
+    }
+    const std::vector<int64_t>& keys() const { return keys_; }
+
+private:
+    void grow() {
+        size_t cap = (mask_ + 1) * 2;
+        mask_ = cap - 1;
+        slot_key_.assign(cap, 0);
+        slot_id_.assign(cap, -1);
+        for (size_t id = 0; id < keys_.size(); ++id) {
+            size_t h = mix(uint64_t(keys_[id])) & mask_;
+            while (slot_id_[h] >= 0) h = (h + 1) & mask_;
+            slot_id_[h] = int64_t(id);
+            slot_key_[h] = keys_[id];
+        }
+    }
+    size_t mask_ = 0;
+    std::vector<int64_t> slot_key_;
+    std::vector<int64_t> slot_id_;
+    std::vector<int64_t> keys_;
+};
+
+// rank[id] = position of keys[id] in ascending order
+std::vector<int64_t> sorted_rank(const std::vector<int64_t>& keys, std::vector<int64_t>& order) {
+    order.resize(keys.size());
+    std::iota(order.begin(), order.end(), int64_t(0));
+    std::sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return keys[a] < keys[b]; });
+    std::vector<int64_t> rank(keys.size());
+    for (size_t r = 0; r < order.size(); ++r) rank[order[r]] = int64_t(r);
+    return rank;
+}
+
+nb::tuple unique_i64(I64In keys) {
+    const size_t n = keys.shape(0);
+    std::vector<int64_t> uniq, inverse(n), counts;
+    {
+        nb::gil_scoped_release release;
+        const int64_t* k = keys.data();
+        KeyIds ids(std::min<size_t>(n, 1 << 16));
+        for (size_t i = 0; i < n; ++i) inverse[i] = ids.insert(k[i]);
+        std::vector<int64_t> order;
+        std::vector<int64_t> rank = sorted_rank(ids.keys(), order);
+        const size_t u = order.size();
+        uniq.resize(u);
+        counts.assign(u, 0);
+        for (size_t r = 0; r < u; ++r) uniq[r] = ids.keys()[order[r]];
+        for (size_t i = 0; i < n; ++i) {
+            inverse[i] = rank[inverse[i]];
+            ++counts[inverse[i]];
+        }
+    }
+    size_t u = uniq.size();
+    return nb::make_tuple(to_numpy(std::move(uniq), {u}), to_numpy(std::move(inverse), {n}),
+                          to_numpy(std::move(counts), {u}));
+}
+
+inline int64_t floordiv(int64_t a, int64_t b) {
+    int64_t q = a / b;
+    return (a % b != 0 && ((a < 0) != (b < 0))) ? q - 1 : q;
+}
+
+inline int64_t block_key(int64_t i, int64_t j, int64_t k) {
+    constexpr int64_t off = int64_t(1) << 20, m = (int64_t(1) << 21) - 1;
+    return (((i + off) & m) << 42) | (((j + off) & m) << 21) | ((k + off) & m);
+}
+
+// Ray -> frontier candidate pairs (see the header comment and semantic_map/ray_frontiers.py).
+// Per pair the test is computed exactly as the torch code does (float32, relative to
+// `base`, sums left to right, scalar thresholds rounded to float32). Returns the passing
+// pairs grouped by ray (ascending), each once, with float32 d_ortho^2 and d_orig^2; the
+// square roots are left to torch (its float32 sqrt is not always correctly rounded, so
+// only torch can reproduce torch), then argmin_cost picks per ray.
+nb::tuple associate_rays(F64x3In origins, F64x3In dirs, F64In lengths, I64x3In fijk, double beta,
+                         int64_t block, F64In base, double max_dist, bool reject_close) {
+    const size_t R = origins.shape(0), F = fijk.shape(0);
+    if (dirs.shape(0) != R || lengths.shape(0) != R)
+        throw std::invalid_argument("origins, dirs and lengths must have the same number of rows");
+    if (!(beta > 0) || block < 1) throw std::invalid_argument("beta must be > 0 and block >= 1");
+    if (base.shape(0) != 3) throw std::invalid_argument("base must have 3 values");
+    std::vector<int64_t> out_r, out_f;
+    std::vector<float> out_oo, out_vv;
+    {
+        nb::gil_scoped_release release;
+        const double* o = origins.data();
+        const double* d = dirs.data();
+        const double* L = lengths.data();
+        const int64_t* c = fijk.data();
+        const double bs[3] = {base.data()[0], base.data()[1], base.data()[2]};
+        std::vector<float> p32(3 * F);
+        for (size_t f = 0; f < F; ++f)
+            for (int a = 0; a < 3; ++a) p32[3 * f + a] = float((double(c[3 * f + a]) + 0.5) * beta - bs[a]);
+        // block lists (CSR): frontier f is listed in every block whose cells grown by one
+        // cell contain f's cell
+        KeyIds blocks(F);
+        std::vector<int64_t> fb;  // (frontier, block id) pairs, up to 8 per frontier
+        fb.reserve(4 * F);
+        for (size_t f = 0; f < F; ++f) {
+            int64_t lo[3], hi[3];
+            for (int a = 0; a < 3; ++a) {
+                lo[a] = floordiv(c[3 * f + a] - 1, block);
+                hi[a] = floordiv(c[3 * f + a] + 1, block);
+            }
+            for (int64_t i = lo[0]; i <= hi[0]; ++i)
+                for (int64_t j = lo[1]; j <= hi[1]; ++j)
+                    for (int64_t k = lo[2]; k <= hi[2]; ++k) {
+                        fb.push_back(int64_t(f));
+                        fb.push_back(blocks.insert(block_key(i, j, k)));
+                    }
+        }
+        const size_t nb_ = blocks.keys().size();
+        std::vector<int64_t> start(nb_ + 1, 0), list(fb.size() / 2);
+        for (size_t q = 1; q < fb.size(); q += 2) ++start[fb[q] + 1];
+        for (size_t b = 0; b < nb_; ++b) start[b + 1] += start[b];
+        {
+            std::vector<int64_t> fill(start.begin(), start.end() - 1);
+            for (size_t q = 0; q < fb.size(); q += 2) list[fill[fb[q + 1]]++] = fb[q];
+        }
+        std::vector<int32_t> stamp(F, -1);
+        const double h = beta * double(block);
+        // thresholds as torch compares them: python double scalar -> float32
+        const float beta2 = float(beta * beta);
+        const float md2 = float(max_dist * max_dist);
+        const float close2 = float(4.0 * beta * beta);
+        for (size_t r = 0; r < R; ++r) {
+            const double ov[3] = {o[3 * r], o[3 * r + 1], o[3 * r + 2]};
+            const double dv[3] = {d[3 * r], d[3 * r + 1], d[3 * r + 2]};
+            const double len = L[r];
+            if (!std::isfinite(ov[0] + ov[1] + ov[2] + dv[0] + dv[1] + dv[2] + len)) continue;
+            const float o32[3] = {float(ov[0] - bs[0]), float(ov[1] - bs[1]), float(ov[2] - bs[2])};
+            const float d32[3] = {float(dv[0]), float(dv[1]), float(dv[2])};
+            int64_t cur[3], remaining[3], step[3];
+            double tmax[3], tdelta[3];
+            for (int a = 0; a < 3; ++a) {
+                cur[a] = int64_t(std::floor(ov[a] / h));
+                int64_t e = int64_t(std::floor((ov[a] + dv[a] * len) / h));
+                step[a] = e > cur[a] ? 1 : -1;
+                remaining[a] = e > cur[a] ? e - cur[a] : cur[a] - e;
+                if (remaining[a] > 0 && dv[a] != 0.0) {
+                    double plane = double(cur[a] + (step[a] > 0 ? 1 : 0)) * h;
+                    tmax[a] = (plane - ov[a]) / dv[a];
+                    tdelta[a] = h / std::fabs(dv[a]);
+                } else {
+                    remaining[a] = 0;
+                    tmax[a] = std::numeric_limits<double>::infinity();
+                    tdelta[a] = 0.0;
+                }
+            }
+            const int32_t tag = int32_t(r);
+            while (true) {
+                int64_t bid = blocks.find(block_key(cur[0], cur[1], cur[2]));
+                if (bid >= 0) {
+                    for (int64_t q = start[bid]; q < start[bid + 1]; ++q) {
+                        const int64_t f = list[q];
+                        if (stamp[f] == tag) continue;
+                        stamp[f] = tag;
+                        const float vx = p32[3 * f] - o32[0], vy = p32[3 * f + 1] - o32[1], vz = p32[3 * f + 2] - o32[2];
+                        const float px = vx * d32[0], py = vy * d32[1], pz = vz * d32[2];
+                        const float t = (px + py) + pz;
+                        const float sx = vx * vx, sy = vy * vy, sz = vz * vz;
+                        const float vv = (sx + sy) + sz;
+                        const float tt = t * t;
+                        float oo = vv - tt;
+                        if (oo < 0.0f) oo = 0.0f;
+                        if (!(t > 0.0f && oo <= beta2)) continue;
+                        if (max_dist > 0 && !(vv <= md2)) continue;
+                        if (reject_close && !(vv >= close2)) continue;
+                        out_r.push_back(int64_t(r));
+                        out_f.push_back(f);
+                        out_oo.push_back(oo);
+                        out_vv.push_back(vv);
+                    }
+                }
+                int a = 0;
+                if (tmax[1] < tmax[a]) a = 1;
+                if (tmax[2] < tmax[a]) a = 2;
+                if (remaining[a] == 0) break;  // every axis done (its tmax is +inf)
+                cur[a] += step[a];
+                if (--remaining[a] == 0) tmax[a] = std::numeric_limits<double>::infinity();
+                else tmax[a] += tdelta[a];
+            }
+        }
+    }
+    size_t k = out_r.size();
+    return nb::make_tuple(to_numpy(std::move(out_r), {k}), to_numpy(std::move(out_f), {k}),
+                          to_numpy(std::move(out_oo), {k}), to_numpy(std::move(out_vv), {k}));
+}
+
+// Per-ray argmin of the normalised cost over candidate pairs grouped by ray (ray ids
+// non-decreasing): cost = (x1 / max_ray x1 + x2 / max_ray x2) / 2 (a 0/0 term is 0), ties to
+// the lowest frontier index; the same float64 operations as the torch code.
+nb::tuple argmin_cost(I64In rays, I64In fidx, F64In x1, F64In x2) {
+    const size_t K = rays.shape(0);
+    if (fidx.shape(0) != K || x1.shape(0) != K || x2.shape(0) != K)
+        throw std::invalid_argument("rays, fidx, x1 and x2 must have the same length");
+    std::vector<int64_t> out_r, out_f;
+    std::vector<double> out_c;
+    {
+        nb::gil_scoped_release release;
+        const int64_t* ri = rays.data();
+        const int64_t* fi = fidx.data();
+        const double* a = x1.data();
+        const double* b = x2.data();
+        size_t s = 0;
+        while (s < K) {
+            size_t e = s;
+            double m1 = 0.0, m2 = 0.0;
+            while (e < K && ri[e] == ri[s]) {
+                m1 = std::max(m1, a[e]);
+                m2 = std::max(m2, b[e]);
+                ++e;
+            }
+            if (e < K && ri[e] < ri[s]) throw std::invalid_argument("rays must be grouped in ascending order");
+            double best = std::numeric_limits<double>::infinity();
+            int64_t bf = std::numeric_limits<int64_t>::max();
+            for (size_t q = s; q < e; ++q) {
+                double cost = 0.0;
+                cost += m1 > 0 ? a[q] / m1 : 0.0;
+                cost += m2 > 0 ? b[q] / m2 : 0.0;
+                cost /= 2.0;
+                if (cost < best || (cost == best && fi[q] < bf)) {
+                    best = cost;
+                    bf = fi[q];
+                }
+            }
+            if (std::isfinite(best)) {
+                out_r.push_back(ri[s]);
+                out_f.push_back(bf);
+                out_c.push_back(best);
+            }
+            s = e;
+        }
+    }
+    size_t k = out_r.size();
+    return nb::make_tuple(to_numpy(std::move(out_r), {k}), to_numpy(std::move(out_f), {k}),
+                          to_numpy(std::move(out_c), {k}));
+}
+
+// Non-zeros of the sparse (group x source) weight matrix A of
+// semantic_map.depth_geometry.aggregate_samples: entries (group[p], idx[p, c], wt[p, c]); returns
+// (g, src, weight) for every distinct (g, src) with a non-zero sum, in ascending
+// (g, src) order; each sum is accumulated in float32 in input order (as torch.bincount
+// does). Entries are bucketed by group (counting sort, stable) and de-duplicated per
+// group with a stamp array over sources, so the cost is O(P k + unique log).
+nb::tuple group_pairs_core(const int64_t* g, const int64_t* ix, const float* w, size_t P, size_t k,
+                           int64_t n_groups, int64_t n_src) {
+    if (n_groups < 0 || n_src < 0) throw std::invalid_argument("n_groups and n_src must be >= 0");
+    std::vector<int64_t> out_g, out_s;
+    std::vector<float> out_w;
+    {
+        nb::gil_scoped_release release;
+        std::vector<int64_t> start(size_t(n_groups) + 1, 0);
+        for (size_t q = 0; q < P; ++q) {
+            if (g[q] < 0 || g[q] >= n_groups) throw std::out_of_range("group index out of range");
+            start[g[q] + 1] += int64_t(k);
+        }
+        for (int64_t b = 0; b < n_groups; ++b) start[b + 1] += start[b];
+        // entries (source, weight) bucketed by group, input order kept within a group
+        std::vector<int64_t> bsrc(P * k);
+        std::vector<float> bw(P * k);
+        {
+            std::vector<int64_t> fill(start.begin(), start.end() - 1);
+            for (size_t q = 0; q < P; ++q) {
+                int64_t& f = fill[g[q]];
+                for (size_t c = 0; c < k; ++c, ++f) {
+                    const int64_t src = ix[q * k + c];
+                    if (src < 0 || src >= n_src) throw std::out_of_range("source index out of range");
+                    bsrc[f] = src;
+                    bw[f] = w[q * k + c];
+                }
+            }
+        }
+        std::vector<int64_t> stamp(size_t(n_src), -1);
+        std::vector<int32_t> slot(size_t(n_src), 0);
+        std::vector<int64_t> srcs, order;
+        std::vector<float> acc;
+        out_g.reserve(P);
+        out_s.reserve(P);
+        out_w.reserve(P);
+        for (int64_t b = 0; b < n_groups; ++b) {
+            srcs.clear();
+            acc.clear();
+            for (int64_t e = start[b]; e < start[b + 1]; ++e) {
+                const int64_t src = bsrc[e];
+                if (stamp[src] != b) {
+                    stamp[src] = b;
+                    slot[src] = int32_t(srcs.size());
+                    srcs.push_back(src);
+                    acc.push_back(0.0f);
+                }
+                acc[slot[src]] += bw[e];
+            }
+            order.resize(srcs.size());
+            std::iota(order.begin(), order.end(), int64_t(0));
+            std::sort(order.begin(), order.end(), [&](int64_t x, int64_t y) { return srcs[x] < srcs[y]; });
+            for (int64_t o : order) {
+                if (acc[o] == 0.0f) continue;
+                out_g.push_back(b);
+                out_s.push_back(srcs[o]);
+                out_w.push_back(acc[o]);
+            }
+        }
+    }
+    const size_t m = out_g.size();
+    return nb::make_tuple(to_numpy(std::move(out_g), {m}), to_numpy(std::move(out_s), {m}),
+                          to_numpy(std::move(out_w), {m}));
+}
+
+nb::tuple group_pairs(I64In group, nb::ndarray<const int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu> idx,
+                      nb::ndarray<const float, nb::ndim<2>, nb::c_contig, nb::device::cpu> wt,
+                      int64_t n_groups, int64_t n_src) {
+    const size_t P = group.shape(0), k = idx.shape(1);
+    if (idx.shape(0) != P || wt.shape(0) != P || wt.shape(1) != k)
+        throw std::invalid_argument("group (P,), idx (P, k) and wt (P, k) disagree");
+    return group_pairs_core(group.data(), idx.data(), wt.data(), P, k, n_groups, n_src);
+}
+
+// Source pixels and weights for sampling an (h, w) map at the centres of flat pixels of an
+// (H, W) image: the float32 operations of semantic_map.depth_geometry._corners (align_corners
+// False; bilinear with edge clamping, or nearest when `nearest` or the sizes are equal).
+void corners(const int64_t* pix, size_t P, int64_t H, int64_t W, int64_t h, int64_t w, bool nearest,
+             std::vector<int64_t>& idx, std::vector<float>& wt, size_t& k) {
+    const float sx = float(double(w) / double(W)), sy = float(double(h) / double(H));
+    const bool nn = nearest || (h == H && w == W);
+    k = nn ? 1 : 4;
+    idx.resize(P * k);
+    wt.resize(P * k);
+    const float wm = float(w - 1), hm = float(h - 1);
+    for (size_t q = 0; q < P; ++q) {
+        const int64_t p = pix[q];
+        if (p < 0 || p >= H * W) throw std::out_of_range("pixel index out of range");
+        const int64_t r = p / W, c = p - r * W;
+        float x = (float(c) + 0.5f) * sx - 0.5f;
+        float y = (float(r) + 0.5f) * sy - 0.5f;
+        if (nn) {
+            int64_t xi = int64_t(std::min(std::max(std::floor(x + 0.5f), 0.0f), wm));
+            int64_t yi = int64_t(std::min(std::max(std::floor(y + 0.5f), 0.0f), hm));
+            idx[q] = yi * w + xi;
+            wt[q] = 1.0f;
+            continue;
+        }
+        x = std::min(std::max(x, 0.0f), wm);
+        y = std::min(std::max(y, 0.0f), hm);
+        const int64_t x0 = int64_t(std::floor(x)), y0 = int64_t(std::floor(y));
+        const int64_t x1 = std::min<int64_t>(x0 + 1, w - 1), y1 = std::min<int64_t>(y0 + 1, h - 1);
+        const float fx = x - float(x0), fy = y - float(y0);
+        const float gx = 1.0f - fx, gy = 1.0f - fy;
+        idx[4 * q] = y0 * w + x0;
+        idx[4 * q + 1] = y0 * w + x1;
+        idx[4 * q + 2] = y1 * w + x0;
+        idx[4 * q + 3] = y1 * w + x1;
+        wt[4 * q] = gx * gy;
+        wt[4 * q + 1] = fx * gy;
+        wt[4 * q + 2] = gx * fy;
+        wt[4 * q + 3] = fx * fy;
+    }
+}
+
+// group_pairs of the sampling matrix of flat pixels `pix` of an (H, W) image on an (h, w)
+// map, the corners computed as semantic_map.depth_geometry._corners does.
+nb::tuple sample_pairs(I64In group, I64In pix, int64_t H, int64_t W, int64_t h, int64_t w, bool nearest,
+                       int64_t n_groups) {
+    const size_t P = pix.shape(0);
+    if (group.shape(0) != P) throw std::invalid_argument("group and pix differ in length");
+    if (H < 1 || W < 1 || h < 1 || w < 1) throw std::invalid_argument("image sizes must be >= 1");
+    std::vector<int64_t> idx;
+    std::vector<float> wt;
+    size_t k = 0;
+    {
+        nb::gil_scoped_release release;
+        corners(pix.data(), P, H, W, h, w, nearest, idx, wt, k);
+    }
+    return group_pairs_core(group.data(), idx.data(), wt.data(), P, k, n_groups, h * w);
+}
+
+constexpr int64_t kIdxLo = -(int64_t(1) << 20), kIdxHi = (int64_t(1) << 20) - 1;
+
+inline int64_t pack_key(int64_t i, int64_t j, int64_t k) {
+    constexpr int64_t off = int64_t(1) << 20;
+    return ((i + off) << 42) | ((j + off) << 21) | (k + off);
+}
+
+struct Range {
+    int64_t lo = std::numeric_limits<int64_t>::max(), hi = std::numeric_limits<int64_t>::min();
+    void add(int64_t v) {
+        lo = std::min(lo, v);
+        hi = std::max(hi, v);
+    }
+    bool ok() const { return lo > hi || (lo >= kIdxLo && hi <= kIdxHi); }
+};
+
+// Packed keys (semantic_map.cell_keys) of voxel_index(xyz, vox) = floor(double(xyz) / vox), plus the
+// smallest / largest index (so that Python raises semantic_map.cell_keys' error when out of range).
+template <typename T>
+nb::tuple voxel_keys_impl(const T* x, size_t n, double vox) {
+    std::vector<int64_t> keys(n);
+    Range rg;
+    {
+        nb::gil_scoped_release release;
+        for (size_t q = 0; q < n; ++q) {
+            int64_t a = int64_t(std::floor(double(x[3 * q]) / vox));
+            int64_t b = int64_t(std::floor(double(x[3 * q + 1]) / vox));
+            int64_t c = int64_t(std::floor(double(x[3 * q + 2]) / vox));
+            rg.add(a); rg.add(b); rg.add(c);
+            keys[q] = pack_key(a, b, c);
+        }
+    }
+    return nb::make_tuple(to_numpy(std::move(keys), {n}), rg.lo, rg.hi);
+}
+
+using F32x3In = nb::ndarray<const float, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+
+nb::tuple voxel_keys_f64(F64x3In xyz, double vox) { return voxel_keys_impl(xyz.data(), xyz.shape(0), vox); }
+nb::tuple voxel_keys_f32(F32x3In xyz, double vox) { return voxel_keys_impl(xyz.data(), xyz.shape(0), vox); }
+
+// Surface samples of a depth frame, as semantic_map.depth_geometry computes them in torch:
+// z = double(depth[pix]); points = float32(origin + D[pix] * z); occupied samples
+// origin + D[pix] * (z + offs[k]) for z + offs[k] > 0 -> sorted unique packed voxel keys.
+nb::tuple surface_samples(F64In origin, F64x3In D, F32In depth, I64In pix, F64In offs, double vox) {
+    if (origin.shape(0) != 3) throw std::invalid_argument("origin must have 3 values");
+    if (D.shape(0) != depth.shape(0)) throw std::invalid_argument("D and depth must have one row per pixel");
+    if (!(vox > 0)) throw std::invalid_argument("vox must be > 0");
+    const size_t P = pix.shape(0), T = offs.shape(0), HW = depth.shape(0);
+    std::vector<float> pts(3 * P);
+    std::vector<int64_t> uniq;
+    Range rg;
+    {
+        nb::gil_scoped_release release;
+        const double o[3] = {origin.data()[0], origin.data()[1], origin.data()[2]};
+        const double* Dp = D.data();
+        const float* dp = depth.data();
+        const int64_t* px = pix.data();
+        const double* of = offs.data();
+        KeyIds ids(std::min<size_t>(P * T, 1 << 16));
+        for (size_t q = 0; q < P; ++q) {
+            const int64_t i = px[q];
+            if (i < 0 || size_t(i) >= HW) throw std::out_of_range("pixel index out of range");
+            const double z = double(dp[i]);
+            const double* dv = Dp + 3 * i;
+            for (int a = 0; a < 3; ++a) {
+                const double m = dv[a] * z;
+                pts[3 * q + a] = float(o[a] + m);
+            }
+            for (size_t k = 0; k < T; ++k) {
+                const double zs = z + of[k];
+                if (!(zs > 0)) continue;
+                int64_t c[3];
+                for (int a = 0; a < 3; ++a) {
+                    const double m = dv[a] * zs;
+                    c[a] = int64_t(std::floor((o[a] + m) / vox));
+                    rg.add(c[a]);
+                }
+                ids.insert(pack_key(c[0], c[1], c[2]));
+            }
+        }
+        uniq = ids.keys();
+        std::sort(uniq.begin(), uniq.end());
+    }
+    const size_t u = uniq.size();
+    return nb::make_tuple(to_numpy(std::move(pts), {P, size_t(3)}), to_numpy(std::move(uniq), {u}), rg.lo, rg.hi);
+}
+
+// Sorted unique packed keys of every cell touched by segments o[i] -> e[i] (float64 world),
+// the exact crossing enumeration of semantic_map.traversal._chunk_cells with its float32
+// arithmetic: segments in chunks [lo, hi) with an integer base cell per chunk, coordinates
+// relative to the base; a flagged segment (exclude_end) drops its end cell. Returns
+// (keys, smallest index, largest index).
+nb::tuple segment_cells_unique(F64x3In o, F64x3In e, double cell, I64In chunk_lo, I64In chunk_hi,
+                               I64x3In chunk_base, nb::ndarray<const bool, nb::ndim<1>, nb::c_contig, nb::device::cpu> exclude_end,
+                               bool include_start) {
+    const size_t N = o.shape(0), C = chunk_lo.shape(0);
+    if (e.shape(0) != N) throw std::invalid_argument("origins and ends differ in length");
+    if (chunk_hi.shape(0) != C || chunk_base.shape(0) != C) throw std::invalid_argument("chunk arrays disagree");
+    const bool has_ex = exclude_end.shape(0) > 0;
+    if (has_ex && exclude_end.shape(0) != N) throw std::invalid_argument("exclude_end must be empty or (N,)");
+    if (!(cell > 0)) throw std::invalid_argument("cell must be > 0");
+    std::vector<int64_t> uniq;
+    Range rg;
+    {
+        nb::gil_scoped_release release;
+        const double* op = o.data();
+        const double* ep = e.data();
+        const bool* ex = exclude_end.data();
+        const float cf = float(cell);
+        KeyIds ids(1 << 14);
+        for (size_t ch = 0; ch < C; ++ch) {
+            const int64_t lo = chunk_lo.data()[ch], hi = chunk_hi.data()[ch];
+            if (lo < 0 || hi > int64_t(N) || lo > hi) throw std::out_of_range("chunk bounds out of range");
+            const int64_t* B = chunk_base.data() + 3 * ch;
+            const double bf[3] = {double(B[0]) * cell, double(B[1]) * cell, double(B[2]) * cell};
+            for (int64_t i = lo; i < hi; ++i) {
+                float orel[3], diff[3];
+                int64_t sc[3], fc[3];
+                for (int a = 0; a < 3; ++a) {
+                    const double ov = op[3 * i + a], evv = ep[3 * i + a];
+                    orel[a] = float(ov - bf[a]);
+                    const float erel = float(evv - bf[a]);
+                    diff[a] = erel - orel[a];
+                    sc[a] = int64_t(std::floor(ov / cell)) - B[a];
+                    fc[a] = int64_t(std::floor(evv / cell)) - B[a];
+                }
+                const bool drop_end = has_ex && ex[i];
+                auto emit = [&](int64_t x, int64_t y, int64_t z) {
+                    if (drop_end && x == fc[0] && y == fc[1] && z == fc[2]) return;
+                    x += B[0]; y += B[1]; z += B[2];
+                    rg.add(x); rg.add(y); rg.add(z);
+                    ids.insert(pack_key(x, y, z));
+                };
+                if (include_start) emit(sc[0], sc[1], sc[2]);
+                for (int a = 0; a < 3; ++a) {
+                    const int64_t stp = fc[a] - sc[a];
+                    if (stp == 0) continue;
+                    const int64_t sg = stp > 0 ? 1 : -1, cnt = stp > 0 ? stp : -stp;
+                    const int b1 = (a + 1) % 3, b2 = (a + 2) % 3;
+                    for (int64_t m = 1; m <= cnt; ++m) {
+                        const int64_t entered = sc[a] + m * sg;
+                        const int64_t plane = entered + (sg < 0 ? 1 : 0);
+                        const float num = float(plane) * cf - orel[a];
+                        const float t = num / diff[a];
+                        int64_t c[3];
+                        c[a] = entered;
+                        const float u1 = t * diff[b1], u2 = t * diff[b2];
+                        c[b1] = int64_t(std::floor((orel[b1] + u1) / cf));
+                        c[b2] = int64_t(std::floor((orel[b2] + u2) / cf));
+                        emit(c[0], c[1], c[2]);
+                    }
+                }
+            }
+        }
+        uniq = ids.keys();
+        std::sort(uniq.begin(), uniq.end());
+    }
+    const size_t u = uniq.size();
+    return nb::make_tuple(to_numpy(std::move(uniq), {u}), rg.lo, rg.hi);
+}
+
+}  // namespace
+
+NB_MODULE(_rfkernels, m) {
+    m.doc() = "CPU kernels for the RayFronts mapper (hash unique, ray-frontier candidates); see semantic_map.kernels";
+    m.def("unique_i64", &unique_i64, nb::arg("keys"));
+    m.def("associate_rays", &associate_rays, nb::arg("origins"), nb::arg("dirs"), nb::arg("lengths"),
+          nb::arg("frontier_ijk"), nb::arg("beta"), nb::arg("block"), nb::arg("base"), nb::arg("max_dist"),
+          nb::arg("reject_close"));
+    m.def("group_pairs", &group_pairs, nb::arg("group"), nb::arg("idx"), nb::arg("wt"), nb::arg("n_groups"),
+          nb::arg("n_src"));
+    m.def("sample_pairs", &sample_pairs, nb::arg("group"), nb::arg("pix"), nb::arg("H"), nb::arg("W"), nb::arg("h"),
+          nb::arg("w"), nb::arg("nearest"), nb::arg("n_groups"));
+    m.def("voxel_keys_f64", &voxel_keys_f64, nb::arg("xyz"), nb::arg("vox"));
+    m.def("voxel_keys_f32", &voxel_keys_f32, nb::arg("xyz"), nb::arg("vox"));
+    m.def("surface_samples", &surface_samples, nb::arg("origin"), nb::arg("D"), nb::arg("depth"), nb::arg("pix"),
+          nb::arg("offs"), nb::arg("vox"));
+    m.def("segment_cells_unique", &segment_cells_unique, nb::arg("origins"), nb::arg("ends"), nb::arg("cell"),
+          nb::arg("chunk_lo"), nb::arg("chunk_hi"), nb::arg("chunk_base"), nb::arg("exclude_end"),
+          nb::arg("include_start"));
+    m.def("argmin_cost", &argmin_cost, nb::arg("rays"), nb::arg("fidx"), nb::arg("x1"), nb::arg("x2"));
+}

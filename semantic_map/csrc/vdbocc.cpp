@@ -1,0 +1,477 @@
+// semantic_map._vdbocc: an int8 log-odds occupancy grid stored in OpenVDB, for Python.
+//
+// The module owns an openvdb::Grid<Tree4<int8_t, 5, 4, 3>> with background 0 and exposes
+// batched operations on voxel indices ijk = floor(xyz / vox) (int32, shape (N, 3)). Value
+// semantics: > 0 occupied, < 0 free, 0 or inactive = unobserved. The Python wrapper
+// (semantic_map/occupancy/vdb_backend.py) validates inputs; the torch backend
+// (semantic_map/occupancy/torch_backend.py) implements the same operations bit for bit.
+//
+// Threading: writes are serial (VDB topology changes are not thread-safe); reads use TBB
+// with one ConstAccessor per task. The GIL is released in every heavy call, and a
+// shared_mutex per grid keeps concurrent Python threads from racing on the tree.
+
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/string.h>
+#include <nanobind/stl/tuple.h>
+
+#include <openvdb/openvdb.h>
+#include <openvdb/io/File.h>
+#include <openvdb/tools/Prune.h>
+#include <openvdb/tree/LeafManager.h>
+
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <memory>
+#include <mutex>
+#include <shared_mutex>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace nb = nanobind;
+
+using TreeT = openvdb::tree::Tree4<int8_t, 5, 4, 3>::Type;
+using GridT = openvdb::Grid<TreeT>;
+using openvdb::Coord;
+using openvdb::CoordBBox;
+
+namespace {
+
+// Index range shared with the torch backend (21-bit keys).
+constexpr int64_t kIjkMin = -(int64_t(1) << 20);
+constexpr int64_t kIjkMax = (int64_t(1) << 20) - 1;
+
+using IjkIn = nb::ndarray<const int32_t, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+using I32In = nb::ndarray<const int32_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using I8In = nb::ndarray<const int8_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
+using F64x3In = nb::ndarray<const double, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
+
+// Hand a std::vector to numpy without copying: the vector lives on the heap, owned by a
+// capsule that numpy keeps alive. Needs the GIL.
+template <typename T>
+nb::ndarray<nb::numpy, T> to_numpy(std::vector<T>&& v, std::initializer_list<size_t> shape) {
+    if (v.capacity() == 0) v.reserve(1);  // never hand out a null data pointer
+    auto* heap = new std::vector<T>(std::move(v));
+    nb::capsule owner(heap, [](void* p) noexcept { delete static_cast<std::vector<T>*>(p); });
+    return nb::ndarray<nb::numpy, T>(heap->data(), shape, owner);
+}
+
+inline void classify(bool on, int8_t v, int& unobs, int& freec, int& occ) {
+    if (!on || v == 0) ++unobs;
+    else if (v < 0) ++freec;
+    else ++occ;
+}
+
+class OccGrid {
+public:
+    OccGrid(double vox, int lo, int hi) : vox_(vox), lo_(lo), hi_(hi) {
+        if (!(vox > 0.0) || !std::isfinite(vox))
+            throw std::invalid_argument("voxel size must be a finite value > 0");
+        if (lo < -128 || hi > 127 || lo > hi)
+            throw std::invalid_argument("clamp bounds must satisfy -128 <= lo <= hi <= 127");
+        grid_ = GridT::create(int8_t(0));
+        init_grid();
+    }
+
+    explicit OccGrid(GridT::Ptr grid) : grid_(std::move(grid)) {
+        vox_ = grid_->voxelSize()[0];
+        auto lo = grid_->metaValue<int32_t>("occ_lo");
+        auto hi = grid_->metaValue<int32_t>("occ_hi");
+        lo_ = lo;
+        hi_ = hi;
+    }
+
+    double vox() const { return vox_; }
+    int lo() const { return lo_; }
+    int hi() const { return hi_; }
+
+    // value = clamp(value + inc, lo, hi), row by row (duplicates applied in order).
+    void update(const IjkIn& ijk, const I32In& inc) {
+        const size_t n = ijk.shape(0);
+        if (inc.shape(0) != n) throw std::invalid_argument("inc must have one entry per row of ijk");
+        const int32_t* p = ijk.data();
+        const int32_t* a = inc.data();
+        nb::gil_scoped_release release;
+        std::unique_lock<std::shared_mutex> lock(mutex_);
+        auto acc = grid_->getAccessor();
+        for (size_t i = 0; i < n; ++i) {
+            const Coord c(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+            int8_t v = 0;
+            const bool on = acc.probeValue(c, v);
+            int64_t nv = int64_t(on ? v : 0) + int64_t(a[i]);
+            nv = std::min<int64_t>(std::max<int64_t>(nv, lo_), hi_);
+            acc.setValue(c, int8_t(nv));
+        }
+    }
+
+    // Overwrite voxels with given values (snapshot restore); activates them.
+    void set_values(const IjkIn& ijk, const I8In& vals) {
+        const size_t n = ijk.shape(0);
+        if (vals.shape(0) != n) throw std::invalid_argument("values must have one entry per row of ijk");
+        const int32_t* p = ijk.data();
+        const int8_t* v = vals.data();
+        nb::gil_scoped_release release;
+        std::unique_lock<std::shared_mutex> lock(mutex_);
+        auto acc = grid_->getAccessor();
+        for (size_t i = 0; i < n; ++i) acc.setValue(Coord(p[3 * i], p[3 * i + 1], p[3 * i + 2]), v[i]);
+    }
+
+    nb::ndarray<nb::numpy, int8_t> query(const IjkIn& ijk) const {
+        const size_t n = ijk.shape(0);
+        const int32_t* p = ijk.data();
+        std::vector<int8_t> out(n, 0);
+        {
+            nb::gil_scoped_release release;
+            std::shared_lock<std::shared_mutex> lock(mutex_);
+            const TreeT& tree = grid_->constTree();
+            tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 16384),
+                              [&](const tbb::blocked_range<size_t>& r) {
+                openvdb::tree::ValueAccessor<const TreeT> acc(tree);
+                for (size_t i = r.begin(); i < r.end(); ++i) {
+                    int8_t v = 0;
+                    const bool on = acc.probeValue(Coord(p[3 * i], p[3 * i + 1], p[3 * i + 2]), v);
+                    out[i] = on ? v : 0;
+                }
+            });
+        }
+        return to_numpy(std::move(out), {n});
+    }
+
+    // Free voxels (value < 0) whose (2r+1)^3 neighbourhood, self included, holds at least
+    // mu unobserved, mf free and mo occupied voxels; candidates limited to [bmin, bmax]
+    // when use_bbox. Leaves and active tiles (pruned nodes) are both searched; within a
+    // tile only the shell of thickness r can differ from the tile interior. Unsorted.
+    nb::ndarray<nb::numpy, int32_t> frontiers(int mu, int mf, int mo, int r, bool use_bbox,
+                                              std::tuple<int, int, int> bmin,
+                                              std::tuple<int, int, int> bmax) const {
+        if (r < 1 || r > 8) throw std::invalid_argument("radius must be in [1, 8]");
+        CoordBBox cbox = CoordBBox::inf();
+        if (use_bbox)
+            cbox = CoordBBox(Coord(std::get<0>(bmin), std::get<1>(bmin), std::get<2>(bmin)),
+                             Coord(std::get<0>(bmax), std::get<1>(bmax), std::get<2>(bmax)));
+        std::vector<int32_t> result;
+        {
+            nb::gil_scoped_release release;
+            std::shared_lock<std::shared_mutex> lock(mutex_);
+            const TreeT& tree = grid_->constTree();
+            const int size = (2 * r + 1) * (2 * r + 1) * (2 * r + 1);
+            tbb::enumerable_thread_specific<std::vector<int32_t>> found;
+
+            auto test = [&](openvdb::tree::ValueAccessor<const TreeT>& acc, const Coord& c) {
+                int unobs = 0, freec = 0, occ = 0;
+                for (int dx = -r; dx <= r; ++dx)
+                    for (int dy = -r; dy <= r; ++dy)
+                        for (int dz = -r; dz <= r; ++dz) {
+                            int8_t v = 0;
+                            const bool on = acc.probeValue(c.offsetBy(dx, dy, dz), v);
+                            classify(on, v, unobs, freec, occ);
+                        }
+                return unobs >= mu && freec >= mf && occ >= mo;
+            };
+            auto emit = [](std::vector<int32_t>& out, const Coord& c) {
+                out.push_back(c.x());
+                out.push_back(c.y());
+                out.push_back(c.z());
+            };
+
+            // 1) voxels in leaf nodes
+            openvdb::tree::LeafManager<const TreeT> leaves(tree);
+            tbb::parallel_for(leaves.leafRange(), [&](const openvdb::tree::LeafManager<const TreeT>::LeafRange& range) {
+                openvdb::tree::ValueAccessor<const TreeT> acc(tree);
+                auto& out = found.local();
+                for (auto leaf = range.begin(); leaf; ++leaf) {
+                    if (use_bbox && !cbox.hasOverlap(leaf->getNodeBoundingBox())) continue;
+                    for (auto it = leaf->cbeginValueOn(); it; ++it) {
+                        if (*it >= 0) continue;
+                        const Coord c = it.getCoord();
+                        if (use_bbox && !cbox.isInside(c)) continue;
+                        if (test(acc, c)) emit(out, c);
+                    }
+                }
+            });
+
+            // 2) active tiles with a free value (pruned nodes)
+            std::vector<CoordBBox> tiles;
+            {
+                auto it = tree.cbeginValueOn();
+                it.setMaxDepth(TreeT::ValueOnCIter::LEAF_DEPTH - 1);  // do not descend into leaves
+                for (; it; ++it) {
+                    if (!it.isTileValue() || *it >= 0) continue;
+                    CoordBBox b;
+                    it.getBoundingBox(b);
+                    if (use_bbox) {
+                        if (!cbox.hasOverlap(b)) continue;
+                    }
+                    tiles.push_back(b);
+                }
+            }
+            // A tile voxel farther than r from the tile's faces sees only the tile: all
+            // `size` cells free, none unobserved or occupied.
+            const bool interior_ok = (0 >= mu) && (size >= mf) && (0 >= mo);
+            tbb::parallel_for(tbb::blocked_range<size_t>(0, tiles.size(), 1),
+                              [&](const tbb::blocked_range<size_t>& range) {
+                openvdb::tree::ValueAccessor<const TreeT> acc(tree);
+                auto& out = found.local();
+                for (size_t t = range.begin(); t < range.end(); ++t) {
+                    const CoordBBox tb = tiles[t];
+                    CoordBBox b = tb;
+                    if (use_bbox) b.intersect(cbox);
+                    const Coord in_lo = tb.min().offsetBy(r), in_hi = tb.max().offsetBy(-r);
+                    auto shell = [&](int v, int axis) { return v < in_lo[axis] || v > in_hi[axis]; };
+                    for (int x = b.min().x(); x <= b.max().x(); ++x) {
+                        const bool sx = shell(x, 0);
+                        for (int y = b.min().y(); y <= b.max().y(); ++y) {
+                            const bool sxy = sx || shell(y, 1);
+                            if (sxy || interior_ok) {
+                                for (int z = b.min().z(); z <= b.max().z(); ++z) {
+                                    const Coord c(x, y, z);
+                                    if (sxy || shell(z, 2)) {
+                                        if (test(acc, c)) emit(out, c);
+                                    } else {
+                                        emit(out, c);  // interior_ok
+                                    }
+                                }
+                            } else {
+                                // only the two z-shell slabs can qualify
+                                const int z0 = b.min().z(), z1 = b.max().z();
+                                for (int z = z0; z <= std::min(z1, in_lo.z() - 1); ++z) {
+                                    const Coord c(x, y, z);
+                                    if (test(acc, c)) emit(out, c);
+                                }
+                                for (int z = std::max(z0, std::max(in_hi.z() + 1, in_lo.z())); z <= z1; ++z) {
+                                    const Coord c(x, y, z);
+                                    if (test(acc, c)) emit(out, c);
+                                }
+                            }
+                        }
+                    }
+                }
+            });
+            size_t total = 0;
+            for (auto& v : found) total += v.size();
+            result.reserve(total);
+            for (auto& v : found) result.insert(result.end(), v.begin(), v.end());
+        }
+        const size_t k = result.size() / 3;
+        return to_numpy(std::move(result), {k, size_t(3)});
+    }
+
+    void prune(int tol) {
+        if (tol < 0 || tol > 127) throw std::invalid_argument("prune tolerance must be in [0, 127]");
+        nb::gil_scoped_release release;
+        std::unique_lock<std::shared_mutex> lock(mutex_);
+        openvdb::tools::prune(grid_->tree(), int8_t(tol));
+    }
+
+    // All active voxels, tiles expanded: ((M, 3) int32, (M,) int8), unsorted.
+    std::tuple<nb::ndarray<nb::numpy, int32_t>, nb::ndarray<nb::numpy, int8_t>> active() const {
+        std::vector<int32_t> ijk;
+        std::vector<int8_t> vals;
+        {
+            nb::gil_scoped_release release;
+            std::shared_lock<std::shared_mutex> lock(mutex_);
+            const TreeT& tree = grid_->constTree();
+            const size_t m = size_t(tree.activeVoxelCount());
+            ijk.resize(3 * m);
+            vals.resize(m);
+            // leaves in parallel at precomputed offsets, then tiles
+            openvdb::tree::LeafManager<const TreeT> leaves(tree);
+            const size_t nl = leaves.leafCount();
+            std::vector<size_t> offs(nl + 1, 0);
+            for (size_t i = 0; i < nl; ++i) offs[i + 1] = offs[i] + leaves.leaf(i).onVoxelCount();
+            tbb::parallel_for(tbb::blocked_range<size_t>(0, nl, 64), [&](const tbb::blocked_range<size_t>& r) {
+                for (size_t i = r.begin(); i < r.end(); ++i) {
+                    size_t o = offs[i];
+                    for (auto it = leaves.leaf(i).cbeginValueOn(); it; ++it, ++o) {
+                        const Coord c = it.getCoord();
+                        ijk[3 * o] = c.x();
+                        ijk[3 * o + 1] = c.y();
+                        ijk[3 * o + 2] = c.z();
+                        vals[o] = *it;
+                    }
+                }
+            });
+            size_t o = offs[nl];
+            auto it = tree.cbeginValueOn();
+            it.setMaxDepth(TreeT::ValueOnCIter::LEAF_DEPTH - 1);
+            for (; it; ++it) {
+                if (!it.isTileValue()) continue;
+                CoordBBox b;
+                it.getBoundingBox(b);
+                const int8_t v = *it;
+                for (auto c = b.begin(); c; ++c, ++o) {
+                    ijk[3 * o] = (*c).x();
+                    ijk[3 * o + 1] = (*c).y();
+                    ijk[3 * o + 2] = (*c).z();
+                    vals[o] = v;
+                }
+            }
+            if (o != m) throw std::runtime_error("active voxel count mismatch while expanding tiles");
+        }
+        const size_t m = vals.size();
+        return {to_numpy(std::move(ijk), {m, size_t(3)}), to_numpy(std::move(vals), {m})};
+    }
+
+    // Amanatides–Woo traversal from the origin voxel v0 (= floor(o / vox), given); returns
+    // max(0, entry distance) of the first voxel with value >= 0, +inf if none within
+    // max_dist. Same arithmetic as the torch backend (float64, boundary distance
+    // (nb * vox - o) / d recomputed per step, ties step the lowest axis).
+    nb::ndarray<nb::numpy, double> first_blocked(const F64x3In& origins, const F64x3In& dirs,
+                                                 const IjkIn& v0, double max_dist) const {
+        const size_t n = origins.shape(0);
+        if (dirs.shape(0) != n || v0.shape(0) != n)
+            throw std::invalid_argument("origins, directions and origin voxels must have the same length");
+        const double* po = origins.data();
+        const double* pd = dirs.data();
+        const int32_t* pv = v0.data();
+        const double vox = vox_;
+        std::vector<double> out(n, std::numeric_limits<double>::infinity());
+        {
+            nb::gil_scoped_release release;
+            std::shared_lock<std::shared_mutex> lock(mutex_);
+            const TreeT& tree = grid_->constTree();
+            tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 256), [&](const tbb::blocked_range<size_t>& r) {
+                openvdb::tree::ValueAccessor<const TreeT> acc(tree);
+                for (size_t i = r.begin(); i < r.end(); ++i) {
+                    const double* o = po + 3 * i;
+                    const double* d = pd + 3 * i;
+                    int64_t v[3], nb_[3], step[3];
+                    double tmax[3];
+                    for (int a = 0; a < 3; ++a) {
+                        v[a] = pv[3 * i + a];
+                        step[a] = d[a] > 0 ? 1 : (d[a] < 0 ? -1 : 0);
+                        nb_[a] = v[a] + (step[a] > 0 ? 1 : 0);
+                        tmax[a] = d[a] != 0 ? (double(nb_[a]) * vox - o[a]) / d[a]
+                                            : std::numeric_limits<double>::infinity();
+                    }
+                    double tent = 0.0;
+                    for (;;) {
+                        bool blocked = true;
+                        if (v[0] >= kIjkMin && v[0] <= kIjkMax && v[1] >= kIjkMin && v[1] <= kIjkMax &&
+                            v[2] >= kIjkMin && v[2] <= kIjkMax) {
+                            int8_t val = 0;
+                            const bool on = acc.probeValue(Coord(int32_t(v[0]), int32_t(v[1]), int32_t(v[2])), val);
+                            blocked = !on || val >= 0;
+                        }
+                        if (blocked) {
+                            out[i] = std::max(tent, 0.0);
+                            break;
+                        }
+                        int a = 0;
+                        if (tmax[1] < tmax[a]) a = 1;
+                        if (tmax[2] < tmax[a]) a = 2;
+                        const double t = tmax[a];
+                        if (!(t <= max_dist)) break;  // stays +inf
+                        v[a] += step[a];
+                        nb_[a] += step[a];
+                        tmax[a] = (double(nb_[a]) * vox - o[a]) / d[a];
+                        tent = t;
+                    }
+                }
+            });
+        }
+        return to_numpy(std::move(out), {n});
+    }
+
+    uint64_t num_active() const {
+        std::shared_lock<std::shared_mutex> lock(mutex_);
+        return grid_->constTree().activeVoxelCount();
+    }
+    uint64_t leaf_count() const {
+        std::shared_lock<std::shared_mutex> lock(mutex_);
+        return grid_->constTree().leafCount();
+    }
+    uint64_t tile_count() const {
+        std::shared_lock<std::shared_mutex> lock(mutex_);
+        return grid_->constTree().activeTileCount();
+    }
+    uint64_t mem_bytes() const {
+        std::shared_lock<std::shared_mutex> lock(mutex_);
+        return grid_->constTree().memUsage();
+    }
+
+    void save(const std::string& path) const {
+        nb::gil_scoped_release release;
+        std::shared_lock<std::shared_mutex> lock(mutex_);
+        try {
+            openvdb::io::File file(path);
+            openvdb::GridPtrVec grids{grid_};
+            file.write(grids);
+            file.close();
+        } catch (const openvdb::Exception& e) {
+            throw std::runtime_error("cannot write " + path + ": " + e.what());
+        }
+    }
+
+    static OccGrid* load(const std::string& path) {
+        GridT::Ptr grid;
+        {
+            nb::gil_scoped_release release;
+            try {
+                openvdb::io::File file(path);
+                file.open(false);  // read everything now (no delayed loading)
+                openvdb::GridBase::Ptr base = file.readGrid("occupancy");
+                file.close();
+                grid = openvdb::gridPtrCast<GridT>(base);
+            } catch (const openvdb::Exception& e) {
+                throw std::invalid_argument("cannot read occupancy grid from " + path + ": " + e.what());
+            }
+        }
+        if (!grid) throw std::invalid_argument(path + ": grid 'occupancy' is not an int8 Tree4<5,4,3> grid");
+        if (!grid->getMetadata<openvdb::Int32Metadata>("occ_lo") || !grid->getMetadata<openvdb::Int32Metadata>("occ_hi"))
+            throw std::invalid_argument(path + ": grid lacks the occ_lo/occ_hi metadata");
+        return new OccGrid(grid);
+    }
+
+private:
+    void init_grid() {
+        grid_->setTransform(openvdb::math::Transform::createLinearTransform(vox_));
+        grid_->setName("occupancy");
+        grid_->setGridClass(openvdb::GRID_UNKNOWN);
+        grid_->insertMeta("occ_lo", openvdb::Int32Metadata(lo_));
+        grid_->insertMeta("occ_hi", openvdb::Int32Metadata(hi_));
+    }
+
+    GridT::Ptr grid_;
+    double vox_;
+    int lo_, hi_;
+    mutable std::shared_mutex mutex_;
+};
+
+}  // namespace
+
+NB_MODULE(_vdbocc, m) {
+    m.doc() = "int8 log-odds occupancy grid on OpenVDB (Tree4<int8_t,5,4,3>); see semantic_map.occupancy";
+    openvdb::initialize();
+    if (!GridT::isRegistered()) GridT::registerGrid();
+    m.attr("OPENVDB_VERSION") = OPENVDB_LIBRARY_VERSION_STRING;
+
+    nb::class_<OccGrid>(m, "Grid")
+        .def(nb::init<double, int, int>(), nb::arg("vox"), nb::arg("lo"), nb::arg("hi"))
+        .def_prop_ro("vox", &OccGrid::vox)
+        .def_prop_ro("lo", &OccGrid::lo)
+        .def_prop_ro("hi", &OccGrid::hi)
+        .def("update", &OccGrid::update, nb::arg("ijk"), nb::arg("inc"))
+        .def("set_values", &OccGrid::set_values, nb::arg("ijk"), nb::arg("values"))
+        .def("query", &OccGrid::query, nb::arg("ijk"))
+        .def("frontiers", &OccGrid::frontiers, nb::arg("min_unobserved"), nb::arg("min_free"),
+             nb::arg("min_occupied"), nb::arg("radius"), nb::arg("use_bbox"), nb::arg("bmin"),
+             nb::arg("bmax"))
+        .def("prune", &OccGrid::prune, nb::arg("tolerance"))
+        .def("active", &OccGrid::active)
+        .def("first_blocked", &OccGrid::first_blocked, nb::arg("origins"), nb::arg("directions"),
+             nb::arg("origin_voxels"), nb::arg("max_dist"))
+        .def_prop_ro("num_active", &OccGrid::num_active)
+        .def_prop_ro("leaf_count", &OccGrid::leaf_count)
+        .def_prop_ro("tile_count", &OccGrid::tile_count)
+        .def("mem_bytes", &OccGrid::mem_bytes)
+        .def("save", &OccGrid::save, nb::arg("path"))
+        .def_static("load", &OccGrid::load, nb::arg("path"), nb::rv_policy::take_ownership);
+}

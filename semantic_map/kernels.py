@@ -1,0 +1,155 @@
+"""Optional C++ kernels (``semantic_map._rfkernels``) with their pure-torch twins.
+
+The extension is built by the project's CMake wherever a C++17 compiler exists (it needs
+no OpenVDB). When it is missing, or disabled (``RAYFRONTS_KERNELS=0`` in the environment,
+:func:`set_enabled` / :func:`disabled`), every caller uses its torch path; both paths give
+identical results (the tests run both). Kernels run on CPU tensors only; tensors on other
+devices always take the torch path.
+"""
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+
+import torch
+
+from semantic_map import cell_keys
+
+try:  # optional extension
+    from semantic_map import _rfkernels  # type: ignore[attr-defined]
+    IMPORT_ERROR: Exception | None = None
+except ImportError as e:  # pragma: no cover - depends on the build
+    _rfkernels = None
+    IMPORT_ERROR = e
+
+_enabled = os.environ.get("RAYFRONTS_KERNELS", "1") not in ("0", "false", "off", "no")
+
+
+def available() -> bool:
+    """True if the C++ kernel module imported."""
+    return _rfkernels is not None
+
+
+def enabled(*tensors: torch.Tensor) -> bool:
+    """True if the kernels are available, enabled, and all ``tensors`` are on the CPU."""
+    return _rfkernels is not None and _enabled and all(t.device.type == "cpu" for t in tensors)
+
+
+def set_enabled(flag: bool) -> bool:
+    """Enable / disable the kernels process-wide; returns the previous setting."""
+    global _enabled
+    old, _enabled = _enabled, bool(flag)
+    return old
+
+
+@contextmanager
+def disabled():
+    """``with disabled(): ...`` runs the torch paths (for comparisons and tests)."""
+    old = set_enabled(False)
+    try:
+        yield
+    finally:
+        set_enabled(old)
+
+
+def _np(t: torch.Tensor, dtype: torch.dtype):
+    return t.detach().to(dtype).contiguous().numpy()
+
+
+def unique_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``torch.unique(keys, sorted=True, return_inverse=True, return_counts=True)`` for a
+    1-D int64 tensor: (sorted unique, inverse (N,) int64, counts int64)."""
+    if enabled(keys) and keys.ndim == 1:
+        u, inv, cnt = _rfkernels.unique_i64(_np(keys, torch.int64))
+        return torch.from_numpy(u), torch.from_numpy(inv), torch.from_numpy(cnt)
+    return torch.unique(keys, sorted=True, return_inverse=True, return_counts=True)
+
+
+def sample_pairs(group: torch.Tensor, pix: torch.Tensor, hw: tuple[int, int], h: int, w: int, mode: str,
+                 n_groups: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Kernel-only :func:`group_pairs` of the sampling corners of flat pixels ``pix`` of an
+    ``hw`` image on an (h, w) map (``semantic_map.depth_geometry._corners`` computed in C++)."""
+    g, s, wt = _rfkernels.sample_pairs(_np(group, torch.int64), _np(pix, torch.int64), int(hw[0]), int(hw[1]),
+                                       int(h), int(w), mode == "nearest", int(n_groups))
+    return torch.from_numpy(g), torch.from_numpy(s), torch.from_numpy(wt)
+
+
+def segment_cells_unique(origins: torch.Tensor, ends: torch.Tensor, cell: float, chunks: list,
+                         exclude_end: torch.Tensor | None, include_start: bool = True) -> torch.Tensor:
+    """Kernel-only: sorted unique packed keys of the cells of ``semantic_map.traversal``'s chunked
+    crossing enumeration; ``chunks`` = [(lo, hi, base (3,) int64), ...] from its ``_chunks``."""
+    lo = torch.tensor([c[0] for c in chunks], dtype=torch.int64)
+    hi = torch.tensor([c[1] for c in chunks], dtype=torch.int64)
+    base = torch.stack([c[2].reshape(3).to(torch.int64) for c in chunks]) if chunks else torch.empty((0, 3), dtype=torch.int64)
+    ex = torch.empty(0, dtype=torch.bool) if exclude_end is None else exclude_end.to(torch.bool)
+    keys, klo, khi = _rfkernels.segment_cells_unique(_np(origins, torch.float64), _np(ends, torch.float64), float(cell),
+                                                      lo.numpy(), hi.numpy(), base.contiguous().numpy(),
+                                                      ex.contiguous().numpy(), bool(include_start))
+    cell_keys.check_range(klo, khi)
+    return torch.from_numpy(keys)
+
+
+def group_pairs(group: torch.Tensor, idx: torch.Tensor, wt: torch.Tensor, n_groups: int, n_src: int,
+                max_dense: int = 1 << 24) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Non-zeros of the sparse (n_groups × n_src) matrix ``A[group[p], idx[p, c]] += wt[p, c]``
+    (``idx``, ``wt`` (P, k); float32 weights): ``(g, src, weight float32)`` in ascending
+    ``(g, src)`` order. Each sum is accumulated in float32 in input order, as the dense
+    torch path (``torch.bincount``) does; without the kernel a matrix larger than
+    ``max_dense`` goes through ``torch.unique`` + ``index_add_`` instead."""
+    wt = wt.to(torch.float32)
+    if enabled(group, idx, wt):
+        g, s, w = _rfkernels.group_pairs(_np(group, torch.int64), _np(idx, torch.int64), wt.contiguous().numpy(),
+                                         int(n_groups), int(n_src))
+        return torch.from_numpy(g), torch.from_numpy(s), torch.from_numpy(w)
+    flat = (group[:, None] * n_src + idx).reshape(-1)
+    if n_groups * n_src <= max_dense:
+        A = torch.bincount(flat, weights=wt.reshape(-1), minlength=n_groups * n_src)
+        nz = torch.nonzero(A).squeeze(1)
+        w = A[nz]
+    else:
+        nz, inv = torch.unique(flat, return_inverse=True)
+        w = torch.zeros(nz.numel(), dtype=torch.float32, device=group.device).index_add_(0, inv, wt.reshape(-1))
+    g = torch.div(nz, n_src, rounding_mode="floor")
+    return g, nz - g * n_src, w
+
+
+def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, frontier_ijk: torch.Tensor,
+                   beta: float, base: torch.Tensor, max_dist: float, reject_close: bool,
+                   block: int = 4, scales=None, argmin=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Kernel-only ray -> frontier association: (rays, frontier idx, float64 cost), equal to
+    :func:`semantic_map.ray_frontiers.associate`'s torch path (see the C++ source). With fixed
+    cost ``scales`` (the ``absolute`` cost) the kernel gives the candidate pairs and
+    ``argmin(rays, fidx, (x1, x2), n_rays)`` (the torch code) picks per ray."""
+    ri, fi, oo, vv = _rfkernels.associate_rays(_np(o, torch.float64), _np(d, torch.float64),
+                                               _np(lengths, torch.float64), _np(frontier_ijk, torch.int64),
+                                               float(beta), int(block), _np(base, torch.float64),
+                                               float(max_dist), bool(reject_close))
+    # square roots in torch: bit-identical to the torch path's float32 sqrt
+    x1 = torch.from_numpy(oo).sqrt().to(torch.float64)
+    x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
+    if scales is not None:
+        return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
+    r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
+    return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)
+
+
+def voxel_keys(xyz: torch.Tensor, vox: float) -> torch.Tensor:
+    """``keys.pack(voxel_index(xyz.to(float64), vox))`` for (N, 3) float32/float64 points."""
+    if enabled(xyz) and xyz.dtype in (torch.float32, torch.float64) and xyz.ndim == 2 and xyz.shape[1] == 3:
+        fn = _rfkernels.voxel_keys_f32 if xyz.dtype == torch.float32 else _rfkernels.voxel_keys_f64
+        k, lo, hi = fn(xyz.detach().contiguous().numpy(), float(vox))
+        cell_keys.check_range(lo, hi)
+        return torch.from_numpy(k)
+    from common.conventions import voxel_index
+    return cell_keys.pack(voxel_index(xyz.to(torch.float64), vox))
+
+
+def surface_samples(origin: torch.Tensor, D: torch.Tensor, depth_flat: torch.Tensor, pix: torch.Tensor,
+                    offs: torch.Tensor, vox: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Kernel-only: (points (P, 3) float32 = origin + D[pix] * depth[pix], sorted unique packed
+    keys of the occupied samples origin + D[pix] * (depth[pix] + offs[k]) with positive depth)."""
+    pts, keys, lo, hi = _rfkernels.surface_samples(_np(origin, torch.float64), _np(D, torch.float64),
+                                                    _np(depth_flat, torch.float32), _np(pix, torch.int64),
+                                                    _np(offs, torch.float64), float(vox))
+    cell_keys.check_range(lo, hi)
+    return torch.from_numpy(pts), torch.from_numpy(keys)

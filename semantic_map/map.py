@@ -1,0 +1,456 @@
+"""``RayFrontsMap``: semantic voxels + occupancy + frontiers + semantic ray frontiers.
+
+Pure computation (no I/O besides :meth:`save`/:meth:`load`). One frame at a time through
+:meth:`RayFrontsMap.integrate`; the schedule is the reference's (brief §2.9):
+
+* per frame: geometry (:mod:`semantic_map.depth_geometry`), feature/RGB sampling at the needed
+  pixels only, per-frame pre-aggregation of semantic points per voxel, buffering;
+* every ``vox_accum_period`` frames, the **voxel block**: occupancy insert (frame by frame,
+  free −1 / occupied +(w−1), clamped after each row) → semantic fuse → occupancy prune if
+  due → semantic prune if due → frontier update on the updated box;
+* every ``ray_accum_period`` frames once ``ray_accum_phase`` frames have passed, the **ray
+  block**: prune rays of vanished frontiers (re-queued when ray tracing is on) → cast →
+  direction inference (Unidirectional baseline).
+
+Not internally locked: callers that integrate and query from different threads hold
+their own lock (the map keeps no global state).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from common.conventions import is_rigid, sanitize_depth, voxel_center
+from semantic_map import kernels
+from semantic_map import cell_keys
+from semantic_map.config import MapConfig
+from semantic_map.depth_geometry import aggregate_samples, frame_geometry, sample_image
+from semantic_map.frontiers import FrontierTable
+from semantic_map.occupancy import make_occupancy
+from semantic_map.query import QueryResult, Similarity, run_query
+from semantic_map.ray_frontiers import RayStore, angles_deg, associate, infer_directions, warn_infer_direction
+from semantic_map.semantic_voxels import SemanticVoxels as SemanticVoxels_
+
+
+@dataclass
+class VoxelLayer:
+    xyz: torch.Tensor        # (N, 3) float32 voxel centres (m)
+    rgb: torch.Tensor        # (N, 3) float32 in [0, 1]
+    features: torch.Tensor   # (N, C) feature dtype
+    counts: torch.Tensor     # (N,) float32 hit counts
+
+
+@dataclass
+class FrontierLayer:
+    centres: torch.Tensor    # (F, 3) float32 coarse cell centres (m)
+    keys: torch.Tensor       # (F,) int64 packed coarse ijk (semantic_map.cell_keys)
+
+
+@dataclass
+class RayLayer:
+    origins: torch.Tensor        # (R, 3) float32 frontier centres
+    directions: torch.Tensor     # (R, 3) float32 unit (weighted mean direction of the bin)
+    angles: torch.Tensor         # (R, 2) float32 (theta, phi) degrees, world axes
+    features: torch.Tensor       # (R, C)
+    weights: torch.Tensor        # (R,) float32 accumulated weight
+    frontier_keys: torch.Tensor  # (R,) int64
+
+
+@dataclass
+class PreparedFrame:
+    """One frame after :meth:`RayFrontsMap.prepare`: what :meth:`RayFrontsMap.commit` buffers."""
+    occ_ijk: torch.Tensor            # (Mo, 3) int64 occupied voxels
+    free_ijk: torch.Tensor           # (Mf, 3) int64 free voxels
+    sem: tuple | None                # (keys, rgb sums, feature sums, counts) per voxel, or None
+    rays: tuple | None               # (origins, unit dirs, features), or None
+    fov_deg: tuple[float, float]     # horizontal / vertical field of view
+    timings: dict                    # ms of validate / geometry / sample
+
+
+_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+
+
+def _as_tensor(x, dtype=None, device="cpu") -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        t = x
+    else:
+        t = torch.as_tensor(np.ascontiguousarray(x))
+    return t.to(device=device, dtype=dtype) if dtype is not None else t.to(device)
+
+
+class RayFrontsMap:
+    """The RayFronts map (see module docstring)."""
+
+    def __init__(self, cfg: MapConfig, feature_dim: int, feature_space: str = "", device="cpu",
+                 occupancy_backend: str = "auto"):
+        self.cfg = cfg.validate()
+        if feature_dim <= 0:
+            raise ValueError(f"feature_dim must be > 0, got {feature_dim}")
+        self.feature_dim = int(feature_dim)
+        self.feature_space = feature_space
+        self.device = torch.device(device)
+        self.occupancy_backend = occupancy_backend
+        dt = _DTYPES[cfg.feature_dtype]
+        self.occupancy = make_occupancy(cfg.vox_size, -cfg.max_empty_cnt, cfg.max_occ_cnt,
+                                        backend=occupancy_backend, device="cpu")
+        self.sem = SemanticVoxels_(cfg.vox_size, self.feature_dim, dt, self.device)
+        self.fronts = FrontierTable(cfg.vox_size, cfg.fronti_subsampling, cfg.fronti_subsampling_min_fronti, self.device)
+        self.ray_store = RayStore(cfg.beta, cfg.angle_bin_size, self.feature_dim, dt, self.device)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        if cfg.infer_direction:
+            warn_infer_direction(cfg.angle_bin_size)
+        self.counters = dict(frames=0, vox=0, occ_prune=0, sem_prune=0, ray_phase=0, ray=0,
+                             voxel_blocks=0, ray_blocks=0)
+        self.last_fov_deg = (90.0, 90.0)
+        self._reset_buffers()
+        self._rng_state_source = None  # set by mapper.pipeline.MapPipeline while it runs
+        self.timings: dict[str, float] = {}
+        self.timings_total: dict[str, float] = {}
+
+    def rng_state(self) -> torch.Tensor:
+        """The budget generator's state after the last committed frame (what a snapshot
+        saves): with frames prepared ahead by a pipeline, the state before the oldest one."""
+        src = self._rng_state_source
+        return src() if src is not None else self.generator.get_state()
+
+    def _reset_buffers(self) -> None:
+        self._buf_occ: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self._buf_sem: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        self._buf_rays: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        self._pending_prune: list[torch.Tensor] = []
+
+    # ------------------------------------------------------------------------------------
+    def _tick(self, name: str, t0: float) -> float:
+        t = time.perf_counter()
+        ms = (t - t0) * 1e3
+        self.timings[name] = self.timings.get(name, 0.0) + ms
+        self.timings_total[name] = self.timings_total.get(name, 0.0) + ms
+        return t
+
+    def integrate(self, pose, intrinsics, depth, rgb=None, features=None, global_feature=None,
+                  confidence=None) -> dict:
+        """Add one frame. ``pose`` 4×4 camera-to-world (RDF), ``intrinsics`` 3×3 at depth
+        resolution, ``depth`` (H, W) planar metres (NaN ignore, +inf beyond range), ``rgb``
+        (H', W', 3) uint8 (or float in [0, 1]), ``features`` (C, h, w) any float dtype with
+        h ≤ H, w ≤ W, ``global_feature`` (C,), ``confidence`` (H, W). Returns per-stage ms.
+
+        Same as ``commit(prepare(...))``: :class:`mapper.pipeline.MapPipeline` runs the two
+        halves on different threads (frame N+1 prepared while frame N is committed)."""
+        return self.commit(self.prepare(pose, intrinsics, depth, rgb, features, global_feature, confidence))
+
+    def prepare(self, pose, intrinsics, depth, rgb=None, features=None, global_feature=None,
+                confidence=None) -> "PreparedFrame":
+        """First half of :meth:`integrate`: validation, geometry and feature / RGB sampling of
+        one frame. Reads only the configuration and advances only ``self.generator`` (the
+        budgets' random draws), so prepared frames must be committed in the order they were
+        prepared; touches no map state (safe to run while another thread commits / queries)."""
+        cfg = self.cfg
+        tm: dict[str, float] = {}
+        t = time.perf_counter()
+
+        def tick(name: str, t0: float) -> float:
+            t1 = time.perf_counter()
+            tm[name] = tm.get(name, 0.0) + (t1 - t0) * 1e3
+            return t1
+        pose_np = np.asarray(pose.cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
+        if not is_rigid(pose_np):
+            raise ValueError("pose must be a finite rigid 4x4 camera-to-world transform")
+        K = np.asarray(intrinsics.cpu() if isinstance(intrinsics, torch.Tensor) else intrinsics, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"intrinsics must be a finite 3x3 with fx, fy > 0, got {K.tolist()}")
+        d = _as_tensor(depth, torch.float32)
+        if d.ndim == 3 and d.shape[0] == 1:
+            d = d[0]
+        if d.ndim != 2 or d.numel() == 0:
+            raise ValueError(f"depth must be (H, W), got shape {tuple(d.shape)}")
+        H, W = d.shape
+        d = sanitize_depth(d, cfg.depth_limit if cfg.depth_limit >= 0 else None).to(self.device)
+        feats = None
+        if features is not None:
+            feats = _as_tensor(features, None, self.device)
+            if feats.ndim != 3 or feats.shape[0] != self.feature_dim:
+                raise ValueError(f"features must be (C={self.feature_dim}, h, w), got {tuple(feats.shape)}")
+            if feats.shape[1] > H or feats.shape[2] > W:
+                raise ValueError(f"feature map {tuple(feats.shape[1:])} larger than depth {(H, W)}")
+            if not feats.is_floating_point():
+                raise ValueError("features must be a float array")
+        gfeat = None
+        if global_feature is not None:
+            gfeat = _as_tensor(global_feature, torch.float32, self.device).reshape(-1)
+            if gfeat.numel() != self.feature_dim:
+                raise ValueError(f"global_feature has {gfeat.numel()} values, expected {self.feature_dim}")
+        rgb_t = None
+        if rgb is not None:
+            r = _as_tensor(rgb, None, self.device)
+            if r.ndim != 3 or r.shape[2] != 3:
+                raise ValueError(f"rgb must be (H', W', 3), got {tuple(r.shape)}")
+            rgb_t = r.permute(2, 0, 1)
+            rgb_t = rgb_t.to(torch.float32) / 255.0 if not r.is_floating_point() else rgb_t.to(torch.float32)
+        conf = None if confidence is None else _as_tensor(confidence, torch.float32, self.device)
+        if conf is not None and tuple(conf.shape) != (H, W):
+            raise ValueError(f"confidence must be {(H, W)}, got {tuple(conf.shape)}")
+        if cfg.point_selection == "random":
+            conf = None
+        fov = (math.degrees(2 * math.atan(0.5 * W / K[0, 0])), math.degrees(2 * math.atan(0.5 * H / K[1, 1])))
+        t = tick("validate", t)
+
+        use_rays = cfg.semantic_rays and not cfg.global_encoding
+        g = frame_geometry(pose_np, K, d, cfg.vox_size, max_depth_sensing=cfg.sensing_range(),
+                           occ_thickness=cfg.occ_thickness, max_pts=cfg.max_pts_per_frame,
+                           max_empty_pts=cfg.max_empty_pts_per_frame, max_rays=cfg.max_rays_per_frame,
+                           ray_erosion=cfg.ray_erosion, want_rays=use_rays, generator=self.generator,
+                           confidence=conf, free_stride=cfg.free_space_stride, device=self.device)
+        occ_ijk, free_ijk, pts, pix = g.occ_ijk, g.free_ijk, g.pts_xyz, g.pts_pix
+        if cfg.clip_bbox is not None:
+            lo = torch.tensor(cfg.clip_bbox[:3], dtype=torch.float32, device=self.device)
+            hi = torch.tensor(cfg.clip_bbox[3:], dtype=torch.float32, device=self.device)
+
+            def inside(x):
+                return ((x > lo) & (x < hi)).all(1)
+            occ_ijk = occ_ijk[inside(voxel_center(occ_ijk, cfg.vox_size))]
+            free_ijk = free_ijk[inside(voxel_center(free_ijk, cfg.vox_size))]
+            keep = inside(pts)
+            pts, pix = pts[keep], pix[keep]
+        t = tick("geometry", t)
+
+        # semantic points: pre-aggregate per voxel (sum of rgb / feature, count)
+        sem = rays = None
+        sem_feat_src = feats is not None or (cfg.global_encoding and gfeat is not None)
+        if pts.shape[0] and sem_feat_src:
+            vk = kernels.voxel_keys(pts, cfg.vox_size)
+            uk, inv, cnt = kernels.unique_keys(vk)
+            n = uk.numel()
+            if cfg.global_encoding and gfeat is not None:
+                fs = cnt.to(torch.float32)[:, None] * gfeat[None]
+            else:
+                fs = aggregate_samples(feats, pix, (H, W), inv, n, cfg.interp_mode)
+            if rgb_t is not None:
+                cs = aggregate_samples(rgb_t, pix, (H, W), inv, n, cfg.interp_mode)
+            else:
+                cs = torch.zeros((n, 3), dtype=torch.float32, device=self.device)
+            sem = (uk, cs, fs, cnt.to(torch.float32))
+        # rays
+        if cfg.semantic_rays:
+            if cfg.global_encoding:
+                gf = gfeat if gfeat is not None else (feats.to(torch.float32).mean((1, 2)) if feats is not None else None)
+                if gf is not None:
+                    o = torch.as_tensor(pose_np[:3, 3], dtype=torch.float64, device=self.device)[None]
+                    dz = torch.as_tensor(pose_np[:3, 2], dtype=torch.float32, device=self.device)[None]
+                    rays = (o, dz / dz.norm(), gf[None])
+            elif g.ray_dirs.shape[0] and feats is not None:
+                rf = sample_image(feats, g.ray_pix, (H, W), cfg.interp_mode)
+                o = g.origin[None].expand(g.ray_dirs.shape[0], 3)
+                rays = (o, g.ray_dirs, rf)
+        tick("sample", t)
+        return PreparedFrame(occ_ijk, free_ijk, sem, rays, fov, tm)
+
+    def commit(self, p: "PreparedFrame") -> dict:
+        """Second half of :meth:`integrate`: buffer a prepared frame and run the voxel / ray
+        blocks that are due. Returns per-stage ms (the prepare stages included)."""
+        cfg = self.cfg
+        t_start = t = time.perf_counter()
+        self.timings = {}
+        for k, v in p.timings.items():
+            self.timings[k] = self.timings.get(k, 0.0) + v
+            self.timings_total[k] = self.timings_total.get(k, 0.0) + v
+        self.last_fov_deg = p.fov_deg
+        if p.sem is not None:
+            self._buf_sem.append(p.sem)
+        if p.rays is not None:
+            self._buf_rays.append(p.rays)
+        self._buf_occ.append((p.occ_ijk, p.free_ijk))
+
+        c = self.counters
+        c["frames"] += 1
+        c["vox"] += 1
+        c["occ_prune"] += 1
+        c["sem_prune"] += 1
+        if c["ray_phase"] < cfg.ray_accum_phase:
+            c["ray_phase"] += 1
+        else:
+            c["ray"] += 1
+        if c["vox"] >= max(1, cfg.vox_accum_period):
+            self._voxel_block()
+        if cfg.semantic_rays and c["ray"] >= max(1, cfg.ray_accum_period):
+            self._ray_block()
+        t = time.perf_counter()
+        self.timings["commit"] = (t - t_start) * 1e3
+        self.timings_total["commit"] = self.timings_total.get("commit", 0.0) + self.timings["commit"]
+        tot = sum(p.timings.values()) + self.timings["commit"]
+        self.timings["total"] = tot
+        self.timings_total["total"] = self.timings_total.get("total", 0.0) + tot
+        return dict(self.timings)
+
+    # ------------------------------------------------------------------------------------
+    def _voxel_block(self) -> None:
+        cfg = self.cfg
+        c = self.counters
+        c["vox"] = 0
+        c["voxel_blocks"] += 1
+        t = time.perf_counter()
+        if not self._buf_occ and not self._buf_sem:
+            return
+        parts_ijk, parts_inc = [], []
+        for occ, free in self._buf_occ:
+            parts_ijk += [free, occ]
+            parts_inc += [torch.full((free.shape[0],), -1, dtype=torch.int8),
+                          torch.full((occ.shape[0],), cfg.occ_observ_weight - 1, dtype=torch.int8)]
+        self._buf_occ = []
+        ijk = torch.cat(parts_ijk) if parts_ijk else torch.empty((0, 3), dtype=torch.int64)
+        if ijk.shape[0]:
+            self.occupancy.update(ijk.cpu(), torch.cat(parts_inc).to(torch.int64))
+        t = self._tick("occupancy", t)
+        if self._buf_sem:
+            uk, cs, fs, cnt = (torch.cat(x) for x in zip(*self._buf_sem))
+            self._buf_sem = []
+            self.sem.fuse_sums(uk, cs, fs, cnt)
+        t = self._tick("fuse", t)
+        if ijk.shape[0] and cfg.sem_pruning_period > 0:
+            self._pending_prune.append(torch.unique(cell_keys.pack(ijk)))
+        if cfg.occ_pruning_period > 0 and c["occ_prune"] >= cfg.occ_pruning_period:
+            c["occ_prune"] = 0
+            self.occupancy.prune(cfg.occ_pruning_tolerance)
+            t = self._tick("occ_prune", t)
+        if cfg.sem_pruning_period > 0 and c["sem_prune"] >= cfg.sem_pruning_period:
+            c["sem_prune"] = 0
+            self.prune_semantic()
+            t = self._tick("sem_prune", t)
+        if ijk.shape[0]:
+            self.fronts.update(self.occupancy, ijk.min(0).values, ijk.max(0).values,
+                               min_unobserved=cfg.fronti_min_unobserved, min_free=cfg.fronti_min_empty,
+                               min_occupied=cfg.fronti_min_occupied, radius=cfg.fronti_neighborhood_r)
+        self._tick("frontiers", t)
+
+    def prune_semantic(self) -> int:
+        """Remove semantic voxels among those updated since the last prune whose occupancy
+        value is <= ``sem_pruning_thresh``. Returns how many were removed."""
+        if not self._pending_prune:
+            return 0
+        keys = torch.unique(torch.cat(self._pending_prune))
+        self._pending_prune = []
+        present = self.sem.index.lookup(keys) >= 0
+        keys = keys[present]
+        if keys.numel() == 0:
+            return 0
+        vals = torch.as_tensor(self.occupancy.query(cell_keys.unpack(keys).cpu())).to(self.device)
+        return self.sem.remove(keys[vals.to(torch.int64) <= self.cfg.sem_pruning_thresh])
+
+    def _ray_block(self) -> None:
+        cfg = self.cfg
+        self.counters["ray"] = 0
+        self.counters["ray_blocks"] += 1
+        t = time.perf_counter()
+        fk = self.fronts.keys
+        gone = self.fronts.take_removed()  # frontiers removed since the last ray block
+        if gone is None:  # history unknown (restored table): prune against the whole table
+            requeued = self.ray_store.prune(fk, requeue=cfg.ray_tracing)
+        else:
+            gone = gone[~self.fronts.contains(gone)] if gone.numel() else gone
+            requeued = self.ray_store.prune_keys(gone, requeue=cfg.ray_tracing)
+        t = self._tick("ray_prune", t)
+        bufs = list(self._buf_rays)
+        self._buf_rays = []
+        if requeued is not None and requeued[0].shape[0]:
+            bufs.append((requeued[0].to(torch.float64), requeued[1], requeued[2]))
+        if bufs and fk.numel():
+            o = torch.cat([b[0].to(torch.float64) for b in bufs])
+            dr = torch.cat([b[1].to(torch.float32) for b in bufs])
+            fe = torch.cat([b[2].to(torch.float32) for b in bufs])
+            self._cast(o, dr, fe, t)
+        if cfg.infer_direction and len(self.ray_store):
+            t = time.perf_counter()
+            uk = torch.unique(self.ray_store.fkey)
+            dirs = infer_directions(self.occupancy, uk, cfg.beta, cfg.vox_size, cfg.infer_direction_scale)
+            ok = dirs.norm(dim=1) > 0
+            self.ray_store.set_frontier_directions(uk[ok], dirs[ok])
+            self._tick("infer_direction", t)
+
+    def _cast(self, o: torch.Tensor, dr: torch.Tensor, fe: torch.Tensor, t: float) -> None:
+        cfg = self.cfg
+        fk = self.fronts.keys
+        rng = cfg.sensing_range()
+        max_dist = cfg.ray_range_factor * rng if rng > 0 else -1.0
+        ri, fi, cost = associate(o, dr, cell_keys.unpack(fk), cfg.beta, max_dist=max_dist,
+                                 reject_close=cfg.ray_reject_close, zero_depth=cfg.zero_depth_mode,
+                                 cost=cfg.ray_cost_norm)
+        t = self._tick("ray_associate", t)
+        if cfg.ray_tracing and not cfg.zero_depth_mode and ri.numel():
+            p = voxel_center(cell_keys.unpack(fk[fi]), cfg.beta).to(torch.float64)
+            oo, dd = o[ri], dr[ri].to(torch.float64)
+            tq = ((p - oo) * dd).sum(1)
+            blocked = torch.as_tensor(self.occupancy.first_blocked(oo.cpu(), dd.cpu(), float(tq.max()) + cfg.vox_size))
+            keep = blocked.to(self.device) >= tq - cfg.vox_size
+            ri, fi, cost = ri[keep], fi[keep], cost[keep]
+            t = self._tick("ray_trace", t)
+        w = 1.0 - cost
+        if cfg.ray_cost_norm == "paper" or cfg.zero_depth_mode:
+            w = w.clamp_min(cfg.ray_min_weight)
+        w = w.to(torch.float32)
+        pos = w > 0          # absolute cost without floor: a ray at both limits carries nothing
+        if not bool(pos.all()):
+            ri, fi, w = ri[pos], fi[pos], w[pos]
+        if ri.numel() == 0:
+            return
+        if cfg.ray_weight_normalize:
+            w = w / w.sum()
+        self.ray_store.merge(fk[fi], fk, dr[ri], fe[ri], w)
+        self._tick("ray_merge", t)
+
+    def has_buffered(self) -> bool:
+        """Frames committed but not yet in a voxel / ray block (what :meth:`flush` integrates)."""
+        return bool(self._buf_occ or self._buf_sem or self._buf_rays)
+
+    def flush(self) -> None:
+        """Run the voxel block and then the ray block now, whatever the counters say (the
+        ray block also runs without buffered rays when rays exist: it prunes rays of
+        vanished frontiers and re-infers directions against the final occupancy)."""
+        if self._buf_occ or self._buf_sem:
+            self._voxel_block()
+        if self.cfg.semantic_rays and (self._buf_rays or len(self.ray_store)):
+            self._ray_block()
+
+    # ------------------------------------------------------------------------------------
+    def voxels(self) -> VoxelLayer:
+        return VoxelLayer(self.sem.xyz(), self.sem.rgb.clone(), self.sem.feat.clone(), self.sem.count.clone())
+
+    def frontiers(self) -> FrontierLayer:
+        return FrontierLayer(self.fronts.centres(), self.fronts.keys.clone())
+
+    def rays(self) -> RayLayer:
+        rs = self.ray_store
+        dirs = rs.directions()
+        return RayLayer(rs.origins(), dirs, angles_deg(dirs).to(torch.float32), rs.feat.clone(),
+                        rs.weight.clone(), rs.fkey.clone())
+
+    def query(self, queries, *, similarity: Similarity | None = None, softmax: bool = False,
+              temperature: float = 100.0, top_k: int = 10, denoise: float | None = None,
+              threshold: float | None = None) -> QueryResult:
+        """Similarity of every voxel and ray to each query (see :mod:`semantic_map.query`)."""
+        q = _as_tensor(queries, torch.float32, self.device)
+        rs = self.ray_store
+        dirs = rs.directions()
+        return run_query(q, self.sem.feat, self.sem.xyz(), rs.feat, rs.origins(), dirs,
+                         similarity=similarity, softmax=softmax, temperature=temperature, top_k=top_k,
+                         denoise=denoise, threshold=threshold)
+
+    def cone_half_angle(self) -> float:
+        a = self.cfg.cone_half_angle_deg
+        return a if a > 0 else max(self.last_fov_deg) / 2
+
+    # ------------------------------------------------------------------------------------
+    def memory_bytes(self) -> int:
+        return int(self.sem.memory_bytes() + self.ray_store.memory_bytes() + self.occupancy.memory_bytes()
+                   + self.fronts.keys.numel() * 16)
+
+    def stats(self) -> dict:
+        return dict(n_voxels=len(self.sem), n_frontiers=len(self.fronts), n_rays=len(self.ray_store),
+                    n_occupancy_active=int(self.occupancy.num_active), frames=self.counters["frames"],
+                    voxel_blocks=self.counters["voxel_blocks"], ray_blocks=self.counters["ray_blocks"],
+                    memory_bytes=self.memory_bytes(), feature_dim=self.feature_dim,
+                    feature_space=self.feature_space,
+                    timings_ms_total={k: round(v, 3) for k, v in self.timings_total.items()})
+

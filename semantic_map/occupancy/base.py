@@ -1,0 +1,78 @@
+"""The occupancy-grid interface both backends implement (OpenVDB extension and torch).
+
+Values are int8 log-odds per voxel: ``> 0`` occupied, ``< 0`` free, ``0`` or inactive =
+unobserved. Voxel indices are int ``(N, 3)`` arrays from :func:`common.conventions.voxel_index`
+(``floor(xyz / vox)``), within ``[-2**20, 2**20)`` per axis (±52 km at 5 cm; outside it a
+``ValueError``). Inputs may be numpy arrays or CPU torch tensors (int32/int64 indices);
+outputs are torch tensors on the CPU (the mapper moves them to its device): ijk int64,
+values int8, distances float64. Bad input raises ``ValueError``/``TypeError`` before the
+map is touched.
+
+Both backends must give identical maps, query results and frontier sets for the same
+sequence of calls; the tests use the torch backend as the oracle for the extension.
+"""
+from __future__ import annotations
+
+from typing import Protocol
+
+import torch
+
+
+class OccupancyGrid(Protocol):
+    vox: float
+    lo: int  # clamp lower bound (e.g. -5); the paper's -max_empty_cnt
+    hi: int  # clamp upper bound (e.g. 30); the paper's max_occ_cnt (<= 127)
+
+    def update(self, ijk, inc) -> None:
+        """``value = clamp(value + inc, lo, hi)`` per row, activating the voxel.
+
+        ``ijk`` (N, 3) int; ``inc`` (N,) int or a scalar int. Rows are applied in order,
+        clamping after each (duplicates allowed and applied sequentially)."""
+
+    def query(self, ijk) -> torch.Tensor:
+        """(N,) int8 values; 0 where unobserved/inactive. Sees pruned tiles."""
+
+    def frontiers(self, min_unobserved: int, min_free: int, min_occupied: int = 0,
+                  radius: int = 1, bbox: tuple | None = None) -> torch.Tensor:
+        """(K, 3) int64 indices of free voxels (value < 0) whose (2r+1)^3 neighbourhood,
+        **self included**, holds >= min_unobserved unobserved, >= min_free free and
+        >= min_occupied occupied cells. ``bbox = (ijk_min, ijk_max)`` inclusive limits the
+        candidate voxels (neighbours outside it are still read). Voxels inside pruned
+        tiles are candidates too. Rows sorted lexicographically (i, j, k). ``radius`` in
+        [1, 8]."""
+
+    def prune(self, tolerance: int) -> None:
+        """Collapse uniform regions into tiles (OpenVDB ``tools::prune`` semantics on a
+        ``Tree4<int8, 5, 4, 3>``): bottom-up, an 8³ leaf, then a node of 16³ leaves, then
+        a node of 32³ such nodes collapses when all its children are (collapsed) and fully
+        active and ``max - min <= tolerance``; the tile value is the lower median
+        (sorted element ``(n - 1) >> 1``) of the children's values, so voxel values in a
+        collapsed region change. A later write into a tile re-densifies it. The torch
+        backend keeps voxels but holds the same values. ``tolerance`` in [0, 127]."""
+
+    def active(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """All active voxels expanded from tiles: ((M, 3) int64 ijk sorted, (M,) int8)."""
+
+    def first_blocked(self, origins, directions, max_dist: float) -> torch.Tensor:
+        """For each ray (world origins (N, 3), unit directions (N, 3), metres), the distance
+        along the ray at which it first enters a voxel with value >= 0 (unobserved or
+        occupied), by exact voxel traversal (Amanatides–Woo) starting in the origin's
+        voxel (``voxel_index(origin)``; 0 if that voxel is blocked); ``inf`` if it stays
+        in free space up to ``max_dist``. Directions are normalised (zero components are
+        fine, an all-zero direction is an error); float64 (N,); on exact ties the lower
+        axis (x, then y, then z) is stepped first."""
+
+    @property
+    def num_active(self) -> int:
+        """Active voxel count (tiles counted by their voxel volume)."""
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the map structure (OpenVDB ``memUsage``; torch: keys + values)."""
+
+    def state(self) -> dict:
+        """Backend-neutral exact state for snapshots: {"vox", "lo", "hi", "ijk", "values"}
+        (numpy arrays, ijk int64 (M, 3) sorted, values int8 (M,); tiles expanded)."""
+
+    def load_state(self, state: dict) -> None:
+        """Replace the map's voxels by ``state`` (as produced by :meth:`state`); use
+        :func:`semantic_map.occupancy.from_state` to build a grid from a snapshot."""
