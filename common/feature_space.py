@@ -25,8 +25,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from common.pca import PCA
 from common.language_head import MLP2, MLP2Config
+from common.pca import PCA
 
 BODY_VERSION = 1
 
@@ -203,6 +203,30 @@ class FeatureSpace:
         head = self.language_head(device)
         return head(x) if head is not None else x
 
+    def check_queries(self, queries, device: str | torch.device = "cpu") -> torch.Tensor:
+        """Language-space ``queries`` as a float32 ``(Q, lang_dim)`` tensor on ``device`` (a single
+        ``(lang_dim,)`` row is accepted); :class:`FeatureSpaceError` for any other shape."""
+        q = torch.as_tensor(queries).to(device, torch.float32)
+        if q.ndim == 1:
+            q = q[None]
+        if q.ndim != 2 or q.shape[1] != self.lang_dim:
+            raise FeatureSpaceError(f"queries must be (Q, {self.lang_dim}) in {self.text_model} space, "
+                                    f"got {tuple(q.shape)}")
+        return q
+
+    def project_queries(self, queries, device: str | torch.device = "cpu",
+                        pca: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The cosine's query side in stored-feature space: ``(Vᵀq̂ (Q, k), q̂ᵀm (Q,))`` for unit
+        queries ``q̂`` and the PCA basis ``V``, mean ``m`` (computed in float64, returned float32);
+        ``(q̂, None)`` without PCA or with ``pca=False``. The cosine with a stored row ``y`` is
+        then ``(yᵀ(Vᵀq̂) + q̂ᵀm) / |V·y + m|``."""
+        qn = torch.nn.functional.normalize(self.check_queries(queries, device), dim=1)
+        if not pca or self.pca is None:
+            return qn, None
+        m, v = self.pca.torch_basis(torch.device(device), torch.float32)
+        q64 = qn.double()
+        return (q64 @ v.double()).float(), (q64 @ m.double()).float()
+
     @torch.inference_mode()
     def similarity(self, map_feats, queries, chunk: int = 65536, device="cpu") -> torch.Tensor:
         """Exact cosine similarity ``(Q, N)`` between language-space ``queries`` ``(Q, lang_dim)``
@@ -214,21 +238,13 @@ class FeatureSpace:
         """
         dev = torch.device(device)
         y = torch.as_tensor(map_feats).to(dev, torch.float32)
-        q = torch.as_tensor(queries).to(dev, torch.float32)
         if y.ndim != 2 or y.shape[1] != self.dim:
             raise FeatureSpaceError(f"map features must be (N, {self.dim}), got {tuple(y.shape)}")
-        if q.ndim == 1:
-            q = q[None]
-        if q.ndim != 2 or q.shape[1] != self.lang_dim:
-            raise FeatureSpaceError(f"queries must be (Q, {self.lang_dim}) in {self.text_model} space, "
-                                    f"got {tuple(q.shape)}")
-        qn = torch.nn.functional.normalize(q, dim=1)
-        out = torch.empty(q.shape[0], y.shape[0], device=dev)
         if self.head_config is None and self.pca is not None:
+            qv, qm = self.project_queries(queries, dev)   # (Q, k), (Q,)
+            out = torch.empty(qv.shape[0], y.shape[0], device=dev)
             m, v = self.pca.torch_basis(dev, torch.float32)
             m64, v64 = m.double(), v.double()
-            qv = (qn.double() @ v64).float()          # (Q, k)
-            qm = (qn.double() @ m64).float()          # (Q,)
             vm = (v64.T @ m64).float()                # (k,)
             mm = float(m64 @ m64)
             for i in range(0, y.shape[0], chunk):
@@ -237,6 +253,8 @@ class FeatureSpace:
                 inv = torch.where(n2 > 1e-20, n2.clamp_min(1e-20).rsqrt(), torch.zeros_like(n2))
                 out[:, i:i + chunk] = (yc @ qv.T + qm).T * inv
             return out
+        qn, _ = self.project_queries(queries, dev, pca=False)
+        out = torch.empty(qn.shape[0], y.shape[0], device=dev)
         for i in range(0, y.shape[0], chunk):
             x = self.to_language(y[i:i + chunk], device=dev)
             out[:, i:i + chunk] = qn @ torch.nn.functional.normalize(x, dim=1).T
@@ -327,22 +345,11 @@ class PreparedFeatures:
         prepared features (equal to :meth:`FeatureSpace.similarity` up to float32 rounding;
         may be a transposed view)."""
         fs = self.space
-        q = torch.as_tensor(queries).to(self.device, torch.float32)
-        if q.ndim == 1:
-            q = q[None]
-        if q.ndim != 2 or q.shape[1] != fs.lang_dim:
-            raise FeatureSpaceError(f"queries must be (Q, {fs.lang_dim}) in {fs.text_model} space, "
-                                    f"got {tuple(q.shape)}")
         if self._y is None:
-            return fs.similarity(self._raw, q, device=self.device)
-        qn = torch.nn.functional.normalize(q, dim=1)
+            return fs.similarity(self._raw, fs.check_queries(queries, self.device), device=self.device)
+        qn, qm = fs.project_queries(queries, self.device, pca=self._inv is not None)
         if self.n == 0:
-            return torch.zeros((q.shape[0], 0), dtype=torch.float32, device=self.device)
-        qm = None
-        if self._inv is not None and fs.pca is not None:
-            m, v = fs.pca.torch_basis(self.device, torch.float32)
-            q64 = qn.double()
-            qn, qm = (q64 @ v.double()).float(), (q64 @ m.double()).float()   # Vᵀq̂ (Q, k), q̂ᵀm (Q,)
+            return torch.zeros((qn.shape[0], 0), dtype=torch.float32, device=self.device)
         if qn.shape[0] == 1:
             out = torch.mv(self._y, qn[0])[:, None]                           # (N, 1)
         else:

@@ -30,14 +30,17 @@ from scipy.sparse.csgraph import connected_components
 
 from common.conventions import voxel_center, voxel_index
 from common.messages import MessageError, QueryRequest, QueryResult
-from semantic_map.query_snapshot import SCORE_ATOL, HalfFeatures, QuerySnapshot, _one_thread  # noqa: F401  (re-exported)
+from common.cones import cone_union_volume
+from semantic_map.query import score_rows
+from semantic_map.query_snapshot import QuerySnapshot
 
 #: generic phrases of ``query.softmax_set=negatives`` (relevancy-style; not the paper's default)
 SOFTMAX_NEGATIVES = ("object", "things", "stuff", "texture")
 SOFTMAX_TEMPERATURE = 100.0
 
 
-def _np(x) -> np.ndarray:
+def to_numpy(x) -> np.ndarray:
+    """``x`` (a tensor on any device, or array-like) as a numpy array."""
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().numpy()
     return np.asarray(x)
@@ -102,18 +105,12 @@ def scores_for(fs, feats: torch.Tensor, q: torch.Tensor, softmax: bool, negative
     softmax(100·cos) share against ``negatives``. ``feats`` raw ``(N, dim)``, a
     :class:`common.feature_space.PreparedFeatures` or a :class:`HalfFeatures` (the query
     copy's float16 rows: within :data:`SCORE_ATOL` of the float32 cosine)."""
-    from common.feature_space import PreparedFeatures
-
     if len(feats) == 0:
         return np.zeros((0,), np.float32)
     qs = torch.cat([q, negatives]) if softmax and negatives is not None else q
-    if isinstance(feats, (PreparedFeatures, HalfFeatures)):
-        sim = feats.similarity(qs)
-    else:
-        sim = fs.similarity(feats, qs, device=device)
-    if softmax:
-        sim = torch.softmax(SOFTMAX_TEMPERATURE * sim, dim=0)
-    return _np(sim[0]).astype(np.float32, copy=False)
+    sim = score_rows(feats, qs, lambda f, qq: fs.similarity(f, qq, device=device), softmax, SOFTMAX_TEMPERATURE,
+                     chunk=len(feats))
+    return to_numpy(sim[0]).astype(np.float32, copy=False)
 
 
 def top_stable(s: np.ndarray, k: int) -> np.ndarray:
@@ -179,9 +176,6 @@ def cluster_voxels(ijk: np.ndarray) -> np.ndarray:
     g = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(m, m))
     _, labels = connected_components(g, directed=False)
     return labels.astype(np.int64)
-
-
-from common.cones import _cone_frame, cone_union_volume  # noqa: E402,F401  (moved there; names kept)
 
 
 _NEGATIVES: dict = {}

@@ -63,7 +63,7 @@ class QueryServer:
     def snapshot(self, timings: dict, flush: bool = False):
         """The QuerySnapshot of the current map generation (caller holds ``query_lock``);
         with ``flush`` the map worker first integrates the frames the map buffers."""
-        from mapper.query_answer import QuerySnapshot
+        from semantic_map.query_snapshot import QuerySnapshot
 
         s = self.state
         budget = max(0.0, float(s.cfg.query.lock_timeout_s))

@@ -1,6 +1,6 @@
 """What the mapper process does with its map, kept free of Zenoh: create/load the map,
 integrate a decoded frame, flush, read the layers (module map: :mod:`mapper.state`).
-Query answering moved to :mod:`mapper.query_answer`; its names stay importable from here.
+Query answering is :mod:`mapper.query_answer`.
 World frame, metres, z up.
 """
 from __future__ import annotations
@@ -10,21 +10,7 @@ import torch
 
 from common.conventions import voxel_center
 from common.messages import MessageError
-from mapper.query_answer import (  # noqa: F401  (re-exported: the query side used to live here)
-    SOFTMAX_NEGATIVES,
-    SOFTMAX_TEMPERATURE,
-    QuerySnapshot,
-    _np,
-    answer_query,
-    answer_snapshot,
-    cluster_voxels,
-    cone_union_volume,
-    embed_request,
-    scores_for,
-    softmax_negatives,
-    text_encoder,
-    top_stable,
-)
+from mapper.query_answer import to_numpy
 
 
 # ------------------------------------------------------------------- map life
@@ -68,19 +54,19 @@ def map_stats(m) -> dict:
 def voxel_arrays(m) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
     """``(xyz (N,3) float32 centres, features (N,D) tensor, rgb (N,3) uint8)``."""
     v = m.voxels()
-    xyz = _np(v.xyz).astype(np.float32, copy=False)
-    rgb = np.clip(_np(v.rgb).astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    xyz = to_numpy(v.xyz).astype(np.float32, copy=False)
+    rgb = np.clip(to_numpy(v.rgb).astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
     return xyz, v.features, rgb
 
 
 def ray_arrays(m) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
     """``(origins (R,3), unit directions (R,3), features (R,D))``."""
     r = m.rays()
-    return _np(r.origins).astype(np.float32), _np(r.directions).astype(np.float32), r.features
+    return to_numpy(r.origins).astype(np.float32), to_numpy(r.directions).astype(np.float32), r.features
 
 
 def frontier_xyz(m) -> np.ndarray:
-    return _np(m.frontiers().centres).astype(np.float32).reshape(-1, 3)
+    return to_numpy(m.frontiers().centres).astype(np.float32).reshape(-1, 3)
 
 
 def layer_arrays(m, layer: str, lcfg) -> tuple[dict, dict]:
@@ -96,16 +82,16 @@ def layer_arrays(m, layer: str, lcfg) -> tuple[dict, dict]:
         if n > lcfg.max_voxels:
             idx = torch.from_numpy(np.sort(rng.choice(n, lcfg.max_voxels, replace=False))).to(keys.device)
             keys, rgb = keys[idx], rgb[idx]
-        xyz = _np(voxel_center(cell_keys.unpack(keys), sem.vox)).astype(np.float32, copy=False).reshape(-1, 3)
-        rgb = np.clip(_np(rgb).astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8).reshape(-1, 3)
+        xyz = to_numpy(voxel_center(cell_keys.unpack(keys), sem.vox)).astype(np.float32, copy=False).reshape(-1, 3)
+        rgb = np.clip(to_numpy(rgb).astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8).reshape(-1, 3)
         return {"xyz": xyz, "rgb": rgb}, {"total": n, "vox_size": float(m.cfg.vox_size)}
     if layer == "frontiers":
         f = frontier_xyz(m)
         return {"xyz": f}, {"total": len(f)}
     if layer == "rays":
         rs = m.ray_store
-        o = _np(rs.origins()).astype(np.float32).reshape(-1, 3)
-        d = _np(rs.directions()).astype(np.float32).reshape(-1, 3)
+        o = to_numpy(rs.origins()).astype(np.float32).reshape(-1, 3)
+        d = to_numpy(rs.directions()).astype(np.float32).reshape(-1, 3)
         n = len(o)
         if n > lcfg.max_rays:
             idx = np.sort(rng.choice(n, lcfg.max_rays, replace=False))

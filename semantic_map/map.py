@@ -31,7 +31,7 @@ from semantic_map.config import MapConfig
 from semantic_map.depth_geometry import aggregate_samples, frame_geometry, sample_image
 from semantic_map.frontiers import FrontierTable
 from semantic_map.occupancy import make_occupancy
-from semantic_map.query import QueryResult, Similarity, run_query
+from semantic_map.query import LayerScores, Similarity, run_query
 from semantic_map.ray_frontiers import RayStore, angles_deg, associate, infer_directions, warn_infer_direction
 from semantic_map.semantic_voxels import SemanticVoxels as SemanticVoxels_
 
@@ -428,7 +428,7 @@ class RayFrontsMap:
 
     def query(self, queries, *, similarity: Similarity | None = None, softmax: bool = False,
               temperature: float = 100.0, top_k: int = 10, denoise: float | None = None,
-              threshold: float | None = None) -> QueryResult:
+              threshold: float | None = None) -> LayerScores:
         """Similarity of every voxel and ray to each query (see :mod:`semantic_map.query`)."""
         q = _as_tensor(queries, torch.float32, self.device)
         rs = self.ray_store

@@ -11,6 +11,10 @@
 * Labels: per voxel/ray the arg-max query, ``-1`` where the best value is below
   ``threshold`` (or every query is disabled).
 * Top-k voxels and rays per query with positions and scores.
+
+:func:`score_rows` (similarity, then the softmax across queries) is the one scoring step of
+every query answer: the mapper's service (``mapper.query_answer``) and the evaluation (through
+:meth:`RayFrontsMap.query`) both score through it.
 """
 from __future__ import annotations
 
@@ -43,6 +47,21 @@ def similarity_matrix(feats: torch.Tensor, queries: torch.Tensor, similarity: Si
     return out
 
 
+def score_rows(feats, queries: torch.Tensor, similarity: Similarity | None = None, softmax: bool = False,
+               temperature: float = 100.0, chunk: int = DEFAULT_CHUNK) -> torch.Tensor:
+    """``(Q, N)`` float32 scores of ``queries`` against feature rows ``feats``: the similarity
+    (``similarity``, else :func:`cosine`; chunked by ``chunk`` rows when ``feats`` is a tensor;
+    prepared features — anything with ``.similarity(queries)`` — score themselves), then with
+    ``softmax`` the softmax across the queries of ``temperature · sim`` per row."""
+    if isinstance(feats, torch.Tensor):
+        sim = similarity_matrix(feats, queries, similarity, chunk)
+    else:
+        sim = feats.similarity(queries)
+    if softmax and sim.numel():
+        sim = torch.softmax(temperature * sim, dim=0)
+    return sim
+
+
 @dataclass
 class TopK:
     index: torch.Tensor   # (k,) rows into the layer
@@ -52,7 +71,10 @@ class TopK:
 
 
 @dataclass
-class QueryResult:
+class LayerScores:
+    """Every voxel's and ray's score for each query, their labels and the top k (one call of
+    :func:`run_query`)."""
+
     voxel_sim: torch.Tensor            # (Q, N)
     ray_sim: torch.Tensor              # (Q, R)
     voxel_labels: torch.Tensor         # (N,) int64, -1 = none
@@ -63,9 +85,7 @@ class QueryResult:
     ray_disabled: torch.Tensor | None = None
 
 
-def _post(sim: torch.Tensor, softmax: bool, temperature: float, denoise, threshold):
-    if softmax and sim.numel():
-        sim = torch.softmax(sim * temperature, dim=0)
+def _labels(sim: torch.Tensor, denoise, threshold):
     disabled = torch.zeros(sim.shape[0], dtype=torch.bool, device=sim.device)
     if denoise is not None and sim.shape[1]:
         disabled = sim.max(dim=1).values < denoise
@@ -97,7 +117,7 @@ def run_query(queries: torch.Tensor, voxel_feats: torch.Tensor, voxel_xyz: torch
               ray_feats: torch.Tensor, ray_origins: torch.Tensor, ray_dirs: torch.Tensor, *,
               similarity: Similarity | None = None, softmax: bool = False, temperature: float = 100.0,
               top_k: int = 10, denoise: float | None = None, threshold: float | None = None,
-              chunk: int = DEFAULT_CHUNK) -> QueryResult:
+              chunk: int = DEFAULT_CHUNK) -> LayerScores:
     """Query both layers (see module docstring). ``queries`` (Q, D) float."""
     q = torch.as_tensor(queries)
     if q.ndim == 1:
@@ -108,9 +128,9 @@ def run_query(queries: torch.Tensor, voxel_feats: torch.Tensor, voxel_xyz: torch
     if similarity is None and q.shape[1] != voxel_feats.shape[1]:
         raise ValueError(f"query dim {q.shape[1]} != map feature dim {voxel_feats.shape[1]}; "
                          "pass a similarity callable that maps between the spaces")
-    vs = similarity_matrix(voxel_feats, q, similarity, chunk)
-    rs = similarity_matrix(ray_feats, q, similarity, chunk)
-    vs, vl, vd = _post(vs, softmax, temperature, denoise, threshold)
-    rs, rl, rd = _post(rs, softmax, temperature, denoise, threshold)
-    return QueryResult(vs, rs, vl, rl, _topk(vs, top_k, voxel_xyz, None), _topk(rs, top_k, ray_origins, ray_dirs),
+    vs = score_rows(voxel_feats, q, similarity, softmax, temperature, chunk)
+    rs = score_rows(ray_feats, q, similarity, softmax, temperature, chunk)
+    vs, vl, vd = _labels(vs, denoise, threshold)
+    rs, rl, rd = _labels(rs, denoise, threshold)
+    return LayerScores(vs, rs, vl, rl, _topk(vs, top_k, voxel_xyz, None), _topk(rs, top_k, ray_origins, ray_dirs),
                        vd, rd)

@@ -85,24 +85,10 @@ class HalfFeatures:
     @torch.inference_mode()
     def similarity(self, queries) -> torch.Tensor:
         """``(Q, N)`` float32 cosine (within :data:`SCORE_ATOL` of the exact one)."""
-        from common.feature_space import FeatureSpaceError
-
-        fs = self.space
-        q = torch.as_tensor(queries).to(self.device, torch.float32)
-        if q.ndim == 1:
-            q = q[None]
-        if q.ndim != 2 or q.shape[1] != fs.lang_dim:
-            raise FeatureSpaceError(f"queries must be (Q, {fs.lang_dim}) in {fs.text_model} space, "
-                                    f"got {tuple(q.shape)}")
-        nq = q.shape[0]
+        qn, qm = self.space.project_queries(queries, self.device)
+        nq = qn.shape[0]
         if self.n == 0:
             return torch.zeros((nq, 0), dtype=torch.float32, device=self.device)
-        qn = torch.nn.functional.normalize(q, dim=1)
-        qm = None
-        if fs.pca is not None:
-            m, v = fs.pca.torch_basis(self.device, torch.float32)
-            q64 = qn.double()
-            qn, qm = (q64 @ v.double()).float(), (q64 @ m.double()).float()
         h = self._h
         small = self.n * h.shape[1] <= PARALLEL_MIN_ELEMENTS
         if nq == 1:

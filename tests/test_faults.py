@@ -622,7 +622,8 @@ def test_incremental_query_copy_answers_as_a_full_copy():
 
     from apps.bench.query import _change, _space, build_map
     from common.messages import QueryRequest
-    from mapper.query_answer import QuerySnapshot, answer_snapshot
+    from mapper.query_answer import answer_snapshot
+    from semantic_map.query_snapshot import QuerySnapshot
 
     fs = _space(16)
     cfg, m = build_map(8_000, 16, 300, fs)

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from apps.bench.query import _space, build_map
-from mapper.query_answer import SCORE_ATOL, QuerySnapshot, top_stable
+from mapper.query_answer import top_stable
+from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
 
 
 def _reference(fs, feats: torch.Tensor, q: torch.Tensor) -> np.ndarray:

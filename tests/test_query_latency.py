@@ -17,8 +17,11 @@ from common.messages import QueryRequest
 from common.pca import PCA
 from common.language_head import MLP2, MLP2Config
 from semantic_map import cell_keys
-from mapper.query_answer import SCORE_ATOL
-from mapper.service_map import QuerySnapshot, answer_snapshot, cone_union_volume, create_map, top_stable
+from semantic_map.query_snapshot import SCORE_ATOL
+from common.cones import cone_union_volume
+from mapper.query_answer import answer_snapshot, top_stable
+from mapper.service_map import create_map
+from semantic_map.query_snapshot import QuerySnapshot
 
 
 def _pca(d=32, k=8, seed=0):

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from edge.runtime import LatestSlot
-from mapper.service_map import cluster_voxels, cone_union_volume
+from common.cones import cone_union_volume
+from mapper.query_answer import cluster_voxels
 
 
 def test_latest_slot_replaces_unsent_and_counts():

@@ -111,7 +111,8 @@ def in_process(cfg, m, fs, args, n: int) -> dict:
     import torch
 
     from common.messages import QueryRequest
-    from mapper.query_answer import QuerySnapshot, answer_snapshot
+    from mapper.query_answer import answer_snapshot
+    from semantic_map.query_snapshot import QuerySnapshot
 
     from mapper.service_config import resolve_query_threads
 
