@@ -403,25 +403,38 @@ def expire_pending(robots: Iterable, now_wall: float, cfg: FleetSection, per_rob
     return sorted(out.items())
 
 
+def _score_error(ref, got) -> dict:
+    """``max_abs``, ``mean_abs``, ``p99_abs`` of ``got − ref`` ((Q, N) scores) and ``top1_agree``
+    (share of queries whose best row is the same)."""
+    d = (ref - got).abs().reshape(-1).numpy()
+    agree = (ref.argmax(1) == got.argmax(1)).float().mean().item()
+    return {"max_abs": float(d.max()), "mean_abs": float(d.mean()), "p99_abs": float(np.percentile(d, 99)),
+            "top1_agree": float(agree)}
+
+
 def reprojection_score_error(map_fs, robot_fs, x, queries) -> dict:
-    """Query-score error of re-projection, measured: encoder-space features ``x`` (N, D)
-    compressed in the robot's basis and re-projected (:class:`Reprojection`) against the same
-    features compressed directly in the map's basis, both scored (cosine in the language
-    space, :meth:`FeatureSpace.similarity`) against ``queries`` (Q, lang_dim). Both go
-    through float16 as on the wire. Returns ``max_abs``, ``mean_abs``, ``p99_abs`` and
-    ``top1_agree`` (share of queries whose best row is the same)."""
+    """Query-score loss of a robot's re-projected features, measured against the truth: the
+    **uncompressed** encoder-space features ``x`` (N, D) scored against ``queries`` (Q, lang_dim)
+    (cosine in the language space, :meth:`FeatureSpace.similarity` of the space without PCA).
+    What the map then holds — ``x`` compressed in the robot's basis (float16, as on the wire) and
+    re-projected into the map's basis (:class:`Reprojection`) — is scored the same way.
+
+    Returns ``max_abs``, ``mean_abs``, ``p99_abs``, ``top1_agree`` of that loss (what the map can
+    no longer tell apart), ``map_basis`` (the same figures for ``x`` compressed directly in the
+    map's basis: the loss any robot would have) and ``kept`` (:attr:`Reprojection.kept`)."""
+    import dataclasses
+
     import torch
 
     x = torch.as_tensor(np.asarray(x, np.float32))
+    q = torch.as_tensor(np.asarray(queries, np.float32))
+    raw_fs = dataclasses.replace(map_fs, pca=None, _head_cache={})
+    s_raw = raw_fs.similarity(x, q)
     direct = torch.as_tensor(np.asarray(map_fs.compress(x))).to(torch.float16).float()
     yr = torch.as_tensor(np.asarray(robot_fs.compress(x))).to(torch.float16).float().numpy()
     rp = Reprojection(map_fs, robot_fs)
     moved = torch.as_tensor(yr @ rp.A.T + rp.b)
-    q = torch.as_tensor(np.asarray(queries, np.float32))
-    s_direct = map_fs.similarity(direct, q)
-    s_moved = map_fs.similarity(moved, q)
-    d = (s_direct - s_moved).abs().reshape(-1).numpy()
-    agree = (s_direct.argmax(1) == s_moved.argmax(1)).float().mean().item()
-    return {"max_abs": float(d.max()), "mean_abs": float(d.mean()), "p99_abs": float(np.percentile(d, 99)),
-            "top1_agree": float(agree), "n_features": int(x.shape[0]), "n_queries": int(q.shape[0]),
-            "kept": rp.kept}
+    out = _score_error(s_raw, map_fs.similarity(moved, q))
+    out.update(map_basis=_score_error(s_raw, map_fs.similarity(direct, q)), n_features=int(x.shape[0]),
+               n_queries=int(q.shape[0]), kept=rp.kept)
+    return out

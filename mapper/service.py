@@ -21,10 +21,8 @@ entities, threads, close); each job is its own module over one shared
     (rerun file / gRPC)            RerunOutput           (outputs.rerun)
     ROS 2 topics (rmw_zenoh/bridge) RosOutput            (outputs.ros)   mapper-ros, Zenoh callbacks
 
-Module map, locks and events: :mod:`mapper.state` and ARCHITECTURE.md. The names that used to
-be defined here (``MapperService``, ``write_snapshot``, ``reject_reason``, ``RobotState``)
-stay importable from this module; the service's former attributes (``map``, ``lock``,
-``qlock``, ``mapped``, ``robots``, ...) read and write the shared state.
+Module map, locks and events: :mod:`mapper.state` and ARCHITECTURE.md. The service's
+attributes ``map``, ``lock``, ``qlock``, ``mapped``, ``robots``, ... read and write the shared state.
 """
 from __future__ import annotations
 
@@ -32,15 +30,15 @@ import json
 import logging
 import threading
 
-from mapper.ingest import Ingest, reject_reason
+from mapper.ingest import Ingest
 from mapper.map_worker import MapWorker
 from mapper.outputs.layers import LayerPublisher
 from mapper.query_server import QueryServer
 from mapper.service_config import set_torch_threads
-from mapper.snapshot_store import SnapshotStore, write_snapshot
-from mapper.state import MapperState, RobotState, jsonable
+from mapper.snapshot_store import SnapshotStore
+from mapper.state import MapperState
 
-__all__ = ["MapperService", "RobotState", "reject_reason", "write_snapshot", "jsonable"]
+__all__ = ["MapperService"]
 
 log = logging.getLogger("rayfronts.mapper")
 

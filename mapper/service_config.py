@@ -7,10 +7,10 @@ from typing import Literal
 
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
-from semantic_map.config import MapConfig
 from mapper.fleet import FleetSection
-from mapper.shards import ShardSection
 from mapper.outputs.ros import RosSection
+from mapper.shards import ShardSection
+from semantic_map.config import MapConfig
 
 
 @dataclass
@@ -66,6 +66,10 @@ class SnapshotSection:
     restore: bool = field_(True, "restore the latest snapshot in dir on start")
     keep: int = field_(2, "snapshots kept (older ones are deleted)")
     on_exit: bool = field_(True, "save a snapshot on clean shutdown")
+    map_config: Literal["error", "snapshot", "command_line"] = field_(
+        "error", "when the restored snapshot's map config differs from this one: 'error' = refuse to start, naming "
+                 "the keys; 'snapshot' = restore the map with its saved config; 'command_line' = start an empty map "
+                 "with this config (the snapshot stays on disk until newer ones replace it)")
 
 
 @dataclass

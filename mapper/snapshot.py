@@ -10,6 +10,7 @@ frames identically. Versioned: an unknown version or a missing file is a
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -26,16 +27,21 @@ class SnapshotError(RuntimeError):
 
 
 def _np(t) -> np.ndarray:
+    """A numpy copy of ``t`` (never a view of the map's memory: the copy is taken under the map
+    lock and written after it is released)."""
     if isinstance(t, torch.Tensor):
-        if t.dtype == torch.float16:
-            return t.cpu().numpy()
-        return t.detach().cpu().numpy()
-    return np.asarray(t)
+        return t.detach().cpu().numpy().copy()
+    return np.array(t, copy=True)
 
 
 def save_map(m, path) -> Path:
-    path = Path(path)
-    path.mkdir(parents=True, exist_ok=True)
+    """Write map ``m`` to the directory ``path`` (:func:`capture_map` then :func:`write_capture`)."""
+    return write_capture(capture_map(m), path)
+
+
+def capture_map(m) -> tuple[dict[str, np.ndarray], dict]:
+    """``(arrays, manifest)``: copies of everything a snapshot holds, taken while the caller
+    holds the map still; writing them (:func:`write_capture`) needs no lock."""
     arrays: dict[str, np.ndarray] = {}
     occ = m.occupancy.state()
     arrays["occ_ijk"] = _np(occ["ijk"]).astype(np.int64)
@@ -67,11 +73,40 @@ def save_map(m, path) -> Path:
         "last_fov_deg": list(m.last_fov_deg), "buffers": buf_meta,
         "stats": {k: v for k, v in m.stats().items() if k != "timings_ms_total"},
     }
+    return arrays, manifest
+
+
+def fsync_dir(path) -> None:
+    """Flush a directory's entries (new names, renames) to disk."""
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_bytes_durably(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` and fsync the file (its directory is the caller's)."""
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def write_capture(capture: tuple[dict[str, np.ndarray], dict], path) -> Path:
+    """Write a :func:`capture_map` result to the directory ``path``: ``arrays.npz`` and
+    ``manifest.json``, each fsynced, then the directory."""
+    arrays, manifest = capture
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
     tmp = path / "arrays.npz.tmp"
     with open(tmp, "wb") as f:
         np.savez(f, **arrays)
+        f.flush()
+        os.fsync(f.fileno())
     tmp.replace(path / "arrays.npz")
-    (path / "manifest.json").write_text(json.dumps(manifest, indent=2))
+    write_bytes_durably(path / "manifest.json", json.dumps(manifest, indent=2).encode())
+    fsync_dir(path)
     return path
 
 
@@ -92,9 +127,28 @@ def read_manifest(path) -> dict:
     return man
 
 
+def map_config_changes(path, cfg) -> dict[str, tuple]:
+    """``{key: (snapshot value, cfg value)}`` for every map config key (dotted) in which the
+    snapshot at ``path`` (a map directory) differs from the map config ``cfg``."""
+    saved = read_manifest(path)["config"]
+    want = to_dict(cfg)
+    out: dict[str, tuple] = {}
+
+    def walk(a, b, prefix: str) -> None:
+        for k in sorted(set(a) | set(b)):
+            x, y = a.get(k), b.get(k)
+            if isinstance(x, dict) and isinstance(y, dict):
+                walk(x, y, f"{prefix}{k}.")
+            elif x != y:
+                out[f"{prefix}{k}"] = (x, y)
+
+    walk(saved, want, "")
+    return out
+
+
 def load_map(path, map_cls, device="cpu", occupancy_backend: str = "auto"):
-    """A ``map_cls`` (:class:`semantic_map.map.RayFrontsMap`, passed in by ``RayFrontsMap.load`` so this
-    module does not import the map) restored from the snapshot at ``path``."""
+    """A ``map_cls`` (:class:`semantic_map.map.RayFrontsMap`, passed in by the caller so this
+    module does not import the map) restored from the snapshot at ``path``, with its saved config."""
     from semantic_map.config import MapConfig
     from semantic_map.occupancy import from_state
 

@@ -23,6 +23,7 @@ mapper answered from the unflushed map: no rays, missing voxels).
 """
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import os
@@ -33,11 +34,13 @@ from pathlib import Path
 from common.messages import (
     MessageError,
     decode_feature_space,
+    decode_query_request,
     decode_snapshot_request,
     encode_error,
+    encode_query_request,
     encode_snapshot_reply,
 )
-from mapper.snapshot import save_map
+from mapper.snapshot import capture_map, fsync_dir, write_bytes_durably, write_capture
 from mapper.state import MapperState, jsonable
 
 log = logging.getLogger("rayfronts.mapper")
@@ -62,8 +65,11 @@ class SnapshotStore:
             with s.qlock:
                 meta = {"frames_mapped": s.mapped, "stamp": time.time(), "version": version,
                         "flushed_version": s.flushed_version,
-                        "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in s.robots.items()}}
-            path = write_snapshot(root, s.map, s.space_reply, meta, s.cfg.snapshots.keep)
+                        "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in s.robots.items()},
+                        "standing": [base64.b64encode(encode_query_request(r)).decode()
+                                     for r in list(s.standing.values())]}
+            capture = capture_map(s.map)     # copies, under the lock; written after it
+        path = write_snapshot(root, capture, s.space_reply, meta, s.cfg.snapshots.keep)
         s.snap_version = version
         s.last_snapshot = {"path": str(path), "frames_mapped": meta["frames_mapped"], "stamp": meta["stamp"],
                            "seconds": time.perf_counter() - t0}
@@ -100,6 +106,8 @@ class SnapshotStore:
         else:
             log.error("no intact snapshot in %s (%d broken): starting with an empty map", root, len(broken))
             return
+        if not self._keep_after_config_check(path):
+            return
         s.map = m
         s.map_gen += 1
         s.space, s.space_reply = fs, envelope
@@ -112,6 +120,7 @@ class SnapshotStore:
         for name, r in meta.get("robots", {}).items():
             st = s.robot(name)
             st.mapped, st.last_seq = int(r.get("mapped", 0)), int(r.get("last_seq", -1))
+        self._restore_standing(meta.get("standing", []))
         s.last_snapshot = {"path": str(path), "frames_mapped": s.mapped, "stamp": meta.get("stamp", 0.0),
                            "restored": True}
         if broken:
@@ -119,6 +128,47 @@ class SnapshotStore:
         log.info("restored snapshot %s (%d frames, space %s, %s)%s", path, s.mapped, fs.id,
                  "flush pending" if s.flushed_version != s.version else "flushed",
                  f"; fell back from {len(broken)} broken newer generation(s)" if broken else "")
+
+    def _restore_standing(self, saved: list) -> None:
+        """Standing queries saved with the snapshot resume under their ids (watchers keep
+        receiving on ``mapper/queries/<id>``); an unreadable one is logged and skipped."""
+        s = self.state
+        for item in saved:
+            try:
+                req = decode_query_request(base64.b64decode(item))
+            except (MessageError, ValueError, TypeError) as e:
+                log.error("snapshot: a saved standing query is unreadable (%s); skipped", e)
+                continue
+            s.standing[req.id] = req
+        if s.standing:
+            s.standing_due.set()         # answer them once on the restored map
+        if saved:
+            log.info("restored %d standing quer%s: %s", len(s.standing), "y" if len(s.standing) == 1 else "ies",
+                     ", ".join(sorted(s.standing)))
+
+    def _keep_after_config_check(self, path: Path) -> bool:
+        """Whether the restored generation at ``path`` is kept, given ``snapshots.map_config``
+        when its map config differs from the configured one; 'error' raises a one-line
+        :class:`common.config.ConfigError` naming the keys."""
+        from common.config import ConfigError
+        from mapper.snapshot import map_config_changes
+
+        s = self.state
+        changes = map_config_changes(path / "map", s.cfg.map)
+        if not changes:
+            return True
+        said = ", ".join(f"map.{k}: snapshot {a!r} vs configured {b!r}" for k, (a, b) in changes.items())
+        mode = s.cfg.snapshots.map_config
+        if mode == "snapshot":
+            log.warning("snapshot %s: keeping its map config (%s)", path, said)
+            return True
+        if mode == "command_line":
+            log.warning("snapshot %s: map config differs (%s); starting an empty map with the configured one", path,
+                        said)
+            return False
+        raise ConfigError(f"snapshot {path} was mapped with another map config ({said}); restart with "
+                          "snapshots.map_config=snapshot to keep the snapshot's, snapshots.map_config=command_line to "
+                          "start an empty map with this one, or the same map.* settings")
 
     def on_snapshot(self, query) -> None:
         s = self.state
@@ -139,10 +189,16 @@ class SnapshotStore:
             log.warning("snapshot callback: %s", e)
 
 
-def write_snapshot(root: Path, m, space_envelope: bytes, meta: dict, keep: int = 2) -> Path:
-    """Write ``root/snap-<ms>`` atomically (a ``.tmp-`` dir renamed into place, then the
-    ``LATEST`` pointer replaced) with the map, its feature-space envelope and ``meta``;
-    keeps the newest ``keep`` snapshots. The caller holds the map lock."""
+def write_snapshot(root: Path, capture: tuple[dict, dict], space_envelope: bytes, meta: dict,
+                   keep: int = 2) -> Path:
+    """Write ``root/snap-<ms>`` atomically with a map ``capture`` (:func:`mapper.snapshot.capture_map`,
+    taken under the map lock; no lock is needed here), its feature-space envelope and ``meta``;
+    keeps the newest ``keep`` snapshots.
+
+    Durable before visible: every file and directory of the generation is fsynced, then the
+    ``.tmp-`` dir is renamed into place and the root fsynced, then ``LATEST`` is written,
+    fsynced and renamed over the old pointer, and the root fsynced again — after a power loss
+    ``LATEST`` never names a generation whose bytes are not on disk."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     name = f"snap-{int(time.time() * 1000):015d}"
@@ -150,12 +206,15 @@ def write_snapshot(root: Path, m, space_envelope: bytes, meta: dict, keep: int =
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir()
-    save_map(m, tmp / "map")
-    (tmp / "feature_space.bin").write_bytes(space_envelope)
-    (tmp / "meta.json").write_text(json.dumps(meta))
+    write_capture(capture, tmp / "map")
+    write_bytes_durably(tmp / "feature_space.bin", space_envelope)
+    write_bytes_durably(tmp / "meta.json", json.dumps(meta).encode())
+    fsync_dir(tmp)
     os.replace(tmp, root / name)
-    (root / ".latest.tmp").write_text(name)
+    fsync_dir(root)
+    write_bytes_durably(root / ".latest.tmp", name.encode())
     os.replace(root / ".latest.tmp", root / "LATEST")
+    fsync_dir(root)
     snaps = sorted(p for p in root.glob("snap-*") if p.is_dir())
     for old in snaps[:-max(1, keep)]:
         shutil.rmtree(old, ignore_errors=True)

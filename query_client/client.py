@@ -21,8 +21,15 @@ from typing import Callable
 import numpy as np
 
 from common.messages import (
-    MessageError, QueryRequest, QueryResult, decode_layer, decode_query_result, decode_snapshot_reply,
-    decode_stats, encode_query_request, encode_snapshot_request,
+    MessageError,
+    QueryRequest,
+    QueryResult,
+    decode_layer,
+    decode_query_result,
+    decode_snapshot_reply,
+    decode_stats,
+    encode_query_request,
+    encode_snapshot_request,
 )
 
 log = logging.getLogger("rayfronts.query_client")
@@ -86,15 +93,19 @@ class WatchHandle:
     def __init__(self, client: "Client", qid: str, sub):
         self.client, self.id, self._sub = client, qid, sub
         self.active = True
+        self.reregistered = 0          # times the query was registered again after a mapper came back
+        self._alive_sub = None
 
     def cancel(self) -> None:
         if not self.active:
             return
         self.active = False
-        try:
-            self._sub.undeclare()
-        except Exception:
-            pass
+        for sub in (self._sub, self._alive_sub):
+            try:
+                if sub is not None:
+                    sub.undeclare()
+            except Exception:
+                pass
         try:
             self.client._get_one(self.client.keys.mapper_query,
                                  encode_query_request(QueryRequest(cancel=True, id=self.id)), 2.0)
@@ -237,7 +248,32 @@ class Client:
             callback(first)
         except Exception as e:
             log.warning("standing query %s callback: %s", qid, e)
+        handle._alive_sub = self._follow_mapper(handle, req, timeout)
         return handle
+
+    def _follow_mapper(self, handle: WatchHandle, req: QueryRequest, timeout: float | None):
+        """Register ``req`` again whenever a mapper's liveliness token appears (a mapper that
+        restarted without the standing query in its snapshot would otherwise never refresh it);
+        a mapper that restored it answers the same id, so registering twice is harmless."""
+        import threading
+
+        def register() -> None:
+            try:
+                self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
+                handle.reregistered += 1
+                log.info("standing query %s registered again with a returning mapper", req.id)
+            except Exception as e:
+                log.warning("standing query %s: registering again failed: %s", req.id, e)
+
+        def on_token(sample) -> None:
+            if handle.active and str(sample.kind).endswith("PUT"):
+                threading.Thread(target=register, name=f"rereg-{req.id}", daemon=True).start()
+
+        try:
+            return self.session.liveliness().declare_subscriber(self.keys.mapper_alive, on_token)
+        except Exception as e:  # the watch still works; it just will not follow restarts
+            log.warning("standing query %s: cannot follow the mapper's liveliness: %s", req.id, e)
+            return None
 
     # ------------------------------------------------------------------ map state
     def stats(self, timeout: float | None = None) -> dict:
@@ -280,7 +316,10 @@ class Client:
         ``value`` (a 4x4 rigid transform or 16 numbers) set it first, at run time. With several
         shards every shard that answers sets it."""
         from common.fleet import (
-            FleetMessageError, decode_transform_reply, encode_transform_request, robot_transform_key,
+            FleetMessageError,
+            decode_transform_reply,
+            encode_transform_request,
+            robot_transform_key,
         )
 
         oks, errs = self._get_all(robot_transform_key(self.keys, robot),

@@ -75,7 +75,7 @@ def test_cone_union_volume_exact_cases():
 
 def test_reject_reason_codes():
     from common.wire import WireError, decode_frame
-    from mapper.service import reject_reason
+    from mapper.ingest import reject_reason
 
     reasons = set()
     for bad in (b"", b"\x05\x00\x00\x00abc", b"\xff" * 40):

@@ -237,9 +237,10 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: i
     from common.feature_space import FeatureSpace
     from common.messages import encode_feature_space
     from common.pca import PCA
-    from mapper.service import write_snapshot
     from mapper.service_config import load_mapper_config
     from mapper.service_map import create_map
+    from mapper.snapshot import capture_map
+    from mapper.snapshot_store import write_snapshot
 
     cfg = load_mapper_config(None, [f"preset={preset}", "map.vox_size=0.5"])
     pca = PCA.load(pca_path)
@@ -262,7 +263,7 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: i
         m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(),
                                 "feat": torch.randn((r, pca.out_dim), generator=g), "weight": torch.ones(r),
                                 "dsum": torch.nn.functional.normalize(torch.randn((r, 3), generator=g), dim=1)})
-    write_snapshot(root, m, encode_feature_space("bench", fs.to_body()), {"frames_mapped": 0, "robots": {}})
+    write_snapshot(root, capture_map(m), encode_feature_space("bench", fs.to_body()), {"frames_mapped": 0, "robots": {}})
     return np.random.default_rng(0).standard_normal(pca.in_dim).astype(np.float32)
 
 
@@ -416,7 +417,8 @@ def _queries(args, out: dict, work: Path, pca_path: Path, shm: str, start) -> No
     out["query_map_build_s"] = time.perf_counter() - t0
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     start("mapper_q", "mapper", "--mode", "router", "--listen", ep, "--zenoh-set", zs, f"preset={args.preset}",
-          f"snapshots.dir={snaps}", "snapshots.on_exit=false", "layers.rate_hz=0", *args.mapper_set)
+          "map.vox_size=0.5", f"snapshots.dir={snaps}", "snapshots.on_exit=false", "layers.rate_hz=0",
+          *args.mapper_set)  # the map config _big_snapshot built the snapshot with
     with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000, shared_memory=args.shm), timeout=120.0) as c:
         st = None
         end = time.monotonic() + 300
