@@ -17,7 +17,7 @@ SETUP_DEPS := pyproject.toml CMakeLists.txt $(wildcard semantic_map/csrc/*) depl
 STAMP      := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(EXTRAS))
 DEMO_STAMP := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(DEMO_EXTRAS))
 
-.PHONY: setup demo test lint bench clean-build
+.PHONY: setup demo test lint typecheck bench clean-build
 
 setup: $(STAMP)
 
@@ -34,6 +34,10 @@ test: $(STAMP)
 # ruff with the rule set in pyproject.toml ([tool.ruff]; ruff comes with the test extra)
 lint: $(STAMP)
 	$(VENV)/bin/python -m ruff check .
+
+# mypy on the pure map and the wire codec ([tool.mypy] in pyproject.toml; mypy comes with the test extra)
+typecheck: $(STAMP)
+	$(VENV)/bin/python -m mypy
 
 bench: $(DEMO_STAMP)
 	$(VENV)/bin/rayfronts bench world --json out/bench_world.json

@@ -1,4 +1,4 @@
-"""The ``rayfronts`` command: one entry point, one subcommand per job (DESIGN §5).
+"""The ``rayfronts`` command: one entry point, one subcommand per job (docs/commands.md).
 
 This is an application (``apps``), above the roles: each subcommand lives in the part
 that owns it and is resolved lazily by module name, so a robot with only the edge installed
@@ -31,6 +31,7 @@ import importlib
 import logging
 import os
 import sys
+from typing import NoReturn
 
 #: subcommand -> module implementing it (imported only when that subcommand runs).
 SUBCOMMANDS: dict[str, str] = {
@@ -38,6 +39,7 @@ SUBCOMMANDS: dict[str, str] = {
     "edge": "edge.cli",
     "mapper": "mapper.cli",
     "query": "query_client.cli",
+    "search": "query_client.search_cli",
     "router": "common.router",
     "world": "synthetic_world.cli",
     "bench": "apps.bench",
@@ -50,6 +52,7 @@ _FALLBACK_HELP = {
     "edge": "the onboard process: source -> encoder -> PCA -> Zenoh",
     "mapper": "the base-station process: map, queries, layers, snapshots, rerun",
     "query": "operator queries (one-shot or --watch)",
+    "search": "search for planners: found instances, look-next goals, rays beyond the map",
     "router": "a Zenoh router for sites without zenohd",
     "world": "render the synthetic world to a recording directory and a rerun file",
     "bench": "throughput / latency / memory benchmarks (JSON output)",
@@ -72,7 +75,7 @@ USAGE_ERRORS = frozenset({"ConfigError", "InvalidKey", "UserError"})
 class OneLineParser(argparse.ArgumentParser):
     """argparse errors as one line (``rayfronts query: error: ... (see --help)``), exit 2."""
 
-    def error(self, message):
+    def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
@@ -104,10 +107,10 @@ class _Unavailable:
         self._err = err
         self._name = name
 
-    def add_arguments(self, parser):
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("rest", nargs=argparse.REMAINDER)
 
-    def run(self, args):
+    def run(self, args: argparse.Namespace) -> int:
         print(f"rayfronts {self._name}: not available here: {self._err}", file=sys.stderr)
         return 2
 

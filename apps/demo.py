@@ -30,8 +30,14 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from common.messages import QueryResult
+    from query_client.client import Client
+    from synthetic_world import World
 
 HELP = "run router, mapper, edge and a query client on the built-in synthetic world"
 DESCRIPTION = __doc__
@@ -120,7 +126,7 @@ def zenoh_env() -> dict:
 
 
 # ------------------------------------------------------------------------- scoring
-def query_classes(world, texts) -> list[int]:
+def query_classes(world: World, texts: Iterable[str]) -> list[int]:
     """Nearest world class (by MiniLM embedding of the class names) for each query text."""
     import torch
 
@@ -133,12 +139,12 @@ def query_classes(world, texts) -> list[int]:
     return [int(i) + 1 for i in (q @ c.T).argmax(1).tolist()]
 
 
-def class_in_range(world, class_id: int, positions: np.ndarray, depth_limit: float) -> bool:
+def class_in_range(world: World, class_id: int, positions: np.ndarray, depth_limit: float) -> bool:
     d = world.distance_to_class(np.asarray(positions, np.float64), class_id)
     return bool(np.isfinite(d).any() and d.min() <= depth_limit)
 
 
-def score_result(world, res, class_id: int) -> dict:
+def score_result(world: World, res: QueryResult, class_id: int) -> dict:
     out: dict = {"best_voxel": None, "best_ray": None}
     if len(res.voxel_xyz):
         x = np.asarray(res.voxel_xyz[0], np.float64)
@@ -199,8 +205,8 @@ class Progress:
             self._open = False
 
 
-def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, others=(),
-                stall_s: float | None = None) -> dict:
+def wait_mapped(client: Client, edge: subprocess.Popen, deadline: float, progress: bool = True,
+                others: Iterable[tuple[str, subprocess.Popen]] = (), stall_s: float | None = None) -> dict:
     """Poll the mapper's stats until the edge has exited and every frame it sent is mapped,
     dropped or rejected, and the map is flushed. With ``stall_s`` the deadline moves on
     whenever the counts change (a slow, loaded machine gets time; a stuck one does not)."""
@@ -251,9 +257,9 @@ def wait_mapped(client, edge: subprocess.Popen, deadline: float, progress=True, 
 
 
 def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
-    from synthetic_world import World
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from query_client.client import Client
+    from synthetic_world import World
 
     t_start = time.monotonic()
     out = Path(cfg.out)
@@ -293,7 +299,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
             st = wait_mapped(client, edge, t_start + cfg.timeout_s, progress,
                              others=(("router", router), ("mapper", mapper)), stall_s=cfg.timeout_s)
             results["frames"] = int(st["frames"]["mapped"])
-            for text, cid in zip(cfg.queries, classes):
+            for text, cid in zip(cfg.queries, classes, strict=True):
                 res = client.query(text, top_k=10, timeout=cfg.timeout_s)  # the first loads the text model
                 entry = {"query": text, "class": world.classes[cid],
                          "in_range": class_in_range(world, cid, traj, cfg.depth_limit)}

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import argparse
+from typing import Callable
 
 
-def split_trailing_options(args: argparse.Namespace, items: list[str], add_options) -> list[str]:
+def split_trailing_options(args: argparse.Namespace, items: list[str],
+                           add_options: Callable[..., None]) -> list[str]:
     """argparse stops at the first positional ``key=value`` item: parse the options written
     after the items onto ``args`` (``add_options(parser, suppress=True)`` declares them) and
     return the remaining ``key=value`` overrides. Unknown options are a ConfigError."""

@@ -86,7 +86,7 @@ def cone_union_volume(origins: np.ndarray, dirs: np.ndarray, half_angle_deg: flo
     pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     inside = np.zeros(len(pts), bool)
     cos_t = math.cos(th)
-    for o, d in zip(origins.astype(np.float32), dirs.astype(np.float32)):
+    for o, d in zip(origins.astype(np.float32), dirs.astype(np.float32), strict=False):
         v = pts - o
         t = v @ d
         nrm = np.linalg.norm(v, axis=1)

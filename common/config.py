@@ -16,20 +16,22 @@ import math
 import types
 import typing
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterable, TypeVar
 
 import yaml
+
+_T = TypeVar("_T")
 
 
 class ConfigError(ValueError):
     """A configuration problem, with a message that says which key and why."""
 
 
-def _field_names(schema) -> list[str]:
+def _field_names(schema: type) -> list[str]:
     return [f.name for f in dataclasses.fields(schema)]
 
 
-def all_keys(schema, prefix: str = "") -> list[str]:
+def all_keys(schema: type, prefix: str = "") -> list[str]:
     """Every dotted key of a schema (sections and leaves)."""
     out = []
     hints = typing.get_type_hints(schema)
@@ -42,42 +44,22 @@ def all_keys(schema, prefix: str = "") -> list[str]:
     return out
 
 
-def _unknown(key: str, schema, prefix: str) -> ConfigError:
+def _unknown(key: str, schema: type, prefix: str) -> ConfigError:
     valid = [prefix + n for n in _field_names(schema)]
     close = difflib.get_close_matches(prefix + key, valid + all_keys(schema, prefix), n=1, cutoff=0.5)
     hint = f"; did you mean '{close[0]}'?" if close else f"; valid keys: {', '.join(valid)}"
     return ConfigError(f"unknown config key '{prefix}{key}'{hint}")
 
 
-def _coerce(value: Any, t, key: str):
+def _coerce(value: Any, t: Any, key: str) -> Any:
     """Check/convert ``value`` to annotation ``t``."""
     origin = typing.get_origin(t)
     if t is Any:
         return value
     if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(t)
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _coerce(value, a, key)
-            except ConfigError as e:
-                errors.append(str(e))
-        raise ConfigError(f"config key '{key}': {value!r} does not match {t}")
+        return _coerce_union(value, t, key)
     if origin in (list, tuple):
-        if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
-            raise ConfigError(f"config key '{key}': expected a list, got {value!r}")
-        args = typing.get_args(t)
-        if origin is tuple and args and args[-1] is not Ellipsis:
-            if len(args) != len(value):
-                raise ConfigError(f"config key '{key}': expected {len(args)} values, got {len(value)}")
-            return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-        a = args[0] if args else Any
-        seq = [_coerce(v, a, f"{key}[{i}]") for i, v in enumerate(value)]
-        return tuple(seq) if origin is tuple else seq
+        return _coerce_sequence(value, t, origin, key)
     if origin is dict:
         if not isinstance(value, dict):
             raise ConfigError(f"config key '{key}': expected a mapping, got {value!r}")
@@ -87,36 +69,85 @@ def _coerce(value: Any, t, key: str):
             choices = ", ".join(map(repr, typing.get_args(t)))
             raise ConfigError(f"config key '{key}': {value!r} is not one of {choices}")
         return value
-    if t is bool:
-        if isinstance(value, bool):
-            return value
-        raise ConfigError(f"config key '{key}': expected true/false, got {value!r}")
-    if t is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            if isinstance(value, float) and value.is_integer():
-                return int(value)
-            raise ConfigError(f"config key '{key}': expected an integer, got {value!r}")
-        return value
-    if t is float:
-        if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "-inf", "nan"):
-            return float(value)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"config key '{key}': expected a number, got {value!r}")
-        return float(value)
-    if t is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"config key '{key}': expected a string, got {value!r}")
-        return value
-    if t is Path:
-        if not isinstance(value, (str, Path)):
-            raise ConfigError(f"config key '{key}': expected a path, got {value!r}")
-        return Path(value)
+    for scalar, coerce in _SCALARS:
+        if t is scalar:
+            return coerce(value, key)
     if dataclasses.is_dataclass(t):
         raise ConfigError(f"config key '{key}' is a section; set its keys, e.g. '{key}.<name>=...'")
     return value
 
 
-def merge(cfg, data: dict, prefix: str = ""):
+def _coerce_union(value: Any, t: Any, key: str) -> Any:
+    """``value`` as the first member of the union ``t`` it fits (None for an optional)."""
+    args = typing.get_args(t)
+    if value is None and type(None) in args:
+        return None
+    errors = []
+    for a in args:
+        if a is type(None):
+            continue
+        try:
+            return _coerce(value, a, key)
+        except ConfigError as e:
+            errors.append(str(e))
+    raise ConfigError(f"config key '{key}': {value!r} does not match {t}")
+
+
+def _coerce_sequence(value: Any, t: Any, origin: type, key: str) -> list | tuple:
+    """``value`` as the list / tuple annotation ``t`` (``origin`` list or tuple), item by item."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
+        raise ConfigError(f"config key '{key}': expected a list, got {value!r}")
+    args = typing.get_args(t)
+    if origin is tuple and args and args[-1] is not Ellipsis:
+        if len(args) != len(value):
+            raise ConfigError(f"config key '{key}': expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, f"{key}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
+    a = args[0] if args else Any
+    seq = [_coerce(v, a, f"{key}[{i}]") for i, v in enumerate(value)]
+    return tuple(seq) if origin is tuple else seq
+
+
+def _coerce_bool(value: Any, key: str) -> bool:
+    if isinstance(value, bool):
+        return value
+    raise ConfigError(f"config key '{key}': expected true/false, got {value!r}")
+
+
+def _coerce_int(value: Any, key: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise ConfigError(f"config key '{key}': expected an integer, got {value!r}")
+    return value
+
+
+def _coerce_float(value: Any, key: str) -> float:
+    if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "-inf", "nan"):
+        return float(value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"config key '{key}': expected a number, got {value!r}")
+    return float(value)
+
+
+def _coerce_str(value: Any, key: str) -> str:
+    if not isinstance(value, str):
+        raise ConfigError(f"config key '{key}': expected a string, got {value!r}")
+    return value
+
+
+def _coerce_path(value: Any, key: str) -> Path:
+    if not isinstance(value, (str, Path)):
+        raise ConfigError(f"config key '{key}': expected a path, got {value!r}")
+    return Path(value)
+
+
+#: the plain scalar annotations and their coercions
+_SCALARS: tuple[tuple[type, Callable[[Any, str], Any]], ...] = (
+    (bool, _coerce_bool), (int, _coerce_int), (float, _coerce_float), (str, _coerce_str), (Path, _coerce_path),
+)
+
+
+def merge(cfg: _T, data: dict | None, prefix: str = "") -> _T:
     """Return a copy of dataclass instance ``cfg`` with the (nested) dict ``data`` applied."""
     if data is None:
         return cfg
@@ -160,7 +191,7 @@ def parse_override(item: str) -> dict:
     return out
 
 
-def load_yaml(path) -> dict:
+def load_yaml(path: str | Path) -> dict:
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"config file not found: {p}")
@@ -175,7 +206,8 @@ def load_yaml(path) -> dict:
     return data
 
 
-def load_config(schema, path=None, overrides=(), base: dict | None = None):
+def load_config(schema: type[_T], path: str | Path | None = None, overrides: Iterable[str] | None = (),
+                base: dict | None = None) -> _T:
     """Build a ``schema`` instance: defaults → ``base`` → YAML ``path`` → ``overrides``."""
     cfg = schema()
     if base:
@@ -187,9 +219,9 @@ def load_config(schema, path=None, overrides=(), base: dict | None = None):
     return cfg
 
 
-def to_dict(cfg) -> dict:
+def to_dict(cfg: Any) -> dict:
     """Plain nested dict (YAML-safe: Paths become strings, tuples lists, inf stays float)."""
-    def conv(v):
+    def conv(v: Any) -> Any:
         if dataclasses.is_dataclass(v):
             return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
         if isinstance(v, Path):
@@ -202,7 +234,7 @@ def to_dict(cfg) -> dict:
     return conv(cfg)
 
 
-def describe(schema, prefix: str = "") -> str:
+def describe(schema: type, prefix: str = "") -> str:
     """One line per key: ``key = default  -- help``; for ``--help`` epilogs."""
     lines = []
     inst = schema()
@@ -221,15 +253,16 @@ def describe(schema, prefix: str = "") -> str:
     return "\n".join(lines)
 
 
-def field_(default, help: str, **kw):
+def field_(default: Any, help: str, **kw: Any) -> Any:
     """Shorthand for a dataclass field with a help text (mutable defaults are copied)."""
     if isinstance(default, (list, dict, set)):
         return dataclasses.field(default_factory=lambda d=default: type(d)(d), metadata={"help": help}, **kw)
     if dataclasses.is_dataclass(default) and not isinstance(default, type):
-        return dataclasses.field(default_factory=lambda d=default: dataclasses.replace(d), metadata={"help": help}, **kw)
+        return dataclasses.field(default_factory=lambda d=default: dataclasses.replace(d), metadata={"help": help},
+                                 **kw)
     return dataclasses.field(default=default, metadata={"help": help}, **kw)
 
 
-def section(schema, help: str = ""):
+def section(schema: type, help: str = "") -> Any:
     """A nested config section field."""
     return dataclasses.field(default_factory=schema, metadata={"help": help})

@@ -1,4 +1,4 @@
-"""Conventions shared by every part (DESIGN §2), in one place.
+"""Conventions shared by every part (docs/conventions.md), in one place.
 
 * Pose: 4×4 **camera-to-world**, camera axes **OpenCV RDF** (x right, y down, z forward).
 * World: gravity-aligned where the source allows it, **z up** (ENU-like: x east, y north).
@@ -7,7 +7,8 @@
   carves free space up to the sensing range and is the only source of semantic rays.
   ``-inf``, ``0`` and negative values are "no measurement" and become ``NaN`` at the source.
 * Intrinsics: 3×3 at the depth image's resolution. Image sizes are ``(height, width)``.
-* Voxel index: ``floor(xyz / vox)``, computed only by :func:`voxel_index`.
+* Voxel index: ``floor(xyz / vox)``: :func:`voxel_index` in Python; the C++ kernels
+  (semantic_map/csrc) apply the same floor and are tested equal to it.
 
 Axis conventions are named by three letters, one per axis, for the direction the
 positive axis points: R/L (right/left), U/D (up/down), F/B (forward/backward) for bodies
@@ -19,7 +20,13 @@ still yields a z-up world.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any, overload
+
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+    from numpy.typing import ArrayLike
 
 # Unit vectors of each axis letter, in a common "physical" frame used only to build the
 # signed permutation matrices: body letters (R, D, F) and world letters (E, N, U).
@@ -71,7 +78,7 @@ def convert_pose(pose: np.ndarray, body: str = "RDF", world: str = "ENU") -> np.
     return w @ pose @ b
 
 
-def is_rigid(pose, tol: float = 1e-3) -> bool:
+def is_rigid(pose: ArrayLike, tol: float = 1e-3) -> bool:
     """True if ``pose`` is a finite 4×4 rigid transform (proper rotation, last row 0001)."""
     p = np.asarray(pose, dtype=np.float64)
     if p.shape != (4, 4) or not np.all(np.isfinite(p)):
@@ -84,14 +91,19 @@ def is_rigid(pose, tol: float = 1e-3) -> bool:
     return bool(np.allclose(p[3], [0, 0, 0, 1], atol=tol))
 
 
-def _is_torch(x) -> bool:
+def _is_torch(x: Any) -> bool:
     return type(x).__module__.startswith("torch")
 
 
-def voxel_index(xyz, vox: float):
+@overload
+def voxel_index(xyz: torch.Tensor, vox: float) -> torch.Tensor: ...
+@overload
+def voxel_index(xyz: np.ndarray, vox: float) -> np.ndarray: ...
+def voxel_index(xyz: np.ndarray | torch.Tensor, vox: float) -> np.ndarray | torch.Tensor:
     """Integer voxel index ``floor(xyz / vox)`` (int64), for numpy arrays or torch tensors.
 
-    The one and only definition: inserts, queries, pruning and ray tracing all call it."""
+    Inserts, queries, pruning and ray tracing in Python all call it; the C++ kernels use
+    the same floor (tests/test_mapper_perf_kernels.py holds them equal)."""
     if vox <= 0:
         raise ValueError(f"voxel size must be > 0, got {vox}")
     if _is_torch(xyz):
@@ -101,7 +113,11 @@ def voxel_index(xyz, vox: float):
     return np.floor(np.asarray(xyz) / vox).astype(np.int64)
 
 
-def voxel_center(ijk, vox: float):
+@overload
+def voxel_center(ijk: torch.Tensor, vox: float) -> torch.Tensor: ...
+@overload
+def voxel_center(ijk: np.ndarray, vox: float) -> np.ndarray: ...
+def voxel_center(ijk: np.ndarray | torch.Tensor, vox: float) -> np.ndarray | torch.Tensor:
     """World centre of voxel ``ijk``: ``(ijk + 0.5) * vox`` (float32 for torch, float64 numpy)."""
     if _is_torch(ijk):
         import torch
@@ -110,7 +126,12 @@ def voxel_center(ijk, vox: float):
     return (np.asarray(ijk, dtype=np.float64) + 0.5) * vox
 
 
-def sanitize_depth(depth, depth_limit: float | None = None):
+@overload
+def sanitize_depth(depth: torch.Tensor, depth_limit: float | None = None) -> torch.Tensor: ...
+@overload
+def sanitize_depth(depth: np.ndarray, depth_limit: float | None = None) -> np.ndarray: ...
+def sanitize_depth(depth: np.ndarray | torch.Tensor,
+                   depth_limit: float | None = None) -> np.ndarray | torch.Tensor:
     """Apply the depth conventions: ``-inf``/``<=0`` → NaN; finite values above
     ``depth_limit`` (if given, >0) → ``+inf`` (simulates a shorter sensor). A limit of 0
     turns every finite value into ``+inf`` (the paper's 0 m setting). Returns float32."""

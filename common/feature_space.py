@@ -7,7 +7,7 @@ the mapper needs to compare text/image queries with it:
 * ``in_dim``: the encoder's feature dimension (RADIO 768/1024, MiniLM 384);
 * ``pca`` (optional): the centred PCA that compresses ``in_dim -> dim``;
 * ``head`` (optional): the language head (RADIO's SigLIP MLP2) that maps encoder features
-  to the text model's space; applied at query time *after* averaging (brief §4.3);
+  to the text model's space; applied at query time *after* averaging (docs/method.md#language-head);
 * ``text_model``: "minilm-l6" | "siglip" — which text encoder embeds queries;
 * ``encoder_config`` (optional): the encoder settings the mapper needs to embed *image*
   queries with the same encoder (``EncoderConfig`` keys; not part of the id, which already
@@ -19,8 +19,9 @@ values for the wire (``common.wire``).
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -33,6 +34,56 @@ BODY_VERSION = 1
 
 class FeatureSpaceError(ValueError):
     """A feature-space body or query does not fit (shapes, dims, missing fields)."""
+
+
+def _body_get(body: dict, k: str, types: type | tuple[type, ...]) -> Any:
+    """Field ``k`` of a feature-space body (numpy scalars as Python values), type-checked."""
+    if k not in body:
+        raise FeatureSpaceError(f"feature-space body lacks field '{k}'")
+    v = body[k]
+    if isinstance(v, np.generic):
+        v = v.item()
+    if not isinstance(v, types) or isinstance(v, bool) and types is not bool:
+        raise FeatureSpaceError(f"feature-space field '{k}' has type {type(v).__name__}")
+    return v
+
+
+def _pca_from_body(body: dict, in_dim: int, dim: int) -> PCA:
+    """The ``pca.*`` fields of a feature-space body as a :class:`PCA` ``in_dim -> dim`` (validated)."""
+    # decoded arrays are read-only views of the message: own writable copies, so torch
+    # can wrap them (torch.from_numpy warns on non-writable arrays)
+    mean = np.array(_body_get(body, "pca.mean", np.ndarray), dtype=np.float32)
+    basis = np.array(_body_get(body, "pca.basis", np.ndarray), dtype=np.float32)
+    ev = np.array(body.get("pca.explained_variance", np.zeros(dim)), dtype=np.float64)
+    if mean.shape != (in_dim,) or basis.shape != (in_dim, dim) or ev.shape != (dim,):
+        raise FeatureSpaceError(f"PCA shapes in body: mean {mean.shape}, basis {basis.shape}, "
+                                f"explained_variance {ev.shape}; "
+                                f"expected ({in_dim},), ({in_dim}, {dim}), ({dim},)")
+    if not (np.isfinite(mean).all() and np.isfinite(basis).all()):
+        raise FeatureSpaceError("PCA mean/basis in body contain NaN or inf")
+    return PCA(mean, basis, ev, float(body.get("pca.total_variance", ev.sum())),
+               int(body.get("pca.n_samples", 0)))
+
+
+def _head_from_body(body: dict) -> tuple[MLP2Config, dict[str, np.ndarray]]:
+    """The ``head.cfg.*`` / ``head.sd.*`` fields of a feature-space body: the language head's
+    config and state dict, checked against each other."""
+    cfg = {k[len("head.cfg."):]: (v.item() if isinstance(v, np.generic) else v)
+           for k, v in body.items() if k.startswith("head.cfg.")}
+    try:
+        hc = MLP2Config.from_dict(cfg)
+    except (ValueError, TypeError) as e:
+        raise FeatureSpaceError(f"bad language head config in body: {e}") from None
+    hs = {k[len("head.sd."):]: np.array(v) for k, v in body.items() if k.startswith("head.sd.")}
+    expect = {k: tuple(v.shape) for k, v in MLP2(hc, device="meta").state_dict().items()}
+    got = {k: tuple(v.shape) for k, v in hs.items()}
+    if expect != got:
+        missing = sorted(set(expect) - set(got))
+        extra = sorted(set(got) - set(expect))
+        wrong = sorted(k for k in set(expect) & set(got) if expect[k] != got[k])
+        raise FeatureSpaceError(f"language head tensors do not match its config: missing {missing}, "
+                                f"unexpected {extra}, wrong shapes {wrong}")
+    return hc, hs
 
 
 @dataclass
@@ -75,7 +126,7 @@ class FeatureSpace:
         return f"{self.encoder_name}-{self.encoder_version}-{h}-{self.dim}"
 
     @classmethod
-    def for_encoder(cls, encoder, pca: PCA | None = None) -> "FeatureSpace":
+    def for_encoder(cls, encoder: Any, pca: PCA | None = None) -> "FeatureSpace":
         """Describe an encoder's output (duck-typed: ``name``, ``version``, ``feature_dim``,
         ``text_model``, optional ``language_head`` MLP2)."""
         head = getattr(encoder, "language_head", None)
@@ -112,62 +163,27 @@ class FeatureSpace:
     @classmethod
     def from_body(cls, body: dict) -> "FeatureSpace":
         """Inverse of :meth:`to_body`; validates every shape and the id."""
-        def get(k, types):
-            if k not in body:
-                raise FeatureSpaceError(f"feature-space body lacks field '{k}'")
-            v = body[k]
-            if isinstance(v, np.generic):
-                v = v.item()
-            if not isinstance(v, types) or isinstance(v, bool) and types is not bool:
-                raise FeatureSpaceError(f"feature-space field '{k}' has type {type(v).__name__}")
-            return v
-
-        ver = get("fs_version", int)
+        ver = _body_get(body, "fs_version", int)
         if ver != BODY_VERSION:
             raise FeatureSpaceError(f"feature-space body version {ver} not supported (expected {BODY_VERSION})")
-        in_dim, dim = get("in_dim", int), get("dim", int)
+        in_dim, dim = _body_get(body, "in_dim", int), _body_get(body, "dim", int)
         if in_dim <= 0 or dim <= 0 or dim > in_dim:
             raise FeatureSpaceError(f"bad dims in feature-space body: in_dim={in_dim}, dim={dim}")
         pca = None
-        if get("has_pca", int):
-            # decoded arrays are read-only views of the message: own writable copies, so torch
-            # can wrap them (torch.from_numpy warns on non-writable arrays)
-            mean = np.array(get("pca.mean", np.ndarray), dtype=np.float32)
-            basis = np.array(get("pca.basis", np.ndarray), dtype=np.float32)
-            ev = np.array(body.get("pca.explained_variance", np.zeros(dim)), dtype=np.float64)
-            if mean.shape != (in_dim,) or basis.shape != (in_dim, dim) or ev.shape != (dim,):
-                raise FeatureSpaceError(f"PCA shapes in body: mean {mean.shape}, basis {basis.shape}, "
-                                        f"explained_variance {ev.shape}; expected ({in_dim},), ({in_dim}, {dim}), ({dim},)")
-            if not (np.isfinite(mean).all() and np.isfinite(basis).all()):
-                raise FeatureSpaceError("PCA mean/basis in body contain NaN or inf")
-            pca = PCA(mean, basis, ev, float(body.get("pca.total_variance", ev.sum())),
-                      int(body.get("pca.n_samples", 0)))
+        if _body_get(body, "has_pca", int):
+            pca = _pca_from_body(body, in_dim, dim)
         elif dim != in_dim:
             raise FeatureSpaceError(f"body has no PCA but dim {dim} != in_dim {in_dim}")
         hc = hs = None
-        if get("has_head", int):
-            cfg = {k[len("head.cfg."):]: (v.item() if isinstance(v, np.generic) else v)
-                   for k, v in body.items() if k.startswith("head.cfg.")}
-            try:
-                hc = MLP2Config.from_dict(cfg)
-            except (ValueError, TypeError) as e:
-                raise FeatureSpaceError(f"bad language head config in body: {e}") from None
-            hs = {k[len("head.sd."):]: np.array(v) for k, v in body.items() if k.startswith("head.sd.")}
-            expect = {k: tuple(v.shape) for k, v in MLP2(hc, device="meta").state_dict().items()}
-            got = {k: tuple(v.shape) for k, v in hs.items()}
-            if expect != got:
-                missing = sorted(set(expect) - set(got))
-                extra = sorted(set(got) - set(expect))
-                wrong = sorted(k for k in set(expect) & set(got) if expect[k] != got[k])
-                raise FeatureSpaceError(f"language head tensors do not match its config: missing {missing}, "
-                                        f"unexpected {extra}, wrong shapes {wrong}")
+        if _body_get(body, "has_head", int):
+            hc, hs = _head_from_body(body)
         ec = body.get("encoder_config")
         if ec is not None and not (isinstance(ec, dict) and len(ec) <= 64 and all(
                 isinstance(k, str) and (v is None or isinstance(v, (str, int, float, bool, list)))
                 for k, v in ec.items())):
             raise FeatureSpaceError("feature-space field 'encoder_config' must be a map of str to plain values")
-        fs = cls(get("encoder_name", str), get("encoder_version", str), in_dim,
-                 get("text_model", str), pca, hc, hs, dict(ec) if ec else None)
+        fs = cls(_body_get(body, "encoder_name", str), _body_get(body, "encoder_version", str), in_dim,
+                 _body_get(body, "text_model", str), pca, hc, hs, dict(ec) if ec else None)
         if fs.dim != dim:
             raise FeatureSpaceError(f"body dim {dim} != PCA output dim {fs.dim}")
         if "id" in body and body["id"] != fs.id:
@@ -175,15 +191,15 @@ class FeatureSpace:
         return fs
 
     # ------------------------------------------------------------------ transforms
-    def compress(self, x):
+    def compress(self, x: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
         """Encoder-space features → stored features (identity without PCA)."""
         return self.pca.compress(x) if self.pca is not None else x
 
-    def decompress(self, y):
+    def decompress(self, y: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
         """Stored features → encoder-space features (identity without PCA)."""
         return self.pca.decompress(y) if self.pca is not None else y
 
-    def language_head(self, device="cpu") -> MLP2 | None:
+    def language_head(self, device: str | torch.device = "cpu") -> MLP2 | None:
         """The head as a module on ``device`` (cached), or None."""
         if self.head_config is None:
             return None
@@ -197,13 +213,13 @@ class FeatureSpace:
         return self._head_cache[key]
 
     @torch.inference_mode()
-    def to_language(self, y: torch.Tensor, device="cpu") -> torch.Tensor:
+    def to_language(self, y: torch.Tensor, device: str | torch.device = "cpu") -> torch.Tensor:
         """Stored features ``(N, dim)`` → language space ``(N, lang_dim)`` (decompress, then head)."""
         x = torch.as_tensor(self.decompress(torch.as_tensor(y, device=device).float()))
         head = self.language_head(device)
         return head(x) if head is not None else x
 
-    def check_queries(self, queries, device: str | torch.device = "cpu") -> torch.Tensor:
+    def check_queries(self, queries: np.ndarray | torch.Tensor, device: str | torch.device = "cpu") -> torch.Tensor:
         """Language-space ``queries`` as a float32 ``(Q, lang_dim)`` tensor on ``device`` (a single
         ``(lang_dim,)`` row is accepted); :class:`FeatureSpaceError` for any other shape."""
         q = torch.as_tensor(queries).to(device, torch.float32)
@@ -214,7 +230,7 @@ class FeatureSpace:
                                     f"got {tuple(q.shape)}")
         return q
 
-    def project_queries(self, queries, device: str | torch.device = "cpu",
+    def project_queries(self, queries: np.ndarray | torch.Tensor, device: str | torch.device = "cpu",
                         pca: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The cosine's query side in stored-feature space: ``(Vᵀq̂ (Q, k), q̂ᵀm (Q,))`` for unit
         queries ``q̂`` and the PCA basis ``V``, mean ``m`` (computed in float64, returned float32);
@@ -228,7 +244,8 @@ class FeatureSpace:
         return (q64 @ v.double()).float(), (q64 @ m.double()).float()
 
     @torch.inference_mode()
-    def similarity(self, map_feats, queries, chunk: int = 65536, device="cpu") -> torch.Tensor:
+    def similarity(self, map_feats: np.ndarray | torch.Tensor, queries: np.ndarray | torch.Tensor, chunk: int = 65536,
+                   device: str | torch.device = "cpu") -> torch.Tensor:
         """Exact cosine similarity ``(Q, N)`` between language-space ``queries`` ``(Q, lang_dim)``
         and stored map features ``(N, dim)`` mapped to language space.
 
@@ -261,7 +278,8 @@ class FeatureSpace:
         return out
 
     @torch.inference_mode()
-    def prepare(self, map_feats, device="cpu", chunk: int = 65536, workspace: torch.Tensor | None = None,
+    def prepare(self, map_feats: np.ndarray | torch.Tensor, device: str | torch.device = "cpu", chunk: int = 65536,
+                workspace: torch.Tensor | None = None,
                 max_cache_bytes: int = 1 << 28) -> "PreparedFeatures":
         """Map features ``(N, dim)`` prepared for many queries: what does not depend on the
         query is computed once, so :meth:`PreparedFeatures.similarity` equals
@@ -311,7 +329,7 @@ class FeatureSpace:
             return PreparedFeatures(self, dev, n, lang, None, None)
         return PreparedFeatures(self, dev, n, None, None, None, raw=y)
 
-    def embed_queries(self, texts: Sequence[str], text_encoder, templates: str = "none") -> torch.Tensor:
+    def embed_queries(self, texts: Sequence[str], text_encoder: Any, templates: str = "none") -> torch.Tensor:
         """Embed query strings with ``text_encoder`` (must match :attr:`text_model`): ``(Q, lang_dim)``."""
         name = getattr(text_encoder, "name", None)
         if name != self.text_model:
@@ -340,7 +358,7 @@ class PreparedFeatures:
         return self._storage
 
     @torch.inference_mode()
-    def similarity(self, queries) -> torch.Tensor:
+    def similarity(self, queries: np.ndarray | torch.Tensor) -> torch.Tensor:
         """``(Q, N)`` float32 cosine of language-space ``queries`` ``(Q, lang_dim)`` with the
         prepared features (equal to :meth:`FeatureSpace.similarity` up to float32 rounding;
         may be a transposed view)."""
@@ -359,3 +377,44 @@ class PreparedFeatures:
         if self._inv is not None:
             out *= self._inv[:, None]
         return out.T
+
+
+# ------------------------------------------------------------- sharing one map
+def head_digest(fs: FeatureSpace) -> str:
+    """sha256 (16 hex) over the language head's config and weights ("" without a head)."""
+    if getattr(fs, "head_config", None) is None:
+        return ""
+    h = hashlib.sha256()
+    h.update(repr(sorted(fs.head_config.to_dict().items())).encode())
+    for k in sorted(fs.head_state):
+        v = np.ascontiguousarray(fs.head_state[k], dtype="<f4")
+        h.update(k.encode())
+        h.update(np.array(v.shape, "<i8").tobytes())
+        h.update(v.tobytes())
+    return h.hexdigest()[:16]
+
+
+def encoder_family(fs: FeatureSpace) -> str:
+    """What must match for two spaces to share one map: encoder name, version, input
+    dimension, text model and language head (``name-version-in_dim-text_model-head``)."""
+    return f"{fs.encoder_name}-{fs.encoder_version}-{fs.in_dim}-{fs.text_model}-{head_digest(fs) or 'nohead'}"
+
+
+def compatibility(map_fs: FeatureSpace, robot_fs: FeatureSpace, reproject: bool = True) -> str:
+    """"" when frames in ``robot_fs`` can join a map in ``map_fs``, else one line saying why.
+    (The feature-space id names encoder, version and basis but not the text model or the
+    head, so equal ids are checked like any other pair.)"""
+    diffs = []
+    for what, a, b in (("encoder", robot_fs.encoder_name, map_fs.encoder_name),
+                       ("encoder version", robot_fs.encoder_version, map_fs.encoder_version),
+                       ("encoder dimension", robot_fs.in_dim, map_fs.in_dim),
+                       ("text model", robot_fs.text_model, map_fs.text_model)):
+        if a != b:
+            diffs.append(f"{what} {a} (map: {b})")
+    if not diffs and head_digest(robot_fs) != head_digest(map_fs):
+        diffs.append("language head differs")
+    if diffs:
+        return "different encoder family: " + ", ".join(diffs)
+    if not reproject and robot_fs.id != map_fs.id:
+        return "another PCA basis and fleet.reproject=false"
+    return ""

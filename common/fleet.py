@@ -25,9 +25,13 @@ from __future__ import annotations
 
 import json
 import math
+from typing import TYPE_CHECKING, Sequence
 
 from common.keys import KeySpace, check_id
 from common.wire import WireError, decode_message, encode_message
+
+if TYPE_CHECKING:
+    import numpy as np
 
 SCHEMA_ROBOT_STATUS = "rayfronts.robot_status"
 SCHEMA_ROBOT_TRANSFORM = "rayfronts.robot_transform"
@@ -57,7 +61,7 @@ def robot_transform_all(keys: KeySpace) -> str:
     return f"{keys.prefix}/mapper/robots/*/world_from_robot"
 
 
-def robot_from_mapper_key(keys: KeySpace, key) -> str | None:
+def robot_from_mapper_key(keys: KeySpace, key: object) -> str | None:
     """Robot id of a ``<p>/mapper/robots/<robot>/<leaf>`` key, else None."""
     from common.keys import is_valid_id
 
@@ -70,7 +74,7 @@ def robot_from_mapper_key(keys: KeySpace, key) -> str | None:
 
 
 # ------------------------------------------------------------------ messages
-def _decode(data, schema: str) -> dict:
+def _decode(data: bytes | bytearray | memoryview, schema: str) -> dict:
     try:
         got, v, body = decode_message(bytes(data))
     except WireError as e:
@@ -91,7 +95,8 @@ def encode_robot_status(status: dict) -> bytes:
     return encode_message(SCHEMA_ROBOT_STATUS, VERSION, body)
 
 
-def decode_robot_status(data) -> dict:
+def decode_robot_status(data: bytes | bytearray | memoryview) -> dict:
+    """Inverse of :func:`encode_robot_status` (validated)."""
     body = _decode(data, SCHEMA_ROBOT_STATUS)
     if body.get("state") not in ROBOT_STATES:
         raise FleetMessageError(f"{SCHEMA_ROBOT_STATUS}: unknown state {body.get('state')!r}")
@@ -107,7 +112,7 @@ def decode_robot_status(data) -> dict:
     return body
 
 
-def encode_transform_request(world_from_robot=None) -> bytes:
+def encode_transform_request(world_from_robot: np.ndarray | Sequence | None = None) -> bytes:
     """Set (16 numbers, row-major) or, with None, only read a robot's transform."""
     body: dict = {}
     if world_from_robot is not None:
@@ -119,14 +124,14 @@ def encode_transform_request(world_from_robot=None) -> bytes:
     return encode_message(SCHEMA_ROBOT_TRANSFORM, VERSION, body)
 
 
-def _flatten(v):
+def _flatten(v: Sequence) -> list:
     out = []
     for x in v:
         out.extend(_flatten(x) if isinstance(x, (list, tuple)) else [x])
     return out
 
 
-def decode_transform_request(data) -> list[float] | None:
+def decode_transform_request(data: bytes | bytearray | memoryview) -> list[float] | None:
     """→ the 16 numbers to set, or None (a read)."""
     body = _decode(data, SCHEMA_ROBOT_TRANSFORM)
     v = body.get("world_from_robot")
@@ -138,14 +143,15 @@ def decode_transform_request(data) -> list[float] | None:
     return [float(x) for x in v]
 
 
-def encode_transform_reply(robot: str, world_from_robot) -> bytes:
+def encode_transform_reply(robot: str, world_from_robot: Sequence[float] | None) -> bytes:
     """``world_from_robot``: 16 numbers or None (identity: the robot has none)."""
     return encode_message(SCHEMA_ROBOT_TRANSFORM, VERSION,
                           {"robot": robot, "world_from_robot": None if world_from_robot is None
                            else [float(x) for x in world_from_robot]})
 
 
-def decode_transform_reply(data) -> list[float] | None:
+def decode_transform_reply(data: bytes | bytearray | memoryview) -> list[float] | None:
+    """→ the robot's 16 numbers (row-major world_from_robot), or None (identity)."""
     body = _decode(data, SCHEMA_ROBOT_TRANSFORM)
     v = body.get("world_from_robot")
     if v is not None and (not isinstance(v, list) or len(v) != 16):
@@ -164,7 +170,7 @@ def encode_shard_info(info: dict) -> bytes:
     return json.dumps({k: info[k] for k in SHARD_INFO_KEYS if k in info}).encode()
 
 
-def decode_shard_info(data) -> dict:
+def decode_shard_info(data: bytes | bytearray | memoryview | None) -> dict:
     """{} for a reply without (valid) shard info (an older or unsharded mapper)."""
     if not data:
         return {}

@@ -8,7 +8,7 @@ import numpy as np
 
 @dataclass
 class Frame:
-    """One posed RGB-D frame with encoder features (DESIGN §2, §4).
+    """One posed RGB-D frame with encoder features (docs/conventions.md, docs/messages.md#frame).
 
     Attributes:
         robot: robot id (``[A-Za-z0-9_-]+``).

@@ -6,7 +6,12 @@ poses camera-to-world (see :mod:`common.conventions`).
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 
 def intrinsics_from_fov(hfov_deg: float, height: int, width: int, vfov_deg: float | None = None) -> np.ndarray:
@@ -53,7 +58,7 @@ def unproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     return camera_rays(K, h, w) * np.asarray(depth, dtype=np.float64)[..., None]
 
 
-def unproject_pixels(u, v, z, K: np.ndarray) -> np.ndarray:
+def unproject_pixels(u: ArrayLike, v: ArrayLike, z: ArrayLike, K: np.ndarray) -> np.ndarray:
     """(N, 3) camera points from pixel coordinates ``u, v`` and planar depths ``z``."""
     u, v, z = (np.asarray(a, dtype=np.float64) for a in (u, v, z))
     return np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
@@ -84,7 +89,7 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world RDF pose at ``eye`` looking at ``target`` with world ``up`` (z-up)."""
     eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
     f = target - eye

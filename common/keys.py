@@ -1,4 +1,4 @@
-"""The Zenoh key space (DESIGN §3). Pure string building and parsing; no Zenoh import.
+"""The Zenoh key space (docs/key_space.md). Pure string building and parsing; no Zenoh import.
 
 All keys live under a configurable prefix (default ``rayfronts``), so several sites or
 experiments can share one Zenoh network::
@@ -14,6 +14,10 @@ experiments can share one Zenoh network::
     <p>/mapper/layers/<layer>          mapper publishes voxels / frontiers / rays / ...
     <p>/mapper/stats                   mapper queryable: counters and timings
     <p>/mapper/snapshot                mapper queryable: save / describe snapshots
+    <p>/mapper/feature_space           mapper queryable: the map's feature space (edges adopt its basis)
+    <p>/mapper/search                  mapper queryable: search for planners (found / look next / beyond)
+    <p>/mapper/searches/<id>           mapper publishes results of a standing search
+    <p>/mapper/occupancy               mapper queryable: occupancy box / slice / points
 
 Robot ids, query ids and layer names are single key chunks: ``[A-Za-z0-9_-]{1,64}``
 (no ``/``, no Zenoh wildcards ``*``/``$``, no ``?#`` which Zenoh reserves).
@@ -136,8 +140,28 @@ class KeySpace:
         return f"{self.prefix}/mapper/stats"
 
     @property
+    def mapper_feature_space(self) -> str:
+        """Mapper queryable: the map's feature space (``rayfronts.feature_space``), for edges
+        that adopt the map's PCA basis (``pca.basis=map``)."""
+        return f"{self.prefix}/mapper/feature_space"
+
+    @property
     def snapshot(self) -> str:
         return f"{self.prefix}/mapper/snapshot"
+
+    @property
+    def mapper_search(self) -> str:
+        """Mapper queryable: search for planners (``common.search_messages``)."""
+        return f"{self.prefix}/mapper/search"
+
+    @property
+    def mapper_occupancy(self) -> str:
+        """Mapper queryable: occupancy box / slice / points (``common.search_messages``)."""
+        return f"{self.prefix}/mapper/occupancy"
+
+    def mapper_searches(self, sid: str) -> str:
+        """Where the mapper publishes a standing search's replies."""
+        return f"{self.prefix}/mapper/searches/{check_id(sid, 'search id')}"
 
     @property
     def everything(self) -> str:
@@ -145,22 +169,22 @@ class KeySpace:
         return f"{self.prefix}/**"
 
     # ------------------------------------------------------------------ parsers
-    def robot_from_key(self, key) -> str | None:
+    def robot_from_key(self, key: object) -> str | None:
         """Robot id of a ``<p>/robots/<robot>/<leaf>`` key, else ``None`` (also for invalid ids)."""
         m = self._robot_re.match(str(key))
         return m.group(1) if m else None
 
-    def _last_chunk(self, key, root: str) -> str | None:
+    def _last_chunk(self, key: object, root: str) -> str | None:
         s = str(key)
         if not s.startswith(root + "/"):
             return None
         rest = s[len(root) + 1:]
         return rest if is_valid_id(rest) else None
 
-    def qid_from_key(self, key) -> str | None:
+    def qid_from_key(self, key: object) -> str | None:
         """Query id of a ``<p>/mapper/queries/<id>`` key, else ``None``."""
         return self._last_chunk(key, f"{self.prefix}/mapper/queries")
 
-    def layer_from_key(self, key) -> str | None:
+    def layer_from_key(self, key: object) -> str | None:
         """Layer name of a ``<p>/mapper/layers/<layer>`` key, else ``None``."""
         return self._last_chunk(key, f"{self.prefix}/mapper/layers")

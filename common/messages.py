@@ -1,4 +1,4 @@
-"""Message schemas other than frames (DESIGN §4): feature-space envelope, query request and
+"""Message schemas other than frames (docs/messages.md): feature-space envelope, query request and
 result, map layers, stats, snapshot control.
 
 Every message is ``common.wire.encode_message(schema, v, body)``: a msgpack header with the
@@ -50,7 +50,7 @@ class MessageError(ValueError):
     """A message that cannot be decoded or fails validation; the text says why."""
 
 
-def _decode(data, schema: str, limits=None) -> dict:
+def _decode(data: bytes | bytearray | memoryview, schema: str, limits: WireLimits | None = None) -> dict:
     try:
         got, v, body = decode_message(bytes(data) if not isinstance(data, (bytes, bytearray)) else data,
                                       limits=limits)
@@ -93,7 +93,7 @@ def encode_feature_space(robot: str, space_body: dict) -> bytes:
     return encode_message(SCHEMA_FEATURE_SPACE, VERSION, {"robot": robot, "space": space_body})
 
 
-def decode_feature_space(data, limits=None) -> tuple[str, dict]:
+def decode_feature_space(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> tuple[str, dict]:
     """→ ``(robot, space_body)``; feed ``space_body`` to ``FeatureSpace.from_body``."""
     body = _decode(data, SCHEMA_FEATURE_SPACE, limits)
     robot, space = body.get("robot"), body.get("space")
@@ -169,7 +169,7 @@ def encode_query_request(req: QueryRequest) -> bytes:
     return encode_message(SCHEMA_QUERY_REQUEST, VERSION, body)
 
 
-def decode_query_request(data, limits=None) -> QueryRequest:
+def decode_query_request(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> QueryRequest:
     body = _decode(data, SCHEMA_QUERY_REQUEST, limits or QUERY_REQUEST_LIMITS)
     unknown = set(body) - {"text", "image", "embedding", "top_k", "softmax", "standing", "cancel", "id"}
     if unknown:
@@ -249,7 +249,7 @@ def encode_query_result(res: QueryResult) -> bytes:
     return encode_message(SCHEMA_QUERY_RESULT, VERSION, body)
 
 
-def decode_query_result(data, limits=None) -> QueryResult:
+def decode_query_result(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> QueryResult:
     body = _decode(data, SCHEMA_QUERY_RESULT, limits)
     kw = {}
     for k, (dt, nd, last) in QueryResult._ARRAYS.items():
@@ -284,7 +284,8 @@ def encode_layer(layer: str, arrays: dict[str, np.ndarray], meta: dict | None = 
     return encode_message(SCHEMA_LAYER, VERSION, body)
 
 
-def decode_layer(data, limits=None) -> tuple[str, dict[str, np.ndarray], dict]:
+def decode_layer(data: bytes | bytearray | memoryview,
+                 limits: WireLimits | None = None) -> tuple[str, dict[str, np.ndarray], dict]:
     """→ ``(layer, arrays, meta)``."""
     body = _decode(data, SCHEMA_LAYER, limits)
     layer = body.get("layer")
@@ -306,7 +307,7 @@ def encode_stats(stats: dict) -> bytes:
     return encode_message(SCHEMA_STATS, VERSION, stats)
 
 
-def decode_stats(data, limits=None) -> dict:
+def decode_stats(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> dict:
     return _decode(data, SCHEMA_STATS, limits)
 
 
@@ -319,7 +320,7 @@ def encode_snapshot_request(action: str = "describe") -> bytes:
     return encode_message(SCHEMA_SNAPSHOT_REQUEST, VERSION, {"action": action})
 
 
-def decode_snapshot_request(data, limits=None) -> str:
+def decode_snapshot_request(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> str:
     body = _decode(data, SCHEMA_SNAPSHOT_REQUEST, limits)
     action = body.get("action", "describe")
     if action not in SNAPSHOT_ACTIONS:
@@ -332,7 +333,7 @@ def encode_snapshot_reply(info: dict) -> bytes:
     return encode_message(SCHEMA_SNAPSHOT_REPLY, VERSION, dict(info))
 
 
-def decode_snapshot_reply(data, limits=None) -> dict:
+def decode_snapshot_reply(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> dict:
     return _decode(data, SCHEMA_SNAPSHOT_REPLY, limits)
 
 
@@ -345,6 +346,7 @@ MAX_REASON_CHARS = 2000
 
 
 def encode_edge_status(robot: str, state: str, reason: str = "", stamp: float = 0.0) -> bytes:
+    """The edge's state (one of ``EDGE_STATES``), its reason (truncated) and ``stamp`` (wall clock, s)."""
     if state not in EDGE_STATES:
         raise MessageError(f"edge state must be one of {EDGE_STATES}, got {state!r}")
     return encode_message(SCHEMA_EDGE_STATUS, VERSION, {"robot": str(robot), "state": state,
@@ -352,7 +354,7 @@ def encode_edge_status(robot: str, state: str, reason: str = "", stamp: float = 
                                                         "stamp": float(stamp)})
 
 
-def decode_edge_status(data, limits=None) -> dict:
+def decode_edge_status(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> dict:
     """→ ``{"robot", "state", "reason", "stamp"}`` (validated)."""
     body = _decode(data, SCHEMA_EDGE_STATUS, limits)
     robot, state, reason = body.get("robot"), body.get("state"), body.get("reason", "")

@@ -27,7 +27,7 @@ class PCAError(ValueError):
     """Wrong dimension, unfitted basis or a bad PCA file."""
 
 
-def _as_torch(x) -> tuple[torch.Tensor, bool]:
+def _as_torch(x: np.ndarray | torch.Tensor) -> tuple[torch.Tensor, bool]:
     if isinstance(x, np.ndarray):
         return torch.from_numpy(np.ascontiguousarray(x)), True
     if isinstance(x, torch.Tensor):
@@ -48,7 +48,8 @@ class PCA:
             raise PCAError(f"out_dim {basis.shape[1]} > in_dim {basis.shape[0]}")
         self.mean = mean
         self.basis = np.ascontiguousarray(basis)
-        ev = np.zeros(basis.shape[1], np.float64) if explained_variance is None else np.asarray(explained_variance, np.float64)
+        ev = (np.zeros(basis.shape[1], np.float64) if explained_variance is None
+              else np.asarray(explained_variance, np.float64))
         if ev.shape != (basis.shape[1],):
             raise PCAError(f"explained_variance must have shape ({basis.shape[1]},), got {ev.shape}")
         self.explained_variance = ev
@@ -85,7 +86,8 @@ class PCA:
 
     # ---------------------------------------------------------------- fitting
     @classmethod
-    def fit(cls, X, out_dim: int, device: str | torch.device = "cpu", chunk: int = 65536) -> "PCA":
+    def fit(cls, X: np.ndarray | torch.Tensor, out_dim: int, device: str | torch.device = "cpu",
+            chunk: int = 65536) -> "PCA":
         """Fit on ``X`` (n, D) (or a (D, h, w) map): mean, then eigh of the covariance (1/(n−1)),
         computed in float64 over chunks of ``chunk`` rows."""
         x, _ = _as_torch(X)
@@ -142,32 +144,35 @@ class PCA:
             raise PCAError(f"PCA {what}: expected (..., {dim_in}) or ({dim_in}, h, w), got shape {tuple(x.shape)}")
         return y.cpu().numpy() if was_np else y
 
-    def compress(self, X):
+    def compress(self, X: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
         """``(..., in_dim) -> (..., out_dim)`` or ``(in_dim, h, w) -> (out_dim, h, w)``: ``Vᵀ(x − m)``."""
         def f(x):
             m, v = self._mv(x.device, x.dtype)
             return (x - m) @ v
         return self._apply(X, self.in_dim, f, "compress")
 
-    def decompress(self, Y):
+    def decompress(self, Y: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
         """``(..., out_dim) -> (..., in_dim)`` or ``(out_dim, h, w) -> (in_dim, h, w)``: ``V·y + m``."""
         def f(y):
             m, v = self._mv(y.device, y.dtype)
             return y @ v.T + m
         return self._apply(Y, self.out_dim, f, "decompress")
 
-    def torch_basis(self, device="cpu", dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    def torch_basis(self, device: str | torch.device = "cpu",
+                    dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
         """``(mean (D,), basis (D, k))`` as tensors (cached)."""
         return self._mv(torch.device(device), dtype)
 
     # ---------------------------------------------------------------- I/O
     def to_arrays(self) -> dict:
+        """The fields :meth:`save` writes and :meth:`from_arrays` reads (numpy scalars and arrays)."""
         return {"in_dim": np.int64(self.in_dim), "out_dim": np.int64(self.out_dim), "mean": self.mean,
                 "basis": self.basis, "explained_variance": self.explained_variance,
                 "total_variance": np.float64(self.total_variance), "n_samples": np.int64(self.n_samples)}
 
     @classmethod
     def from_arrays(cls, d: dict, source: str = "arrays") -> "PCA":
+        """Inverse of :meth:`to_arrays` (``source`` names the origin in errors)."""
         try:
             mean, basis = np.asarray(d["mean"]), np.asarray(d["basis"])
             in_dim, out_dim = int(d["in_dim"]), int(d["out_dim"])
@@ -191,6 +196,7 @@ class PCA:
 
     @classmethod
     def load(cls, path: str | Path) -> "PCA":
+        """Read an ``.npz`` written by :meth:`save`."""
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"PCA basis file not found: {p}")
@@ -228,7 +234,7 @@ class OnlinePCAFitter:
     def ready(self) -> bool:
         return self.frames >= self.max_frames
 
-    def add(self, feat) -> bool:
+    def add(self, feat: np.ndarray | torch.Tensor) -> bool:
         """Add one ``(C, h, w)`` map (or ``(n, C)`` tokens); returns :attr:`ready`."""
         x, _ = _as_torch(feat)
         x = x.detach().float().cpu()
@@ -246,6 +252,7 @@ class OnlinePCAFitter:
         return self.ready
 
     def fit(self) -> PCA:
+        """The PCA of the collected samples (output dimension at most the feature dimension)."""
         if not self._chunks:
             raise PCAError("OnlinePCAFitter.fit: no frames were added")
         X = torch.cat(self._chunks)

@@ -16,7 +16,7 @@ the truth, the count in the yaml is a lower bound).
 """
 from __future__ import annotations
 
-import datetime as _dt
+import datetime
 import os
 import re
 import tempfile
@@ -51,7 +51,7 @@ class RecordingError(Exception):
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
 def _atomic_write(path: Path, data: bytes) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import re
 import socket
+from typing import Iterable
 
 _RUST_AT = re.compile(r"\s*\bat\s+/\S+?\.rs:\d+\.?")
 _ENDPOINT = re.compile(r"(tcp|udp|tls|quic|ws)/(\[[0-9a-fA-F:.]*\]|[^:\s\]\[,)]+):(\d+)")
@@ -33,7 +34,7 @@ def _endpoints_in(msg: str) -> list[str]:
     return sorted({m.group(0) for m in _ENDPOINT.finditer(msg)})
 
 
-def explain_zenoh_error(err, endpoints=None) -> str:
+def explain_zenoh_error(err: BaseException | str, endpoints: Iterable[object] | None = None) -> str:
     """One sentence for a Zenoh error ``err`` (exception or text): cause and what to do.
     ``endpoints`` are the endpoints involved when the message does not name them."""
     raw = str(err)
@@ -60,7 +61,7 @@ def explain_zenoh_error(err, endpoints=None) -> str:
     return msg
 
 
-def _host_port(endpoint: str):
+def _host_port(endpoint: str) -> tuple[str, int] | None:
     m = _ENDPOINT.fullmatch(endpoint.split("#", 1)[0].split("?", 1)[0])
     if not m or m.group(1) not in ("tcp", "tls", "ws"):
         return None
@@ -68,7 +69,7 @@ def _host_port(endpoint: str):
     return host, int(m.group(3))
 
 
-def check_listen_free(endpoints) -> None:
+def check_listen_free(endpoints: Iterable[str] | None) -> None:
     """Raise :class:`ZenohListenError` with :func:`explain_zenoh_error`'s sentence when a TCP listen
     endpoint cannot be bound now (port in use, address not local, privileged port)."""
     for ep in endpoints or ():

@@ -1,6 +1,6 @@
 """Zenoh session helpers shared by every process: config, open/close, signals, CLI flags.
 
-Topology (DESIGN §3): the base station runs a session in ``router`` mode (the mapper or
+Topology (docs/key_space.md#topology): the base station runs a session in ``router`` mode (the mapper or
 ``rayfronts router``); robots and laptops are ``client``s that connect to it. Multicast
 scouting is off unless asked for.
 
@@ -41,12 +41,17 @@ import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, Iterable, TypeVar
 
 from common.config import ConfigError, field_
 from common.keys import DEFAULT_PREFIX
 
+if TYPE_CHECKING:
+    import zenoh
+
 log = logging.getLogger(__name__)
+
+_Entity = TypeVar("_Entity")
 
 MODES = ("router", "client", "peer")
 DEFAULT_CERTS_DIR = "/etc/rayfronts/certs"
@@ -106,7 +111,7 @@ class ZenohConfig:
 
 
 # --------------------------------------------------------------------------- config
-def _insert(c, key: str, value: Any, source: str) -> None:
+def _insert(c: zenoh.Config, key: str, value: Any, source: str) -> None:
     try:
         c.insert_json5(key, json.dumps(value))
     except Exception as e:  # zenoh.ZError: unknown key / wrong type
@@ -120,7 +125,7 @@ def _read_text(path: str, what: str) -> str:
     return p.read_text()
 
 
-def load_config_file(path: str):
+def load_config_file(path: str) -> zenoh.Config:
     """``zenoh.Config`` from a JSON5 file, with a clear :class:`ConfigError` on problems."""
     import zenoh
 
@@ -136,7 +141,7 @@ def resolve_certs_dir(cfg: ZenohConfig) -> Path:
     return Path(cfg.certs_dir or os.environ.get(ENV_CERTS) or DEFAULT_CERTS_DIR).expanduser()
 
 
-def make_config(cfg: ZenohConfig, extra: dict[str, Any] | None = None, default_mode: str = "client"):
+def make_config(cfg: ZenohConfig, extra: dict[str, Any] | None = None, default_mode: str = "client") -> zenoh.Config:
     """Build a ``zenoh.Config`` from ``cfg`` (see module doc for the order); raises ConfigError."""
     import zenoh
 
@@ -149,6 +154,22 @@ def make_config(cfg: ZenohConfig, extra: dict[str, Any] | None = None, default_m
         if mode not in MODES:
             raise ConfigError(f"zenoh mode {mode!r} is not one of {', '.join(MODES)}")
         _insert(c, "mode", mode, "mode")
+    _insert_endpoints(c, cfg)
+    _insert(c, "scouting/multicast/enabled", bool(cfg.multicast_scouting), "multicast_scouting")
+    if cfg.shared_memory is not None:
+        _insert(c, "transport/shared_memory/enabled", bool(cfg.shared_memory), "shared_memory")
+    _insert_lease(c, cfg, from_file=bool(path))
+    if cfg.acl_file:
+        _insert_acl(c, cfg.acl_file)
+    for src, kv in (("zenoh.extra", cfg.extra), ("extra", extra)):
+        for k, v in (kv or {}).items():
+            _insert(c, k, v, src)
+    _resolve_paths(c, resolve_certs_dir(cfg))
+    return c
+
+
+def _insert_endpoints(c: zenoh.Config, cfg: ZenohConfig) -> None:
+    """``connect`` / ``listen`` endpoints (a str or a list of ``proto/address``) into ``c``."""
     for name, eps in (("connect", cfg.connect), ("listen", cfg.listen)):
         if isinstance(eps, str):
             eps = [eps]
@@ -158,30 +179,29 @@ def make_config(cfg: ZenohConfig, extra: dict[str, Any] | None = None, default_m
                 raise ConfigError(f"zenoh {name} endpoint(s) {bad} are not of the form proto/address "
                                   "(e.g. tcp/192.168.1.10:7447)")
             _insert(c, f"{name}/endpoints", list(eps), name)
-    _insert(c, "scouting/multicast/enabled", bool(cfg.multicast_scouting), "multicast_scouting")
-    if cfg.shared_memory is not None:
-        _insert(c, "transport/shared_memory/enabled", bool(cfg.shared_memory), "shared_memory")
+
+
+def _insert_lease(c: zenoh.Config, cfg: ZenohConfig, from_file: bool) -> None:
+    """The link lease (ms) into ``c``: ``cfg.lease_ms``, else the defaults unless a config file gave them."""
     if cfg.lease_ms:
         if cfg.lease_ms < 100:
             raise ConfigError(f"zenoh lease_ms {cfg.lease_ms} is too small (>= 100 ms)")
         _insert(c, "transport/link/tx/lease", int(cfg.lease_ms), "lease_ms")
-    elif not path:
+    elif not from_file:
         _insert(c, "transport/link/tx/lease", DEFAULT_LEASE_MS, "default lease")
         _insert(c, "transport/link/tx/keep_alive", DEFAULT_KEEP_ALIVE, "default keep-alive")
-    if cfg.acl_file:
-        text = _read_text(cfg.acl_file, "access-control file")
-        try:
-            c.insert_json5("access_control", text)
-        except Exception as e:
-            raise ConfigError(f"access-control file {cfg.acl_file} rejected by zenoh: {e}") from None
-    for src, kv in (("zenoh.extra", cfg.extra), ("extra", extra)):
-        for k, v in (kv or {}).items():
-            _insert(c, k, v, src)
-    _resolve_paths(c, resolve_certs_dir(cfg))
-    return c
 
 
-def _resolve_paths(c, certs_dir: Path) -> None:
+def _insert_acl(c: zenoh.Config, acl_file: str) -> None:
+    """The access-control JSON5 file's content as ``access_control`` into ``c``."""
+    text = _read_text(acl_file, "access-control file")
+    try:
+        c.insert_json5("access_control", text)
+    except Exception as e:
+        raise ConfigError(f"access-control file {acl_file} rejected by zenoh: {e}") from None
+
+
+def _resolve_paths(c: zenoh.Config, certs_dir: Path) -> None:
     for key in PATH_KEYS:
         v = json.loads(c.get_json(key))
         if not isinstance(v, str) or not v:
@@ -195,15 +215,15 @@ def _resolve_paths(c, certs_dir: Path) -> None:
         c.insert_json5(key, json.dumps(str(p)))
 
 
-def config_mode(c) -> str:
+def config_mode(c: zenoh.Config) -> str:
     """The mode of a built ``zenoh.Config`` (``router``/``client``/``peer``)."""
     m = json.loads(c.get_json("mode"))
     return m if isinstance(m, str) else "peer"
 
 
 # --------------------------------------------------------------------------- open / close
-def open_session(cfg, *, stop: threading.Event | None = None, extra: dict[str, Any] | None = None,
-                 default_mode: str = "client"):
+def open_session(cfg: ZenohConfig | zenoh.Config, *, stop: threading.Event | None = None,
+                 extra: dict[str, Any] | None = None, default_mode: str = "client") -> zenoh.Session:
     """Open a ``zenoh.Session``.
 
     ``cfg`` is a :class:`ZenohConfig` (client mode retries per ``connect_timeout_ms``, and
@@ -264,10 +284,11 @@ class SessionGuard:
         self._lock = threading.Lock()
 
     @classmethod
-    def open(cls, cfg, **kw) -> "SessionGuard":
+    def open(cls, cfg: ZenohConfig | zenoh.Config, **kw: Any) -> "SessionGuard":
+        """Guard a session opened by :func:`open_session` (``kw``: its keyword arguments)."""
         return cls(open_session(cfg, **kw))
 
-    def add(self, entity):
+    def add(self, entity: _Entity) -> _Entity:
         """Track ``entity`` (subscriber, queryable, publisher, token, ...) and return it."""
         with self._lock:
             self._entities.append(entity)
@@ -281,16 +302,8 @@ class SessionGuard:
         with self._lock:
             ents, self._entities = self._entities, []
             s, self.session = self.session, None
-        for ent in reversed(ents):
-            try:
-                ent.undeclare()
-            except Exception as e:  # already undeclared / session gone
-                log.debug("undeclare %r: %s", ent, e)
-        if s is not None:
-            try:
-                s.close()
-            except Exception as e:
-                log.warning("closing the zenoh session: %s", e)
+        undeclare_all(reversed(ents))
+        close_quietly(s)
 
     def __enter__(self) -> "SessionGuard":
         return self
@@ -333,7 +346,7 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
         return s.getsockname()[1]
 
 
-def session_summary(session) -> dict:
+def session_summary(session: zenoh.Session) -> dict:
     """zid, connected routers/peers and links of an open session (for logs and ``router``)."""
     info = session.info
     out = {"zid": str(info.zid()), "routers": [str(z) for z in info.routers_zid()],
@@ -368,7 +381,7 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, mode_default_help: s
                    help="any Zenoh config key, e.g. transport/link/tx/lease=2000 (repeatable; applied last)")
 
 
-def parse_zenoh_set(items) -> dict[str, Any]:
+def parse_zenoh_set(items: list[str] | None) -> dict[str, Any]:
     """``["a/b=1", "c=\"x\""]`` → ``{"a/b": 1, "c": "x"}`` (values are JSON; bare words are strings)."""
     out: dict[str, Any] = {}
     for item in items or ():
@@ -404,3 +417,26 @@ def zenoh_config_from_args(args: argparse.Namespace, base: ZenohConfig | None = 
     if getattr(args, "zenoh_set", None):
         ch["extra"] = {**cfg.extra, **parse_zenoh_set(args.zenoh_set)}
     return replace(cfg, **ch)
+
+
+def undeclare_all(entities: Iterable[Any]) -> None:
+    """Undeclare Zenoh entities (subscribers, queryables, publishers, liveliness tokens) in the
+    given order; ``None`` entries are skipped, and one already undeclared or whose session is
+    gone is logged at DEBUG, not raised."""
+    for ent in entities:
+        if ent is None:
+            continue
+        try:
+            ent.undeclare()
+        except Exception as e:
+            log.debug("undeclare %r: %s", ent, e)
+
+
+def close_quietly(session: Any) -> None:
+    """Close a Zenoh session if there is one; a failure is a warning line, not an exception."""
+    if session is None:
+        return
+    try:
+        session.close()
+    except Exception as e:
+        log.warning("closing the zenoh session: %s", e)

@@ -6,8 +6,12 @@ import argparse
 import dataclasses
 import logging
 import threading
+from typing import TYPE_CHECKING, Any
 
 from common.cli_options import split_trailing_options
+
+if TYPE_CHECKING:
+    from edge.runtime import EdgeConfig
 
 HELP = "the onboard process: source -> encoder -> PCA -> Zenoh (and `edge fit-pca`)"
 DESCRIPTION = """The onboard process: reads posed RGB-D frames from a source, encodes them,
@@ -85,11 +89,11 @@ def _fit_pca_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _wants_help(items) -> bool:
+def _wants_help(items: list[str]) -> bool:
     return any(i in ("-h", "--help") for i in items)
 
 
-def check_inputs(cfg) -> None:
+def check_inputs(cfg: EdgeConfig) -> None:
     """Check the files and directories the config names before anything connects, so a wrong
     path is one error line and the robot never appears on the network. Raises
     ConfigError / SourceError / ModelFileError naming the key and the path."""
@@ -113,7 +117,7 @@ def check_inputs(cfg) -> None:
             close = getattr(open_source(src), "close", None)
             if callable(close):
                 close()
-    if cfg.pca.basis and not Path(cfg.pca.basis).expanduser().is_file():
+    if cfg.pca.basis not in ("", "map") and not Path(cfg.pca.basis).expanduser().is_file():
         raise ConfigError(f"pca.basis file not found: {cfg.pca.basis} (fit one with `rayfronts edge fit-pca`)")
     enc = cfg.encoder
     for key, d in (("encoder.model_dir", enc.model_dir), ("encoder.text_model_dir", enc.text_model_dir)):
@@ -125,13 +129,14 @@ def check_inputs(cfg) -> None:
         find_radio_checkpoint(enc.model, enc.model_dir or None, enc.checkpoint)
 
 
-def build_config(args, overrides):
+def build_config(args: argparse.Namespace, overrides: list[str]) -> EdgeConfig:
+    """The edge's config: schema defaults, ``--config`` YAML, ``key=value`` ``overrides``, then the options."""
     from common.config import load_config
     from common.zenoh_session import zenoh_config_from_args
     from edge.runtime import edge_config_schema
 
     cfg = load_config(edge_config_schema(), args.config, overrides)
-    ch = {"zenoh": zenoh_config_from_args(args, cfg.zenoh)}
+    ch: dict[str, Any] = {"zenoh": zenoh_config_from_args(args, cfg.zenoh)}
     if args.robot:
         ch["robot"] = args.robot
     pub = cfg.publish

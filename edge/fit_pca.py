@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING, Iterable
+
+if TYPE_CHECKING:
+    from common.frame import Frame
+    from common.pca import PCA
+    from edge.runtime import EdgeConfig
 
 log = logging.getLogger("rayfronts.edge.fit_pca")
 
 
-def fit_pca(cfg, out: str | Path, frames: int = 50, samples_per_frame: int = 4096, source=None):
+def fit_pca(cfg: EdgeConfig, out: str | Path, frames: int = 50, samples_per_frame: int = 4096,
+            source: Iterable[Frame] | None = None) -> PCA:
     """Encode up to ``frames`` frames of ``cfg.source`` (or the iterable ``source``) with
     ``cfg.encoder`` and fit PCA-``cfg.pca.out_dim`` on sampled feature vectors; writes
     ``out`` (.npz, :meth:`common.pca.PCA.save`) and returns the :class:`~common.pca.PCA`."""

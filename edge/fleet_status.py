@@ -17,6 +17,10 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger("rayfronts.edge")
 
@@ -31,6 +35,7 @@ class AutoRate:
         self.updates = 0
 
     def advise(self, hz: float | None) -> float:
+        """Move halfway towards the advised rate ``hz`` (clamped; None or <= 0 ignored); the new rate in Hz."""
         with self._lock:
             if hz is not None and hz > 0:
                 target = min(max(float(hz), self.min_hz), self.max_hz)
@@ -39,6 +44,7 @@ class AutoRate:
             return self.rate
 
     def current(self) -> float:
+        """The rate to publish at now, Hz."""
         with self._lock:
             return self.rate
 
@@ -57,7 +63,7 @@ class StatusWatcher:
         self._logged_rate = auto.current() if auto is not None else 0.0
         self._lock = threading.Lock()
 
-    def on_sample(self, sample) -> None:
+    def on_sample(self, sample: zenoh.Sample) -> None:
         """Zenoh subscriber callback (never raises)."""
         try:
             self.on_payload(sample.payload.to_bytes())

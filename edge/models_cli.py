@@ -76,8 +76,8 @@ def _convert(args) -> int:
 def check_dir(d: Path, need: list[str], load: bool = False) -> dict:
     """What ``d`` provides: {part: {"ok": bool, "path"/"problem": str}}."""
     from common.model_files import ModelFileError
-    from encoders.text.siglip import check_siglip_dir
     from encoders.files import SIGLIP_TEXT_DIR, find_radio_checkpoint
+    from encoders.text.siglip import check_siglip_dir
 
     rep: dict = {}
     for m in ("radio_v2.5-b", "radio_v2.5-l"):
@@ -92,7 +92,8 @@ def check_dir(d: Path, need: list[str], load: bool = False) -> dict:
         except (ModelFileError, ValueError) as e:
             rep[m] = {"ok": False, "problem": str(e)}
     probs = check_siglip_dir(d / SIGLIP_TEXT_DIR)
-    rep["siglip"] = {"ok": not probs, **({"problem": "; ".join(probs)} if probs else {"path": str(d / SIGLIP_TEXT_DIR)})}
+    rep["siglip"] = {"ok": not probs,
+                     **({"problem": "; ".join(probs)} if probs else {"path": str(d / SIGLIP_TEXT_DIR)})}
     try:
         from encoders.text.minilm import minilm_model_dir
         rep["minilm"] = {"ok": True, "path": str(minilm_model_dir())}

@@ -7,7 +7,7 @@ Threads:
 * the publisher thread sends frame ``n`` with ``CongestionControl.BLOCK``. They meet in a
   one-slot :class:`LatestSlot`: a newer frame replaces an unsent older one (counted as
   ``replaced``), so the encoder never waits on the network and a slow link drops whole old
-  frames, never fragments of new ones (DESIGN §3).
+  frames, never fragments of new ones (docs/key_space.md#topology).
 * a connector thread opens the Zenoh session (client mode retries until the base station
   answers) and declares the liveliness token ``robots/<robot>/alive`` and the
   ``robots/<robot>/feature_space`` queryable. Zenoh re-establishes a lost link by itself.
@@ -40,14 +40,23 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Literal
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Literal
 
 import numpy as np
 
 from common.config import field_, section
-from common.zenoh_session import ZenohConfig
-from encoders.config import EncoderConfig
+from common.zenoh_session import ZenohConfig, close_quietly, undeclare_all
 from edge.sources.config import SourceConfig
+from encoders.config import EncoderConfig
+
+if TYPE_CHECKING:
+    import torch
+    import zenoh
+
+    from common.feature_space import FeatureSpace
+    from common.frame import Frame
+    from common.pca import PCA
+    from encoders import ImageEncoder
 
 log = logging.getLogger("rayfronts.edge")
 
@@ -55,7 +64,12 @@ log = logging.getLogger("rayfronts.edge")
 # ------------------------------------------------------------------------- config
 @dataclass
 class PcaSection:
-    basis: str = field_("", "PCA basis file (from `rayfronts edge fit-pca`); empty = fit online over the first frames")
+    basis: str = field_("", "PCA basis: a file (from `rayfronts edge fit-pca`); 'map' = adopt the map's basis (the "
+                            "mapper's feature space; refused if it has none of this encoder family); empty = "
+                            "adopt the map's basis when it has one of this encoder family and pca.out_dim, else "
+                            "fit online over the first frames")
+    map_wait_s: float = field_(3.0, "how long the edge asks the mapper for the map's basis (pca.basis empty or "
+                                    "'map') before fitting its own (empty) or refusing ('map')")
     fit_frames: int = field_(8, "frames used to fit the basis online when no basis file is given")
     out_dim: int = field_(100, "PCA output dimension (features per pixel on the wire); 0 = no PCA")
     pixels_per_frame: int = field_(4096, "feature vectors sampled per frame for the online fit")
@@ -82,6 +96,9 @@ class PublishSection:
                                         "'q8z' (int8 + zlib, ~4 KB, changes up to ~0.006) or 'f16' (float16, 240 KB)")
     status_wait_s: float = field_(3.0, "when the edge refuses to start or fails: how long it waits for the "
                                        "Zenoh session to put the reason on robots/<robot>/edge_status")
+    lossless: bool = field_(False, "the encoder waits for the sender instead of replacing an unsent frame, so no "
+                                   "frame is dropped at the edge: for replays, evaluation and tests (a live camera "
+                                   "wants the newest frame: keep false)")
 
 
 @dataclass
@@ -108,12 +125,12 @@ class EdgeConfig:
     recording: RecordingSection = section(RecordingSection, "optional recording of what was sent")
 
 
-def edge_config_schema():
+def edge_config_schema() -> type[EdgeConfig]:
     """The ``EdgeConfig`` dataclass."""
     return EdgeConfig
 
 
-def resolve_threads(cfg) -> int:
+def resolve_threads(cfg: EdgeConfig) -> int:
     """The edge's torch thread count for ``cfg.threads`` (see ``EdgeConfig.threads``); 0
     means leave torch's default."""
     n = int(getattr(cfg, "threads", 0))
@@ -142,7 +159,8 @@ class LatestSlot:
         self.replaced = 0
         self.put_count = 0
 
-    def put(self, item) -> None:
+    def put(self, item: Any) -> None:
+        """Hold ``item`` (not None), replacing an untaken one."""
         with self._cond:
             if self._item is not None:
                 self.replaced += 1
@@ -150,7 +168,7 @@ class LatestSlot:
             self.put_count += 1
             self._cond.notify_all()
 
-    def get(self, timeout: float | None = None):
+    def get(self, timeout: float | None = None) -> Any:
         """The newest item, or None after ``timeout`` / once closed and empty."""
         with self._cond:
             end = None if timeout is None else time.monotonic() + timeout
@@ -164,6 +182,7 @@ class LatestSlot:
             return item
 
     def wait_empty(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for the item to be taken; True if the slot is empty."""
         with self._cond:
             return self._cond.wait_for(lambda: self._item is None, timeout)
 
@@ -182,7 +201,7 @@ class EdgeRefused(Exception):
     """The edge cannot start with this configuration; the text is the one-line reason."""
 
 
-def _combo(cfg) -> str:
+def _combo(cfg: EdgeConfig) -> str:
     e = cfg.encoder
     enc = f"encoder.kind={e.kind}" + (f" encoder.output={e.output}" if e.kind == "naradio" else "")
     pca = ("pca.out_dim=0 (no PCA)" if cfg.pca.out_dim <= 0 else
@@ -190,7 +209,12 @@ def _combo(cfg) -> str:
     return f"{enc}, {pca}"
 
 
-def check_setup(cfg, encoder, pca) -> None:
+def basis_file(cfg: EdgeConfig) -> str:
+    """The PCA basis file of ``pca.basis`` ("" when empty or ``map``)."""
+    return "" if cfg.pca.basis in ("", "map") else cfg.pca.basis
+
+
+def check_setup(cfg: EdgeConfig, encoder: ImageEncoder, pca: PCA | None) -> None:
     """Refuse (:class:`EdgeRefused`) an encoder × output × PCA combination that cannot run."""
     d = int(encoder.feature_dim)
     k = int(cfg.pca.out_dim)
@@ -214,7 +238,7 @@ def check_setup(cfg, encoder, pca) -> None:
         if pca.out_dim != k:
             raise EdgeRefused(f"{where}: the basis has {pca.out_dim} components but pca.out_dim={k}; set "
                               f"pca.out_dim={pca.out_dim} to use this basis")
-    elif k > 0 and not cfg.pca.basis:
+    elif k > 0 and not cfg.pca.basis:      # an online fit
         n = max(1, cfg.pca.fit_frames) * cfg.pca.pixels_per_frame
         if n <= k:
             raise EdgeRefused(f"{where}: an online fit over pca.fit_frames={cfg.pca.fit_frames} x "
@@ -222,7 +246,7 @@ def check_setup(cfg, encoder, pca) -> None:
                               "components; raise them or give pca.basis")
 
 
-def check_first_features(cfg, feats) -> None:
+def check_first_features(cfg: EdgeConfig, feats: torch.Tensor) -> None:
     """After the first frame: an online PCA fit needs more feature vectors than components."""
     k = int(cfg.pca.out_dim)
     if k > 0 and not cfg.pca.basis:
@@ -235,7 +259,7 @@ def check_first_features(cfg, feats) -> None:
 
 
 # ------------------------------------------------------------------ compression
-def compress_features(pca, feats) -> np.ndarray:
+def compress_features(pca: PCA | None, feats: torch.Tensor | np.ndarray) -> np.ndarray:
     """(C, h, w) encoder features → (D, h, w) float16 PCA coefficients (``pca=None``: cast only)."""
     import torch
 
@@ -266,13 +290,27 @@ class EdgeStats:
         return dataclasses.asdict(self)
 
 
+@dataclass
+class _RunState:
+    """What :meth:`EdgeRuntime._run` carries from frame to frame."""
+
+    rate: float  # frames per second (0 = as fast as possible)
+    next_t: float  # time.monotonic() of the next paced send
+    seq: int = 0
+    encoder: Any = None  # ImageEncoder once loaded
+    pca: Any = None  # PCA or None
+    fs: Any = None  # FeatureSpace once known
+    fitter: Any = None  # OnlinePCAFitter while fitting PCA online
+    pending: list = dataclasses.field(default_factory=list)  # frames held while fitting PCA online
+
+
 class EdgeRuntime:
     """Runs the edge pipeline until the source ends or ``stop`` is set.
 
     ``frames`` (optional) replaces the configured source (tests, benchmarks);
     ``on_sent(frame, nbytes, t_put)`` is called by the publisher thread after each put."""
 
-    def __init__(self, cfg, stop: threading.Event | None = None, frames: Iterable | None = None,
+    def __init__(self, cfg, stop: threading.Event | None = None, frames: Iterable[Frame] | None = None,
                  class_names: list[str] | None = None,
                  on_sent: Callable[[Any, int, float], None] | None = None):
         if not cfg.robot:
@@ -357,7 +395,7 @@ class EdgeRuntime:
             self._connected.set()
             return
 
-    def _on_feature_space(self, query) -> None:
+    def _on_feature_space(self, query: zenoh.Query) -> None:
         from common.messages import encode_error
 
         try:
@@ -375,7 +413,7 @@ class EdgeRuntime:
             state, reason = self._state
         return encode_edge_status(self.cfg.robot, state, reason, time.time())
 
-    def _on_status(self, query) -> None:
+    def _on_status(self, query: zenoh.Query) -> None:
         try:
             query.reply(query.key_expr, self._status_bytes())
         except Exception as e:  # never raise out of a callback
@@ -427,7 +465,7 @@ class EdgeRuntime:
                 self.on_sent(frame, len(data), t0)
 
     # -------------------------------------------------------------- pipeline side
-    def _open_source(self):
+    def _open_source(self) -> tuple[Iterable[Frame], list[str] | None]:
         if self._frames is not None:
             return self._frames, self._class_names
         from edge.sources import open_source
@@ -446,7 +484,7 @@ class EdgeRuntime:
             return r
         return 10.0 if getattr(self.cfg.source, "kind", "") == "synthetic" else 0.0
 
-    def _iter_frames(self):
+    def _iter_frames(self) -> Iterator[tuple[Frame, list[str] | None]]:
         n = 0
         skipped0 = 0
         while not self.stop.is_set():
@@ -465,7 +503,7 @@ class EdgeRuntime:
             if not self.cfg.publish.loop or not got or self._frames is not None:
                 return
 
-    def _build_feature_space(self, encoder, pca):
+    def _build_feature_space(self, encoder: ImageEncoder, pca: PCA | None) -> FeatureSpace:
         from common.feature_space import FeatureSpace
         from common.messages import encode_feature_space
 
@@ -481,8 +519,8 @@ class EdgeRuntime:
         """Run to the end of the source (or ``stop``); returns a process exit code: 0 done,
         2 refused at start-up, 1 failed while running (state and reason on ``edge_status``)."""
         from common.config import ConfigError
-        from common.pca import PCAError
         from common.model_files import ModelFileError
+        from common.pca import PCAError
 
         try:
             return self._run()
@@ -515,14 +553,44 @@ class EdgeRuntime:
     def _run(self) -> int:
         import torch
 
-        from common.pca import PCA
-        from common.wire import encode_frame
-        from encoders import make_encoder
-
         cfg = self.cfg
         n_threads = resolve_threads(cfg)
         if n_threads and torch.get_num_threads() != n_threads:
             torch.set_num_threads(n_threads)
+        self._start_workers()
+        self._started = False
+        st = _RunState(rate=self._rate(), next_t=time.monotonic())
+        try:
+            for fr, names in self._iter_frames():
+                self.stats.frames_read += 1
+                if st.encoder is None:
+                    self._load_encoder(st, names)
+                t0 = time.perf_counter()
+                with torch.inference_mode():
+                    # one forward pass gives the dense map and the image-level vector
+                    feats, gfeat = st.encoder.encode_with_global(fr.rgb, fr.labels, global_space="features")
+                if not self._started:
+                    if st.fitter is not None:
+                        check_first_features(cfg, feats)
+                    self._started = True
+                    self.set_state("running")
+                self.stats.frames_encoded += 1
+                todo = self._frames_to_send(st, fr, feats, gfeat)
+                if todo is None:  # held while fitting PCA online
+                    continue
+                self._send_frames(st, todo, t0)
+                if self.stop.is_set():
+                    break
+            self._finish_run()
+        finally:
+            self.slot.close()  # run() reports a refusal/failure on the still open session, then closes
+        self.stats.frames_replaced = self.slot.replaced
+        log.info("edge %s done: %s", cfg.robot, self.stats.as_dict())
+        return 0
+
+    def _start_workers(self) -> None:
+        """Start the connector and publisher threads; open the recording if one is configured."""
+        cfg = self.cfg
         conn = threading.Thread(target=self._connect_loop, name="edge-connect", daemon=True)
         pub = threading.Thread(target=self._publish_loop, name="edge-publisher", daemon=True)
         conn.start()
@@ -533,102 +601,159 @@ class EdgeRuntime:
 
             self._recorder = RecordingWriter(Path(cfg.recording.dir), robot=cfg.robot, source=cfg.source.kind,
                                              overwrite=cfg.recording.overwrite)
-        self._started = False
-        encoder = None
-        pca = None
-        fs = None
-        pending: list = []  # frames held while fitting PCA online
-        fitter = None
-        rate = self._rate()
-        next_t = time.monotonic()
-        seq = 0
-        try:
-            for fr, names in self._iter_frames():
-                self.stats.frames_read += 1
-                if encoder is None:
-                    self._set_phase(f"loading the {cfg.encoder.kind} encoder")
-                    encoder = make_encoder(cfg.encoder, class_names=names)
-                    if cfg.pca.basis and cfg.pca.out_dim > 0:
-                        pca = PCA.load(cfg.pca.basis)
-                    check_setup(cfg, encoder, pca)
-                    if cfg.pca.out_dim <= 0:
-                        fs = self._build_feature_space(encoder, None)
-                    elif cfg.pca.basis:
-                        fs = self._build_feature_space(encoder, pca)
-                    else:
-                        from common.pca import OnlinePCAFitter
 
-                        log.warning("no PCA basis file given: fitting PCA-%d online over the first %d frames "
-                                    "(frames are held until then; give pca.basis for a fixed, shared basis)",
-                                    cfg.pca.out_dim, cfg.pca.fit_frames)
-                        fitter = OnlinePCAFitter(cfg.pca.out_dim, max(1, cfg.pca.fit_frames),
-                                                 cfg.pca.pixels_per_frame)
-                        self._set_phase(f"fitting PCA-{cfg.pca.out_dim} online over the first "
-                                        f"{max(1, cfg.pca.fit_frames)} frames")
-                t0 = time.perf_counter()
-                with torch.inference_mode():
-                    # one forward pass gives the dense map and the image-level vector
-                    feats, gfeat = encoder.encode_with_global(fr.rgb, fr.labels, global_space="features")
-                if not self._started:
-                    check_first_features(cfg, feats)
-                    self._started = True
-                    self.set_state("running")
-                self.stats.frames_encoded += 1
-                if fs is None:  # online PCA fit
-                    pending.append((fr, feats, gfeat))
-                    if not fitter.add(feats):
-                        continue
-                    pca = fitter.fit()
-                    if cfg.pca.save_fitted:
-                        pca.save(cfg.pca.save_fitted)
-                    fs = self._build_feature_space(encoder, pca)
-                    todo, pending = pending, []
-                else:
-                    todo = [(fr, feats, gfeat)]
-                for fr_i, feats_i, g_i in todo:
-                    out = dataclasses.replace(
-                        fr_i, robot=cfg.robot, seq=seq, features=compress_features(pca, feats_i),
-                        feature_space=fs.id,
-                        global_feature=None if g_i is None else compress_features(
-                            pca, torch.as_tensor(g_i).reshape(-1, 1, 1)).reshape(-1))
-                    # t_send: hand-off wall clock (latency); cpu_s: this process's CPU time so far
-                    # (the mapper reports the edge's CPU per frame from it)
-                    out.meta = {**(out.meta or {}), "t_send": time.time(), "cpu_s": time.process_time()}
-                    data = encode_frame(out, feature_codec=cfg.publish.feature_codec,
-                                       jpeg_quality=cfg.publish.jpeg_quality)
-                    self.stats.encode_ms_last = (time.perf_counter() - t0) * 1e3
-                    seq += 1
-                    if self.auto_rate is not None:
-                        rate = self.auto_rate.current()
-                    if rate > 0:
-                        next_t += 1.0 / rate
-                        delay = next_t - time.monotonic()
-                        if delay > 0:
-                            if self.stop.wait(delay):
-                                break
-                        else:
-                            next_t = time.monotonic()
-                    if len(todo) > 1:  # backlog held during the PCA fit: hand it over without replacing
-                        while self.slot.pending and not self.stop.is_set():
-                            self.slot.wait_empty(0.2)
-                    self.slot.put((out, data))
-                    self.stats.frames_replaced = self.slot.replaced
-                if self.stop.is_set():
-                    break
-            # drain: let the publisher send the last frame, then linger for late feature-space gets
-            end = time.monotonic() + 30.0
-            while self.slot.pending and not self.stop.is_set() and time.monotonic() < end:
-                time.sleep(0.05)
-            if not self.stop.is_set():
-                self.stop.wait(cfg.publish.linger_s)
-            if not self._started and not self.stop.is_set():
-                raise EdgeRefused(f"the source ({cfg.source.kind}) yielded no frames")
-            self.set_state("done")
-        finally:
-            self.slot.close()  # run() reports a refusal/failure on the still open session, then closes
-        self.stats.frames_replaced = self.slot.replaced
-        log.info("edge %s done: %s", cfg.robot, self.stats.as_dict())
-        return 0
+    def _load_encoder(self, st: _RunState, names: list[str] | None) -> None:
+        """Build the encoder (for the source's class ``names``) and the PCA: a basis file, none,
+        or an online fitter (``st.fs`` stays None until the fit is done)."""
+        from common.pca import PCA
+        from encoders import make_encoder
+
+        cfg = self.cfg
+        self._set_phase(f"loading the {cfg.encoder.kind} encoder")
+        st.encoder = make_encoder(cfg.encoder, class_names=names)
+        if basis_file(cfg) and cfg.pca.out_dim > 0:
+            st.pca = PCA.load(basis_file(cfg))
+        elif cfg.pca.basis in ("", "map") and cfg.pca.out_dim > 0:
+            st.pca = self._map_basis(st.encoder, required=cfg.pca.basis == "map")
+            if st.pca is not None and st.pca.out_dim != cfg.pca.out_dim:   # only with pca.basis=map
+                log.info("pca.out_dim=%d -> %d: the map's basis", cfg.pca.out_dim, st.pca.out_dim)
+                self.cfg = cfg = dataclasses.replace(cfg, pca=dataclasses.replace(cfg.pca, out_dim=st.pca.out_dim))
+        check_setup(cfg, st.encoder, st.pca)
+        if cfg.pca.out_dim <= 0:
+            st.fs = self._build_feature_space(st.encoder, None)
+        elif st.pca is not None:
+            st.fs = self._build_feature_space(st.encoder, st.pca)
+        else:
+            from common.pca import OnlinePCAFitter
+
+            log.warning("no PCA basis file given: fitting PCA-%d online over the first %d frames "
+                        "(frames are held until then; give pca.basis for a fixed, shared basis)",
+                        cfg.pca.out_dim, cfg.pca.fit_frames)
+            st.fitter = OnlinePCAFitter(cfg.pca.out_dim, max(1, cfg.pca.fit_frames),
+                                        cfg.pca.pixels_per_frame)
+            self._set_phase(f"fitting PCA-{cfg.pca.out_dim} online over the first "
+                            f"{max(1, cfg.pca.fit_frames)} frames")
+
+    def _map_basis(self, encoder: ImageEncoder, required: bool) -> PCA | None:
+        """The map's PCA basis, asked on ``<p>/mapper/feature_space`` for up to
+        ``pca.map_wait_s``: adopted when the map's encoder family is this encoder's (and, unless
+        ``required`` (``pca.basis=map``), its components are ``pca.out_dim``); else None, or
+        :class:`EdgeRefused` when required."""
+        from common.feature_space import FeatureSpace, compatibility
+
+        cfg = self.cfg
+        self._set_phase("asking the mapper for the map's PCA basis")
+        wait = max(0.1, float(cfg.pca.map_wait_s))
+        end = time.monotonic() + wait
+        map_fs, why = None, "no mapper answered"
+        if self._connected.wait(wait) and self.session is not None:
+            map_fs, why = self._ask_map_space(max(0.1, end - time.monotonic()))
+        if map_fs is not None:
+            why = compatibility(map_fs, FeatureSpace.for_encoder(encoder, None))
+            if not why and map_fs.pca is None:
+                why = "the map stores uncompressed features"
+            if not why and not required and map_fs.pca.out_dim != cfg.pca.out_dim:
+                why = f"the map's basis has {map_fs.pca.out_dim} components, pca.out_dim={cfg.pca.out_dim}"
+        if not why:
+            log.info("adopting the map's PCA basis (feature space %s): no re-projection at the mapper", map_fs.id)
+            return map_fs.pca
+        if required:
+            raise EdgeRefused(f"pca.basis=map: cannot adopt the map's basis: {why}")
+        log.info("not adopting the map's PCA basis (%s): fitting one online", why)
+        return None
+
+    def _ask_map_space(self, timeout: float) -> tuple[FeatureSpace | None, str]:
+        """(the map's feature space, "") from the first mapper shard that has one, else
+        (None, why)."""
+        from common.feature_space import FeatureSpace
+        from common.messages import MessageError, decode_feature_space
+
+        why = "no mapper answered"
+        try:
+            replies = list(self.session.get(self.keys.mapper_feature_space, timeout=timeout))
+        except Exception as e:
+            return None, f"asking the mapper failed: {e}"
+        for r in replies:
+            if r.ok is None:
+                continue
+            try:
+                _, body = decode_feature_space(r.ok.payload.to_bytes())
+                return FeatureSpace.from_body(body), ""
+            except (MessageError, ValueError) as e:
+                why = f"the mapper has no map yet ({' '.join(str(e).split())[:120]})"
+        return None, why
+
+    def _frames_to_send(self, st: _RunState, fr: Frame, feats: torch.Tensor,
+                        gfeat: torch.Tensor | None) -> list | None:
+        """``[(frame, features, global feature)]`` to send now: this frame, or while fitting PCA
+        online None (held) until the fit is done, then the whole backlog."""
+        if st.fs is not None:
+            return [(fr, feats, gfeat)]
+        st.pending.append((fr, feats, gfeat))
+        if not st.fitter.add(feats):
+            return None
+        st.pca = st.fitter.fit()
+        if self.cfg.pca.save_fitted:
+            st.pca.save(self.cfg.pca.save_fitted)
+        st.fs = self._build_feature_space(st.encoder, st.pca)
+        todo, st.pending = st.pending, []
+        return todo
+
+    def _send_frames(self, st: _RunState, todo: list, t0: float) -> None:
+        """Compress, encode, pace and hand ``todo`` to the publisher (``t0``: perf_counter at the
+        encoder call); returns early when stopped."""
+        import torch
+
+        from common.wire import encode_frame
+
+        cfg = self.cfg
+        for fr_i, feats_i, g_i in todo:
+            out = dataclasses.replace(
+                fr_i, robot=cfg.robot, seq=st.seq, features=compress_features(st.pca, feats_i),
+                feature_space=st.fs.id,
+                global_feature=None if g_i is None else compress_features(
+                    st.pca, torch.as_tensor(g_i).reshape(-1, 1, 1)).reshape(-1))
+            # t_send: hand-off wall clock (latency); cpu_s: this process's CPU time so far
+            # (the mapper reports the edge's CPU per frame from it)
+            out.meta = {**(out.meta or {}), "t_send": time.time(), "cpu_s": time.process_time()}
+            data = encode_frame(out, feature_codec=cfg.publish.feature_codec,
+                                jpeg_quality=cfg.publish.jpeg_quality)
+            self.stats.encode_ms_last = (time.perf_counter() - t0) * 1e3
+            st.seq += 1
+            if self._pace(st):
+                return
+            # a backlog held during the PCA fit, or publish.lossless: hand over without replacing
+            if len(todo) > 1 or cfg.publish.lossless:
+                while self.slot.pending and not self.stop.is_set():
+                    self.slot.wait_empty(0.2)
+            self.slot.put((out, data))
+            self.stats.frames_replaced = self.slot.replaced
+
+    def _pace(self, st: _RunState) -> bool:
+        """Wait for the next send time at the current rate (Hz; 0 = no pacing); True if stopped meanwhile."""
+        if self.auto_rate is not None:
+            st.rate = self.auto_rate.current()
+        if st.rate > 0:
+            st.next_t += 1.0 / st.rate
+            delay = st.next_t - time.monotonic()
+            if delay > 0:
+                if self.stop.wait(delay):
+                    return True
+            else:
+                st.next_t = time.monotonic()
+        return False
+
+    def _finish_run(self) -> None:
+        """Drain: let the publisher send the last frame, then linger for late feature-space gets."""
+        cfg = self.cfg
+        end = time.monotonic() + 30.0
+        while self.slot.pending and not self.stop.is_set() and time.monotonic() < end:
+            time.sleep(0.05)
+        if not self.stop.is_set():
+            self.stop.wait(cfg.publish.linger_s)
+        if not self._started and not self.stop.is_set():
+            raise EdgeRefused(f"the source ({cfg.source.kind}) yielded no frames")
+        self.set_state("done")
 
     def close(self) -> None:
         """Stop the threads and close the Zenoh session (idempotent; never hangs)."""
@@ -647,14 +772,6 @@ class EdgeRuntime:
     def _close_session(self) -> None:
         s, self.session = self.session, None
         if s is not None:
-            for ent in (self._mapper_status_sub,
-                        self._token, self._queryable, self._status_q, self._status_pub, self._publisher):
-                try:
-                    if ent is not None:
-                        ent.undeclare()
-                except Exception:
-                    pass
-            try:
-                s.close()
-            except Exception:
-                pass
+            undeclare_all((self._mapper_status_sub,
+                           self._token, self._queryable, self._status_q, self._status_pub, self._publisher))
+            close_quietly(s)

@@ -2,17 +2,17 @@
 
 The head module itself (:class:`~common.language_head.MLP2`) lives in ``common`` because the
 mapper applies it at query time (features are averaged in RADIO/PCA space first, then
-projected: brief §4.3). This module picks a teacher's summary head out of a checkpoint.
+projected: docs/method.md#language-head). This module picks a teacher's summary head out of a checkpoint.
 """
 from __future__ import annotations
 
 import torch
 
-from encoders.radio import RadioCheckpoint
 from common.language_head import MLP2, MLP2Config  # noqa: F401  (re-export)
+from encoders.radio import RadioCheckpoint
 
 
-def summary_head(ckpt: RadioCheckpoint, adaptor: str = "siglip", device="cpu",
+def summary_head(ckpt: RadioCheckpoint, adaptor: str = "siglip", device: str | torch.device = "cpu",
                  dtype: torch.dtype = torch.float32) -> MLP2:
     """The ``_heads.<adaptor>`` MLP2 of ``ckpt`` (looked up by teacher name, then index)."""
     sd = ckpt.head_for(adaptor)

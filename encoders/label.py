@@ -19,7 +19,6 @@ from typing import Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from encoders.text.minilm import MiniLMText
 
@@ -76,7 +75,7 @@ class LabelEncoder:
         lab = self._check(rgb, labels)
         frac = self.class_fractions(lab)                              # (K, h, w)
         if self.pooling == "majority":
-            frac = F.one_hot(frac.argmax(0), frac.shape[0]).permute(2, 0, 1).float()
+            frac = torch.nn.functional.one_hot(frac.argmax(0), frac.shape[0]).permute(2, 0, 1).float()
         K, h, w = frac.shape
         return (self.table.T.float() @ frac.reshape(K, h * w)).reshape(-1, h, w)
 

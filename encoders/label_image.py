@@ -126,7 +126,7 @@ def class_shares(rgb: np.ndarray, n_classes: int = len(CLASS_NAMES)) -> np.ndarr
     return hist / tot if tot > 0 else hist
 
 
-def label_image_embedding(rgb: np.ndarray, class_embeddings) -> np.ndarray:
+def label_image_embedding(rgb: np.ndarray, class_embeddings: np.ndarray) -> np.ndarray:
     """The image vector (module docstring: the dominant class's embedding) for class embeddings ``(K, D)``
     (row ``c`` = the text embedding of ``CLASS_NAMES[c]``); ``ValueError`` when no pixel
     looks like any class of the world."""

@@ -17,14 +17,15 @@ the model's. The block's residual, layer scale and MLP are kept (RayFronts); NAC
 """
 from __future__ import annotations
 
+from typing import Any
+
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from encoders.radio import Attention, Block
 
 
-def gaussian_bias(h: int, w: int, sigma: float, n_prefix: int = 0, device="cpu",
+def gaussian_bias(h: int, w: int, sigma: float, n_prefix: int = 0, device: str | torch.device = "cpu",
                   dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Ω as an ``(n_prefix + h·w, n_prefix + h·w)`` additive attention bias (see module doc)."""
     if h < 1 or w < 1:
@@ -55,14 +56,15 @@ class NaclipAttention(nn.Module):
         self._bias_key = None
         self._bias = None
 
-    def bias(self, hw: tuple[int, int], device, dtype) -> torch.Tensor:
+    def bias(self, hw: tuple[int, int], device: str | torch.device, dtype: torch.dtype) -> torch.Tensor:
+        """The Gaussian bias for an ``hw`` patch grid (cached for the last grid, device and dtype)."""
         key = (tuple(hw), str(device), dtype)
         if self._bias_key != key:
             self._bias = gaussian_bias(hw[0], hw[1], self.gauss_std, self.n_prefix, device, dtype)
             self._bias_key = key
         return self._bias
 
-    def forward(self, x: torch.Tensor, grid_hw: tuple[int, int] | None = None, **kwargs) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, grid_hw: tuple[int, int] | None = None, **kwargs: Any) -> torch.Tensor:
         a = self.inner
         _, k, v = a.split_qkv(x)
         mask = None
@@ -72,7 +74,7 @@ class NaclipAttention(nn.Module):
             if self.n_prefix + grid_hw[0] * grid_hw[1] != x.shape[1]:
                 raise ValueError(f"{x.shape[1]} tokens != {self.n_prefix} prefix + grid {grid_hw}")
             mask = self.bias(grid_hw, x.device, k.dtype)
-        o = F.scaled_dot_product_attention(k, k, v, attn_mask=mask)
+        o = torch.nn.functional.scaled_dot_product_attention(k, k, v, attn_mask=mask)
         return a.merge(o)
 
 

@@ -1,5 +1,5 @@
 """NARADIO: RADIO v2.5 features with NACLIP last-block attention, aligned to SigLIP by
-RADIO's SigLIP summary head (RayFronts' encoder, brief §4).
+RADIO's SigLIP summary head (RayFronts' encoder; docs/models.md#encoders).
 
 ``encode(rgb)`` returns RADIO-space features ``(D, H'/p, W'/p)`` (D = 768 b / 1024 l,
 p = 16) where ``(H', W')`` is the input size after optional resizing to
@@ -20,13 +20,20 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from encoders.config import EncoderConfig
 from encoders.files import find_radio_checkpoint
 from encoders.heads import summary_head, summary_slot
 from encoders.naclip import NaclipBlock
-from encoders.radio import PRESETS, RadioCheckpoint, RadioConfig, RadioModel, build_radio, read_checkpoint
+from encoders.radio import (
+    PRESETS,
+    RadioCheckpoint,
+    RadioConfig,
+    RadioModel,
+    RadioOutput,
+    build_radio,
+    read_checkpoint,
+)
 
 _DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 
@@ -105,12 +112,15 @@ class NaradioEncoder:
         x = torch.from_numpy(np.ascontiguousarray(rgb)).to(self.device).permute(2, 0, 1)[None].float() / 255.0
         hh, ww = self.input_size(rgb.shape[0], rgb.shape[1])
         if (hh, ww) != tuple(rgb.shape[:2]):
-            x = F.interpolate(x, size=(hh, ww), mode="bilinear", align_corners=False, antialias=True).clamp(0, 1)
+            x = torch.nn.functional.interpolate(x, size=(hh, ww), mode="bilinear", align_corners=False,
+                                                antialias=True).clamp(0, 1)
         return x.to(self.dtype)
 
     # ---------------------------------------------------------------- encoding
     @torch.inference_mode()
-    def forward(self, rgb: np.ndarray, naclip: bool | None = None):
+    def forward(self, rgb: np.ndarray, naclip: bool | None = None) -> RadioOutput:
+        """RADIO outputs for one ``(H, W, 3)`` uint8 RGB image (NACLIP attention in the last block
+        when ``naclip``, default ``cfg.naclip``)."""
         use = self.cfg.naclip if naclip is None else naclip
         return self.model(self.preprocess(rgb), last_block=self.last_block if use else None)
 

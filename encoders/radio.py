@@ -30,13 +30,13 @@ import math
 import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from common.model_files import ModelFileError
 from common.language_head import load_strict
+from common.model_files import ModelFileError
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ class RadioConfig:
         return cls(**d)
 
     @classmethod
-    def from_args(cls, args, sd: dict[str, torch.Tensor]) -> "RadioConfig":
+    def from_args(cls, args: argparse.Namespace | dict, sd: dict[str, torch.Tensor]) -> "RadioConfig":
         """Architecture from a RADIO checkpoint's ``args`` Namespace plus its tensor shapes."""
         a = vars(args) if isinstance(args, argparse.Namespace) else dict(args)
         arch = a.get("model", "vit_base_patch16_224")
@@ -140,7 +140,8 @@ class RadioConfig:
             slots.setdefault(names[i], int(t.get("token_slot", i)) if per_teacher else 0)
         if n_cls > n_tok:
             raise ModelFileError(f"args list {n_cls} class tokens but cls_token.token has {n_tok} rows")
-        mlp_hidden = int(sd["base_model.blocks.0.mlp.fc1.weight"].shape[0]) if "base_model.blocks.0.mlp.fc1.weight" in sd else 4 * D
+        fc1 = "base_model.blocks.0.mlp.fc1.weight"
+        mlp_hidden = int(sd[fc1].shape[0]) if fc1 in sd else 4 * D
         return cls(embed_dim=D, depth=depth, num_heads=int(heads), patch_size=p, pos_grid=grid,
                    num_cls_tokens=n_cls, num_registers=n_tok - n_cls, mlp_hidden=mlp_hidden,
                    qkv_bias="base_model.blocks.0.attn.qkv.bias" in sd,
@@ -190,7 +191,7 @@ class PatchGenerator(nn.Module):
             log.debug("input grid %dx%d exceeds CPE table %d: upsampling", h, w, G)
         pe = self.pos_embed.reshape(1, G, G, -1).permute(0, 3, 1, 2)
         s = max(h, w)
-        pe = F.interpolate(pe.float(), size=(s, s), mode="bilinear", align_corners=False).to(pe.dtype)
+        pe = torch.nn.functional.interpolate(pe.float(), size=(s, s), mode="bilinear", align_corners=False).to(pe.dtype)
         pe = pe[:, :, :h, :w]
         return pe.flatten(2).transpose(1, 2)
 
@@ -227,9 +228,9 @@ class Attention(nn.Module):
         B, _, N, _ = o.shape
         return self.proj(o.transpose(1, 2).reshape(B, N, -1))
 
-    def forward(self, x: torch.Tensor, **kwargs) -> torch.Tensor:  # extra kwargs (grid size) ignored
+    def forward(self, x: torch.Tensor, **kwargs: Any) -> torch.Tensor:  # extra kwargs (grid size) ignored
         q, k, v = self.split_qkv(x)
-        return self.merge(F.scaled_dot_product_attention(q, k, v))
+        return self.merge(torch.nn.functional.scaled_dot_product_attention(q, k, v))
 
 
 class LayerScale(nn.Module):
@@ -237,7 +238,7 @@ class LayerScale(nn.Module):
         super().__init__()
         self.gamma = nn.Parameter(torch.ones(dim))
 
-    def forward(self, x):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x * self.gamma
 
 
@@ -248,7 +249,7 @@ class Mlp(nn.Module):
         self.act = nn.GELU()
         self.fc2 = nn.Linear(hidden, dim)
 
-    def forward(self, x):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.fc2(self.act(self.fc1(x)))
 
 
@@ -297,7 +298,7 @@ class FeatureNormalizer(nn.Module):
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("tx", torch.eye(dim))
 
-    def forward(self, x):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
         return (x - self.mean) @ self.tx.T
 
 
@@ -405,7 +406,7 @@ def realize_spectral_reparam(sd: dict[str, torch.Tensor], eps: float = 1e-6) -> 
             u, v, s = sd[p + "_u"].float(), sd[p + "_v"].float(), sd[p + "scale"].float().reshape(-1)[0]
             ver = int(sd[p + "_sn_version"]) if p + "_sn_version" in sd else 1
             sigma = torch.dot(u, Wc.reshape(Wc.shape[0], -1) @ v) + eps
-            scale = (F.softplus(s) + 0.05) if ver == 2 else s
+            scale = (torch.nn.functional.softplus(s) + 0.05) if ver == 2 else s
             return Wc * (scale / sigma)
 
         parts = sorted({int(mm.group(1)) for kk in sd if (mm := re.match(re.escape(pre) + r"parts\.(\d+)\.", kk))})
@@ -447,41 +448,57 @@ def read_checkpoint(path: str | Path) -> RadioCheckpoint:
         raise ModelFileError(f"RADIO checkpoint not found: {p}")
     args = None
     if p.suffix == ".safetensors":
-        from safetensors import safe_open
-        from safetensors.torch import load_file
-        with safe_open(str(p), "pt") as f:
-            meta = f.metadata() or {}
-        sd = load_file(str(p))
-        cfg_json = meta.get(FLAT_META_KEY)
-        side = p.with_suffix(".json")
-        if cfg_json is None and side.is_file():
-            cfg_json = side.read_text()
-        if cfg_json is None:
-            raise ModelFileError(f"{p} has no '{FLAT_META_KEY}' metadata and no {side}")
-        cfg = RadioConfig.from_dict(json.loads(cfg_json))
+        sd, cfg = _read_safetensors(p)
     else:
-        try:
-            obj = _torch_load(p)
-        except Exception as e:
-            raise ModelFileError(f"cannot read RADIO checkpoint {p}: {e}") from e
-        if not isinstance(obj, dict):
-            raise ModelFileError(f"{p}: expected a dict checkpoint, got {type(obj).__name__}")
-        if "state_dict_ema" in obj or "state_dict" in obj:
-            args = obj.get("args")
-            sd = obj.get("state_dict_ema") or obj["state_dict"]
-            if args is None:
-                raise ModelFileError(f"{p}: checkpoint has a state dict but no 'args'")
-            cfg = None
-        else:  # flat .pt of our own layout with a side json
-            sd = obj
-            side = p.with_suffix(".json")
-            if not side.is_file():
-                raise ModelFileError(f"{p} is a plain state dict; its architecture file {side} is missing")
-            cfg = RadioConfig.from_dict(json.loads(side.read_text()))
+        sd, cfg, args = _read_torch_checkpoint(p)
     sd = realize_spectral_reparam(dict(sd))
     sd = {re.sub(r"\.(ls[12])\.grandma$", r".\1.gamma", k): v for k, v in sd.items()}
     if cfg is None:
         cfg = RadioConfig.from_args(args, sd)
+    model_state, heads, projs = _split_state(sd)
+    return RadioCheckpoint(cfg, model_state, heads, projs, str(p))
+
+
+def _read_safetensors(p: Path) -> tuple[dict[str, torch.Tensor], RadioConfig]:
+    """Our flat safetensors layout: tensors, and the architecture from the metadata or the side json."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+    with safe_open(str(p), "pt") as f:
+        meta = f.metadata() or {}
+    sd = load_file(str(p))
+    cfg_json = meta.get(FLAT_META_KEY)
+    side = p.with_suffix(".json")
+    if cfg_json is None and side.is_file():
+        cfg_json = side.read_text()
+    if cfg_json is None:
+        raise ModelFileError(f"{p} has no '{FLAT_META_KEY}' metadata and no {side}")
+    return sd, RadioConfig.from_dict(json.loads(cfg_json))
+
+
+def _read_torch_checkpoint(p: Path) -> tuple[dict[str, torch.Tensor], RadioConfig | None, Any]:
+    """A torch checkpoint: ``(state dict, config, None)`` for a flat .pt with its side json, or
+    ``(state dict, None, args)`` for the published layout (the config comes from its ``args``)."""
+    try:
+        obj = _torch_load(p)
+    except Exception as e:
+        raise ModelFileError(f"cannot read RADIO checkpoint {p}: {e}") from e
+    if not isinstance(obj, dict):
+        raise ModelFileError(f"{p}: expected a dict checkpoint, got {type(obj).__name__}")
+    if "state_dict_ema" in obj or "state_dict" in obj:
+        args = obj.get("args")
+        sd = obj.get("state_dict_ema") or obj["state_dict"]
+        if args is None:
+            raise ModelFileError(f"{p}: checkpoint has a state dict but no 'args'")
+        return sd, None, args
+    # flat .pt of our own layout with a side json
+    side = p.with_suffix(".json")
+    if not side.is_file():
+        raise ModelFileError(f"{p} is a plain state dict; its architecture file {side} is missing")
+    return obj, RadioConfig.from_dict(json.loads(side.read_text())), None
+
+
+def _split_state(sd: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], dict[str, dict], dict[str, dict]]:
+    """``(model state, heads, feature projections)`` of a checkpoint's (renamed) state dict."""
     model_state: dict[str, torch.Tensor] = {}
     heads: dict[str, dict] = {}
     projs: dict[str, dict] = {}
@@ -496,10 +513,10 @@ def read_checkpoint(path: str | Path) -> RadioCheckpoint:
             heads.setdefault(m.group(1), {})[m.group(2)] = v
         elif (m := re.match(r"^_feature_projections\.([^.]+)\.(.*)$", k)):
             projs.setdefault(m.group(1), {})[m.group(2)] = v
-    return RadioCheckpoint(cfg, model_state, heads, projs, str(p))
+    return model_state, heads, projs
 
 
-def build_radio(ckpt: RadioCheckpoint, device="cpu", dtype: torch.dtype = torch.float32,
+def build_radio(ckpt: RadioCheckpoint, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32,
                 expect: RadioConfig | None = None) -> RadioModel:
     """Build :class:`RadioModel` for ``ckpt.config`` and load its tensors strictly.
 

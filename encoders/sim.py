@@ -38,7 +38,6 @@ from typing import Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from encoders.text.minilm import MiniLMText
 
@@ -124,8 +123,8 @@ class SimEncoder:
         H, W = lab.shape
         K = len(self.class_names)
         gh, gw = self.patch_grid(H, W)
-        onehot = F.one_hot(lab, K).permute(2, 0, 1).float()[None]         # (1, K, H, W)
-        frac = F.adaptive_avg_pool2d(onehot, (gh, gw))[0]                   # (K, gh, gw)
+        onehot = torch.nn.functional.one_hot(lab, K).permute(2, 0, 1).float()[None]  # (1, K, H, W)
+        frac = torch.nn.functional.adaptive_avg_pool2d(onehot, (gh, gw))[0]          # (K, gh, gw)
         if self.confusion > 0:
             dom = frac.argmax(0)                                            # (gh, gw)
             flip = torch.rand((gh, gw), generator=self.generator) < self.confusion
@@ -142,11 +141,11 @@ class SimEncoder:
             ones = torch.ones((1, 1, gh, gw), device=self.device)
             ker = torch.ones((1, 1, 3, 3), device=self.device)
             ker[0, 0, 1, 1] = 0.0
-            n = F.conv2d(ones, ker, padding=1)                              # neighbours per patch
-            s = F.conv2d(f[:, None], ker, padding=1)[:, 0]                  # (C, gh, gw)
+            n = torch.nn.functional.conv2d(ones, ker, padding=1)              # neighbours per patch
+            s = torch.nn.functional.conv2d(f[:, None], ker, padding=1)[:, 0]  # (C, gh, gw)
             f = (1.0 - self.bleed) * f + self.bleed * s / n[0, 0].clamp_min(1.0)
         oh, ow = min(H, gh * self.upsample), min(W, gw * self.upsample)
-        out = F.interpolate(f[None], size=(oh, ow), mode="bilinear", align_corners=False)[0]
+        out = torch.nn.functional.interpolate(f[None], size=(oh, ow), mode="bilinear", align_corners=False)[0]
         p_sig = (out * out).sum(0, keepdim=True)                           # (1, oh, ow)
         std = torch.sqrt(p_sig / (self.feature_dim * 10.0 ** (self.snr_db / 10.0)))
         noise = torch.randn(out.shape, generator=self.generator).to(self.device)

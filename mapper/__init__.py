@@ -1,2 +1,2 @@
-"""Base-station part: the RayFronts map (occupancy, semantic voxels, frontiers, ray
-frontiers), queries, snapshots, the mapper process, evaluation."""
+"""Base-station part: the mapper process around the RayFronts map (``semantic_map``):
+ingest, queries, layers, snapshots, fleet and shards, outputs."""

@@ -5,8 +5,12 @@ import argparse
 import logging
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from common.cli_options import split_trailing_options
+
+if TYPE_CHECKING:
+    from mapper.service_config import MapperConfig
 
 HELP = "the base-station process: map, queries, layers, snapshots, rerun"
 DESCRIPTION = """The base-station process. Subscribes to every robot's frames, keeps one shared
@@ -54,7 +58,7 @@ def _options(parser, suppress: bool = False) -> None:
             a.default = argparse.SUPPRESS
 
 
-def build_config(args):
+def build_config(args: argparse.Namespace) -> MapperConfig:
     import dataclasses
 
     from common.zenoh_session import zenoh_config_from_args
@@ -86,7 +90,7 @@ def build_config(args):
     return cfg
 
 
-def check_listen(cfg) -> None:
+def check_listen(cfg: MapperConfig) -> None:
     """Fail at once, in one line, when a Zenoh listen endpoint of this (router-mode) mapper is
     already taken, before the map, the text encoder and rerun are loaded."""
     import json

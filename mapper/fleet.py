@@ -8,7 +8,7 @@ map and query jobs call it.
 send features in different *compressed* spaces of the same *uncompressed* encoder space.
 The map keeps one space (the first robot's, or the restored snapshot's). A robot is
 *compatible* with the map when encoder name, version, input dimension, text model and
-language head (config and weights) are equal (:func:`compatibility`); it is then brought
+language head (config and weights) are equal (:func:`common.feature_space.compatibility`); it is then brought
 into the map's basis by the mapper — decompress with the robot's basis and mean, compress
 with the map's — which, both being affine, is one small affine map per robot
 (:class:`Reprojection`: ``y_map = A·y_robot + b``, ``A = V_mᵀV_r`` (k_m×k_r),
@@ -32,17 +32,26 @@ robot whose space is not known yet expire after ``pending_ttl_s`` and at most
 from __future__ import annotations
 
 import collections
-import hashlib
 import logging
 import math
 import threading
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Union
 
 import numpy as np
+import numpy.typing as npt
 
 from common.config import field_
+
+if TYPE_CHECKING:
+    import torch
+
+    from common.feature_space import FeatureSpace
+
+#: a rigid transform as configured: 16 numbers, a 4×4 nested list / array, or {xyz, rpy_deg}
+TransformSpec = Union[dict, npt.ArrayLike]
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -58,6 +67,9 @@ class FleetSection:
                                         "time with a get on mapper/robots/<robot>/world_from_robot")
     reproject: bool = field_(True, "bring robots with the map's encoder but another PCA basis into the map's "
                                    "basis (decompress with theirs, compress with the map's); false = refuse them")
+    reproject_warn_kept: float = field_(0.8, "warn (one line) when a re-projected robot's features keep less than "
+                                             "this share of their variance in the map's basis (its classes may "
+                                             "become unqueryable; give it the map's basis: pca.basis=map)")
     max_robots: int = field_(128, "robot ids tracked at most; frames of further ids are rejected (counted)")
     no_space_evict_s: float = field_(60.0, "forget a robot that has not served a feature space this long after "
                                            "its first frame (s)")
@@ -74,46 +86,6 @@ class FleetSection:
 
 
 # ------------------------------------------------------------- feature spaces
-def head_digest(fs) -> str:
-    """sha256 (16 hex) over the language head's config and weights ("" without a head)."""
-    if getattr(fs, "head_config", None) is None:
-        return ""
-    h = hashlib.sha256()
-    h.update(repr(sorted(fs.head_config.to_dict().items())).encode())
-    for k in sorted(fs.head_state):
-        v = np.ascontiguousarray(fs.head_state[k], dtype="<f4")
-        h.update(k.encode())
-        h.update(np.array(v.shape, "<i8").tobytes())
-        h.update(v.tobytes())
-    return h.hexdigest()[:16]
-
-
-def encoder_family(fs) -> str:
-    """What must match for two spaces to share one map: encoder name, version, input
-    dimension, text model and language head (``name-version-in_dim-text_model-head``)."""
-    return f"{fs.encoder_name}-{fs.encoder_version}-{fs.in_dim}-{fs.text_model}-{head_digest(fs) or 'nohead'}"
-
-
-def compatibility(map_fs, robot_fs, reproject: bool = True) -> str:
-    """"" when frames in ``robot_fs`` can join a map in ``map_fs``, else one line saying why.
-    (The feature-space id names encoder, version and basis but not the text model or the
-    head, so equal ids are checked like any other pair.)"""
-    diffs = []
-    for what, a, b in (("encoder", robot_fs.encoder_name, map_fs.encoder_name),
-                       ("encoder version", robot_fs.encoder_version, map_fs.encoder_version),
-                       ("encoder dimension", robot_fs.in_dim, map_fs.in_dim),
-                       ("text model", robot_fs.text_model, map_fs.text_model)):
-        if a != b:
-            diffs.append(f"{what} {a} (map: {b})")
-    if not diffs and head_digest(robot_fs) != head_digest(map_fs):
-        diffs.append("language head differs")
-    if diffs:
-        return "different encoder family: " + ", ".join(diffs)
-    if not reproject and robot_fs.id != map_fs.id:
-        return "another PCA basis and fleet.reproject=false"
-    return ""
-
-
 class Reprojection:
     """Affine map from a robot's stored features to the map's: ``y_m = A·y_r + b``.
 
@@ -138,6 +110,11 @@ class Reprojection:
         w = robot_fs.pca.explained_variance if robot_fs.pca is not None else None
         w = np.ones(self.in_dim) if w is None or not np.sum(w) > 0 else np.asarray(w, np.float64)
         self.kept = float((np.square(self.A.astype(np.float64)).sum(0) * w).sum() / w.sum())
+        # the same against the robot's uncompressed features (what the map can still tell apart of
+        # what the robot's encoder saw): its basis' captured variance, then what survives
+        tv = float(robot_fs.pca.total_variance) if robot_fs.pca is not None else 0.0
+        self.kept_of_raw = float((np.square(self.A.astype(np.float64)).sum(0) * w).sum() / tv) if tv > 0 \
+            else self.kept
 
     def features(self, f: np.ndarray) -> np.ndarray:
         """``(k_r, h, w)`` → ``(k_m, h, w)`` float32."""
@@ -171,7 +148,7 @@ def _rpy(roll, pitch, yaw) -> np.ndarray:
     return rz @ ry @ rx
 
 
-def parse_transform(value, what: str = "world_from_robot") -> np.ndarray:
+def parse_transform(value: TransformSpec, what: str = "world_from_robot") -> np.ndarray:
     """A 4×4 float64 rigid transform from 16 numbers (row-major), a 4×4 nested list, or
     ``{"xyz": [x, y, z], "rpy_deg": [roll, pitch, yaw]}`` (z-y-x order, degrees)."""
     from common.conventions import is_rigid
@@ -211,7 +188,7 @@ class RobotTransforms:
             t = self._t.get(robot)
             return None if t is None else t.copy()
 
-    def set(self, robot: str, value) -> np.ndarray:
+    def set(self, robot: str, value: TransformSpec) -> np.ndarray:
         T = parse_transform(value)
         with self._lock:
             self._t[robot] = T
@@ -309,7 +286,7 @@ class DropWarner:
 STATES = ("pending", "accepted", "refused", "evicted")
 
 
-def robot_status(name: str, state: str, reason: str, st, rates: dict, map_space: str, shard: str = "",
+def robot_status(name: str, state: str, reason: str, st: object, rates: dict, map_space: str, shard: str = "",
                  advised_hz: float | None = None) -> dict:
     """The per-robot status body published on ``mapper/robots/<robot>/status``.
 
@@ -412,7 +389,8 @@ def _score_error(ref, got) -> dict:
             "top1_agree": float(agree)}
 
 
-def reprojection_score_error(map_fs, robot_fs, x, queries) -> dict:
+def reprojection_score_error(map_fs: FeatureSpace, robot_fs: FeatureSpace, x: np.ndarray | torch.Tensor,
+                             queries: np.ndarray | torch.Tensor) -> dict:
     """Query-score loss of a robot's re-projected features, measured against the truth: the
     **uncompressed** encoder-space features ``x`` (N, D) scored against ``queries`` (Q, lang_dim)
     (cosine in the language space, :meth:`FeatureSpace.similarity` of the space without PCA).

@@ -29,9 +29,11 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from common.feature_space import compatibility
 from mapper.fleet import (
     DropWarner,
     RateMeter,
@@ -41,12 +43,19 @@ from mapper.fleet import (
     StatusPublisher,
     TransformError,
     advised_rate,
-    compatibility,
     evictions,
     expire_pending,
     robot_status,
 )
 from mapper.shards import ShardFilter
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from common.feature_space import FeatureSpace
+    from common.frame import Frame
+    from common.messages import QueryResult
+    from mapper.state import MapperState, RobotState
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -68,13 +77,14 @@ class FleetRobot:
              "pending_expired": self.pending_expired, **self.rates.as_dict(now)}
         if self.reprojection is not None:
             d["reprojection_kept"] = round(self.reprojection.kept, 4)
+            d["reprojection_kept_of_raw"] = round(self.reprojection.kept_of_raw, 4)
         return d
 
 
 class Fleet:
     """See the module docstring. One per mapper; ``state.fleet`` points at it."""
 
-    def __init__(self, state):
+    def __init__(self, state: MapperState) -> None:
         self.state = state
         cfg = state.cfg
         self.cfg = cfg.fleet
@@ -90,7 +100,7 @@ class Fleet:
         state.fleet = self
 
     # ------------------------------------------------------------ per robot
-    def robot_data(self, st) -> FleetRobot:
+    def robot_data(self, st: RobotState) -> FleetRobot:
         fr = getattr(st, "fleet", None)
         if fr is None:
             fr = st.fleet = FleetRobot(RobotRates(self.cfg.rate_window_s))
@@ -100,26 +110,26 @@ class Fleet:
         """True when ``name`` is tracked or may be (caller holds ``qlock``; ``MapperState.robot``
         asks for every new id); else counts the frame under ``robot_cap`` (globally: nothing is
         kept per refused id)."""
-        s = self.state
-        if name in s.robots or len(s.robots) < max(1, self.cfg.max_robots):
+        state = self.state
+        if name in state.robots or len(state.robots) < max(1, self.cfg.max_robots):
             return True
         self.capped += 1
-        s.rejected["robot_cap"] += 1
+        state.rejected["robot_cap"] += 1
         now = time.monotonic()
         if now - self._cap_warned > self.cfg.drop_warn_s:
             self._cap_warned = now
             log.warning("robot %s refused: %d robots tracked already (fleet.max_robots); %d refused so far",
-                        name, len(s.robots), self.capped)
+                        name, len(state.robots), self.capped)
         return False
 
-    def sample_counts(self, st, now: float, now_wall: float) -> None:
+    def sample_counts(self, st: RobotState, now: float, now_wall: float) -> None:
         """Turn the robot's counters (received / mapped / dropped / rejected, kept by ingest and
         the map worker) into rates, warn about drops with their rate. Caller holds ``qlock``."""
         fr = self.robot_data(st)
         cur = (st.received, st.mapped, st.dropped, int(sum(st.rejected.values())))
         prev = fr.counts if fr.counts is not None else (0, 0, 0, 0)
         fr.counts = cur
-        d_recv, d_map, d_drop, d_rej = (max(0, a - b) for a, b in zip(cur, prev))
+        d_recv, d_map, d_drop, d_rej = (max(0, a - b) for a, b in zip(cur, prev, strict=True))
         if d_recv:
             fr.rates.received.add(d_recv, now)
             fr.last_frame_at = now_wall
@@ -132,19 +142,23 @@ class Fleet:
             fr.rates.dropped.add(d_drop, now)
             self.drops.dropped(st.name, d_drop, fr.rates.as_dict(now), len(st.queue), now)
 
-    def space_decided(self, st, fs) -> str:
+    def space_decided(self, st: RobotState, fs: FeatureSpace) -> str:
         """Decide on a robot's fetched feature space ``fs``: "" (accepted, possibly
         re-projected) or the one-line reason it is refused. Caller holds the map ``lock``."""
-        s = self.state
+        state = self.state
         fr = self.robot_data(st)
-        why = compatibility(s.space, fs, self.cfg.reproject)
+        why = compatibility(state.space, fs, self.cfg.reproject)
         fr.reprojection = None
-        if not why and fs.id != s.space_id:
-            fr.reprojection = Reprojection(s.space, fs)
+        if not why and fs.id != state.space_id:
+            fr.reprojection = rp = Reprojection(state.space, fs)
+            if rp.kept_of_raw < self.cfg.reproject_warn_kept:
+                log.warning("robot %s: its features keep only %.0f%% of their variance in the map's PCA basis "
+                            "(re-projected from its own basis); what it sees may not be queryable: give it the "
+                            "map's basis (pca.basis=map)", st.name, 100 * rp.kept_of_raw)
         fr.refused = why
         return why
 
-    def prepare(self, st, frame):
+    def prepare(self, st: RobotState, frame: Frame) -> Frame | None:
         """The frame as the map integrates it (re-projected, transformed), or None when it is
         outside this shard (counted)."""
         fr = self.robot_data(st)
@@ -163,7 +177,7 @@ class Fleet:
         return replace(frame, **ch)
 
     # ------------------------------------------------------------ status
-    def _state_of(self, st) -> tuple[str, str]:
+    def _state_of(self, st: RobotState) -> tuple[str, str]:
         fr = self.robot_data(st)
         if fr.refused or st.space_error:
             return "refused", fr.refused or st.space_error
@@ -173,53 +187,53 @@ class Fleet:
             return "accepted", f"frames outside shard {self.shard.name or '(unnamed)'}: mapped by another shard"
         return "accepted", ("re-projected into the map's PCA basis" if fr.reprojection is not None else "")
 
-    def status_of(self, st, now: float | None = None) -> dict:
-        s = self.state
+    def status_of(self, st: RobotState, now: float | None = None) -> dict:
+        shared = self.state
         now = time.monotonic() if now is None else now
         fr = self.robot_data(st)
         state, reason = self._state_of(st)
         rates = fr.rates.as_dict(now)
-        with_frames = [r for r in s.robots.values() if r.space_ok and getattr(r, "fleet", None) is not None
+        with_frames = [r for r in shared.robots.values() if r.space_ok and getattr(r, "fleet", None) is not None
                        and r.fleet.rates.received.rate(now) > 0]
         adv = advised_rate(self.map_rate.rate(now), len(with_frames),
                            {**rates, "queue": len(st.queue)}, st.queue.maxlen or 1) if state == "accepted" else None
-        return robot_status(st.name, state, reason, _Counts(st, fr), rates, s.space_id, self.shard.name, adv)
+        return robot_status(st.name, state, reason, _Counts(st, fr), rates, shared.space_id, self.shard.name, adv)
 
     def _publish(self, body: dict) -> None:
         from common.fleet import encode_robot_status, robot_status_key
 
-        s = self.state
-        if s.session is None:
+        state = self.state
+        if state.session is None:
             return
         try:
-            s.session.put(robot_status_key(s.keys, body["robot"]), encode_robot_status(body))
+            state.session.put(robot_status_key(state.keys, body["robot"]), encode_robot_status(body))
         except Exception as e:
-            s.warn("status", "publishing robot status failed: %s", e)
+            state.warn("status", "publishing robot status failed: %s", e)
 
     def tick(self) -> None:
         """Evictions, pending expiry, status publication (the fleet thread, every 0.5 s)."""
-        s = self.state
+        state = self.state
         now, now_w = time.monotonic(), time.time()
         out = []
-        with s.qlock:
-            for st in s.robots.values():
+        with state.qlock:
+            for st in state.robots.values():
                 self.sample_counts(st, now, now_w)
-            for name, n in expire_pending(s.robots.values(), now_w, self.cfg, s.cfg.queues.per_robot):
-                st = s.robots[name]
+            for name, n in expire_pending(state.robots.values(), now_w, self.cfg, state.cfg.queues.per_robot):
+                st = state.robots[name]
                 self.robot_data(st).pending_expired += n
                 st.rejected["pending_expired"] += n
-                s.rejected["pending_expired"] += n
+                state.rejected["pending_expired"] += n
                 self.pending_expired += n
-            for name, why in evictions({n: _Evictable(st, self.robot_data(st)) for n, st in s.robots.items()},
+            for name, why in evictions({n: _Evictable(st, self.robot_data(st)) for n, st in state.robots.items()},
                                        now_w, self.cfg):
-                st = s.robots.pop(name)
+                st = state.robots.pop(name)
                 self.evicted += 1
                 self.drops.forget(name)
                 self.status.forget(name)
                 body = self.status_of(st, now)
                 out.append(dict(body, state="evicted", reason=why))
                 log.info("robot %s evicted: %s", name, why)
-            for st in s.robots.values():
+            for st in state.robots.values():
                 fr = self.robot_data(st)
                 if self.shard.active and not st.mapped and fr.outside_shard and not fr.refused:
                     continue            # another shard's robot: its status comes from there
@@ -230,15 +244,15 @@ class Fleet:
             self._publish(body)
 
     def loop(self) -> None:
-        s = self.state
-        while not s.stop.wait(0.5):
+        state = self.state
+        while not state.stop.wait(0.5):
             try:
                 self.tick()
             except Exception as e:      # the fleet thread never dies
-                s.warn("fleet", "fleet bookkeeping failed: %s", e)
+                state.warn("fleet", "fleet bookkeeping failed: %s", e)
 
     # ------------------------------------------------------------ transforms
-    def on_transform(self, query) -> None:
+    def on_transform(self, query: zenoh.Query) -> None:
         """``get mapper/robots/<robot>/world_from_robot``: payload (16 numbers) sets it; none reads it."""
         from common.fleet import (
             FleetMessageError,
@@ -248,9 +262,9 @@ class Fleet:
         )
         from common.messages import encode_error
 
-        s = self.state
+        state = self.state
         try:
-            robot = robot_from_mapper_key(s.keys, query.key_expr)
+            robot = robot_from_mapper_key(state.keys, query.key_expr)
             try:
                 if robot is None:
                     raise FleetMessageError(f"no robot id in {query.key_expr} (use mapper/robots/<robot>/"
@@ -269,7 +283,7 @@ class Fleet:
             log.warning("world_from_robot query failed: %s", e)
 
     # ------------------------------------------------------------ queries, stats
-    def shard_info(self, res=None) -> bytes:
+    def shard_info(self, res: QueryResult | None = None) -> bytes:
         from common.fleet import encode_shard_info
 
         q = self.state.cfg.query
@@ -301,7 +315,7 @@ class Fleet:
 class _Counts:
     """What :func:`mapper.fleet.robot_status` reads from a robot (its state + fleet data)."""
 
-    def __init__(self, st, fr: FleetRobot):
+    def __init__(self, st: RobotState, fr: FleetRobot) -> None:
         self.received, self.mapped, self.dropped = st.received, st.mapped, st.dropped
         self.rejected, self.queue, self.feature_space = dict(st.rejected), st.queue, st.feature_space
         self.reprojection = fr.reprojection
@@ -310,7 +324,7 @@ class _Counts:
 class _Evictable:
     """What :func:`mapper.fleet.evictions` reads from a robot."""
 
-    def __init__(self, st, fr: FleetRobot):
+    def __init__(self, st: RobotState, fr: FleetRobot) -> None:
         self.present, self.gone_at, self.seen_at = st.present, st.gone_at, st.seen_at
         self.space_ok = st.space_ok and not fr.refused
         self.feature_space, self.queue = st.feature_space, st.queue

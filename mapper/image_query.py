@@ -24,11 +24,19 @@ from __future__ import annotations
 
 import logging
 import threading
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
 
 from common.messages import MessageError
+
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace
+    from encoders.text.base import CachedTextEncoder
+
+    #: the mapper's cached text-model factory: (name, device, model_dir) -> encoder
+    TextEncoderFactory = Callable[[str, str | torch.device, str], CachedTextEncoder]
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -76,8 +84,8 @@ def _image_size(head: bytes) -> tuple[int, int] | None:
     return None
 
 
-def embed_image(fs, data: bytes, device="cpu", text_model_dir: str = "", image_model_dir: str = "",
-                text_encoder=None) -> torch.Tensor:
+def embed_image(fs: FeatureSpace, data: bytes, device: str | torch.device = "cpu", text_model_dir: str = "",
+                image_model_dir: str = "", text_encoder: TextEncoderFactory | None = None) -> torch.Tensor:
     """``(1, lang_dim)`` language-space vector of the encoded image ``data`` for space ``fs``
     (``text_encoder(name, device, model_dir)``: the mapper's cached text-model factory)."""
     rgb = decode_query_image(data)
@@ -114,9 +122,9 @@ def _label_vector(fs, rgb, device, text_model_dir, text_encoder) -> torch.Tensor
 
 
 def _naradio(fs, device, image_model_dir: str):
+    from common.model_files import ModelFileError
     from encoders.config import EncoderConfig
     from encoders.naradio import NaradioEncoder
-    from common.model_files import ModelFileError
 
     key = ("naradio", fs.id, str(device), image_model_dir)
     with _LOCK:

@@ -43,12 +43,18 @@ import collections
 import logging
 import threading
 import time
+from typing import TYPE_CHECKING
 
 import cv2  # noqa: F401  (decode_frame's image codecs load OpenCV lazily: load it before the first frame)
 
 from common.messages import MessageError, decode_feature_space, encode_feature_space
 from common.wire import WireError, decode_frame
 from mapper.state import MapperState, RobotState
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from common.frame import Frame
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -73,7 +79,7 @@ def reject_reason(err: Exception) -> str:
 class Ingest:
     """Zenoh callbacks for frames and liveliness, the feature-space thread, and the queues."""
 
-    def __init__(self, state: MapperState):
+    def __init__(self, state: MapperState) -> None:
         self.state = state
         self._rr = 0                         # round-robin start in next_frame
         self._raw: collections.deque = collections.deque()   # (key, bytes, t_recv) for the decode thread
@@ -84,20 +90,20 @@ class Ingest:
         self.raw_dropped = 0                 # frames dropped before decoding (raw queue full)
 
     # ============================================================ callbacks
-    def on_frame(self, sample) -> None:
+    def on_frame(self, sample: zenoh.Sample) -> None:
         """Zenoh callback: copy the payload into the bounded raw queue (nothing else)."""
-        s = self.state
+        state = self.state
         try:
             key = str(sample.key_expr)
             data = sample.payload.to_bytes()
             t_recv = time.time()
-            max_bytes = 4 * s.limits.max_message_bytes
+            max_bytes = 4 * state.limits.max_message_bytes
             dropped = []
             with self._raw_lock:
-                s.received += 1
+                state.received += 1
                 if len(self._raw) >= RAW_QUEUE_MAX:   # back-pressure on this link first
                     end = time.monotonic() + RAW_WAIT_S
-                    while len(self._raw) >= RAW_QUEUE_MAX and not s.stop.is_set():
+                    while len(self._raw) >= RAW_QUEUE_MAX and not state.stop.is_set():
                         rem = end - time.monotonic()
                         if rem <= 0:
                             break
@@ -112,26 +118,26 @@ class Ingest:
                 self._count_raw_drops(dropped)
             self._raw_ready.set()
         except Exception as e:  # never raise out of a callback
-            s.reject(None, "internal", repr(e))
+            state.reject(None, "internal", repr(e))
 
     def _count_raw_drops(self, keys: list[str]) -> None:
-        s = self.state
-        with s.qlock:
+        state = self.state
+        with state.qlock:
             self.raw_dropped += len(keys)
-            s.dropped += len(keys)
+            state.dropped += len(keys)
             for key in keys:
                 try:
-                    st = s.robots.get(s.keys.robot_from_key(key))
+                    st = state.robots.get(state.keys.robot_from_key(key))
                 except Exception:
                     st = None
                 if st is not None:
                     st.dropped += 1
-        s.warn("raw-queue", "decode backlog full: dropped %d undecoded frame(s)", len(keys))
+        state.warn("raw-queue", "decode backlog full: dropped %d undecoded frame(s)", len(keys))
 
     def decode_loop(self) -> None:
         """The decode thread: validates queued payloads and queues the frames per robot."""
-        s = self.state
-        while not s.stop.is_set():
+        state = self.state
+        while not state.stop.is_set():
             self._raw_ready.clear()
             with self._raw_lock:
                 item = self._raw.popleft() if self._raw else None
@@ -145,66 +151,66 @@ class Ingest:
 
     def handle_frame(self, key: str, data: bytes, t_recv: float) -> None:
         """Decode and validate one frame message, then queue it for its robot (or reject it)."""
-        s = self.state
+        state = self.state
         try:
-            key_robot = s.keys.robot_from_key(key)
+            key_robot = state.keys.robot_from_key(key)
         except Exception:
             key_robot = None
         try:
             t0 = time.perf_counter()
             try:
-                frame = decode_frame(data, limits=s.limits)
+                frame = decode_frame(data, limits=state.limits)
             except WireError as e:
-                s.reject(key_robot if key_robot in s.robots else None, reject_reason(e), str(e))
+                state.reject(key_robot if key_robot in state.robots else None, reject_reason(e), str(e))
                 return
-            s.timings["decode_ms"].add((time.perf_counter() - t0) * 1e3)
+            state.timings["decode_ms"].add((time.perf_counter() - t0) * 1e3)
             if key_robot is None or frame.robot != key_robot:
-                s.reject(None, "robot_mismatch", f"frame robot {frame.robot!r} on key {key[:200]}")
+                state.reject(None, "robot_mismatch", f"frame robot {frame.robot!r} on key {key[:200]}")
                 return
             if frame.features is None:
-                s.reject(key_robot, "no_features", "frame carries no features")
+                state.reject(key_robot, "no_features", "frame carries no features")
                 return
-            with s.qlock:
-                st = s.robot(key_robot)
+            with state.qlock:
+                st = state.robot(key_robot)
                 st.received += 1
                 if st.feature_space and frame.feature_space != st.feature_space:
                     # not the robot's announced space: reject, touching neither its state nor
                     # its queue (a restarted edge announces a new space through liveliness)
                     st.rejected["feature_space_mismatch"] += 1
-                    s.rejected["feature_space_mismatch"] += 1
+                    state.rejected["feature_space_mismatch"] += 1
                     mismatch = True
                 else:
                     mismatch = False
                     if len(st.queue) == st.queue.maxlen:
                         st.dropped += 1
-                        s.dropped += 1
+                        state.dropped += 1
                     st.queue.append((frame, t_recv))
             if mismatch:
-                s.warn(f"{key_robot}:feature_space_mismatch", "rejected frame from %s (feature_space_mismatch): "
+                state.warn(f"{key_robot}:feature_space_mismatch", "rejected frame from %s (feature_space_mismatch): "
                        "space %r, the robot announced %r", key_robot, frame.feature_space[:80], st.feature_space)
                 return
-            with s.qlock:
+            with state.qlock:
                 if not st.space_ok and not st.space_error:
                     # frames flow, so the edge's space is ready: fetch now rather than at the
                     # retry period (at most every 0.2 s), else frames pile up meanwhile
                     now = time.monotonic()
                     if st.fetch_after > now and now - st.fetch_started > 0.2:
                         st.fetch_after = 0.0
-                        s.space_wake.set()
-            s.wake.set()
+                        state.space_wake.set()
+            state.wake.set()
         except Exception as e:  # never raise out of a callback
-            s.reject(key_robot, "internal", repr(e))
+            state.reject(key_robot, "internal", repr(e))
 
-    def on_alive(self, sample) -> None:
-        s = self.state
+    def on_alive(self, sample: zenoh.Sample) -> None:
+        state = self.state
         try:
             import zenoh
 
-            robot = s.keys.robot_from_key(str(sample.key_expr))
+            robot = state.keys.robot_from_key(str(sample.key_expr))
             if robot is None:
                 return
-            with s.qlock:
-                st = s.robot(robot)
+            with state.qlock:
+                st = state.robot(robot)
                 if sample.kind == zenoh.SampleKind.PUT:
                     st.present, st.seen_at, st.gone_at = True, time.time(), None
                     # a (re)started edge announces its space anew: fetch it (frames are held
@@ -215,32 +221,32 @@ class Ingest:
                 else:
                     st.present, st.gone_at = False, time.time()
                     log.info("robot %s gone", robot)
-            s.wake.set()
-            s.space_wake.set()
+            state.wake.set()
+            state.space_wake.set()
         except Exception as e:
             log.warning("liveliness callback: %s", e)
 
-    def on_edge_status(self, sample) -> None:
+    def on_edge_status(self, sample: zenoh.Sample) -> None:
         """An edge's own state (``robots/<robot>/edge_status``). A refusal or failure is logged
         once per (robot, state, reason), shown in stats (``robots.<r>.edge_state`` /
         ``edge_reason``), and stops the feature-space retries (and their warnings) for that
         robot until its edge comes back."""
-        s = self.state
+        state = self.state
         try:
             from common.messages import decode_edge_status
 
-            robot = s.keys.robot_from_key(str(sample.key_expr))
+            robot = state.keys.robot_from_key(str(sample.key_expr))
             if robot is None:
                 return
             try:
                 msg = decode_edge_status(sample.payload.to_bytes())
             except MessageError as e:
-                s.warn(f"{robot}:edge_status", "bad edge status from %s: %s", robot, e)
+                state.warn(f"{robot}:edge_status", "bad edge status from %s: %s", robot, e)
                 return
             if msg["robot"] != robot:
                 return
-            with s.qlock:
-                st = s.robot(robot)
+            with state.qlock:
+                st = state.robot(robot)
                 changed = (st.edge_state, st.edge_reason) != (msg["state"], msg["reason"])
                 st.edge_state, st.edge_reason = msg["state"], msg["reason"]
             if changed and msg["state"] in ("refused", "failed"):
@@ -254,30 +260,30 @@ class Ingest:
     # ====================================================== feature spaces
     def space_loop(self) -> None:
         """The feature-space thread: fetches the space of every robot that needs it."""
-        s = self.state
+        state = self.state
         # its own event: the map worker's one is set by every frame and stays set while
         # frames are queued, which would turn this loop into a GIL-holding busy spin
-        while not s.stop.is_set():
-            s.space_wake.wait(0.5)
-            s.space_wake.clear()
+        while not state.stop.is_set():
+            state.space_wake.wait(0.5)
+            state.space_wake.clear()
             now = time.monotonic()
-            with s.qlock:
-                todo = [st.name for st in s.robots.values()
+            with state.qlock:
+                todo = [st.name for st in state.robots.values()
                         if not st.space_ok and not st.space_error and st.fetch_after <= now
                         and st.edge_state not in ("refused", "failed")]
             for robot in todo:
-                if s.stop.is_set():
+                if state.stop.is_set():
                     return
                 self.fetch_space(robot)
 
     def fetch_space(self, robot: str) -> None:
         from common.feature_space import FeatureSpace
 
-        s = self.state
-        st = s.robots[robot]
+        state = self.state
+        st = state.robots[robot]
         st.fetch_started = time.monotonic()
         try:
-            replies = list(s.session.get(s.keys.feature_space(robot), timeout=3.0))
+            replies = list(state.session.get(state.keys.feature_space(robot), timeout=3.0))
         except Exception as e:
             st.fetch_after = time.monotonic() + 1.0
             log.debug("feature space get for %s failed: %s", robot, e)
@@ -294,65 +300,65 @@ class Ingest:
                 err = str(e)
         if body is None:
             st.fetch_after = time.monotonic() + 1.0
-            s.warn(f"{robot}:space", "feature space of %s not available yet: %s", robot, err)
+            state.warn(f"{robot}:space", "feature space of %s not available yet: %s", robot, err)
             return
         try:
             fs = FeatureSpace.from_body(body)
         except Exception as e:
             st.fetch_after = time.monotonic() + 5.0
-            s.warn(f"{robot}:space", "feature space of %s is invalid: %s", robot, e)
+            state.warn(f"{robot}:space", "feature space of %s is invalid: %s", robot, e)
             return
         fs_id = fs.id
-        with s.lock:
-            if s.map is None:
-                s.create_map(fs, encode_feature_space(robot, body))
-            if s.fleet is not None:   # same encoder family: accepted (re-projected if another basis)
-                why = s.fleet.space_decided(st, fs)
+        with state.lock:
+            if state.map is None:
+                state.create_map(fs, encode_feature_space(robot, body))
+            if state.fleet is not None:   # same encoder family: accepted (re-projected if another basis)
+                why = state.fleet.space_decided(st, fs)
             else:
-                why = "" if fs_id == s.space_id else f"robot space {fs_id} differs from the map's {s.space_id}"
-            map_id = s.space_id
+                why = "" if fs_id == state.space_id else f"robot space {fs_id} differs from the map's {state.space_id}"
+            map_id = state.space_id
         ok = not why
-        with s.qlock:
+        with state.qlock:
             st.feature_space = fs_id
             st.space_ok = ok
             st.space_error = why
         if ok:
             log.info("robot %s feature space %s%s", robot, fs_id,
                      f" (re-projected into the map's {map_id})" if fs_id != map_id else "")
-            s.wake.set()
+            state.wake.set()
         else:
             log.error("robot %s refused: %s; its frames are rejected", robot, why)
 
     # ============================================================== queues
-    def next_frame(self) -> tuple[RobotState, object, float] | None:
+    def next_frame(self) -> tuple[RobotState, Frame, float] | None:
         """Round-robin over robots whose space matches the map; rejects frames of mismatched ones."""
-        s = self.state
-        with s.qlock:
-            names = sorted(s.robots)
+        state = self.state
+        with state.qlock:
+            names = sorted(state.robots)
             if not names:
                 return None
             start = self._rr
             for i in range(len(names)):
-                st = s.robots[names[(start + i) % len(names)]]
+                st = state.robots[names[(start + i) % len(names)]]
                 if not st.queue:
                     continue
                 if st.space_error:
                     n = len(st.queue)
                     st.queue.clear()
                     st.rejected["feature_space_differs"] += n
-                    s.rejected["feature_space_differs"] += n
+                    state.rejected["feature_space_differs"] += n
                     continue
                 if not st.space_ok:
-                    if not s.cfg.queues.hold_unknown_space:
+                    if not state.cfg.queues.hold_unknown_space:
                         n = len(st.queue)
                         st.queue.clear()
                         st.rejected["feature_space_unknown"] += n
-                        s.rejected["feature_space_unknown"] += n
+                        state.rejected["feature_space_unknown"] += n
                     continue
                 frame, t_recv = st.queue.popleft()
                 if frame.feature_space != st.feature_space:
                     st.rejected["feature_space_mismatch"] += 1
-                    s.rejected["feature_space_mismatch"] += 1
+                    state.rejected["feature_space_mismatch"] += 1
                     continue
                 self._rr = (start + i + 1) % len(names)
                 return st, frame, t_recv

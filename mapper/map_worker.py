@@ -18,7 +18,8 @@ frame's validation, geometry and sampling run on the ``map-prepare`` thread (no 
 while the previous frame is committed here under the map lock; a frame is accounted when it
 is committed. Whenever no frame is queued the pipeline is drained first (a slow robot's
 frame is never held back), and before a periodic snapshot; snapshots taken from other
-threads meanwhile still save the exact committed state (:meth:`RayFrontsMap.rng_state`). What integration does to the map (fusion, frontiers, rays) lives in
+threads meanwhile still save the exact committed state (:meth:`RayFrontsMap.rng_state`).
+What integration does to the map (fusion, frontiers, rays) lives in
 :mod:`semantic_map.map` via :func:`mapper.service_map.integrate`.
 """
 from __future__ import annotations
@@ -50,8 +51,8 @@ class MapWorker:
         self._pipe = None
 
     def loop(self) -> None:
-        s = self.state
-        cfg = s.cfg
+        state = self.state
+        cfg = state.cfg
         set_torch_threads(cfg)
         last_layers = 0.0
         last_standing = 0.0
@@ -60,23 +61,23 @@ class MapWorker:
         layers_version = -1
         idle_since = time.monotonic()
         try:
-            self._loop(s, cfg, last_layers, last_standing, last_snap, standing_version, layers_version, idle_since)
+            self._loop(state, cfg, last_layers, last_standing, last_snap, standing_version, layers_version, idle_since)
         finally:
             self._close_pipe()
 
-    def _loop(self, s, cfg, last_layers, last_standing, last_snap, standing_version, layers_version, idle_since):
-        while not s.stop.is_set():
-            ticket = s.flush_wanted()
+    def _loop(self, state, cfg, last_layers, last_standing, last_snap, standing_version, layers_version, idle_since):
+        while not state.stop.is_set():
+            ticket = state.flush_wanted()
             if ticket:
                 self.serve_flush(ticket)
             item = self.next_frame()
             if item is None and self._pipe is not None and len(self._pipe):
                 self._account_all(self._pipe.drain())  # input idle: commit what is in flight first
             elif item is None:
-                s.wake.wait(0.05)
-                s.wake.clear()
+                state.wake.wait(0.05)
+                state.wake.clear()
                 idle_s = cfg.queues.idle_flush_s
-                if (s.map is not None and s.version != s.flushed_version and idle_s > 0
+                if (state.map is not None and state.version != state.flushed_version and idle_s > 0
                         and time.monotonic() - idle_since > idle_s):
                     self.flush()
             else:
@@ -84,20 +85,21 @@ class MapWorker:
                 if not self._integrate(*item):
                     continue
             now = time.monotonic()
-            if s.map is None:
+            if state.map is None:
                 continue
             qcfg = cfg.query
-            if (s.standing and s.version != standing_version and qcfg.standing_rate_hz > 0
+            if (state.standing and state.version != standing_version and qcfg.standing_rate_hz > 0
                     and now - last_standing >= 1.0 / qcfg.standing_rate_hz):
-                last_standing, standing_version = now, s.version
-                s.standing_due.set()
+                last_standing, standing_version = now, state.version
+                state.standing_due.set()
             lcfg = cfg.layers
-            if (lcfg.rate_hz > 0 and s.version != layers_version and now - last_layers >= 1.0 / lcfg.rate_hz
+            if (lcfg.rate_hz > 0 and state.version != layers_version and now - last_layers >= 1.0 / lcfg.rate_hz
                     and (item is None or now - last_layers >= 5.0 / lcfg.rate_hz)):
-                last_layers, layers_version = now, s.version
+                last_layers, layers_version = now, state.version
                 self.layers.publish()
             scfg = cfg.snapshots
-            if scfg.dir and scfg.period_s > 0 and now - last_snap >= scfg.period_s and s.version != s.snap_version:
+            if (scfg.dir and scfg.period_s > 0 and now - last_snap >= scfg.period_s
+                    and state.version != state.snap_version):
                 last_snap = now
                 if self._pipe is not None:
                     self._account_all(self._pipe.drain())
@@ -109,25 +111,25 @@ class MapWorker:
     # ---------------------------------------------------------------- pipeline
     def _commit(self, prepared) -> dict:
         """Commit one prepared frame into the current map under the map lock (pipeline path)."""
-        s = self.state
-        with s.lock:
+        state = self.state
+        with state.lock:
             try:
-                return s.map.commit(prepared)
+                return state.map.commit(prepared)
             finally:
-                s.map_gen += 1
-                s.version += 1
+                state.map_gen += 1
+                state.version += 1
 
     def _pipeline(self):
         """The pipeline of the current map (a new one when the map object changed)."""
-        s = self.state
-        if self._pipe is not None and self._pipe.map is not s.map:
+        state = self.state
+        if self._pipe is not None and self._pipe.map is not state.map:
             self._close_pipe()
         if self._pipe is None:
             from mapper.pipeline import MapPipeline
             from mapper.service_config import resolve_threads
 
-            self._pipe = MapPipeline(s.map, depth=1, prepare_threads=resolve_threads(int(getattr(s.cfg, "threads", 0))),
-                                     commit=self._commit)
+            threads = resolve_threads(int(getattr(state.cfg, "threads", 0)))
+            self._pipe = MapPipeline(state.map, depth=1, prepare_threads=threads, commit=self._commit)
         return self._pipe
 
     def _close_pipe(self) -> None:
@@ -155,15 +157,15 @@ class MapWorker:
                 return False
             if frame is None:
                 return False
-        s = self.state
-        if getattr(s.cfg, "pipeline", False) and s.map is not None:
+        state = self.state
+        if getattr(state.cfg, "pipeline", False) and state.map is not None:
             g = None if frame.global_feature is None else np.array(frame.global_feature)
             try:
                 done = self._pipeline().submit(frame.pose, frame.intrinsics, frame.depth, np.array(frame.rgb),
                                                np.array(frame.features), g, tag=(st, frame, time.perf_counter()))
             except Exception as e:
                 log.exception("integrating frame %s/%d failed", st.name, frame.seq)
-                s.reject(st.name, "integrate_failed", repr(e))
+                state.reject(st.name, "integrate_failed", repr(e))
                 return False
             self._account_all(done)
             return True
@@ -172,39 +174,39 @@ class MapWorker:
         t0 = time.perf_counter()
         c0 = time.thread_time()
         try:
-            with s.lock:
+            with state.lock:
                 try:
-                    integrate(s.map, frame, s.cfg.device)
+                    integrate(state.map, frame, state.cfg.device)
                 finally:
-                    s.map_gen += 1
-                s.version += 1
+                    state.map_gen += 1
+                state.version += 1
         except Exception as e:
             log.exception("integrating frame %s/%d failed", st.name, frame.seq)
-            s.reject(st.name, "integrate_failed", repr(e))
+            state.reject(st.name, "integrate_failed", repr(e))
             return False
         self._account(st, frame, (time.perf_counter() - t0) * 1e3, (time.thread_time() - c0) * 1e3)
         return True
 
     def _account(self, st, frame, dt_ms: float, cpu_ms: float) -> None:
         """Timings, latency, counters and rerun of one integrated frame."""
-        s = self.state
-        s.timings["integrate_ms"].add(dt_ms)
-        s.timings["integrate_cpu_ms"].add(cpu_ms)
+        state = self.state
+        state.timings["integrate_ms"].add(dt_ms)
+        state.timings["integrate_cpu_ms"].add(cpu_ms)
         t_send = frame.meta.get("t_send") if isinstance(frame.meta, dict) else None
         if isinstance(t_send, (int, float)):
-            s.timings["latency_ms"].add((time.time() - t_send) * 1e3)
+            state.timings["latency_ms"].add((time.time() - t_send) * 1e3)
         now_w = time.time()
-        s.first_mapped_at = s.first_mapped_at or now_w
-        s.last_mapped_at = now_w
+        state.first_mapped_at = state.first_mapped_at or now_w
+        state.last_mapped_at = now_w
         cpu = time.process_time()
-        s.cpu_mapped = [s.cpu_mapped[0] if s.cpu_mapped else cpu, cpu]
+        state.cpu_mapped = [state.cpu_mapped[0] if state.cpu_mapped else cpu, cpu]
         e_cpu = frame.meta.get("cpu_s") if isinstance(frame.meta, dict) else None
-        with s.qlock:
+        with state.qlock:
             st.mapped += 1
             if frame.seq <= st.last_seq:
                 st.seq_regressions += 1
             st.last_seq = frame.seq
-            s.mapped += 1
+            state.mapped += 1
             if isinstance(e_cpu, (int, float)) and not isinstance(e_cpu, bool):
                 if st.edge_cpu is None or e_cpu < st.edge_cpu[1]:   # first, or the edge restarted
                     st.edge_cpu, st.edge_cpu_frames = (float(e_cpu), float(e_cpu)), 0
@@ -216,26 +218,26 @@ class MapWorker:
     def serve_flush(self, ticket: int) -> None:
         """A query asked for the map's buffered frames: commit the frames in flight and
         flush (only if the map buffers something: then it costs one voxel / ray block)."""
-        s = self.state
+        state = self.state
         try:
-            m = s.map
+            m = state.map
             if m is not None and getattr(m, "has_buffered", lambda: True)():
                 self.flush()
         finally:
-            s.flush_done(ticket)
+            state.flush_done(ticket)
 
     def flush(self) -> None:
         """Integrate what the map buffers (accumulation periods) when the input is idle."""
         from mapper.service_map import flush
 
-        s = self.state
+        state = self.state
         if self._pipe is not None:
             self._account_all(self._pipe.drain())
-        with s.lock:
-            v = s.version
+        with state.lock:
+            v = state.version
             try:
-                flush(s.map)
+                flush(state.map)
             except Exception as e:
-                s.warn("flush", "map flush failed: %s", e)
-            s.map_gen += 1
-            s.flushed_version = v
+                state.warn("flush", "map flush failed: %s", e)
+            state.map_gen += 1
+            state.flushed_version = v

@@ -42,9 +42,13 @@ from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import torch
+
+if TYPE_CHECKING:
+    from semantic_map.depth_geometry import ArrayOrTensor
+    from semantic_map.map import PreparedFrame, RayFrontsMap
 
 
 @dataclass
@@ -66,8 +70,8 @@ class MapPipeline:
     ``lock`` (optional) is held around every commit, for callers that query the map from
     other threads; prepares never need it."""
 
-    def __init__(self, m, depth: int = 1, prepare_threads: int = 1, lock: threading.Lock | None = None,
-                 commit=None):
+    def __init__(self, m: RayFrontsMap, depth: int = 1, prepare_threads: int = 1, lock: threading.Lock | None = None,
+                 commit: Callable[[PreparedFrame], dict[str, float]] | None = None) -> None:
         if depth < 1:
             raise ValueError(f"pipeline depth must be >= 1, got {depth}")
         self.map = m
@@ -96,7 +100,7 @@ class MapPipeline:
                 break
             return self.map.generator.get_state()
 
-    def _prepare(self, seq: int, args) -> tuple:
+    def _prepare(self, seq: int, args: tuple) -> tuple[PreparedFrame, float]:
         import time
         c0 = time.thread_time()
         with self._gen_lock:
@@ -104,7 +108,9 @@ class MapPipeline:
             p = self.map.prepare(*args)
         return p, (time.thread_time() - c0) * 1e3
 
-    def submit(self, pose, intrinsics, depth, rgb=None, features=None, global_feature=None, confidence=None,
+    def submit(self, pose: ArrayOrTensor, intrinsics: ArrayOrTensor, depth: ArrayOrTensor,
+               rgb: ArrayOrTensor | None = None, features: ArrayOrTensor | None = None,
+               global_feature: ArrayOrTensor | None = None, confidence: ArrayOrTensor | None = None,
                *, tag: Any = None) -> list[Committed]:
         """Queue one frame (arguments as :meth:`RayFrontsMap.integrate`); commit the oldest
         frames beyond ``depth`` in flight and return them."""
@@ -157,7 +163,7 @@ class MapPipeline:
         return out
 
     @contextmanager
-    def paused(self):
+    def paused(self) -> Iterator[MapPipeline]:
         """Drain, then run the body with nothing in flight (snapshots, restores)."""
         self.drain()
         yield self

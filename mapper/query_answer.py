@@ -21,25 +21,47 @@ Query defaults are the paper's (``query.*`` config keys):
 """
 from __future__ import annotations
 
+import threading
 import time
+from typing import TYPE_CHECKING, Iterable, Protocol, Sequence
 
 import numpy as np
+import numpy.typing as npt
 import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from common.cones import cone_union_volume
 from common.conventions import voxel_center, voxel_index
 from common.messages import MessageError, QueryRequest, QueryResult
-from common.cones import cone_union_volume
-from semantic_map.query import score_rows
+from semantic_map.query import PreparedRows, score_rows
 from semantic_map.query_snapshot import QuerySnapshot
+
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace
+    from encoders.text.base import CachedTextEncoder
+    from semantic_map.map import RayFrontsMap
+
+
+class QuerySettings(Protocol):
+    """What answering reads of :class:`mapper.service_config.QuerySection` (a protocol, not an
+    import: that module's imports lead back here); ``templates``, ``softmax_set``,
+    ``softmax_negatives`` and ``image_model_dir`` are read with defaults when absent."""
+
+    cluster_candidates: int
+    cluster_rel_score: float
+    search_rays: int
+    search_range_m: float
+    search_cell_m: float
+    search_samples: int
+
 
 #: generic phrases of ``query.softmax_set=negatives`` (relevancy-style; not the paper's default)
 SOFTMAX_NEGATIVES = ("object", "things", "stuff", "texture")
 SOFTMAX_TEMPERATURE = 100.0
 
 
-def to_numpy(x) -> np.ndarray:
+def to_numpy(x: torch.Tensor | npt.ArrayLike) -> np.ndarray:
     """``x`` (a tensor on any device, or array-like) as a numpy array."""
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().numpy()
@@ -47,19 +69,33 @@ def to_numpy(x) -> np.ndarray:
 
 
 _TEXT_ENCODERS: dict = {}
+_TEXT_ENCODERS_LOCK = threading.Lock()   # one load per model, whoever asks first (query or warm-up)
 
 
-def text_encoder(name: str, device="cpu", model_dir: str = ""):
-    """The text model the feature space names (cached per process)."""
+def text_encoder(name: str, device: str | torch.device = "cpu", model_dir: str = "") -> CachedTextEncoder:
+    """The text model the feature space names (loaded once per process, thread-safe)."""
     key = (name, str(device), model_dir)
-    if key not in _TEXT_ENCODERS:
-        from encoders.text import make_text_encoder
+    with _TEXT_ENCODERS_LOCK:
+        if key not in _TEXT_ENCODERS:
+            from encoders.text import make_text_encoder
 
-        _TEXT_ENCODERS[key] = make_text_encoder(name, model_dir=model_dir or None, device=device)
-    return _TEXT_ENCODERS[key]
+            _TEXT_ENCODERS[key] = make_text_encoder(name, model_dir=model_dir or None, device=device)
+        return _TEXT_ENCODERS[key]
 
 
-def query_templates(fs, setting: str = "auto") -> str:
+def warm_up_text(fs: FeatureSpace, phrases: list[str], device: str | torch.device = "cpu", model_dir: str = "",
+                 templates: str = "auto") -> float:
+    """Load the text model of ``fs`` and embed ``phrases`` (e.g. the search background) so the
+    first query after start-up does not wait for them. Returns the seconds it took."""
+    t0 = time.perf_counter()
+    for p in phrases:
+        embed_text(fs, p, device, model_dir, templates)
+    if not phrases:
+        text_encoder(fs.text_model, device, model_dir)
+    return time.perf_counter() - t0
+
+
+def query_templates(fs: FeatureSpace, setting: str = "auto") -> str:
     """Prompt templates of text queries in space ``fs``: ``setting``, or for "auto" the 80
     ImageNet/NACLIP templates ("imagenet80") for language encoders, raw text ("none") else."""
     if setting != "auto":
@@ -71,7 +107,8 @@ _TEXT_CACHE: dict = {}
 _TEXT_CACHE_MAX = 256
 
 
-def embed_text(fs, text: str, device="cpu", model_dir: str = "", templates: str = "auto") -> torch.Tensor:
+def embed_text(fs: FeatureSpace, text: str, device: str | torch.device = "cpu", model_dir: str = "",
+               templates: str = "auto") -> torch.Tensor:
     """(1, lang_dim) embedding of one query text (cached: 80 templates cost 80 text passes)."""
     tl = query_templates(fs, templates)
     key = (fs.id, fs.text_model, text, tl, str(device), model_dir)
@@ -83,8 +120,8 @@ def embed_text(fs, text: str, device="cpu", model_dir: str = "", templates: str 
     return _TEXT_CACHE[key]
 
 
-def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "", templates: str = "auto",
-                  image_model_dir: str = "") -> torch.Tensor:
+def embed_request(fs: FeatureSpace, req: QueryRequest, device: str | torch.device = "cpu", model_dir: str = "",
+                  templates: str = "auto", image_model_dir: str = "") -> torch.Tensor:
     """(1, lang_dim) query vector in the feature space's language space (text: see
     :func:`query_templates`; image: :mod:`mapper.image_query`)."""
     if req.embedding is not None:
@@ -99,8 +136,8 @@ def embed_request(fs, req: QueryRequest, device="cpu", model_dir: str = "", temp
     return embed_text(fs, req.text, device, model_dir, templates)
 
 
-def scores_for(fs, feats: torch.Tensor, q: torch.Tensor, softmax: bool, negatives: torch.Tensor | None,
-               device="cpu") -> np.ndarray:
+def scores_for(fs: FeatureSpace, feats: torch.Tensor | PreparedRows, q: torch.Tensor, softmax: bool,
+               negatives: torch.Tensor | None, device: str | torch.device = "cpu") -> np.ndarray:
     """(N,) float32 score of query ``q`` per feature row: cosine, or with ``softmax`` its
     softmax(100·cos) share against ``negatives``. ``feats`` raw ``(N, dim)``, a
     :class:`common.feature_space.PreparedFeatures` or a :class:`HalfFeatures` (the query
@@ -181,8 +218,8 @@ def cluster_voxels(ijk: np.ndarray) -> np.ndarray:
 _NEGATIVES: dict = {}
 
 
-def softmax_negatives(fs, device="cpu", model_dir: str = "", phrases=SOFTMAX_NEGATIVES,
-                      templates: str = "auto") -> torch.Tensor:
+def softmax_negatives(fs: FeatureSpace, device: str | torch.device = "cpu", model_dir: str = "",
+                      phrases: Sequence[str] = SOFTMAX_NEGATIVES, templates: str = "auto") -> torch.Tensor:
     """(len(phrases), lang_dim) embeddings of the negative phrases (cached per space and device)."""
     tl = query_templates(fs, templates)
     key = (fs.id, fs.text_model, str(device), model_dir, tuple(phrases), tl)
@@ -192,7 +229,8 @@ def softmax_negatives(fs, device="cpu", model_dir: str = "", phrases=SOFTMAX_NEG
     return _NEGATIVES[key]
 
 
-def softmax_set(fs, req: QueryRequest, qcfg, standing=(), device="cpu", model_dir: str = "") -> torch.Tensor | None:
+def softmax_set(fs: FeatureSpace, req: QueryRequest, qcfg: QuerySettings, standing: Iterable[QueryRequest] = (),
+                device: str | torch.device = "cpu", model_dir: str = "") -> torch.Tensor | None:
     """Embeddings the query is softmaxed against (module docstring), or None (a set of one):
     ``qcfg.softmax_set`` "queries" = the other standing queries, "negatives" = the phrases
     ``qcfg.softmax_negatives``."""
@@ -210,14 +248,16 @@ def softmax_set(fs, req: QueryRequest, qcfg, standing=(), device="cpu", model_di
                       for r in others])
 
 
-def answer_query(m, fs, req: QueryRequest, qcfg, device="cpu", model_dir: str = "") -> QueryResult:
+def answer_query(m: RayFrontsMap, fs: FeatureSpace, req: QueryRequest, qcfg: QuerySettings,
+                 device: str | torch.device = "cpu", model_dir: str = "") -> QueryResult:
     """Run ``req`` on map ``m`` (the caller holds its lock throughout): a one-off
     :class:`QuerySnapshot` + :func:`answer_snapshot`."""
     return answer_snapshot(QuerySnapshot().take(m, 0), fs, req, qcfg, device, model_dir)
 
 
-def answer_snapshot(snap: QuerySnapshot, fs, req: QueryRequest, qcfg, device="cpu",
-                    model_dir: str = "", standing=()) -> QueryResult:
+def answer_snapshot(snap: QuerySnapshot, fs: FeatureSpace, req: QueryRequest, qcfg: QuerySettings,
+                    device: str | torch.device = "cpu", model_dir: str = "",
+                    standing: Iterable[QueryRequest] = ()) -> QueryResult:
     """Run ``req`` on a map snapshot: voxel clusters, top voxels, top rays, search volume.
 
     * top voxels/rays: the ``top_k`` best scores, ties by lower row (:func:`top_stable`);

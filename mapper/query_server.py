@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from common.messages import (
     MessageError,
@@ -49,83 +49,89 @@ from common.messages import (
 from mapper.service_config import set_torch_threads
 from mapper.state import MapperState, jsonable
 
+if TYPE_CHECKING:
+    import zenoh
+
+    from mapper.outputs.rerun import RerunOutput
+    from semantic_map.query_snapshot import QuerySnapshot
+
 log = logging.getLogger("rayfronts.mapper")
 
 
 class QueryServer:
     """One-shot and standing queries against the shared map; ``rerun`` (or None) logs answers."""
 
-    def __init__(self, state: MapperState, rerun=None):
+    def __init__(self, state: MapperState, rerun: RerunOutput | None = None) -> None:
         self.state = state
         self.rerun = rerun
-        self.qsnap = None                    # QuerySnapshot of the last query
+        self.qsnap: QuerySnapshot | None = None   # QuerySnapshot of the last query
 
-    def snapshot(self, timings: dict, flush: bool = False):
+    def snapshot(self, timings: dict[str, float], flush: bool = False) -> QuerySnapshot:
         """The QuerySnapshot of the current map generation (caller holds ``query_lock``);
         with ``flush`` the map worker first integrates the frames the map buffers."""
         from semantic_map.query_snapshot import QuerySnapshot
 
-        s = self.state
-        budget = max(0.0, float(s.cfg.query.lock_timeout_s))
+        state = self.state
+        budget = max(0.0, float(state.cfg.query.lock_timeout_s))
         deadline = time.monotonic() + budget
-        m = s.map
+        m = state.map
         if flush and m is not None and getattr(m, "has_buffered", lambda: False)():
             t = time.perf_counter()
-            if not s.request_flush(budget):
+            if not state.request_flush(budget):
                 timings["flush_pending"] = 1.0
             timings["flush_wait"] = (time.perf_counter() - t) * 1e3
         snap = self.qsnap
-        if snap is not None and snap.gen == s.map_gen:
+        if snap is not None and snap.gen == state.map_gen:
             return snap
         fresh = QuerySnapshot() if snap is None else snap
-        m = s.map
+        m = state.map
         if m is not None:
             fresh.reserve(m)                      # allocations outside the lock (size hint)
         t = time.perf_counter()
-        got = s.lock.acquire(timeout=max(0.0, deadline - time.monotonic()))
+        got = state.lock.acquire(timeout=max(0.0, deadline - time.monotonic()))
         if not got and snap is None:
-            got = s.lock.acquire()            # nothing to fall back on: wait for the frame
+            got = state.lock.acquire()            # nothing to fall back on: wait for the frame
         timings["lock_wait"] = (time.perf_counter() - t) * 1e3
         if not got:
             timings["stale"] = 1.0
-            timings["stale_gens"] = float(max(0, s.map_gen - snap.gen))
+            timings["stale_gens"] = float(max(0, state.map_gen - snap.gen))
             log.debug("query answered from the copy of map generation %d (map at %d): lock busy > %.2f s",
-                      snap.gen, s.map_gen, s.cfg.query.lock_timeout_s)
+                      snap.gen, state.map_gen, state.cfg.query.lock_timeout_s)
             return snap
         try:
-            if s.map is None:
+            if state.map is None:
                 raise MessageError("the map is empty (no frames mapped yet)")
-            if snap is None or snap.gen != s.map_gen:
-                snap = fresh.sync(s.map, s.map_gen, s.mapped)
+            if snap is None or snap.gen != state.map_gen:
+                snap = fresh.sync(state.map, state.map_gen, state.mapped)
                 self.qsnap = snap
                 timings["snapshot"] = snap.take_ms
                 timings["snapshot_rows"] = float(snap.changed_rows)
         finally:
-            s.lock.release()
+            state.lock.release()
         return snap
 
     def run_query(self, req: QueryRequest, flush: bool = False) -> QueryResult:
         from mapper.query_answer import answer_snapshot
 
-        s = self.state
+        state = self.state
         t0 = time.perf_counter()
-        if s.map is None:
+        if state.map is None:
             raise MessageError("the map is empty (no frames mapped yet)")
-        with s.query_lock:
-            set_torch_threads(s.cfg, query=True)
+        with state.query_lock:
+            set_torch_threads(state.cfg, query=True)
             timings: dict = {}
             snap = self.snapshot(timings, flush=flush)
-            res = answer_snapshot(snap, s.space, req, s.cfg.query, device=s.cfg.device,
-                                  model_dir=s.cfg.text_model_dir, standing=list(s.standing.values()))
+            res = answer_snapshot(snap, state.space, req, state.cfg.query, device=state.cfg.device,
+                                  model_dir=state.cfg.text_model_dir, standing=list(state.standing.values()))
             res.frames_mapped = snap.frames_mapped
         res.timings.update(timings)
         res.stamp = time.time()
         res.timings["total"] = (time.perf_counter() - t0) * 1e3
-        s.timings["query_ms"].add(res.timings["total"])
+        state.timings["query_ms"].add(res.timings["total"])
         return res
 
-    def on_query(self, query) -> None:
-        s = self.state
+    def on_query(self, query: zenoh.Query) -> None:
+        state = self.state
         res = None
         try:
             try:
@@ -133,13 +139,13 @@ class QueryServer:
                     raise MessageError("query without payload")
                 req = decode_query_request(query.payload.to_bytes())
                 if req.cancel:
-                    s.standing.pop(req.id, None)
+                    state.standing.pop(req.id, None)
                     payload = encode_query_result(QueryResult(id=req.id, query="<cancelled>"))
                 else:
                     res = self.run_query(req, flush=True)
                     res.id = req.id
                     if req.standing:
-                        s.standing[req.id] = req
+                        state.standing[req.id] = req
                     payload = encode_query_result(res)
                     if self.rerun is not None:
                         self.rerun.query_answered(res, req)
@@ -148,8 +154,8 @@ class QueryServer:
             except Exception as e:
                 log.exception("query failed")
                 payload = encode_error(f"internal error: {e!r}")
-            if s.fleet is not None:   # shard info for the client-side merge (common.fleet)
-                query.reply(query.key_expr, payload, attachment=s.fleet.shard_info(res))
+            if state.fleet is not None:   # shard info for the client-side merge (common.fleet)
+                query.reply(query.key_expr, payload, attachment=state.fleet.shard_info(res))
             else:
                 query.reply(query.key_expr, payload)
         except Exception as e:
@@ -157,44 +163,44 @@ class QueryServer:
 
     def standing_loop(self) -> None:
         """Re-runs standing queries when the map worker says the map changed."""
-        s = self.state
-        while not s.stop.is_set():
-            if not s.standing_due.wait(0.5):
+        state = self.state
+        while not state.stop.is_set():
+            if not state.standing_due.wait(0.5):
                 continue
-            s.standing_due.clear()
-            if s.stop.is_set():
+            state.standing_due.clear()
+            if state.stop.is_set():
                 return
             self.run_standing()
 
     def run_standing(self) -> None:
-        s = self.state
-        for qid, req in list(s.standing.items()):
+        state = self.state
+        for qid, req in list(state.standing.items()):
             try:
                 res = self.run_query(req)
                 res.id = qid
-                att = s.fleet.shard_info(res) if s.fleet is not None else None
-                s.session.put(s.keys.mapper_queries(qid), encode_query_result(res), attachment=att)
+                att = state.fleet.shard_info(res) if state.fleet is not None else None
+                state.session.put(state.keys.mapper_queries(qid), encode_query_result(res), attachment=att)
             except Exception as e:
-                s.warn(f"standing:{qid}", "standing query %s failed: %s", qid, e)
+                state.warn(f"standing:{qid}", "standing query %s failed: %s", qid, e)
 
     # ================================================================= stats
     def stats(self) -> dict:
-        s = self.state
-        with s.qlock:
-            robots = {n: st.as_dict() for n, st in s.robots.items()}
-            frames = {"received": s.received, "mapped": s.mapped, "dropped": s.dropped,
-                      "rejected": dict(s.rejected), "rejected_total": int(sum(s.rejected.values()))}
+        state = self.state
+        with state.qlock:
+            robots = {n: st.as_dict() for n, st in state.robots.items()}
+            frames = {"received": state.received, "mapped": state.mapped, "dropped": state.dropped,
+                      "rejected": dict(state.rejected), "rejected_total": int(sum(state.rejected.values()))}
         out: dict[str, Any] = {
             "frames": frames, "robots": robots,
             "queues": {n: r["queue"] for n, r in robots.items()},
-            "timings": {k: v.summary() for k, v in s.timings.items()},
-            "feature_space": s.space_id,
-            "uptime_s": time.time() - s.started, "standing_queries": sorted(s.standing),
-            "snapshot": dict(s.last_snapshot), "map_version": s.version,
-            "flushed_version": s.flushed_version,
-            "first_mapped_at": s.first_mapped_at, "last_mapped_at": s.last_mapped_at,
+            "timings": {k: v.summary() for k, v in state.timings.items()},
+            "feature_space": state.space_id,
+            "uptime_s": time.time() - state.started, "standing_queries": sorted(state.standing),
+            "snapshot": dict(state.last_snapshot), "map_version": state.version,
+            "flushed_version": state.flushed_version, "text_warm_up_s": state.text_warm_up_s,
+            "first_mapped_at": state.first_mapped_at, "last_mapped_at": state.last_mapped_at,
             # process CPU (all threads) from the first to the last integration, and in total
-            "cpu_s": {"mapping": (s.cpu_mapped[1] - s.cpu_mapped[0]) if s.cpu_mapped else 0.0,
+            "cpu_s": {"mapping": (state.cpu_mapped[1] - state.cpu_mapped[0]) if state.cpu_mapped else 0.0,
                       "process": time.process_time()},
         }
         try:
@@ -203,17 +209,27 @@ class QueryServer:
             out["rss_mb"] = psutil.Process().memory_info().rss / 2 ** 20
         except Exception:
             pass
-        if s.fleet is not None:
-            with s.qlock:
-                out["fleet"] = s.fleet.stats()
-        if s.map is not None:
+        if state.fleet is not None:
+            with state.qlock:
+                out["fleet"] = state.fleet.stats()
+        if state.map is not None:
             from mapper.service_map import map_stats
 
-            with s.lock:
-                out["map"] = map_stats(s.map)
+            with state.lock:
+                out["map"] = map_stats(state.map)
         return out
 
-    def on_stats(self, query) -> None:
+    def on_feature_space(self, query: zenoh.Query) -> None:
+        """``<p>/mapper/feature_space``: the map's feature space as the first robot served it
+        (``rayfronts.feature_space``), or an error while there is no map."""
+        try:
+            reply = self.state.space_reply
+            query.reply(query.key_expr, reply if reply is not None
+                        else encode_error("the map has no feature space yet (no frames mapped)"))
+        except Exception as e:
+            log.warning("feature space callback: %s", e)
+
+    def on_stats(self, query: zenoh.Query) -> None:
         try:
             query.reply(query.key_expr, encode_stats(jsonable(self.stats())))
         except Exception as e:

@@ -15,6 +15,8 @@ entities, threads, close); each job is its own module over one shared
     mapper/queries/<id> put        QueryServer.standing_loop            mapper-standing
     mapper/stats queryable         QueryServer.on_stats  (query_server) Zenoh callback
     mapper/snapshot queryable      SnapshotStore.on_snapshot (snapshot_store)
+    mapper/search, occupancy       SearchServer.on_search / on_occupancy (search_server) Zenoh callbacks
+    mapper/searches/<id> put       SearchServer.standing_loop           mapper-search
     mapper/layers/* put + get      LayerPublisher        (outputs.layers)
     mapper/robots/<r>/status put   Fleet.loop            (fleet_job)    mapper-fleet
     mapper/robots/*/world_from_robot queryable  Fleet.on_transform      Zenoh callback
@@ -29,7 +31,9 @@ from __future__ import annotations
 import json
 import logging
 import threading
+from typing import TYPE_CHECKING
 
+from common.zenoh_session import close_quietly, undeclare_all
 from mapper.ingest import Ingest
 from mapper.map_worker import MapWorker
 from mapper.outputs.layers import LayerPublisher
@@ -37,6 +41,9 @@ from mapper.query_server import QueryServer
 from mapper.service_config import set_torch_threads
 from mapper.snapshot_store import SnapshotStore
 from mapper.state import MapperState
+
+if TYPE_CHECKING:
+    from common.messages import QueryRequest, QueryResult
 
 __all__ = ["MapperService"]
 
@@ -123,20 +130,26 @@ class MapperService:
             from mapper.outputs.rerun import RerunLogger, RerunOutput
 
             self._attach_rerun(RerunOutput(self.state, RerunLogger.from_config(self.cfg)))
-        self.session = s = open_session(self.cfg.zenoh, stop=self.stop, default_mode="router")
-        k = self.keys
+        self.session = session = open_session(self.cfg.zenoh, stop=self.stop, default_mode="router")
+        keys = self.keys
         try:
             self._entities = [
-                s.declare_subscriber(k.frames_all, self.ingest.on_frame),
-                s.liveliness().declare_subscriber(k.alive_all, self.ingest.on_alive, history=True),
-                s.declare_subscriber(k.edge_status_all, self.ingest.on_edge_status),
-                s.declare_queryable(k.mapper_query, self.queries.on_query),
-                s.declare_queryable(k.stats, self.queries.on_stats),
-                s.declare_queryable(k.snapshot, self.snapshots.on_snapshot),
-                s.declare_queryable(k.layers_all, self.layers.on_layer_get),
-                s.declare_queryable(robot_transform_all(k), self.fleet.on_transform),
-                s.liveliness().declare_token(k.mapper_alive),
+                session.declare_subscriber(keys.frames_all, self.ingest.on_frame),
+                session.liveliness().declare_subscriber(keys.alive_all, self.ingest.on_alive, history=True),
+                session.declare_subscriber(keys.edge_status_all, self.ingest.on_edge_status),
+                session.declare_queryable(keys.mapper_query, self.queries.on_query),
+                session.declare_queryable(keys.stats, self.queries.on_stats),
+                session.declare_queryable(keys.mapper_feature_space, self.queries.on_feature_space),
+                session.declare_queryable(keys.snapshot, self.snapshots.on_snapshot),
+                session.declare_queryable(keys.layers_all, self.layers.on_layer_get),
+                session.declare_queryable(robot_transform_all(keys), self.fleet.on_transform),
+                session.liveliness().declare_token(keys.mapper_alive),
             ]
+            from mapper.search_server import start_search_server
+
+            self.search, ents, t = start_search_server(self.state, self.queries, session, keys)
+            self._entities[-1:-1] = ents          # before the liveliness token
+            self._threads.append(t)
         except Exception:
             self.close()
             raise
@@ -154,7 +167,7 @@ class MapperService:
             except Exception:
                 self.close()
                 raise
-        log.info("mapper up (zid %s, prefix %r)", s.zid(), self.cfg.zenoh.prefix)
+        log.info("mapper up (zid %s, prefix %r)", session.zid(), self.cfg.zenoh.prefix)
         return self
 
     def _attach_rerun(self, rerun) -> None:
@@ -189,18 +202,10 @@ class MapperService:
         if self.ros is not None:
             self.ros.close()
             self.ros = None
-        for e in reversed(self._entities):
-            try:
-                e.undeclare()
-            except Exception:
-                pass
+        undeclare_all(reversed(self._entities))
         self._entities = []
-        if self.session is not None:
-            try:
-                self.session.close()
-            except Exception:
-                pass
-            self.session = None
+        close_quietly(self.session)
+        self.session = None
         if self.cfg.snapshots.dir and self.cfg.snapshots.on_exit and self.map is not None:
             try:
                 self.save_snapshot()
@@ -218,7 +223,7 @@ class MapperService:
     def _space_loop(self) -> None:
         self.ingest.space_loop()
 
-    def run_query(self, req):
+    def run_query(self, req: QueryRequest) -> QueryResult:
         return self.queries.run_query(req)
 
     def stats(self) -> dict:

@@ -3,12 +3,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Literal, Sequence
 
 from common.config import field_, section
 from common.zenoh_session import ZenohConfig
 from mapper.fleet import FleetSection
 from mapper.outputs.ros import RosSection
+from mapper.search_config import SearchSection
 from mapper.shards import ShardSection
 from semantic_map.config import MapConfig
 
@@ -114,6 +116,8 @@ class MapperConfig:
                                                 "per-robot status, bounds on per-robot state")
     shard: ShardSection = section(ShardSection, "this mapper as one shard of several (region, tiles, robots)")
     ros: RosSection = section(RosSection, "the map and standing queries as ROS 2 topics over Zenoh (RViz2)")
+    search: SearchSection = section(SearchSection, "search for planners: background phrases, look-next and "
+                                                   "triangulation parameters, occupancy request bounds")
 
 
 def _cpus() -> int:
@@ -148,7 +152,7 @@ def resolve_query_threads(threads: int, cpu_count: int | None = None) -> int:
     return max(1, min(16, cpu_count if cpu_count is not None else _cpus()))
 
 
-def set_torch_threads(cfg, query: bool = False) -> int:
+def set_torch_threads(cfg: MapperConfig, query: bool = False) -> int:
     """Set the calling thread's torch intra-op threads: ``cfg.query.threads`` for a query,
     else ``cfg.threads`` (mapping thread, process default). torch keeps the OpenMP count
     per thread once a thread has run parallel work (MKL's count is process-wide: the
@@ -164,11 +168,11 @@ def set_torch_threads(cfg, query: bool = False) -> int:
     return n
 
 
-def mapper_config_schema():
+def mapper_config_schema() -> type[MapperConfig]:
     return MapperConfig
 
 
-def load_mapper_config(path=None, overrides=()):
+def load_mapper_config(path: str | Path | None = None, overrides: Sequence[str] | None = ()) -> MapperConfig:
     """Defaults → preset (from ``preset=`` in the file or overrides) → YAML → overrides."""
     from common.config import load_config, load_yaml, parse_override
     from semantic_map.config import PRESETS

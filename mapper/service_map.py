@@ -5,6 +5,9 @@ World frame, metres, z up.
 """
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
+
 import numpy as np
 import torch
 
@@ -12,16 +15,39 @@ from common.conventions import voxel_center
 from common.messages import MessageError
 from mapper.query_answer import to_numpy
 
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace
+    from common.frame import Frame
+    from semantic_map.config import MapConfig
+    from semantic_map.map import RayFrontsMap
+
+
+# what this module reads of mapper.service_config's sections (which import this module's
+# users: protocols, not imports, keep the modules free of a cycle)
+class MapSettings(Protocol):
+    """The map settings of :class:`mapper.service_config.MapperConfig`."""
+
+    map: MapConfig
+    device: str
+    occupancy_backend: str
+
+
+class LayerLimits(Protocol):
+    """The layer limits of :class:`mapper.service_config.LayersSection`."""
+
+    max_voxels: int
+    max_rays: int
+
 
 # ------------------------------------------------------------------- map life
-def create_map(cfg, fs):
+def create_map(cfg: MapSettings, fs: FeatureSpace) -> RayFrontsMap:
     """A new RayFrontsMap for feature space ``fs`` with the service config's map section."""
     from semantic_map.map import RayFrontsMap
 
     return RayFrontsMap(cfg.map, fs.dim, fs.id, device=cfg.device, occupancy_backend=cfg.occupancy_backend)
 
 
-def restore_map(path, cfg, fs):
+def restore_map(path: str | Path, cfg: MapSettings, fs: FeatureSpace) -> RayFrontsMap:
     """The map saved at ``path`` (a snapshot's ``map`` directory), checked against space ``fs``."""
     from mapper.snapshot import load_map
     from semantic_map.map import RayFrontsMap
@@ -33,25 +59,25 @@ def restore_map(path, cfg, fs):
     return m
 
 
-def integrate(m, frame, device="cpu") -> None:
+def integrate(m: RayFrontsMap, frame: Frame, device: str | torch.device = "cpu") -> None:
     """Fuse one decoded (validated) frame into the map."""
     # decoded arrays are read-only views of the message: hand the map writable copies
     g = None if frame.global_feature is None else np.array(frame.global_feature)
     m.integrate(frame.pose, frame.intrinsics, frame.depth, np.array(frame.rgb), np.array(frame.features), g)
 
 
-def flush(m) -> None:
+def flush(m: RayFrontsMap) -> None:
     """Process whatever the map holds in its accumulation buffers."""
     m.flush()
 
 
-def map_stats(m) -> dict:
+def map_stats(m: RayFrontsMap) -> dict:
     s = m.stats()
     return dict(s) if isinstance(s, dict) else {"stats": str(s)}
 
 
 # --------------------------------------------------------------- map accessors
-def voxel_arrays(m) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
+def voxel_arrays(m: RayFrontsMap) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
     """``(xyz (N,3) float32 centres, features (N,D) tensor, rgb (N,3) uint8)``."""
     v = m.voxels()
     xyz = to_numpy(v.xyz).astype(np.float32, copy=False)
@@ -59,17 +85,17 @@ def voxel_arrays(m) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
     return xyz, v.features, rgb
 
 
-def ray_arrays(m) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+def ray_arrays(m: RayFrontsMap) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
     """``(origins (R,3), unit directions (R,3), features (R,D))``."""
     r = m.rays()
     return to_numpy(r.origins).astype(np.float32), to_numpy(r.directions).astype(np.float32), r.features
 
 
-def frontier_xyz(m) -> np.ndarray:
+def frontier_xyz(m: RayFrontsMap) -> np.ndarray:
     return to_numpy(m.frontiers().centres).astype(np.float32).reshape(-1, 3)
 
 
-def layer_arrays(m, layer: str, lcfg) -> tuple[dict, dict]:
+def layer_arrays(m: RayFrontsMap, layer: str, lcfg: LayerLimits) -> tuple[dict, dict]:
     """Arrays and meta of one map layer, subsampled to the layer limits (seeded, stable)."""
     rng = np.random.default_rng(0)
     if layer == "voxels":

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -51,7 +52,7 @@ class ShardFilter:
         r = [float(v) for v in cfg.region]
         if len(r) == 4:
             r = [r[0], r[1], -math.inf, r[2], r[3], math.inf]
-        if r and (len(r) != 6 or not all(lo < hi for lo, hi in zip(r[:3], r[3:]))):
+        if r and (len(r) != 6 or not all(lo < hi for lo, hi in zip(r[:3], r[3:], strict=True))):
             raise ConfigError(f"shard.region must be [xmin, ymin, xmax, ymax] or 6 values with min < max, "
                               f"got {list(cfg.region)}")
         self.lo = np.array(r[:3]) if r else None
@@ -75,7 +76,7 @@ class ShardFilter:
     def active(self) -> bool:
         return bool(self.name) or self.lo is not None or bool(self.tiles) or bool(self.robots)
 
-    def tile_of(self, xyz) -> tuple[int, int]:
+    def tile_of(self, xyz: Sequence[float] | np.ndarray) -> tuple[int, int]:
         return (math.floor(float(xyz[0]) / self.tile_m), math.floor(float(xyz[1]) / self.tile_m))
 
     def accepts(self, robot: str, pose_world: np.ndarray) -> bool:

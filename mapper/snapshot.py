@@ -12,11 +12,16 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from common.config import merge, to_dict
+
+if TYPE_CHECKING:
+    from semantic_map.config import MapConfig
+    from semantic_map.map import RayFrontsMap
 
 FORMAT = "rayfronts-map"
 VERSION = 1
@@ -26,7 +31,7 @@ class SnapshotError(RuntimeError):
     """A snapshot that cannot be read (missing file, unknown format/version, bad content)."""
 
 
-def _np(t) -> np.ndarray:
+def _np(t: torch.Tensor | np.ndarray) -> np.ndarray:
     """A numpy copy of ``t`` (never a view of the map's memory: the copy is taken under the map
     lock and written after it is released)."""
     if isinstance(t, torch.Tensor):
@@ -34,12 +39,12 @@ def _np(t) -> np.ndarray:
     return np.array(t, copy=True)
 
 
-def save_map(m, path) -> Path:
+def save_map(m: RayFrontsMap, path: str | Path) -> Path:
     """Write map ``m`` to the directory ``path`` (:func:`capture_map` then :func:`write_capture`)."""
     return write_capture(capture_map(m), path)
 
 
-def capture_map(m) -> tuple[dict[str, np.ndarray], dict]:
+def capture_map(m: RayFrontsMap) -> tuple[dict[str, np.ndarray], dict]:
     """``(arrays, manifest)``: copies of everything a snapshot holds, taken while the caller
     holds the map still; writing them (:func:`write_capture`) needs no lock."""
     arrays: dict[str, np.ndarray] = {}
@@ -76,7 +81,7 @@ def capture_map(m) -> tuple[dict[str, np.ndarray], dict]:
     return arrays, manifest
 
 
-def fsync_dir(path) -> None:
+def fsync_dir(path: str | Path) -> None:
     """Flush a directory's entries (new names, renames) to disk."""
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
@@ -85,7 +90,7 @@ def fsync_dir(path) -> None:
         os.close(fd)
 
 
-def write_bytes_durably(path, data: bytes) -> None:
+def write_bytes_durably(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` and fsync the file (its directory is the caller's)."""
     with open(path, "wb") as f:
         f.write(data)
@@ -93,7 +98,7 @@ def write_bytes_durably(path, data: bytes) -> None:
         os.fsync(f.fileno())
 
 
-def write_capture(capture: tuple[dict[str, np.ndarray], dict], path) -> Path:
+def write_capture(capture: tuple[dict[str, np.ndarray], dict], path: str | Path) -> Path:
     """Write a :func:`capture_map` result to the directory ``path``: ``arrays.npz`` and
     ``manifest.json``, each fsynced, then the directory."""
     arrays, manifest = capture
@@ -110,7 +115,7 @@ def write_capture(capture: tuple[dict[str, np.ndarray], dict], path) -> Path:
     return path
 
 
-def read_manifest(path) -> dict:
+def read_manifest(path: str | Path) -> dict:
     path = Path(path)
     mf = path / "manifest.json"
     if not mf.is_file():
@@ -127,14 +132,14 @@ def read_manifest(path) -> dict:
     return man
 
 
-def map_config_changes(path, cfg) -> dict[str, tuple]:
+def map_config_changes(path: str | Path, cfg: MapConfig) -> dict[str, tuple]:
     """``{key: (snapshot value, cfg value)}`` for every map config key (dotted) in which the
     snapshot at ``path`` (a map directory) differs from the map config ``cfg``."""
     saved = read_manifest(path)["config"]
     want = to_dict(cfg)
     out: dict[str, tuple] = {}
 
-    def walk(a, b, prefix: str) -> None:
+    def walk(a: dict, b: dict, prefix: str) -> None:
         for k in sorted(set(a) | set(b)):
             x, y = a.get(k), b.get(k)
             if isinstance(x, dict) and isinstance(y, dict):
@@ -146,7 +151,8 @@ def map_config_changes(path, cfg) -> dict[str, tuple]:
     return out
 
 
-def load_map(path, map_cls, device="cpu", occupancy_backend: str = "auto"):
+def load_map(path: str | Path, map_cls: type[RayFrontsMap], device: str | torch.device = "cpu",
+             occupancy_backend: str = "auto") -> RayFrontsMap:
     """A ``map_cls`` (:class:`semantic_map.map.RayFrontsMap`, passed in by the caller so this
     module does not import the map) restored from the snapshot at ``path``, with its saved config."""
     from semantic_map.config import MapConfig
@@ -165,24 +171,24 @@ def load_map(path, map_cls, device="cpu", occupancy_backend: str = "auto"):
     m = map_cls(cfg, man["feature_dim"], man["feature_space"], device=device,
                 occupancy_backend=occupancy_backend)
 
-    def T(name):
+    def saved(name: str) -> torch.Tensor:
         if name not in z:
             raise SnapshotError(f"snapshot {path} lacks array {name!r}")
         return torch.from_numpy(z[name]).to(device)
 
     occ = dict(man["occupancy"], ijk=z["occ_ijk"], values=z["occ_values"])
     m.occupancy = from_state(occ, backend=occupancy_backend)
-    m.sem.load_state({k: T("sem_" + k) for k in ("keys", "rgb", "feat", "count")})
-    m.fronts.load_state({k: T("front_" + k) for k in ("keys", "counts")})
-    m.ray_store.load_state({k: T("ray_" + k) for k in m.ray_store._fields()})
+    m.sem.load_state({k: saved("sem_" + k) for k in ("keys", "rgb", "feat", "count")})
+    m.fronts.load_state({k: saved("front_" + k) for k in ("keys", "counts")})
+    m.ray_store.load_state({k: saved("ray_" + k) for k in m.ray_store._fields()})
     m.generator.set_state(torch.from_numpy(z["rng_state"]))
     m.counters = dict(man["counters"])
     m.last_fov_deg = tuple(man["last_fov_deg"])
     b = man["buffers"]
-    m._buf_occ = [(T(f"buf_occ_{i}_occ"), T(f"buf_occ_{i}_free")) for i in range(b["occ"])]
-    m._buf_sem = [tuple(T(f"buf_sem_{i}_{j}") for j in range(4)) for i in range(b["sem"])]
-    m._buf_rays = [tuple(T(f"buf_rays_{i}_{j}") for j in range(3)) for i in range(b["rays"])]
-    m._pending_prune = [T(f"buf_prune_{i}") for i in range(b["prune"])]
+    m._buf_occ = [(saved(f"buf_occ_{i}_occ"), saved(f"buf_occ_{i}_free")) for i in range(b["occ"])]
+    m._buf_sem = [tuple(saved(f"buf_sem_{i}_{j}") for j in range(4)) for i in range(b["sem"])]
+    m._buf_rays = [tuple(saved(f"buf_rays_{i}_{j}") for j in range(3)) for i in range(b["rays"])]
+    m._pending_prune = [saved(f"buf_prune_{i}") for i in range(b["prune"])]
     return m
 
 
@@ -191,7 +197,7 @@ def load_map(path, map_cls, device="cpu", occupancy_backend: str = "auto"):
 GENERATION_PREFIX = "snap-"
 
 
-def snapshot_generations(root) -> list[Path]:
+def snapshot_generations(root: str | Path) -> list[Path]:
     """The snapshot generations under ``root``, newest first.
 
     A generation is a ``snap-<ms>`` directory (written as ``.tmp-snap-<ms>`` and renamed into
@@ -218,7 +224,7 @@ def snapshot_generations(root) -> list[Path]:
     return gens
 
 
-def check_generation(path) -> dict:
+def check_generation(path: str | Path) -> dict:
     """Cheap structural check of one generation (the files exist, manifests parse); returns
     its ``meta.json``. Raises :class:`SnapshotError` naming what is wrong. The arrays are
     checked when they are loaded (zip CRCs), see :func:`load_map`."""

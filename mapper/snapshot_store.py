@@ -30,6 +30,7 @@ import os
 import shutil
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from common.messages import (
     MessageError,
@@ -43,38 +44,41 @@ from common.messages import (
 from mapper.snapshot import capture_map, fsync_dir, write_bytes_durably, write_capture
 from mapper.state import MapperState, jsonable
 
+if TYPE_CHECKING:
+    import zenoh
+
 log = logging.getLogger("rayfronts.mapper")
 
 
 class SnapshotStore:
     """Snapshots of the shared map in ``cfg.snapshots.dir``."""
 
-    def __init__(self, state: MapperState):
+    def __init__(self, state: MapperState) -> None:
         self.state = state
 
     def save(self) -> dict:
         """Write the map atomically (tmp dir, then rename) to ``snapshots.dir/snap-<n>``."""
-        s = self.state
-        root = Path(s.cfg.snapshots.dir)
+        state = self.state
+        root = Path(state.cfg.snapshots.dir)
         root.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        with s.lock:
-            if s.map is None:
+        with state.lock:
+            if state.map is None:
                 raise MessageError("nothing to snapshot: no map yet")
-            version = s.version
-            with s.qlock:
-                meta = {"frames_mapped": s.mapped, "stamp": time.time(), "version": version,
-                        "flushed_version": s.flushed_version,
-                        "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in s.robots.items()},
+            version = state.version
+            with state.qlock:
+                meta = {"frames_mapped": state.mapped, "stamp": time.time(), "version": version,
+                        "flushed_version": state.flushed_version,
+                        "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in state.robots.items()},
                         "standing": [base64.b64encode(encode_query_request(r)).decode()
-                                     for r in list(s.standing.values())]}
-            capture = capture_map(s.map)     # copies, under the lock; written after it
-        path = write_snapshot(root, capture, s.space_reply, meta, s.cfg.snapshots.keep)
-        s.snap_version = version
-        s.last_snapshot = {"path": str(path), "frames_mapped": meta["frames_mapped"], "stamp": meta["stamp"],
+                                     for r in list(state.standing.values())]}
+            capture = capture_map(state.map)     # copies, under the lock; written after it
+        path = write_snapshot(root, capture, state.space_reply, meta, state.cfg.snapshots.keep)
+        state.snap_version = version
+        state.last_snapshot = {"path": str(path), "frames_mapped": meta["frames_mapped"], "stamp": meta["stamp"],
                            "seconds": time.perf_counter() - t0}
         log.info("snapshot %s (%d frames)", path, meta["frames_mapped"])
-        return s.last_snapshot
+        return state.last_snapshot
 
     def restore(self) -> None:
         """Load the newest intact snapshot generation, if any (before the Zenoh entities
@@ -83,8 +87,8 @@ class SnapshotStore:
         from mapper.service_map import restore_map
         from mapper.snapshot import check_generation, snapshot_generations
 
-        s = self.state
-        root = Path(s.cfg.snapshots.dir)
+        state = self.state
+        root = Path(state.cfg.snapshots.dir)
         gens = snapshot_generations(root)
         if not gens:
             log.info("no snapshot in %s: starting with an empty map", root)
@@ -97,7 +101,7 @@ class SnapshotStore:
                 envelope = (path / "feature_space.bin").read_bytes()
                 _, body = decode_feature_space(envelope)
                 fs = FeatureSpace.from_body(body)
-                m = restore_map(path / "map", s.cfg, fs)
+                m = restore_map(path / "map", state.cfg, fs)
             except Exception as e:
                 log.error("snapshot %s is broken (%s); trying the generation before it", path, e)
                 broken.append(str(path))
@@ -108,43 +112,44 @@ class SnapshotStore:
             return
         if not self._keep_after_config_check(path):
             return
-        s.map = m
-        s.map_gen += 1
-        s.space, s.space_reply = fs, envelope
-        s.mapped = int(meta.get("frames_mapped", 0))
+        state.map = m
+        state.map_gen += 1
+        state.space, state.space_reply = fs, envelope
+        state.warm_up_text(fs)
+        state.mapped = int(meta.get("frames_mapped", 0))
         # the map's version and flush state as saved: a map saved with frames still in its
         # accumulation buffers is flushed by the idle flush, as it would have been
-        s.version = max(1, int(meta.get("version", 1)))
-        s.flushed_version = int(meta.get("flushed_version", s.version - 1))
-        s.snap_version = s.version
+        state.version = max(1, int(meta.get("version", 1)))
+        state.flushed_version = int(meta.get("flushed_version", state.version - 1))
+        state.snap_version = state.version
         for name, r in meta.get("robots", {}).items():
-            st = s.robot(name)
+            st = state.robot(name)
             st.mapped, st.last_seq = int(r.get("mapped", 0)), int(r.get("last_seq", -1))
         self._restore_standing(meta.get("standing", []))
-        s.last_snapshot = {"path": str(path), "frames_mapped": s.mapped, "stamp": meta.get("stamp", 0.0),
+        state.last_snapshot = {"path": str(path), "frames_mapped": state.mapped, "stamp": meta.get("stamp", 0.0),
                            "restored": True}
         if broken:
-            s.last_snapshot["fallback_from"] = broken
-        log.info("restored snapshot %s (%d frames, space %s, %s)%s", path, s.mapped, fs.id,
-                 "flush pending" if s.flushed_version != s.version else "flushed",
+            state.last_snapshot["fallback_from"] = broken
+        log.info("restored snapshot %s (%d frames, space %s, %s)%s", path, state.mapped, fs.id,
+                 "flush pending" if state.flushed_version != state.version else "flushed",
                  f"; fell back from {len(broken)} broken newer generation(s)" if broken else "")
 
     def _restore_standing(self, saved: list) -> None:
         """Standing queries saved with the snapshot resume under their ids (watchers keep
         receiving on ``mapper/queries/<id>``); an unreadable one is logged and skipped."""
-        s = self.state
+        state = self.state
         for item in saved:
             try:
                 req = decode_query_request(base64.b64decode(item))
             except (MessageError, ValueError, TypeError) as e:
                 log.error("snapshot: a saved standing query is unreadable (%s); skipped", e)
                 continue
-            s.standing[req.id] = req
-        if s.standing:
-            s.standing_due.set()         # answer them once on the restored map
+            state.standing[req.id] = req
+        if state.standing:
+            state.standing_due.set()         # answer them once on the restored map
         if saved:
-            log.info("restored %d standing quer%s: %s", len(s.standing), "y" if len(s.standing) == 1 else "ies",
-                     ", ".join(sorted(s.standing)))
+            log.info("restored %d standing quer%s: %s", len(state.standing), "y" if len(state.standing) == 1 else "ies",
+                     ", ".join(sorted(state.standing)))
 
     def _keep_after_config_check(self, path: Path) -> bool:
         """Whether the restored generation at ``path`` is kept, given ``snapshots.map_config``
@@ -153,12 +158,12 @@ class SnapshotStore:
         from common.config import ConfigError
         from mapper.snapshot import map_config_changes
 
-        s = self.state
-        changes = map_config_changes(path / "map", s.cfg.map)
+        state = self.state
+        changes = map_config_changes(path / "map", state.cfg.map)
         if not changes:
             return True
         said = ", ".join(f"map.{k}: snapshot {a!r} vs configured {b!r}" for k, (a, b) in changes.items())
-        mode = s.cfg.snapshots.map_config
+        mode = state.cfg.snapshots.map_config
         if mode == "snapshot":
             log.warning("snapshot %s: keeping its map config (%s)", path, said)
             return True
@@ -170,17 +175,17 @@ class SnapshotStore:
                           "snapshots.map_config=snapshot to keep the snapshot's, snapshots.map_config=command_line to "
                           "start an empty map with this one, or the same map.* settings")
 
-    def on_snapshot(self, query) -> None:
-        s = self.state
+    def on_snapshot(self, query: zenoh.Query) -> None:
+        state = self.state
         try:
             try:
                 action = decode_snapshot_request(query.payload.to_bytes()) if query.payload is not None else "describe"
                 if action == "save":
-                    if not s.cfg.snapshots.dir:
+                    if not state.cfg.snapshots.dir:
                         raise MessageError("snapshots are off (set snapshots.dir)")
                     info = self.save()
                 else:
-                    info = dict(s.last_snapshot)
+                    info = dict(state.last_snapshot)
                 payload = encode_snapshot_reply(jsonable(info))
             except (MessageError, OSError) as e:
                 payload = encode_error(str(e))

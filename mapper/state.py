@@ -39,10 +39,16 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from common.wire import WireLimits
+
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace
+    from mapper.service_config import MapperConfig
+    from semantic_map.map import RayFrontsMap
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -110,7 +116,7 @@ class RobotState:
 class _DiscardQueue(collections.deque):
     """A queue that keeps nothing (the stand-in robot of ids over ``fleet.max_robots``)."""
 
-    def append(self, item) -> None:
+    def append(self, item: object) -> None:
         pass
 
 
@@ -137,15 +143,15 @@ class MapperState:
     ``session`` / ``keys`` are the Zenoh session and key space, set by ``MapperService.start``.
     """
 
-    def __init__(self, cfg, stop: threading.Event):
+    def __init__(self, cfg: MapperConfig, stop: threading.Event) -> None:
         self.cfg = cfg
         self.stop = stop
         self.lock = threading.RLock()          # map + feature space
         self.qlock = threading.Lock()          # robot table + queues
         self.query_lock = threading.Lock()     # serialises queries; taken before `lock`
         self.map_gen = 0                       # bumps on every change of the map (under `lock`)
-        self.map = None
-        self.space = None                      # FeatureSpace of the map
+        self.map: RayFrontsMap | None = None
+        self.space: FeatureSpace | None = None   # FeatureSpace of the map
         self._space_id: tuple = (None, "")     # (space, its id): FeatureSpace.id hashes the PCA basis
         self.space_reply: bytes | None = None  # its envelope (for snapshots)
         self.robots: dict[str, RobotState] = {}
@@ -162,6 +168,7 @@ class MapperState:
         self.cpu_mapped: list[float] = []      # process CPU s at the first and the last integration
         self.standing: dict = {}               # standing query id -> QueryRequest
         self.last_snapshot: dict = {}          # what the last save / restore wrote or read
+        self.text_warm_up_s: float | None = None  # seconds the text model's warm-up took (None: not done)
         self.timings = {"integrate_ms": Percentiles(), "integrate_cpu_ms": Percentiles(),
                         "latency_ms": Percentiles(), "query_ms": Percentiles(), "decode_ms": Percentiles()}
         self.warn = RateLimitedLog()
@@ -235,7 +242,7 @@ class MapperState:
                 self.robots[robot].rejected[reason] += 1
         self.warn(f"{robot}:{reason}", "rejected frame from %s (%s): %s", robot, reason, detail[:200])
 
-    def create_map(self, fs, envelope: bytes) -> None:
+    def create_map(self, fs: FeatureSpace, envelope: bytes) -> None:
         """A new map in feature space ``fs`` (caller holds ``lock``)."""
         from mapper.service_map import create_map
 
@@ -244,9 +251,31 @@ class MapperState:
         self.space = fs
         self.space_reply = envelope
         log.info("map created in feature space %s (dim %d)", fs.id, fs.dim)
+        self.warm_up_text(fs)
+
+    def warm_up_text(self, fs: FeatureSpace) -> threading.Thread | None:
+        """Load the text model of ``fs`` and embed the search background on a daemon thread
+        (``search.warm_up``), so the first query or search does not wait for them. The time
+        it took is ``text_warm_up_s`` in stats."""
+        if not self.cfg.search.warm_up:
+            return None
+
+        def run() -> None:
+            from mapper.query_answer import warm_up_text
+
+            try:
+                self.text_warm_up_s = warm_up_text(fs, list(self.cfg.search.background), self.cfg.device,
+                                                   self.cfg.text_model_dir, self.cfg.query.templates)
+                log.info("text model %s ready (%.1f s)", fs.text_model, self.text_warm_up_s)
+            except Exception as e:  # a query will load it (and report the error) later
+                self.warn("text-warm-up", "loading the text model %s failed: %s", fs.text_model, e)
+
+        t = threading.Thread(target=run, name="text-warm-up", daemon=True)
+        t.start()
+        return t
 
 
-def jsonable(x):
+def jsonable(x: object) -> Any:
     """``x`` with numpy scalars/arrays turned into Python values and unknown objects into str."""
     if isinstance(x, dict):
         return {str(k): jsonable(v) for k, v in x.items()}

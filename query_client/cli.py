@@ -3,8 +3,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import threading
+from typing import TYPE_CHECKING, Any, Callable
+
+if TYPE_CHECKING:
+    from common.messages import QueryResult
+    from query_client.client import Client
 
 HELP = "operator queries (one-shot or --watch)"
 DESCRIPTION = """Send an open-vocabulary query to the mapper and print the best answers:
@@ -35,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser, mode_default_help="client")
 
 
-def format_result(r, top_k: int = 5) -> str:
+def format_result(r: QueryResult, top_k: int = 5) -> str:
+    """The answer as the text the CLI prints: the ``top_k`` best voxel clusters and rays (metres)."""
     lines = [f"query {r.query!r}  ({r.frames_mapped} frames mapped, {r.timings.get('total', 0.0):.0f} ms)"]
     if len(r.cluster_xyz):
         lines.append("  voxel clusters (in range):")
@@ -60,7 +67,8 @@ def format_result(r, top_k: int = 5) -> str:
     return "\n".join(lines)
 
 
-def log_result_rerun(r, file: str | None = None, url: str | None = None, layers: dict | None = None) -> None:
+def log_result_rerun(r: QueryResult, file: str | None = None, url: str | None = None,
+                     layers: dict | None = None) -> None:
     """Log a query answer (and optionally map layers) to a rerun file or viewer."""
     import numpy as np
     import rerun as rr
@@ -85,7 +93,7 @@ def log_result_rerun(r, file: str | None = None, url: str | None = None, layers:
     rec.disconnect()
 
 
-def check_inputs(args) -> None:
+def check_inputs(args: argparse.Namespace) -> None:
     """The user's mistakes that need no mapper, found before connecting (ConfigError, one line)."""
     from common.config import ConfigError
 
@@ -118,48 +126,61 @@ def check_inputs(args) -> None:
             raise ConfigError(str(e)) from None
 
 
-def run(args: argparse.Namespace) -> int:
-    import logging
-
+def connect_client(args: argparse.Namespace, command: str) -> Client | None:
+    """A :class:`Client` from the CLI's Zenoh options (``--timeout`` s bounds the connect), or
+    ``None`` after printing the one-line ``rayfronts COMMAND: error: ...``."""
     from common.zenoh_session import ZenohConfig, ZenohConnectError, zenoh_config_from_args
-    from query_client.client import Client, QueryError
+    from query_client.client import Client
 
-    check_inputs(args)
     zc = zenoh_config_from_args(args, ZenohConfig(connect_timeout_ms=int(args.timeout * 1000)))
     zlog = logging.getLogger("common.zenoh_session")
     level = zlog.level
     zlog.setLevel(logging.ERROR)  # the bounded retries need no "retrying" line: the outcome is one line
     try:
-        client = Client(zc, prefix=args.prefix, timeout=args.timeout)
+        return Client(zc, prefix=args.prefix, timeout=args.timeout)
     except ZenohConnectError as e:
         from common.zenoh_errors import explain_zenoh_error
 
-        print(f"rayfronts query: error: {explain_zenoh_error(e, zc.connect)} (waited {args.timeout:g} s)",
+        print(f"rayfronts {command}: error: {explain_zenoh_error(e, zc.connect)} (waited {args.timeout:g} s)",
               file=sys.stderr)
-        return 1
+        return None
     finally:
         zlog.setLevel(level)
+
+
+def watch_until_signal(start: Callable[[], Any]) -> None:
+    """Start a standing query/search (``start()`` returns a handle with ``cancel()``), keep it
+    until SIGINT/SIGTERM, then cancel it."""
+    from common.zenoh_session import install_signal_handlers
+
+    stop = threading.Event()
+    restore = install_signal_handlers(stop)
+    try:
+        handle = start()
+        while not stop.wait(0.5):
+            pass
+        handle.cancel()
+    finally:
+        restore()
+
+
+def run(args: argparse.Namespace) -> int:
+    from query_client.client import QueryError
+
+    check_inputs(args)
+    client = connect_client(args, "query")
+    if client is None:
+        return 1
     with client:
         try:
             if args.stats:
                 print(json.dumps(client.stats(), indent=2, default=str))
                 return 0
             if args.watch:
-                stop = threading.Event()
-                from common.zenoh_session import install_signal_handlers
-
-                restore = install_signal_handlers(stop)
-
                 def show(r):
                     print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
 
-                try:
-                    h = client.watch(args.text, show, image=_read(args.image), top_k=args.top_k)
-                    while not stop.wait(0.5):
-                        pass
-                    h.cancel()
-                finally:
-                    restore()
+                watch_until_signal(lambda: client.watch(args.text, show, image=_read(args.image), top_k=args.top_k))
                 return 0
             r = client.query(args.text, image=_read(args.image), top_k=args.top_k, softmax=args.softmax)
         except QueryError as e:

@@ -16,7 +16,7 @@ import logging
 import os
 import threading
 import uuid
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -31,6 +31,8 @@ from common.messages import (
     encode_query_request,
     encode_snapshot_request,
 )
+from common.zenoh_session import undeclare_all
+from query_client.search import PlannerCalls
 
 log = logging.getLogger("rayfronts.query_client")
 
@@ -100,12 +102,7 @@ class WatchHandle:
         if not self.active:
             return
         self.active = False
-        for sub in (self._sub, self._alive_sub):
-            try:
-                if sub is not None:
-                    sub.undeclare()
-            except Exception:
-                pass
+        undeclare_all((self._sub, self._alive_sub))
         try:
             self.client._get_one(self.client.keys.mapper_query,
                                  encode_query_request(QueryRequest(cancel=True, id=self.id)), 2.0)
@@ -120,9 +117,11 @@ class WatchHandle:
         self.cancel()
 
 
-class Client:
+class Client(PlannerCalls):
     """A Zenoh client of the mapper. ``zenoh_cfg`` (a ``ZenohConfig``) or ``connect``
     (endpoint string or list) say where the router is; ``prefix`` the key space."""
+
+    _query_error = QueryError          # what the planner calls (query_client.search) raise
 
     def __init__(self, zenoh_cfg=None, *, connect: str | list[str] | None = None, prefix: str | None = None,
                  timeout: float = 10.0, connect_timeout_ms: int = 10_000):
@@ -300,7 +299,8 @@ class Client:
         """(F, 3) frontier positions (metres)."""
         return self.layer("frontiers", timeout)[0]["xyz"]
 
-    def ray_fronts(self, text: str | None = None, top_k: int = 1000, timeout: float | None = None):
+    def ray_fronts(self, text: str | None = None, top_k: int = 1000,
+                   timeout: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Semantic ray frontiers: ``(origins (R,3), unit directions (R,3), scores (R,) or None)``.
 
         Without ``text`` all rays of the layer (subsampled by the mapper's layer limit) and no
@@ -311,7 +311,8 @@ class Client:
         r = self.query(text, top_k=top_k, timeout=timeout)
         return r.ray_origin, r.ray_direction, r.ray_score
 
-    def world_from_robot(self, robot: str, value=None, timeout: float | None = None):
+    def world_from_robot(self, robot: str, value: np.ndarray | Sequence[float] | None = None,
+                         timeout: float | None = None) -> np.ndarray | None:
         """The mapper's ``world_from_robot`` of ``robot`` (4x4 array, or None: identity); with
         ``value`` (a 4x4 rigid transform or 16 numbers) set it first, at run time. With several
         shards every shard that answers sets it."""

@@ -117,10 +117,11 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
         out.cluster_extent = np.array([c[2] for c in merged], np.float32).reshape(-1, 3)
         out.cluster_score = np.array([c[3] for c in merged], np.float32)
     # rays and the search volume: each shard's rays whose frontier (origin) lies in its own region
-    own = [_in_region(r.ray_origin, i) for r, i in zip(results, infos)]
-    rs = np.concatenate([r.ray_score[k] for r, k in zip(results, own)]).astype(np.float32)
-    ro = np.concatenate([r.ray_origin[k] for r, k in zip(results, own)]).astype(np.float32).reshape(-1, 3)
-    rd = np.concatenate([r.ray_direction[k] for r, k in zip(results, own)]).astype(np.float32).reshape(-1, 3)
+    own = [_in_region(r.ray_origin, i) for r, i in zip(results, infos, strict=True)]
+    rs = np.concatenate([r.ray_score[k] for r, k in zip(results, own, strict=True)]).astype(np.float32)
+    ro = np.concatenate([r.ray_origin[k] for r, k in zip(results, own, strict=True)]).astype(np.float32).reshape(-1, 3)
+    rd = np.concatenate([r.ray_direction[k] for r, k in zip(results, own, strict=True)]).astype(np.float32)
+    rd = rd.reshape(-1, 3)
     t = _top(rs, k)
     out.ray_origin, out.ray_direction, out.ray_score = ro[t], rd[t], rs[t]
     info = next((i for i in infos if "half_angle_deg" in i and "search_range_m" in i), None)

@@ -1,9 +1,9 @@
 """RayFronts map configuration: every hyperparameter of the paper's appendix tables and of
-the reference's ``semantic_ray_frontiers_map.yaml`` (reference brief §8.2), with presets.
+the reference's ``semantic_ray_frontiers_map.yaml`` (docs/method.md#presets), with presets.
 
 Conventions: lengths in metres, angles in degrees, periods in frames, occupancy values
 are int8 log-odds counts. Schema defaults are the reference's shipped YAML (``default``
-preset); ``online`` / ``throughput`` / ``offline`` are the paper's tables (§6.1/§6.2).
+preset); ``online`` / ``throughput`` / ``offline`` are the paper's tables (docs/method.md#presets).
 A period ``<= 0`` disables the step it schedules.
 """
 from __future__ import annotations
@@ -34,7 +34,8 @@ class MapConfig:
         -1.0, "sensing range (m): +inf pixels carve free space up to it and ray association is "
               "limited to ray_range_factor times it; <0 = use depth_limit, or the frame's max depth")
     depth_limit: float = field_(-1.0, "finite depth above this (m) becomes +inf (simulated sensor range); <0 = off")
-    occ_thickness: int = field_(1, "occupied samples per surface pixel, spaced vox/2 along the ray, centred on the depth")
+    occ_thickness: int = field_(
+        1, "occupied samples per surface pixel, spaced vox/2 along the ray, centred on the depth")
     occ_observ_weight: int = field_(7, "occupied observation adds (w - 1), free adds -1")
     max_empty_cnt: int = field_(5, "log-odds lower clamp is -max_empty_cnt")
     max_occ_cnt: int = field_(30, "log-odds upper clamp (<= 127)")
@@ -42,8 +43,10 @@ class MapConfig:
     occ_pruning_tolerance: int = field_(2, "values within +-tolerance are merged into a tile")
     sem_pruning_period: int = field_(8, "frames between semantic voxel prunes, <=0 = never")
     sem_pruning_thresh: int = field_(0, "semantic voxels whose occupancy value <= this are removed")
-    clip_bbox: list[float] | None = field_(None, "[xmin,ymin,zmin,xmax,ymax,zmax] world box; geometry outside is dropped")
-    feature_dtype: Literal["float32", "float16"] = field_("float32", "storage dtype of voxel/ray features (accumulation is float32)")
+    clip_bbox: list[float] | None = field_(
+        None, "[xmin,ymin,zmin,xmax,ymax,zmax] world box; geometry outside is dropped")
+    feature_dtype: Literal["float32", "float16"] = field_(
+        "float32", "storage dtype of voxel/ray features (accumulation is float32)")
     interp_mode: Literal["bilinear", "nearest"] = field_("bilinear", "how features/RGB are sampled at pixel centres")
     # --- frontiers ----------------------------------------------------------------------
     fronti_neighborhood_r: int = field_(1, "frontier neighbourhood radius (cells), (2r+1)^3 self included")
@@ -53,17 +56,22 @@ class MapConfig:
     fronti_subsampling: int = field_(5, "coarse frontier cell = vox_size * this (beta); 1 = no subsampling "
                                         "(every fine frontier voxel, min_fronti unused, as the reference)")
     fronti_subsampling_min_fronti: int = field_(
-        12, "a coarse cell is a frontier if it holds MORE than this many fine frontiers (only when fronti_subsampling > 1)")
+        12, "a coarse cell is a frontier if it holds MORE than this many fine frontiers (only when "
+            "fronti_subsampling > 1)")
     # --- rays ---------------------------------------------------------------------------
     semantic_rays: bool = field_(True, "cast semantic rays (False = the Semantic Voxels baseline)")
     max_rays_per_frame: int = field_(-1, "max out-of-range rays per frame, -1 = all")
-    ray_erosion: int = field_(4, "erosion radius (px) of the out-of-range mask; outside the image counts as out of range")
+    ray_erosion: int = field_(
+        4, "erosion radius (px) of the out-of-range mask; outside the image counts as out of range")
     ray_accum_period: int = field_(8, "frames buffered before rays are cast")
     ray_accum_phase: int = field_(4, "frames before the ray counter starts (offsets ray from voxel blocks)")
-    ray_tracing: bool = field_(True, "validate associations by tracing through occupancy; re-cast rays of vanished frontiers")
+    ray_tracing: bool = field_(
+        True, "validate associations by tracing through occupancy; re-cast rays of vanished frontiers")
     angle_bin_size: float = field_(20.0, "ray angle bin psi (deg); >= 360 = one bin per frontier (semantic frontiers)")
-    ray_range_factor: float = field_(4.0, "frontiers farther than this times the sensing range are not candidates (paper 4, reference 3)")
-    ray_reject_close: bool = field_(False, "reference rule: frontiers closer than 2*beta to the ray origin are not candidates")
+    ray_range_factor: float = field_(
+        4.0, "frontiers farther than this times the sensing range are not candidates (paper 4, reference 3)")
+    ray_reject_close: bool = field_(
+        False, "reference rule: frontiers closer than 2*beta to the ray origin are not candidates")
     ray_cost_norm: Literal["paper", "absolute"] = field_(
         "paper", "ray-frontier cost scale: 'paper' = per ray over its candidates (the paper's equation; a lone "
                  "candidate costs 1, weight floored at ray_min_weight), 'absolute' = d_ortho/beta and "
@@ -73,8 +81,10 @@ class MapConfig:
               "lone candidate)")
     ray_weight_normalize: bool = field_(False, "reference behaviour: normalise weights to sum 1 per cast batch")
     zero_depth_mode: bool = field_(False, "no depth: each ray goes to the nearest frontier, no direction test")
-    global_encoding: bool = field_(False, "Semantic Poses: one ray per frame along camera +z with the image-level feature")
-    infer_direction: bool = field_(False, "Unidirectional: ray directions inferred from the unobserved neighbourhood of the frontier")
+    global_encoding: bool = field_(
+        False, "Semantic Poses: one ray per frame along camera +z with the image-level feature")
+    infer_direction: bool = field_(
+        False, "Unidirectional: ray directions inferred from the unobserved neighbourhood of the frontier")
     infer_direction_scale: Literal["coarse", "fine"] = field_(
         "fine", "neighbourhood offsets for infer_direction: fine voxels (vox, the reference's +-1 voxel) or "
                 "coarse cells (beta)")
@@ -122,7 +132,7 @@ class MapConfig:
         return -1.0
 
 
-_ONLINE = dict(  # paper Table (online search-volume evaluation) + brief §6.2
+_ONLINE = dict(  # paper Table (online search-volume evaluation) + the reference's srchvol configs
     vox_size=1.0, vox_accum_period=2, max_pts_per_frame=-1, max_empty_pts_per_frame=-1,
     max_rays_per_frame=10000, fronti_neighborhood_r=1, fronti_min_unobserved=9,
     fronti_min_empty=4, fronti_min_occupied=0, fronti_subsampling=4,
@@ -140,7 +150,7 @@ _THROUGHPUT = dict(  # paper Table (mapping throughput)
     ray_accum_period=8, ray_accum_phase=4, sem_pruning_period=32, occ_pruning_period=32,
     feature_dtype="float16",
 )
-_OFFLINE = dict(  # brief §6.1: semantic voxels only (SemanticVoxelMap), 0.05 m (indoor)
+_OFFLINE = dict(  # offline semseg (docs/method.md#presets): semantic voxels only (SemanticVoxelMap), 0.05 m (indoor)
     vox_size=0.05, vox_accum_period=4, max_pts_per_frame=-1, semantic_rays=False,
     occ_pruning_period=-1, sem_pruning_period=-1,
 )
@@ -153,7 +163,7 @@ PRESETS: dict[str, dict] = {
 }
 
 # The paper's baselines (Table I) as overrides on top of a preset. Ray tracing per method as
-# the reference runs them (experiments/srchvol_configs, brief §6.2): on for RayFronts (the
+# the reference runs them (its experiments/srchvol_configs): on for RayFronts (the
 # preset's value; the online preset has it on), off for the two semantic-frontier baselines
 # (their rays are dropped, not re-cast, when a frontier vanishes); the zero-depth methods
 # never trace (no occupancy along the ray) and Semantic Voxels casts no rays.

@@ -26,14 +26,18 @@ same arithmetic as the torch code here, so results are identical with or without
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Union
 
 import numpy as np
+import numpy.typing as npt
 import torch
 
 from common.conventions import voxel_index
-from semantic_map import kernels
-from semantic_map import cell_keys
+from semantic_map import cell_keys, kernels
 from semantic_map.traversal import crossing_counts, unique_cells
+
+#: a frame input: a torch tensor or anything numpy converts to an array (array, nested lists)
+ArrayOrTensor = Union[torch.Tensor, npt.ArrayLike]
 
 
 @dataclass
@@ -99,11 +103,11 @@ def _select(idx: torch.Tensor, budget: int, gen: torch.Generator | None, conf: t
     return idx[perm[:budget]]
 
 
-def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.0,
-                   occ_thickness: int = 1, max_pts: int = -1, max_empty_pts: int = -1,
-                   max_rays: int = -1, ray_erosion: int = 0, want_rays: bool = True,
-                   generator: torch.Generator | None = None, confidence=None,
-                   free_stride: int = 1, device="cpu") -> FrameGeometry:
+def frame_geometry(pose: ArrayOrTensor, K: ArrayOrTensor, depth: ArrayOrTensor, vox: float, *,
+                   max_depth_sensing: float = -1.0, occ_thickness: int = 1, max_pts: int = -1,
+                   max_empty_pts: int = -1, max_rays: int = -1, ray_erosion: int = 0, want_rays: bool = True,
+                   generator: torch.Generator | None = None, confidence: ArrayOrTensor | None = None,
+                   free_stride: int = 1, device: str | torch.device = "cpu") -> FrameGeometry:
     """Geometry of one frame (see module docstring). ``max_depth_sensing <= 0`` = unknown
     range: +inf pixels then carve up to the frame's largest finite depth (reference).
 
@@ -130,27 +134,46 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
     need_dirs = bool(finite.any()) or bool(posinf.any())
     D = pixel_directions(K_t, pose_t, h, w) if need_dirs else None
 
-    # occupied samples
-    occ_pix = _select(torch.nonzero(finite).squeeze(1), max_pts, generator, conf)
-    if occ_pix.numel():
-        offs = (torch.arange(occ_thickness, dtype=torch.float64, device=dev) - (occ_thickness - 1) / 2) * (vox / 2)
-        if kernels.enabled(D, flat):  # same float64 operations in C++, hashed de-duplication
-            pts, okeys = kernels.surface_samples(origin, D, flat, occ_pix, offs, vox)
-        else:
-            z = flat[occ_pix].to(torch.float64)
-            Dp = D[occ_pix]
-            pts = (origin + Dp * z[:, None]).to(torch.float32)
-            zs = z[:, None] + offs[None, :]
-            samples = origin + Dp[:, None, :] * zs[..., None]
-            samples = samples[zs > 0]
-            okeys = torch.unique(cell_keys.pack(voxel_index(samples, vox)))  # 1-D unique: fast
-        occ_ijk = cell_keys.unpack(okeys)
-    else:
-        pts = torch.empty((0, 3), dtype=torch.float32, device=dev)
-        occ_ijk = torch.empty((0, 3), dtype=torch.int64, device=dev)
+    occ_pix, pts, occ_ijk = _occupied_samples(origin, D, flat, finite, vox, occ_thickness, max_pts, generator,
+                                              conf, dev)
+    ray_idx = _free_space_pixels(finite, posinf, rng, K_t, vox, (h, w), free_stride, dev)
+    free_ijk = _free_cells(origin, D, flat, ray_idx, rng, vox, max_empty_pts, generator, dev)
+    if occ_ijk.numel() and free_ijk.numel():
+        free_ijk = free_ijk[~torch.isin(cell_keys.pack(free_ijk), cell_keys.pack(occ_ijk))]
+    rpix, dirs = _out_of_range_rays(D, posinf, (h, w), want_rays, ray_erosion, max_rays, generator, conf, dev)
+    return FrameGeometry(origin, occ_ijk, free_ijk, pts, occ_pix, dirs, rpix)
 
-    # free space by exact traversal
-    cam_ijk = voxel_index(origin[None], vox)
+
+def _occupied_samples(origin: torch.Tensor, D: torch.Tensor | None, flat: torch.Tensor, finite: torch.Tensor,
+                      vox: float, occ_thickness: int, max_pts: int, generator: torch.Generator | None,
+                      conf: torch.Tensor | None, dev: torch.device
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(occ_pix, pts_xyz, occ_ijk)``: the kept surface pixels (budget ``max_pts``), their
+    surface points and the unique voxels of their ``occ_thickness`` samples along the ray."""
+    occ_pix = _select(torch.nonzero(finite).squeeze(1), max_pts, generator, conf)
+    if not occ_pix.numel():
+        return (occ_pix, torch.empty((0, 3), dtype=torch.float32, device=dev),
+                torch.empty((0, 3), dtype=torch.int64, device=dev))
+    assert D is not None  # there are finite pixels, so the directions were computed
+    offs = (torch.arange(occ_thickness, dtype=torch.float64, device=dev) - (occ_thickness - 1) / 2) * (vox / 2)
+    if kernels.enabled(D, flat):  # same float64 operations in C++, hashed de-duplication
+        pts, okeys = kernels.surface_samples(origin, D, flat, occ_pix, offs, vox)
+    else:
+        z = flat[occ_pix].to(torch.float64)
+        Dp = D[occ_pix]
+        pts = (origin + Dp * z[:, None]).to(torch.float32)
+        zs = z[:, None] + offs[None, :]
+        samples = origin + Dp[:, None, :] * zs[..., None]
+        samples = samples[zs > 0]
+        okeys = torch.unique(cell_keys.pack(voxel_index(samples, vox)))  # 1-D unique: fast
+    return occ_pix, pts, cell_keys.unpack(okeys)
+
+
+def _free_space_pixels(finite: torch.Tensor, posinf: torch.Tensor, rng: float, K_t: torch.Tensor, vox: float,
+                       hw: tuple[int, int], free_stride: int, dev: torch.device) -> torch.Tensor:
+    """Flat indices of the pixels whose rays carve free space: finite depth, +inf too with a
+    usable range, thinned to every ``free_stride``-th row/column (``-1`` = auto)."""
+    h, w = hw
     if rng > 0:
         cand = finite | posinf
     else:
@@ -162,48 +185,65 @@ def frame_geometry(pose, K, depth, vox: float, *, max_depth_sensing: float = -1.
         rr = torch.arange(h, device=dev) % free_stride == free_stride // 2
         cc = torch.arange(w, device=dev) % free_stride == free_stride // 2
         cand = cand & (rr[:, None] & cc[None, :]).reshape(-1)
-    ray_idx = torch.nonzero(cand).squeeze(1)
-    if ray_idx.numel():
-        z = flat[ray_idx].to(torch.float64)
-        surf = torch.isfinite(z)
-        zend = torch.where(surf, z, torch.full_like(z, rng))
-        if rng > 0:
-            zend = torch.minimum(zend, torch.full_like(zend, rng))
-        excl = surf & (z <= zend)
-        dirs_f = D[ray_idx]
-        ends = origin + dirs_f * zend[:, None]
-        total = int(crossing_counts(origin.expand_as(ends), ends, vox).sum()) if max_empty_pts >= 0 else 0
-        if 0 <= max_empty_pts < total:
-            # budget: max_empty_pts free samples drawn uniformly along the free segments
-            # (length-weighted), i.e. a random subset of ray samples as in the reference
-            if max_empty_pts > 0:
-                ri = torch.multinomial(zend.to(torch.float32), max_empty_pts, replacement=True, generator=generator).to(dev)
-                tt = torch.rand(max_empty_pts, generator=generator, dtype=torch.float64).to(dev) * zend[ri]
-                sijk = voxel_index(origin + dirs_f[ri] * tt[:, None], vox)
-                eijk = voxel_index(ends[ri], vox)
-                sijk = sijk[~(excl[ri] & (sijk == eijk).all(1))]
-                free_ijk = cell_keys.unpack(torch.unique(cell_keys.pack(sijk)))
-            else:
-                free_ijk = torch.empty((0, 3), dtype=torch.int64, device=dev)
-        else:
-            free_ijk = unique_cells(origin.expand_as(ends), ends, vox, exclude_end=excl)
-        if not bool((free_ijk == cam_ijk).all(1).any()):  # the camera's own cell is free
-            free_ijk = torch.cat([free_ijk, cam_ijk])
-    else:
-        free_ijk = cam_ijk
-    if occ_ijk.numel() and free_ijk.numel():
-        free_ijk = free_ijk[~torch.isin(cell_keys.pack(free_ijk), cell_keys.pack(occ_ijk))]
+    return torch.nonzero(cand).squeeze(1)
 
-    # out-of-range rays
+
+def _free_cells(origin: torch.Tensor, D: torch.Tensor | None, flat: torch.Tensor, ray_idx: torch.Tensor, rng: float,
+                vox: float, max_empty_pts: int, generator: torch.Generator | None,
+                dev: torch.device) -> torch.Tensor:
+    """Unique free voxels of the rays through pixels ``ray_idx`` (exact traversal, or
+    ``max_empty_pts`` samples when the traversal is larger), the camera's own cell included."""
+    cam_ijk = voxel_index(origin[None], vox)
+    if not ray_idx.numel():
+        return cam_ijk
+    assert D is not None  # there are finite or +inf pixels, so the directions were computed
+    z = flat[ray_idx].to(torch.float64)
+    surf = torch.isfinite(z)
+    zend = torch.where(surf, z, torch.full_like(z, rng))
+    if rng > 0:
+        zend = torch.minimum(zend, torch.full_like(zend, rng))
+    excl = surf & (z <= zend)
+    dirs_f = D[ray_idx]
+    ends = origin + dirs_f * zend[:, None]
+    total = int(crossing_counts(origin.expand_as(ends), ends, vox).sum()) if max_empty_pts >= 0 else 0
+    if 0 <= max_empty_pts < total:
+        free_ijk = _sampled_free_cells(origin, dirs_f, zend, ends, excl, vox, max_empty_pts, generator, dev)
+    else:
+        free_ijk = unique_cells(origin.expand_as(ends), ends, vox, exclude_end=excl)
+    if not bool((free_ijk == cam_ijk).all(1).any()):  # the camera's own cell is free
+        free_ijk = torch.cat([free_ijk, cam_ijk])
+    return free_ijk
+
+
+def _sampled_free_cells(origin: torch.Tensor, dirs_f: torch.Tensor, zend: torch.Tensor, ends: torch.Tensor,
+                        excl: torch.Tensor, vox: float, max_empty_pts: int, generator: torch.Generator | None,
+                        dev: torch.device) -> torch.Tensor:
+    """Budget: ``max_empty_pts`` free samples drawn uniformly along the free segments
+    (length-weighted), i.e. a random subset of ray samples as in the reference; their unique
+    voxels, an excluded surface voxel dropped."""
+    if max_empty_pts <= 0:
+        return torch.empty((0, 3), dtype=torch.int64, device=dev)
+    ri = torch.multinomial(zend.to(torch.float32), max_empty_pts, replacement=True, generator=generator).to(dev)
+    tt = torch.rand(max_empty_pts, generator=generator, dtype=torch.float64).to(dev) * zend[ri]
+    sijk = voxel_index(origin + dirs_f[ri] * tt[:, None], vox)
+    eijk = voxel_index(ends[ri], vox)
+    sijk = sijk[~(excl[ri] & (sijk == eijk).all(1))]
+    return cell_keys.unpack(torch.unique(cell_keys.pack(sijk)))
+
+
+def _out_of_range_rays(D: torch.Tensor | None, posinf: torch.Tensor, hw: tuple[int, int], want_rays: bool,
+                       ray_erosion: int, max_rays: int, generator: torch.Generator | None,
+                       conf: torch.Tensor | None, dev: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(ray_pix, unit float32 directions)`` of the eroded +inf pixels (budget ``max_rays``);
+    empty unless ``want_rays``."""
     if want_rays and bool(posinf.any()):
-        m = erode_out_of_range(posinf.reshape(h, w), ray_erosion).reshape(-1)
+        assert D is not None  # there are +inf pixels, so the directions were computed
+        m = erode_out_of_range(posinf.reshape(*hw), ray_erosion).reshape(-1)
         rpix = _select(torch.nonzero(m).squeeze(1), max_rays, generator, conf)
         dirs = D[rpix]
-        dirs = (dirs / dirs.norm(dim=1, keepdim=True)).to(torch.float32)
-    else:
-        rpix = torch.empty(0, dtype=torch.int64, device=dev)
-        dirs = torch.empty((0, 3), dtype=torch.float32, device=dev)
-    return FrameGeometry(origin, occ_ijk, free_ijk, pts, occ_pix, dirs, rpix)
+        return rpix, (dirs / dirs.norm(dim=1, keepdim=True)).to(torch.float32)
+    return (torch.empty(0, dtype=torch.int64, device=dev),
+            torch.empty((0, 3), dtype=torch.float32, device=dev))
 
 
 def sample_image(img: torch.Tensor, pix: torch.Tensor, hw: tuple[int, int], mode: str = "bilinear") -> torch.Tensor:

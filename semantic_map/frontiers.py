@@ -7,15 +7,15 @@ coarse index (:mod:`semantic_map.cell_keys`), so rays reference frontiers by exa
 
 With ``s = 1`` there is no subsampling, as in the reference (which clusters only when
 ``s > 1``): every fine frontier voxel is a frontier and ``min_fronti`` is not used (a 1-voxel
-cell holds at most one fine frontier, so the count test would silently remove them all —
-audit B3).
+cell holds at most one fine frontier, so the count test would silently remove them all:
+docs/method.md#subsampling-1).
 
 The table is persistent and updated incrementally: after an occupancy update with fine
 bounding box ``[lo, hi]`` every fine voxel whose frontier status can have changed lies in
 ``[lo - r, hi + r]``; that box is widened to whole coarse cells, the fine frontiers in it are
 recomputed, and exactly the coarse cells inside it are replaced. Cells outside keep their
 (unchanged) counts. This fixes the reference's replacement of coarse centres against the
-fine box (§10.2 #13), which duplicated or lost cells straddling the box edge.
+fine box, which duplicated or lost cells straddling the box edge.
 
 Replacing a region touches only the keys of its x-slab (keys are sorted ``(i, j, k)``, so
 the cells with ``i`` in the box are one contiguous run found by binary search) and merges
@@ -26,16 +26,21 @@ store, which then prunes only the rays of those frontiers (``None`` after
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Sequence
+
 import torch
 
 from common.conventions import voxel_center
 from semantic_map import cell_keys
 
+if TYPE_CHECKING:
+    from semantic_map.occupancy import OccupancyGrid
+
 
 class FrontierTable:
     """Persistent coarse frontier cells: sorted packed ``keys`` (F,) and fine ``counts`` (F,)."""
 
-    def __init__(self, vox: float, subsampling: int, min_fronti: int, device="cpu"):
+    def __init__(self, vox: float, subsampling: int, min_fronti: int, device: str | torch.device = "cpu") -> None:
         self.vox = float(vox)
         self.s = int(subsampling)
         # s = 1: no subsampling (reference), every fine frontier is kept (see module docstring)
@@ -63,7 +68,7 @@ class FrontierTable:
         chi = torch.div(hi + r, self.s, rounding_mode="floor")
         return clo * self.s, chi * self.s + self.s - 1
 
-    def update(self, grid, lo: torch.Tensor, hi: torch.Tensor, *, min_unobserved: int, min_free: int,
+    def update(self, grid: OccupancyGrid, lo: torch.Tensor, hi: torch.Tensor, *, min_unobserved: int, min_free: int,
                min_occupied: int = 0, radius: int = 1) -> None:
         """Recompute frontiers for the fine voxel box ``[lo, hi]`` (int64 (3,), inclusive)."""
         flo, fhi = self.region(lo.to(torch.int64).cpu(), hi.to(torch.int64).cpu(), radius)
@@ -73,7 +78,8 @@ class FrontierTable:
         self.replace_region(torch.div(flo, self.s, rounding_mode="floor"),
                             torch.div(fhi, self.s, rounding_mode="floor"), fine)
 
-    def replace_region(self, clo, chi, fine_ijk: torch.Tensor) -> None:
+    def replace_region(self, clo: torch.Tensor | Sequence[int], chi: torch.Tensor | Sequence[int],
+                       fine_ijk: torch.Tensor) -> None:
         """Replace all coarse cells in the coarse box [clo, chi] by the subsampling of
         ``fine_ijk`` (fine frontier voxels, all inside the box)."""
         clo = torch.as_tensor(clo, dtype=torch.int64, device=self.device)
@@ -92,7 +98,8 @@ class FrontierTable:
         # the x-slab [clo_i, chi_i] of the sorted keys: one contiguous run
         lo_i = min(max(int(clo[0]) + cell_keys.OFFSET, 0), cell_keys.MASK)
         hi_i = min(max(int(chi[0]) + cell_keys.OFFSET, 0), cell_keys.MASK)
-        bounds = torch.tensor([lo_i << (2 * cell_keys.BITS), (hi_i << (2 * cell_keys.BITS)) | ((1 << (2 * cell_keys.BITS)) - 1)],
+        shift = 2 * cell_keys.BITS
+        bounds = torch.tensor([lo_i << shift, (hi_i << shift) | ((1 << shift) - 1)],
                               dtype=torch.int64, device=self.device)
         a = int(torch.searchsorted(self.keys, bounds[:1]))
         b = int(torch.searchsorted(self.keys, bounds[1:], right=True))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 from contextlib import contextmanager
+from typing import Callable, Iterator
 
 import torch
 
@@ -21,6 +22,10 @@ try:  # optional extension
 except ImportError as e:  # pragma: no cover - depends on the build
     _rfkernels = None
     IMPORT_ERROR = e
+
+#: per-ray argmin of candidate costs: (rays, frontier idx, (x1, x2) cost terms, n_rays) -> (rays, fidx, cost)
+ArgminCost = Callable[[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor], int],
+                      tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
 _enabled = os.environ.get("RAYFRONTS_KERNELS", "1") not in ("0", "false", "off", "no")
 
@@ -43,7 +48,7 @@ def set_enabled(flag: bool) -> bool:
 
 
 @contextmanager
-def disabled():
+def disabled() -> Iterator[None]:
     """``with disabled(): ...`` runs the torch paths (for comparisons and tests)."""
     old = set_enabled(False)
     try:
@@ -80,7 +85,8 @@ def segment_cells_unique(origins: torch.Tensor, ends: torch.Tensor, cell: float,
     crossing enumeration; ``chunks`` = [(lo, hi, base (3,) int64), ...] from its ``_chunks``."""
     lo = torch.tensor([c[0] for c in chunks], dtype=torch.int64)
     hi = torch.tensor([c[1] for c in chunks], dtype=torch.int64)
-    base = torch.stack([c[2].reshape(3).to(torch.int64) for c in chunks]) if chunks else torch.empty((0, 3), dtype=torch.int64)
+    base = (torch.stack([c[2].reshape(3).to(torch.int64) for c in chunks]) if chunks
+            else torch.empty((0, 3), dtype=torch.int64))
     ex = torch.empty(0, dtype=torch.bool) if exclude_end is None else exclude_end.to(torch.bool)
     keys, klo, khi = _rfkernels.segment_cells_unique(_np(origins, torch.float64), _np(ends, torch.float64), float(cell),
                                                       lo.numpy(), hi.numpy(), base.contiguous().numpy(),
@@ -115,7 +121,8 @@ def group_pairs(group: torch.Tensor, idx: torch.Tensor, wt: torch.Tensor, n_grou
 
 def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, frontier_ijk: torch.Tensor,
                    beta: float, base: torch.Tensor, max_dist: float, reject_close: bool,
-                   block: int = 4, scales=None, argmin=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   block: int = 4, scales: tuple[float, float | None] | None = None,
+                   argmin: ArgminCost | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Kernel-only ray -> frontier association: (rays, frontier idx, float64 cost), equal to
     :func:`semantic_map.ray_frontiers.associate`'s torch path (see the C++ source). With fixed
     cost ``scales`` (the ``absolute`` cost) the kernel gives the candidate pairs and
@@ -128,6 +135,7 @@ def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, fron
     x1 = torch.from_numpy(oo).sqrt().to(torch.float64)
     x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
     if scales is not None:
+        assert argmin is not None  # the absolute cost picks per ray with the caller's torch code
         return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
     r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
     return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)

@@ -1,7 +1,7 @@
 """``RayFrontsMap``: semantic voxels + occupancy + frontiers + semantic ray frontiers.
 
 Pure computation (no I/O besides :meth:`save`/:meth:`load`). One frame at a time through
-:meth:`RayFrontsMap.integrate`; the schedule is the reference's (brief §2.9):
+:meth:`RayFrontsMap.integrate`; the schedule is the reference's (docs/method.md#integration-schedule):
 
 * per frame: geometry (:mod:`semantic_map.depth_geometry`), feature/RGB sampling at the needed
   pixels only, per-frame pre-aggregation of semantic points per voxel, buffering;
@@ -20,20 +20,30 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
 
 from common.conventions import is_rigid, sanitize_depth, voxel_center
-from semantic_map import kernels
-from semantic_map import cell_keys
+from semantic_map import cell_keys, kernels
 from semantic_map.config import MapConfig
-from semantic_map.depth_geometry import aggregate_samples, frame_geometry, sample_image
+from semantic_map.depth_geometry import ArrayOrTensor, FrameGeometry, aggregate_samples, frame_geometry, sample_image
 from semantic_map.frontiers import FrontierTable
 from semantic_map.occupancy import make_occupancy
 from semantic_map.query import LayerScores, Similarity, run_query
-from semantic_map.ray_frontiers import RayStore, angles_deg, associate, infer_directions, warn_infer_direction
-from semantic_map.semantic_voxels import SemanticVoxels as SemanticVoxels_
+from semantic_map.ray_frontiers import (
+    RayBatch,
+    RayStore,
+    angles_deg,
+    associate,
+    infer_directions,
+    warn_infer_direction,
+)
+from semantic_map.semantic_voxels import SemanticVoxels
+
+#: one frame's semantic points summed per voxel: (keys, rgb sums, feature sums, counts)
+SemanticSums = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 @dataclass
@@ -65,16 +75,17 @@ class PreparedFrame:
     """One frame after :meth:`RayFrontsMap.prepare`: what :meth:`RayFrontsMap.commit` buffers."""
     occ_ijk: torch.Tensor            # (Mo, 3) int64 occupied voxels
     free_ijk: torch.Tensor           # (Mf, 3) int64 free voxels
-    sem: tuple | None                # (keys, rgb sums, feature sums, counts) per voxel, or None
-    rays: tuple | None               # (origins, unit dirs, features), or None
+    sem: SemanticSums | None         # (keys, rgb sums, feature sums, counts) per voxel, or None
+    rays: RayBatch | None            # (origins, unit dirs, features), or None
     fov_deg: tuple[float, float]     # horizontal / vertical field of view
-    timings: dict                    # ms of validate / geometry / sample
+    timings: dict[str, float]        # ms of validate / geometry / sample
 
 
 _DTYPES = {"float32": torch.float32, "float16": torch.float16}
 
 
-def _as_tensor(x, dtype=None, device="cpu") -> torch.Tensor:
+def _as_tensor(x: ArrayOrTensor, dtype: torch.dtype | None = None,
+               device: str | torch.device = "cpu") -> torch.Tensor:
     if isinstance(x, torch.Tensor):
         t = x
     else:
@@ -82,11 +93,30 @@ def _as_tensor(x, dtype=None, device="cpu") -> torch.Tensor:
     return t.to(device=device, dtype=dtype) if dtype is not None else t.to(device)
 
 
+def _lap(tm: dict[str, float], name: str, t0: float) -> float:
+    """Add the ms since ``t0`` to ``tm[name]``; returns now (the next stage's start)."""
+    t1 = time.perf_counter()
+    tm[name] = tm.get(name, 0.0) + (t1 - t0) * 1e3
+    return t1
+
+
+def _check_pose_intrinsics(pose: ArrayOrTensor, intrinsics: ArrayOrTensor) -> tuple[np.ndarray, np.ndarray]:
+    """``(pose, K)`` as float64 arrays; raises ValueError unless the pose is a finite rigid 4×4
+    and K a finite 3×3 with positive focal lengths."""
+    pose_np = np.asarray(pose.cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
+    if not is_rigid(pose_np):
+        raise ValueError("pose must be a finite rigid 4x4 camera-to-world transform")
+    K = np.asarray(intrinsics.cpu() if isinstance(intrinsics, torch.Tensor) else intrinsics, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"intrinsics must be a finite 3x3 with fx, fy > 0, got {K.tolist()}")
+    return pose_np, K
+
+
 class RayFrontsMap:
     """The RayFronts map (see module docstring)."""
 
-    def __init__(self, cfg: MapConfig, feature_dim: int, feature_space: str = "", device="cpu",
-                 occupancy_backend: str = "auto"):
+    def __init__(self, cfg: MapConfig, feature_dim: int, feature_space: str = "", device: str | torch.device = "cpu",
+                 occupancy_backend: str = "auto") -> None:
         self.cfg = cfg.validate()
         if feature_dim <= 0:
             raise ValueError(f"feature_dim must be > 0, got {feature_dim}")
@@ -97,8 +127,9 @@ class RayFrontsMap:
         dt = _DTYPES[cfg.feature_dtype]
         self.occupancy = make_occupancy(cfg.vox_size, -cfg.max_empty_cnt, cfg.max_occ_cnt,
                                         backend=occupancy_backend, device="cpu")
-        self.sem = SemanticVoxels_(cfg.vox_size, self.feature_dim, dt, self.device)
-        self.fronts = FrontierTable(cfg.vox_size, cfg.fronti_subsampling, cfg.fronti_subsampling_min_fronti, self.device)
+        self.sem = SemanticVoxels(cfg.vox_size, self.feature_dim, dt, self.device)
+        self.fronts = FrontierTable(cfg.vox_size, cfg.fronti_subsampling, cfg.fronti_subsampling_min_fronti,
+                                    self.device)
         self.ray_store = RayStore(cfg.beta, cfg.angle_bin_size, self.feature_dim, dt, self.device)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         if cfg.infer_direction:
@@ -107,7 +138,7 @@ class RayFrontsMap:
                              voxel_blocks=0, ray_blocks=0)
         self.last_fov_deg = (90.0, 90.0)
         self._reset_buffers()
-        self._rng_state_source = None  # set by mapper.pipeline.MapPipeline while it runs
+        self._rng_state_source: Callable[[], torch.Tensor] | None = None  # set by mapper.pipeline.MapPipeline
         self.timings: dict[str, float] = {}
         self.timings_total: dict[str, float] = {}
 
@@ -131,8 +162,10 @@ class RayFrontsMap:
         self.timings_total[name] = self.timings_total.get(name, 0.0) + ms
         return t
 
-    def integrate(self, pose, intrinsics, depth, rgb=None, features=None, global_feature=None,
-                  confidence=None) -> dict:
+    def integrate(self, pose: ArrayOrTensor, intrinsics: ArrayOrTensor, depth: ArrayOrTensor,
+                  rgb: ArrayOrTensor | None = None, features: ArrayOrTensor | None = None,
+                  global_feature: ArrayOrTensor | None = None, confidence: ArrayOrTensor | None = None
+                  ) -> dict[str, float]:
         """Add one frame. ``pose`` 4×4 camera-to-world (RDF), ``intrinsics`` 3×3 at depth
         resolution, ``depth`` (H, W) planar metres (NaN ignore, +inf beyond range), ``rgb``
         (H', W', 3) uint8 (or float in [0, 1]), ``features`` (C, h, w) any float dtype with
@@ -142,8 +175,9 @@ class RayFrontsMap:
         halves on different threads (frame N+1 prepared while frame N is committed)."""
         return self.commit(self.prepare(pose, intrinsics, depth, rgb, features, global_feature, confidence))
 
-    def prepare(self, pose, intrinsics, depth, rgb=None, features=None, global_feature=None,
-                confidence=None) -> "PreparedFrame":
+    def prepare(self, pose: ArrayOrTensor, intrinsics: ArrayOrTensor, depth: ArrayOrTensor,
+                rgb: ArrayOrTensor | None = None, features: ArrayOrTensor | None = None,
+                global_feature: ArrayOrTensor | None = None, confidence: ArrayOrTensor | None = None) -> PreparedFrame:
         """First half of :meth:`integrate`: validation, geometry and feature / RGB sampling of
         one frame. Reads only the configuration and advances only ``self.generator`` (the
         budgets' random draws), so prepared frames must be committed in the order they were
@@ -151,52 +185,15 @@ class RayFrontsMap:
         cfg = self.cfg
         tm: dict[str, float] = {}
         t = time.perf_counter()
-
-        def tick(name: str, t0: float) -> float:
-            t1 = time.perf_counter()
-            tm[name] = tm.get(name, 0.0) + (t1 - t0) * 1e3
-            return t1
-        pose_np = np.asarray(pose.cpu() if isinstance(pose, torch.Tensor) else pose, dtype=np.float64)
-        if not is_rigid(pose_np):
-            raise ValueError("pose must be a finite rigid 4x4 camera-to-world transform")
-        K = np.asarray(intrinsics.cpu() if isinstance(intrinsics, torch.Tensor) else intrinsics, dtype=np.float64)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ValueError(f"intrinsics must be a finite 3x3 with fx, fy > 0, got {K.tolist()}")
-        d = _as_tensor(depth, torch.float32)
-        if d.ndim == 3 and d.shape[0] == 1:
-            d = d[0]
-        if d.ndim != 2 or d.numel() == 0:
-            raise ValueError(f"depth must be (H, W), got shape {tuple(d.shape)}")
+        pose_np, K = _check_pose_intrinsics(pose, intrinsics)
+        d = self._check_depth(depth)
         H, W = d.shape
-        d = sanitize_depth(d, cfg.depth_limit if cfg.depth_limit >= 0 else None).to(self.device)
-        feats = None
-        if features is not None:
-            feats = _as_tensor(features, None, self.device)
-            if feats.ndim != 3 or feats.shape[0] != self.feature_dim:
-                raise ValueError(f"features must be (C={self.feature_dim}, h, w), got {tuple(feats.shape)}")
-            if feats.shape[1] > H or feats.shape[2] > W:
-                raise ValueError(f"feature map {tuple(feats.shape[1:])} larger than depth {(H, W)}")
-            if not feats.is_floating_point():
-                raise ValueError("features must be a float array")
-        gfeat = None
-        if global_feature is not None:
-            gfeat = _as_tensor(global_feature, torch.float32, self.device).reshape(-1)
-            if gfeat.numel() != self.feature_dim:
-                raise ValueError(f"global_feature has {gfeat.numel()} values, expected {self.feature_dim}")
-        rgb_t = None
-        if rgb is not None:
-            r = _as_tensor(rgb, None, self.device)
-            if r.ndim != 3 or r.shape[2] != 3:
-                raise ValueError(f"rgb must be (H', W', 3), got {tuple(r.shape)}")
-            rgb_t = r.permute(2, 0, 1)
-            rgb_t = rgb_t.to(torch.float32) / 255.0 if not r.is_floating_point() else rgb_t.to(torch.float32)
-        conf = None if confidence is None else _as_tensor(confidence, torch.float32, self.device)
-        if conf is not None and tuple(conf.shape) != (H, W):
-            raise ValueError(f"confidence must be {(H, W)}, got {tuple(conf.shape)}")
-        if cfg.point_selection == "random":
-            conf = None
+        feats = self._check_features(features, H, W)
+        gfeat = self._check_global_feature(global_feature)
+        rgb_t = self._check_rgb(rgb)
+        conf = self._check_confidence(confidence, H, W)
         fov = (math.degrees(2 * math.atan(0.5 * W / K[0, 0])), math.degrees(2 * math.atan(0.5 * H / K[1, 1])))
-        t = tick("validate", t)
+        t = _lap(tm, "validate", t)
 
         use_rays = cfg.semantic_rays and not cfg.global_encoding
         g = frame_geometry(pose_np, K, d, cfg.vox_size, max_depth_sensing=cfg.sensing_range(),
@@ -204,51 +201,125 @@ class RayFrontsMap:
                            max_empty_pts=cfg.max_empty_pts_per_frame, max_rays=cfg.max_rays_per_frame,
                            ray_erosion=cfg.ray_erosion, want_rays=use_rays, generator=self.generator,
                            confidence=conf, free_stride=cfg.free_space_stride, device=self.device)
-        occ_ijk, free_ijk, pts, pix = g.occ_ijk, g.free_ijk, g.pts_xyz, g.pts_pix
-        if cfg.clip_bbox is not None:
-            lo = torch.tensor(cfg.clip_bbox[:3], dtype=torch.float32, device=self.device)
-            hi = torch.tensor(cfg.clip_bbox[3:], dtype=torch.float32, device=self.device)
+        occ_ijk, free_ijk, pts, pix = self._clip_to_bbox(g)
+        t = _lap(tm, "geometry", t)
 
-            def inside(x):
-                return ((x > lo) & (x < hi)).all(1)
-            occ_ijk = occ_ijk[inside(voxel_center(occ_ijk, cfg.vox_size))]
-            free_ijk = free_ijk[inside(voxel_center(free_ijk, cfg.vox_size))]
-            keep = inside(pts)
-            pts, pix = pts[keep], pix[keep]
-        t = tick("geometry", t)
-
-        # semantic points: pre-aggregate per voxel (sum of rgb / feature, count)
-        sem = rays = None
-        sem_feat_src = feats is not None or (cfg.global_encoding and gfeat is not None)
-        if pts.shape[0] and sem_feat_src:
-            vk = kernels.voxel_keys(pts, cfg.vox_size)
-            uk, inv, cnt = kernels.unique_keys(vk)
-            n = uk.numel()
-            if cfg.global_encoding and gfeat is not None:
-                fs = cnt.to(torch.float32)[:, None] * gfeat[None]
-            else:
-                fs = aggregate_samples(feats, pix, (H, W), inv, n, cfg.interp_mode)
-            if rgb_t is not None:
-                cs = aggregate_samples(rgb_t, pix, (H, W), inv, n, cfg.interp_mode)
-            else:
-                cs = torch.zeros((n, 3), dtype=torch.float32, device=self.device)
-            sem = (uk, cs, fs, cnt.to(torch.float32))
-        # rays
-        if cfg.semantic_rays:
-            if cfg.global_encoding:
-                gf = gfeat if gfeat is not None else (feats.to(torch.float32).mean((1, 2)) if feats is not None else None)
-                if gf is not None:
-                    o = torch.as_tensor(pose_np[:3, 3], dtype=torch.float64, device=self.device)[None]
-                    dz = torch.as_tensor(pose_np[:3, 2], dtype=torch.float32, device=self.device)[None]
-                    rays = (o, dz / dz.norm(), gf[None])
-            elif g.ray_dirs.shape[0] and feats is not None:
-                rf = sample_image(feats, g.ray_pix, (H, W), cfg.interp_mode)
-                o = g.origin[None].expand(g.ray_dirs.shape[0], 3)
-                rays = (o, g.ray_dirs, rf)
-        tick("sample", t)
+        sem = self._semantic_sums(pts, pix, (H, W), feats, gfeat, rgb_t)
+        rays = self._frame_rays(pose_np, g, (H, W), feats, gfeat) if cfg.semantic_rays else None
+        _lap(tm, "sample", t)
         return PreparedFrame(occ_ijk, free_ijk, sem, rays, fov, tm)
 
-    def commit(self, p: "PreparedFrame") -> dict:
+    def _check_depth(self, depth: ArrayOrTensor) -> torch.Tensor:
+        """``depth`` as a sanitised (H, W) float32 tensor on the map's device (see :meth:`integrate`)."""
+        d = _as_tensor(depth, torch.float32)
+        if d.ndim == 3 and d.shape[0] == 1:
+            d = d[0]
+        if d.ndim != 2 or d.numel() == 0:
+            raise ValueError(f"depth must be (H, W), got shape {tuple(d.shape)}")
+        return sanitize_depth(d, self.cfg.depth_limit if self.cfg.depth_limit >= 0 else None).to(self.device)
+
+    def _check_features(self, features: ArrayOrTensor | None, H: int, W: int) -> torch.Tensor | None:
+        """``features`` as a (C, h, w) float tensor no larger than the (H, W) depth, or None."""
+        if features is None:
+            return None
+        feats = _as_tensor(features, None, self.device)
+        if feats.ndim != 3 or feats.shape[0] != self.feature_dim:
+            raise ValueError(f"features must be (C={self.feature_dim}, h, w), got {tuple(feats.shape)}")
+        if feats.shape[1] > H or feats.shape[2] > W:
+            raise ValueError(f"feature map {tuple(feats.shape[1:])} larger than depth {(H, W)}")
+        if not feats.is_floating_point():
+            raise ValueError("features must be a float array")
+        return feats
+
+    def _check_global_feature(self, global_feature: ArrayOrTensor | None) -> torch.Tensor | None:
+        """``global_feature`` as a (C,) float32 tensor, or None."""
+        if global_feature is None:
+            return None
+        gfeat = _as_tensor(global_feature, torch.float32, self.device).reshape(-1)
+        if gfeat.numel() != self.feature_dim:
+            raise ValueError(f"global_feature has {gfeat.numel()} values, expected {self.feature_dim}")
+        return gfeat
+
+    def _check_rgb(self, rgb: ArrayOrTensor | None) -> torch.Tensor | None:
+        """``rgb`` (H', W', 3) as a (3, H', W') float32 tensor in [0, 1], or None."""
+        if rgb is None:
+            return None
+        r = _as_tensor(rgb, None, self.device)
+        if r.ndim != 3 or r.shape[2] != 3:
+            raise ValueError(f"rgb must be (H', W', 3), got {tuple(r.shape)}")
+        rgb_t = r.permute(2, 0, 1)
+        return rgb_t.to(torch.float32) / 255.0 if not r.is_floating_point() else rgb_t.to(torch.float32)
+
+    def _check_confidence(self, confidence: ArrayOrTensor | None, H: int, W: int) -> torch.Tensor | None:
+        """``confidence`` as an (H, W) float32 tensor; None when absent or unused (random selection)."""
+        conf = None if confidence is None else _as_tensor(confidence, torch.float32, self.device)
+        if conf is not None and tuple(conf.shape) != (H, W):
+            raise ValueError(f"confidence must be {(H, W)}, got {tuple(conf.shape)}")
+        if self.cfg.point_selection == "random":
+            conf = None
+        return conf
+
+    def _clip_to_bbox(self, g: FrameGeometry) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(occ_ijk, free_ijk, pts_xyz, pts_pix)`` of ``g`` inside ``cfg.clip_bbox`` (all when unset)."""
+        cfg = self.cfg
+        occ_ijk, free_ijk, pts, pix = g.occ_ijk, g.free_ijk, g.pts_xyz, g.pts_pix
+        if cfg.clip_bbox is None:
+            return occ_ijk, free_ijk, pts, pix
+        lo = torch.tensor(cfg.clip_bbox[:3], dtype=torch.float32, device=self.device)
+        hi = torch.tensor(cfg.clip_bbox[3:], dtype=torch.float32, device=self.device)
+
+        def inside(x: torch.Tensor) -> torch.Tensor:
+            return ((x > lo) & (x < hi)).all(1)
+        occ_ijk = occ_ijk[inside(voxel_center(occ_ijk, cfg.vox_size))]
+        free_ijk = free_ijk[inside(voxel_center(free_ijk, cfg.vox_size))]
+        keep = inside(pts)
+        return occ_ijk, free_ijk, pts[keep], pix[keep]
+
+    def _semantic_sums(self, pts: torch.Tensor, pix: torch.Tensor, hw: tuple[int, int], feats: torch.Tensor | None,
+                       gfeat: torch.Tensor | None, rgb_t: torch.Tensor | None) -> SemanticSums | None:
+        """Semantic points pre-aggregated per voxel: (keys, rgb sums, feature sums, counts), or
+        None without points or without a feature source."""
+        cfg = self.cfg
+        sem_feat_src = feats is not None or (cfg.global_encoding and gfeat is not None)
+        if not (pts.shape[0] and sem_feat_src):
+            return None
+        vk = kernels.voxel_keys(pts, cfg.vox_size)
+        uk, inv, cnt = kernels.unique_keys(vk)
+        n = uk.numel()
+        if cfg.global_encoding and gfeat is not None:
+            fs = cnt.to(torch.float32)[:, None] * gfeat[None]
+        else:
+            assert feats is not None  # sem_feat_src without a global feature
+            fs = aggregate_samples(feats, pix, hw, inv, n, cfg.interp_mode)
+        if rgb_t is not None:
+            cs = aggregate_samples(rgb_t, pix, hw, inv, n, cfg.interp_mode)
+        else:
+            cs = torch.zeros((n, 3), dtype=torch.float32, device=self.device)
+        return (uk, cs, fs, cnt.to(torch.float32))
+
+    def _frame_rays(self, pose_np: np.ndarray, g: FrameGeometry, hw: tuple[int, int], feats: torch.Tensor | None,
+                    gfeat: torch.Tensor | None) -> RayBatch | None:
+        """The frame's semantic rays (origins, unit directions, features), or None: one ray along
+        camera +z with the image-level feature under ``global_encoding``, else the out-of-range rays."""
+        cfg = self.cfg
+        if cfg.global_encoding:
+            gf: torch.Tensor | None
+            if gfeat is not None:
+                gf = gfeat
+            else:
+                gf = feats.to(torch.float32).mean((1, 2)) if feats is not None else None
+            if gf is None:
+                return None
+            o = torch.as_tensor(pose_np[:3, 3], dtype=torch.float64, device=self.device)[None]
+            dz = torch.as_tensor(pose_np[:3, 2], dtype=torch.float32, device=self.device)[None]
+            return (o, dz / dz.norm(), gf[None])
+        if g.ray_dirs.shape[0] and feats is not None:
+            rf = sample_image(feats, g.ray_pix, hw, cfg.interp_mode)
+            o = g.origin[None].expand(g.ray_dirs.shape[0], 3)
+            return (o, g.ray_dirs, rf)
+        return None
+
+    def commit(self, p: PreparedFrame) -> dict[str, float]:
         """Second half of :meth:`integrate`: buffer a prepared frame and run the voxel / ray
         blocks that are due. Returns per-stage ms (the prepare stages included)."""
         cfg = self.cfg
@@ -264,18 +335,18 @@ class RayFrontsMap:
             self._buf_rays.append(p.rays)
         self._buf_occ.append((p.occ_ijk, p.free_ijk))
 
-        c = self.counters
-        c["frames"] += 1
-        c["vox"] += 1
-        c["occ_prune"] += 1
-        c["sem_prune"] += 1
-        if c["ray_phase"] < cfg.ray_accum_phase:
-            c["ray_phase"] += 1
+        counters = self.counters
+        counters["frames"] += 1
+        counters["vox"] += 1
+        counters["occ_prune"] += 1
+        counters["sem_prune"] += 1
+        if counters["ray_phase"] < cfg.ray_accum_phase:
+            counters["ray_phase"] += 1
         else:
-            c["ray"] += 1
-        if c["vox"] >= max(1, cfg.vox_accum_period):
+            counters["ray"] += 1
+        if counters["vox"] >= max(1, cfg.vox_accum_period):
             self._voxel_block()
-        if cfg.semantic_rays and c["ray"] >= max(1, cfg.ray_accum_period):
+        if cfg.semantic_rays and counters["ray"] >= max(1, cfg.ray_accum_period):
             self._ray_block()
         t = time.perf_counter()
         self.timings["commit"] = (t - t_start) * 1e3
@@ -288,9 +359,9 @@ class RayFrontsMap:
     # ------------------------------------------------------------------------------------
     def _voxel_block(self) -> None:
         cfg = self.cfg
-        c = self.counters
-        c["vox"] = 0
-        c["voxel_blocks"] += 1
+        counters = self.counters
+        counters["vox"] = 0
+        counters["voxel_blocks"] += 1
         t = time.perf_counter()
         if not self._buf_occ and not self._buf_sem:
             return
@@ -305,18 +376,18 @@ class RayFrontsMap:
             self.occupancy.update(ijk.cpu(), torch.cat(parts_inc).to(torch.int64))
         t = self._tick("occupancy", t)
         if self._buf_sem:
-            uk, cs, fs, cnt = (torch.cat(x) for x in zip(*self._buf_sem))
+            uk, cs, fs, cnt = (torch.cat(x) for x in zip(*self._buf_sem, strict=True))
             self._buf_sem = []
             self.sem.fuse_sums(uk, cs, fs, cnt)
         t = self._tick("fuse", t)
         if ijk.shape[0] and cfg.sem_pruning_period > 0:
             self._pending_prune.append(torch.unique(cell_keys.pack(ijk)))
-        if cfg.occ_pruning_period > 0 and c["occ_prune"] >= cfg.occ_pruning_period:
-            c["occ_prune"] = 0
+        if cfg.occ_pruning_period > 0 and counters["occ_prune"] >= cfg.occ_pruning_period:
+            counters["occ_prune"] = 0
             self.occupancy.prune(cfg.occ_pruning_tolerance)
             t = self._tick("occ_prune", t)
-        if cfg.sem_pruning_period > 0 and c["sem_prune"] >= cfg.sem_pruning_period:
-            c["sem_prune"] = 0
+        if cfg.sem_pruning_period > 0 and counters["sem_prune"] >= cfg.sem_pruning_period:
+            counters["sem_prune"] = 0
             self.prune_semantic()
             t = self._tick("sem_prune", t)
         if ijk.shape[0]:
@@ -426,7 +497,7 @@ class RayFrontsMap:
         return RayLayer(rs.origins(), dirs, angles_deg(dirs).to(torch.float32), rs.feat.clone(),
                         rs.weight.clone(), rs.fkey.clone())
 
-    def query(self, queries, *, similarity: Similarity | None = None, softmax: bool = False,
+    def query(self, queries: ArrayOrTensor, *, similarity: Similarity | None = None, softmax: bool = False,
               temperature: float = 100.0, top_k: int = 10, denoise: float | None = None,
               threshold: float | None = None) -> LayerScores:
         """Similarity of every voxel and ray to each query (see :mod:`semantic_map.query`)."""

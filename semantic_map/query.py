@@ -19,11 +19,22 @@ every query answer: the mapper's service (``mapper.query_answer``) and the evalu
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Protocol
 
 import torch
 
 Similarity = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+class PreparedRows(Protocol):
+    """Feature rows prepared for scoring (``FeatureSpace.prepare``, the query copy's
+    ``HalfFeatures``): they score queries themselves."""
+
+    def similarity(self, queries: torch.Tensor) -> torch.Tensor:
+        """(Q, N) float32 similarity of the (Q, D) ``queries`` to the rows."""
+        ...
+
+
 DEFAULT_CHUNK = 262144
 
 
@@ -47,8 +58,8 @@ def similarity_matrix(feats: torch.Tensor, queries: torch.Tensor, similarity: Si
     return out
 
 
-def score_rows(feats, queries: torch.Tensor, similarity: Similarity | None = None, softmax: bool = False,
-               temperature: float = 100.0, chunk: int = DEFAULT_CHUNK) -> torch.Tensor:
+def score_rows(feats: torch.Tensor | PreparedRows, queries: torch.Tensor, similarity: Similarity | None = None,
+               softmax: bool = False, temperature: float = 100.0, chunk: int = DEFAULT_CHUNK) -> torch.Tensor:
     """``(Q, N)`` float32 scores of ``queries`` against feature rows ``feats``: the similarity
     (``similarity``, else :func:`cosine`; chunked by ``chunk`` rows when ``feats`` is a tensor;
     prepared features — anything with ``.similarity(queries)`` — score themselves), then with

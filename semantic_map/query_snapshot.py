@@ -21,9 +21,16 @@ from __future__ import annotations
 
 import contextlib
 import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace, PreparedFeatures
+    from semantic_map.map import RayFrontsMap
+    from semantic_map.semantic_voxels import SemanticVoxels
 
 #: max |score − float64 cosine| of the half-precision copy (see the module docstring)
 SCORE_ATOL = 2e-3
@@ -36,7 +43,7 @@ PARALLEL_MIN_ELEMENTS = 1 << 25
 HALF_BLOCK_ROWS = 16384
 
 
-def _np(x) -> np.ndarray:
+def _np(x: np.ndarray | torch.Tensor) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().numpy()
     return np.asarray(x)
@@ -46,12 +53,12 @@ class _one_thread:
     """torch runs single-threaded inside (the incremental copy is many small ops: on a loaded
     machine every parallel region would wait on a descheduled OpenMP worker)."""
 
-    def __enter__(self):
+    def __enter__(self) -> None:
         self.n = torch.get_num_threads()
         if self.n != 1:
             torch.set_num_threads(1)
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         if self.n != 1:
             torch.set_num_threads(self.n)
 
@@ -75,7 +82,8 @@ class HalfFeatures:
     feature; without PCA ``V = I``, ``m = 0``). Same interface as
     :class:`common.feature_space.PreparedFeatures` (``len``, :meth:`similarity`)."""
 
-    def __init__(self, space, device, half: torch.Tensor, a: torch.Tensor, b: torch.Tensor):
+    def __init__(self, space: FeatureSpace, device: str | torch.device, half: torch.Tensor, a: torch.Tensor,
+                 b: torch.Tensor) -> None:
         self.space, self.device, self.n = space, torch.device(device), int(half.shape[0])
         self._h, self._a, self._b = half, a, b
 
@@ -83,7 +91,7 @@ class HalfFeatures:
         return self.n
 
     @torch.inference_mode()
-    def similarity(self, queries) -> torch.Tensor:
+    def similarity(self, queries: np.ndarray | torch.Tensor) -> torch.Tensor:
         """``(Q, N)`` float32 cosine (within :data:`SCORE_ATOL` of the exact one)."""
         qn, qm = self.space.project_queries(queries, self.device)
         nq = qn.shape[0]
@@ -118,6 +126,18 @@ class HalfFeatures:
         return out
 
 
+@dataclass
+class _PreparedSpace:
+    """What :meth:`QuerySnapshot.prepared` keeps per (feature space, device)."""
+
+    kind: str                                       # "half" (no head), "raw" or "head" (language head)
+    v: HalfFeatures | PreparedFeatures              # prepared voxel features
+    aux: torch.Tensor | None = None                 # per-row terms, capacity rows ("half": a, "head": rows)
+    aux2: torch.Tensor | None = None                # "half": b
+    rows: list[torch.Tensor] = field(default_factory=list)   # rows the syncs changed since the last query
+    rays: PreparedFeatures | None = None            # prepared ray features (None: rebuild)
+
+
 class QuerySnapshot:
     """A consistent copy of what a query reads from the map, maintained *incrementally*.
 
@@ -143,7 +163,7 @@ class QuerySnapshot:
     one-off full copy (no journal), for a map used once.
     """
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.gen = -1
         self.frames_mapped = 0
         self.vox = 1.0
@@ -155,13 +175,14 @@ class QuerySnapshot:
         self.ray_feats = torch.empty(0)
         self.ray_origins = np.zeros((0, 3), np.float32)
         self.ray_dirs = np.zeros((0, 3), np.float32)
-        self._prep: dict = {}                 # (space id, device) -> per-space prepared state
-        self._sem = None                      # the SemanticVoxels the copy follows
+        self._prep: dict[tuple[str, str], _PreparedSpace] = {}   # (space id, device) -> prepared state
+        self._sem: SemanticVoxels | None = None   # the SemanticVoxels the copy follows
         self.take_ms = 0.0
         self.changed_rows = 0                 # rows copied by the last sync (-1: everything)
 
     @staticmethod
-    def _grow(buf: torch.Tensor, n: int, tail: tuple, dtype, device, keep: int) -> torch.Tensor:
+    def _grow(buf: torch.Tensor, n: int, tail: tuple[int, ...], dtype: torch.dtype, device: torch.device,
+              keep: int) -> torch.Tensor:
         """``buf`` if it holds ``n`` rows of that kind, else a bigger one with its first ``keep`` rows."""
         if (buf.dtype == dtype and buf.device == device and tuple(buf.shape[1:]) == tail
                 and buf.shape[0] >= n):
@@ -172,13 +193,13 @@ class QuerySnapshot:
             new[:k].copy_(buf[:k])
         return new
 
-    def _fit(self, sem, n: int, keep: int) -> None:
+    def _fit(self, sem: SemanticVoxels, n: int, keep: int) -> None:
         dev = sem.keys.device
         self._vhalf = self._grow(self._vhalf, n, (int(sem.dim),), torch.float16, dev, keep)
         self._vscale = self._grow(self._vscale, n, (), torch.float32, dev, keep)
         self._vkeys = self._grow(self._vkeys, n, (), torch.int64, dev, keep)
 
-    def _copy_all(self, sem, n: int, block: int = 65536) -> None:
+    def _copy_all(self, sem: SemanticVoxels, n: int, block: int = 65536) -> None:
         feat = sem.feat
         for s in range(0, n, block):
             e = min(n, s + block)
@@ -187,7 +208,7 @@ class QuerySnapshot:
             self._vscale[s:e].copy_(sc)
         self._vkeys[:n].copy_(sem.keys)
 
-    def reserve(self, m) -> "QuerySnapshot":
+    def reserve(self, m: RayFrontsMap) -> QuerySnapshot:
         """Grow the buffers for map ``m``'s current size ahead of :meth:`sync` (no lock
         needed: a size hint; the copy's content is kept)."""
         sem = m.sem
@@ -195,12 +216,12 @@ class QuerySnapshot:
             self._fit(sem, len(sem), self.n_voxels)
         return self
 
-    def sync(self, m, gen: int, frames_mapped: int = 0) -> "QuerySnapshot":
+    def sync(self, m: RayFrontsMap, gen: int, frames_mapped: int = 0) -> QuerySnapshot:
         """Bring the copy up to map ``m`` (the caller holds the map lock): changed rows only."""
         with _one_thread():
             return self._sync(m, gen, frames_mapped)
 
-    def _sync(self, m, gen: int, frames_mapped: int) -> "QuerySnapshot":
+    def _sync(self, m: RayFrontsMap, gen: int, frames_mapped: int) -> QuerySnapshot:
         t = time.perf_counter()
         sem = m.sem
         n = len(sem)
@@ -219,7 +240,7 @@ class QuerySnapshot:
                 self._vscale.index_copy_(0, rows, sc)
                 self._vkeys.index_copy_(0, rows, sem.keys.index_select(0, rows))
             for st in self._prep.values():
-                st["rows"].append(rows)
+                st.rows.append(rows)
             self.changed_rows = int(rows.numel())
         self._sem = sem
         self.n_voxels = n
@@ -227,7 +248,7 @@ class QuerySnapshot:
         self.take_ms = (time.perf_counter() - t) * 1e3
         return self
 
-    def take(self, m, gen: int, frames_mapped: int = 0) -> "QuerySnapshot":
+    def take(self, m: RayFrontsMap, gen: int, frames_mapped: int = 0) -> QuerySnapshot:
         """A full copy of the map's query arrays (the caller holds the map lock), without
         touching the map's change journal (for a map queried once)."""
         t = time.perf_counter()
@@ -242,7 +263,7 @@ class QuerySnapshot:
         self.take_ms = (time.perf_counter() - t) * 1e3
         return self
 
-    def _copy_rest(self, m, gen: int, frames_mapped: int) -> None:
+    def _copy_rest(self, m: RayFrontsMap, gen: int, frames_mapped: int) -> None:
         self.vox = float(m.cfg.vox_size)
         rs = m.ray_store
         self.ray_feats = rs.feat.clone()
@@ -251,7 +272,7 @@ class QuerySnapshot:
         self.half_angle = float(m.cone_half_angle())
         self.gen, self.frames_mapped = gen, frames_mapped
         for st in self._prep.values():
-            st["rays"] = None
+            st.rays = None
 
     def feats_of(self, rows: torch.Tensor | None = None) -> torch.Tensor:
         """float32 voxel features (of ``rows``, else all) as the copy holds them."""
@@ -275,19 +296,23 @@ class QuerySnapshot:
         return _np(voxel_center(cell_keys.unpack(k), self.vox)).astype(np.float32, copy=False).reshape(-1, 3)
 
     # ------------------------------------------------------------ prepared terms
-    def _half_terms(self, fs, rows: torch.Tensor | None, device) -> tuple[torch.Tensor, torch.Tensor]:
+    def _half_terms(self, fs: FeatureSpace, rows: torch.Tensor | None,
+                    device: str | torch.device) -> tuple[torch.Tensor, torch.Tensor]:
         """``(a, b)`` of :class:`HalfFeatures` for ``rows`` (else all), in blocks."""
         idx = torch.arange(self.n_voxels) if rows is None else rows
         a = torch.empty(len(idx), dtype=torch.float32)
         b = torch.empty(len(idx), dtype=torch.float32)
         for s in range(0, len(idx), 65536):
             r = idx[s:s + 65536]
-            inv = fs.prepare(self.feats_of(r), device=device)._inv.to(torch.float32).cpu()
+            prep = fs.prepare(self.feats_of(r), device=device)
+            assert prep._inv is not None  # the inverse norms of a space without a language head
+            inv = prep._inv.to(torch.float32).cpu()
             b[s:s + len(r)] = inv
             a[s:s + len(r)] = inv * self._vscale.index_select(0, r).cpu()
         return a, b
 
-    def prepared(self, fs, device="cpu"):
+    def prepared(self, fs: FeatureSpace, device: str | torch.device = "cpu"
+                 ) -> tuple[HalfFeatures | PreparedFeatures, PreparedFeatures]:
         """``(voxels, rays)`` prepared features for space ``fs``: built in full once per copy,
         then updated for the rows each :meth:`sync` changed. A space without a language head
         scores the float16 copy (:class:`HalfFeatures`); one with a head caches its
@@ -299,69 +324,68 @@ class QuerySnapshot:
         if st is None:
             with _one_thread():
                 st = self._prep[key] = self._build_prepared(fs, n, dev, device)
-        elif st["rows"] or st["v"].n != n:
+        elif st.rows or st.v.n != n:
             with _one_thread():
                 self._update_prepared(fs, st, n, dev, device)
-        if st["rays"] is None:
-            st["rays"] = fs.prepare(self.ray_feats, device=device)
-        return st["v"], st["rays"]
+        if st.rays is None:
+            st.rays = fs.prepare(self.ray_feats, device=device)
+        return st.v, st.rays
 
     def _capacity(self) -> int:
         return max(self._vhalf.shape[0], 1)
 
-    def _build_prepared(self, fs, n: int, dev, device) -> dict:
+    def _build_prepared(self, fs: FeatureSpace, n: int, dev: torch.device,
+                        device: str | torch.device) -> _PreparedSpace:
         from common.feature_space import PreparedFeatures
 
-        st = {"rows": [], "rays": None, "aux": None, "aux2": None}
         if fs.head_config is None:
             a, b = self._half_terms(fs, None, device)
-            st["kind"] = "half"
-            st["aux"] = torch.zeros(self._capacity(), dtype=torch.float32, device=dev)
-            st["aux2"] = torch.zeros(self._capacity(), dtype=torch.float32, device=dev)
-            st["aux"][:n], st["aux2"][:n] = a.to(dev), b.to(dev)
-            st["v"] = HalfFeatures(fs, dev, self._vhalf[:n].to(dev), st["aux"][:n], st["aux2"][:n])
-            return st
+            aux = torch.zeros(self._capacity(), dtype=torch.float32, device=dev)
+            aux2 = torch.zeros(self._capacity(), dtype=torch.float32, device=dev)
+            aux[:n], aux2[:n] = a.to(dev), b.to(dev)
+            return _PreparedSpace("half", HalfFeatures(fs, dev, self._vhalf[:n].to(dev), aux[:n], aux2[:n]), aux, aux2)
         v = fs.prepare(self.voxel_feats, device=device)
-        st["v"] = v
         if v._y is None:
-            st["kind"] = "raw"
-            return st
-        st["kind"] = "head"
-        st["aux"] = torch.zeros((self._capacity(), v._y.shape[1]), dtype=torch.float32, device=dev)
-        st["aux"][:n] = v._y
-        st["v"] = PreparedFeatures(fs, dev, n, st["aux"][:n], None, None)
-        return st
+            return _PreparedSpace("raw", v)
+        aux = torch.zeros((self._capacity(), v._y.shape[1]), dtype=torch.float32, device=dev)
+        aux[:n] = v._y
+        return _PreparedSpace("head", PreparedFeatures(fs, dev, n, aux[:n], None, None), aux)
 
     @staticmethod
-    def _grown(aux: torch.Tensor, cap: int, dev) -> torch.Tensor:
+    def _grown(aux: torch.Tensor, cap: int, dev: torch.device) -> torch.Tensor:
         new = torch.zeros((cap, *aux.shape[1:]), dtype=aux.dtype, device=dev)
         new[: aux.shape[0]] = aux
         return new
 
-    def _update_prepared(self, fs, st: dict, n: int, dev, device) -> None:
+    def _update_prepared(self, fs: FeatureSpace, st: _PreparedSpace, n: int, dev: torch.device,
+                         device: str | torch.device) -> None:
         """The prepared terms of the rows the syncs since the last query changed."""
         from common.feature_space import PreparedFeatures
 
-        rows = torch.unique(torch.cat(st["rows"])) if st["rows"] else torch.empty(0, dtype=torch.int64)
+        rows = torch.unique(torch.cat(st.rows)) if st.rows else torch.empty(0, dtype=torch.int64)
         rows = rows[rows < n]
-        st["rows"] = []
-        kind = st["kind"]
+        st.rows = []
+        kind = st.kind
         if kind == "raw":
-            st["v"] = PreparedFeatures(fs, dev, n, None, None, None, raw=self.voxel_feats)
+            st.v = PreparedFeatures(fs, dev, n, None, None, None, raw=self.voxel_feats)
             return
-        if st["aux"].shape[0] < n:
-            st["aux"] = self._grown(st["aux"], self._capacity(), dev)
-            if st["aux2"] is not None:
-                st["aux2"] = self._grown(st["aux2"], self._capacity(), dev)
+        assert st.aux is not None  # "half" and "head" keep per-row terms
+        if st.aux.shape[0] < n:
+            st.aux = self._grown(st.aux, self._capacity(), dev)
+            if st.aux2 is not None:
+                st.aux2 = self._grown(st.aux2, self._capacity(), dev)
         if kind == "half":
+            assert st.aux2 is not None
             if rows.numel():
                 a, b = self._half_terms(fs, rows, device)
                 r = rows.to(dev)
-                st["aux"].index_copy_(0, r, a.to(dev))
-                st["aux2"].index_copy_(0, r, b.to(dev))
-            st["v"] = HalfFeatures(fs, dev, self._vhalf[:n].to(dev), st["aux"][:n], st["aux2"][:n])
+                st.aux.index_copy_(0, r, a.to(dev))
+                st.aux2.index_copy_(0, r, b.to(dev))
+            st.v = HalfFeatures(fs, dev, self._vhalf[:n].to(dev), st.aux[:n], st.aux2[:n])
             return
         if rows.numel():
             sub = fs.prepare(self.feats_of(rows), device=device)
-            st["aux"].index_copy_(0, rows.to(dev), sub._y)
-        st["v"] = PreparedFeatures(fs, dev, n, st["aux"][:n], None, None)
+            # the language-space rows a space with a head caches (a batch too large to cache
+            # leaves them None, which index_copy_ rejects, as before)
+            st.aux.index_copy_(0, rows.to(dev), cast(torch.Tensor, sub._y))
+        st.v = PreparedFeatures(fs, dev, n, st.aux[:n], None, None)

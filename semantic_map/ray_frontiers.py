@@ -1,11 +1,11 @@
 """Semantic ray frontiers: association of rays to frontiers, angle binning, weighted merge,
-pruning / re-casting and direction inference (paper §III-E, reference brief §2.6-2.8).
+pruning / re-casting and direction inference (paper §III-E; docs/method.md#ray-association).
 
 Association (paper equation, per ray over its own candidate set): a frontier ``p`` (coarse
 centre, cell size ``beta``) is a candidate of ray ``(o, d)`` when ``t = (p - o)·d > 0``,
 ``d_ortho = |p - o - t d| <= beta``, ``d_orig = |p - o| <= max_dist`` (``max_dist =
 ray_range_factor * range``; no limit when the range is unknown) and, with the reference's
-optional rule, ``d_orig >= 2 beta``. Two cost scales (``MapConfig.ray_cost_norm``, audit B2):
+optional rule, ``d_orig >= 2 beta``. Two cost scales (``MapConfig.ray_cost_norm``, docs/method.md#cost-scale):
 
 * ``paper``: ``c = (d_ortho / max_cand d_ortho + d_orig / max_cand d_orig) / 2`` (a 0/0 term
   is 0), normalised per ray over its own candidates as the paper's equation reads; a lone
@@ -39,13 +39,21 @@ from __future__ import annotations
 
 import math
 import warnings
+from typing import TYPE_CHECKING
 
 import torch
 
 from common.conventions import voxel_center, voxel_index
-from semantic_map import kernels
-from semantic_map import cell_keys
+from semantic_map import cell_keys, kernels
 from semantic_map.traversal import segment_cells
+
+if TYPE_CHECKING:
+    from semantic_map.occupancy import OccupancyGrid
+
+#: ray -> frontier association: (ray idx (K,), frontier idx (K,), float64 cost (K,))
+Association = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+#: rays to cast: (origins (R, 3), unit directions (R, 3), features (R, C))
+RayBatch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
 
 KERNEL_RAY_CHUNK = 1 << 15  # rays per kernel call in associate(): bounds the candidate-pair memory
 _OFFS = torch.tensor([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], dtype=torch.int64)
@@ -82,7 +90,8 @@ def bin_centre_dirs(tb: torch.Tensor, pb: torch.Tensor, psi: float) -> torch.Ten
     nt, npb = bin_counts(psi)
     th = torch.deg2rad(tb.to(torch.float64) * (360.0 / nt))
     ph = torch.deg2rad((pb.to(torch.float64) + 0.5) * (180.0 / npb))
-    return torch.stack([torch.sin(ph) * torch.cos(th), torch.sin(ph) * torch.sin(th), torch.cos(ph)], 1).to(torch.float32)
+    return torch.stack([torch.sin(ph) * torch.cos(th), torch.sin(ph) * torch.sin(th), torch.cos(ph)],
+                       1).to(torch.float32)
 
 
 # --------------------------------------------------------------------------- association
@@ -148,7 +157,8 @@ def _argmin_cost(ri, fi, terms, n_rays, scales=None):
 
 def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Tensor, beta: float, *,
               max_dist: float = -1.0, reject_close: bool = False, zero_depth: bool = False,
-              cost: str = "paper", chunk: int = 1 << 22, block: int = 4, _base_pt: torch.Tensor | None = None):
+              cost: str = "paper", chunk: int = 1 << 22, block: int = 4,
+              _base_pt: torch.Tensor | None = None) -> Association:
     """Match rays to coarse frontiers (cells ``frontier_ijk`` (F, 3) of size ``beta``).
 
     Returns ``(ray_idx (K,), frontier_idx (K,), cost (K,) float64)`` for the rays that found
@@ -183,14 +193,14 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
                  for s in range(0, R, step)]
         if len(parts) == 1:
             return parts[0]
-        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, step))]),
+        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, step), strict=True)]),
                 torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
     ray_chunk = 8192  # per-ray results are independent: chunking over rays bounds memory
     if R > ray_chunk:
         parts = [associate(origins[s:s + ray_chunk], dirs[s:s + ray_chunk], frontier_ijk, beta, max_dist=max_dist,
                            reject_close=reject_close, cost=cost, chunk=chunk, _base_pt=base)
                  for s in range(0, R, ray_chunk)]
-        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, ray_chunk))]),
+        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, ray_chunk), strict=True)]),
                 torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
     ends = o + d * L[:, None]
     # dilated frontier table: cell key -> frontier index
@@ -242,7 +252,7 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, base, cost)
 
 
-def _nearest(o: torch.Tensor, p: torch.Tensor):
+def _nearest(o: torch.Tensor, p: torch.Tensor) -> Association:
     """Zero-depth association: nearest frontier per ray (computed per unique origin)."""
     uo, inv = torch.unique(o, dim=0, return_inverse=True)
     best_f = torch.empty(uo.shape[0], dtype=torch.int64, device=o.device)
@@ -258,8 +268,9 @@ def _nearest(o: torch.Tensor, p: torch.Tensor):
     return rays, best_f[inv], best_c[inv]
 
 
-def associate_bruteforce(origins, dirs, frontier_ijk, beta, *, max_dist=-1.0, reject_close=False,
-                         zero_depth=False, cost="paper"):
+def associate_bruteforce(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Tensor, beta: float, *,
+                         max_dist: float = -1.0, reject_close: bool = False, zero_depth: bool = False,
+                         cost: str = "paper") -> Association:
     """O(R×F) reference of :func:`associate` (tests only)."""
     R, F = origins.shape[0], frontier_ijk.shape[0]
     o = origins.to(torch.float64)
@@ -285,7 +296,8 @@ class RayStore:
     frontiers the same way. Results (values and order) equal the full-scan :meth:`prune`
     and the sort-based merge they replace (``tests/test_mapper_incremental.py``)."""
 
-    def __init__(self, beta: float, psi: float, feature_dim: int, feature_dtype=torch.float32, device="cpu"):
+    def __init__(self, beta: float, psi: float, feature_dim: int, feature_dtype: torch.dtype = torch.float32,
+                 device: str | torch.device = "cpu") -> None:
         self.beta = float(beta)
         self.psi = float(psi)
         self.dim = int(feature_dim)
@@ -310,12 +322,12 @@ class RayStore:
         for f in self._fields():
             setattr(self, f, getattr(self, f)[idx])
 
-    def prune(self, frontier_keys: torch.Tensor, requeue: bool):
+    def prune(self, frontier_keys: torch.Tensor, requeue: bool) -> RayBatch | None:
         """Drop bins whose frontier is gone; return (origins, dirs, feats) of the dropped
         bins for re-casting when ``requeue`` (origin = old frontier centre, direction = the
         bin's stored weighted mean direction (:meth:`directions`; the bin centre only for a
         zero direction sum), feature = bin mean), else None. The mean, not the bin centre:
-        with one 360° bin the centre is always +x (audit B1)."""
+        with one 360° bin the centre is always +x (docs/method.md#recast-direction)."""
         alive = torch.isin(self.fkey, frontier_keys)
         out = None
         if requeue and not bool(alive.all()):
@@ -333,14 +345,14 @@ class RayStore:
         rows = lo[q] + (torch.arange(q.numel(), device=self.device) - start[q])
         return lo, cnt, q, rows
 
-    def _dead_out(self, dead: torch.Tensor):
+    def _dead_out(self, dead: torch.Tensor) -> RayBatch:
         o = voxel_center(cell_keys.unpack(self.fkey[dead]), self.beta)
         n = self.dsum[dead].norm(dim=1, keepdim=True)
         bc = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
         dd = torch.where(n > 1e-12, self.dsum[dead] / n.clamp_min(1e-12), bc)
         return (o, dd, self.feat[dead].to(torch.float32))
 
-    def prune_keys(self, gone_keys: torch.Tensor, requeue: bool):
+    def prune_keys(self, gone_keys: torch.Tensor, requeue: bool) -> RayBatch | None:
         """:meth:`prune` for a store whose only frontiers missing from the table are among
         ``gone_keys`` (sorted unique): drops the bins of those frontiers, touching only them."""
         if gone_keys.numel() == 0 or self.fkey.numel() == 0:
@@ -388,7 +400,8 @@ class RayStore:
             rows_ex = pos[ex]
             W0 = self.weight[rows_ex]
             W1 = W0 + sw[ex]
-            self.feat[rows_ex] = ((self.feat[rows_ex].to(torch.float32) * W0[:, None] + sf[ex]) / W1[:, None]).to(self.dtype)
+            self.feat[rows_ex] = ((self.feat[rows_ex].to(torch.float32) * W0[:, None] + sf[ex])
+                                  / W1[:, None]).to(self.dtype)
             self.weight[rows_ex] = W1
             self.dsum[rows_ex] = self.dsum[rows_ex] + sd[ex]
         nw = ~ex
@@ -443,7 +456,8 @@ class RayStore:
             setattr(self, f, t)
 
 
-def infer_directions(grid, frontier_keys: torch.Tensor, beta: float, vox: float, scale: str = "fine") -> torch.Tensor:
+def infer_directions(grid: OccupancyGrid, frontier_keys: torch.Tensor, beta: float, vox: float,
+                     scale: str = "fine") -> torch.Tensor:
     """Unidirectional baseline: per frontier, ``normalise(sum_n w_n * offset_n)`` over the 26
     neighbours at offsets ``offset * h`` (h = vox for "fine", the reference's spacing; beta for
     "coarse") around the frontier centre, with ``w = +1`` if the occupancy there is unobserved

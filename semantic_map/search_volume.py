@@ -7,7 +7,7 @@ A cone ``(o, d, alpha)`` holds point ``x`` when ``t = (x - o)·d`` satisfies
 Rasterisation (:func:`membership_counts`) groups the candidate voxels into cubic blocks,
 tests every shape against each block's bounding sphere (conservative), and runs the exact
 per-voxel test only for the surviving (block, shape) pairs, in chunks. Other shapes (e.g.
-the reference's hexagonal pyramids, brief §6.2) plug in through ``block_test`` /
+the reference's hexagonal pyramids, docs/method.md#evaluation) plug in through ``block_test`` /
 ``exact_test`` callables — that is the hook the evaluation uses.
 
 ``half_angle_deg`` default in the map: the config's ``cone_half_angle_deg``, or max(FoV)/2
@@ -16,15 +16,20 @@ the reference's hexagonal pyramids, brief §6.2) plug in through ``block_test`` 
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 
-BlockTest = Callable[[torch.Tensor, float, torch.Tensor], torch.Tensor]   # (B,3) centres, radius, shape idx (S,) -> (B,S) bool
+if TYPE_CHECKING:
+    from semantic_map.depth_geometry import ArrayOrTensor
+
+# (B,3) centres, radius, shape idx (S,) -> (B,S) bool
+BlockTest = Callable[[torch.Tensor, float, torch.Tensor], torch.Tensor]
 ExactTest = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]          # (P,3) points, shape idx (P,) -> (P,) bool
 
 
-def _blocks(x: torch.Tensor, block: float | None, target: int = 256):
+def _blocks(x: torch.Tensor, block: float | None, target: int = 256
+            ) -> tuple[torch.Tensor, float, torch.Tensor, torch.Tensor, torch.Tensor]:
     lo = x.min(0).values
     hi = x.max(0).values
     if block is None:
@@ -42,7 +47,7 @@ def _blocks(x: torch.Tensor, block: float | None, target: int = 256):
     return centres, radius, order, start, cnt
 
 
-def membership_counts(points: torch.Tensor, n_shapes: int, block_test: BlockTest, exact_test: ExactTest,
+def membership_counts(points: ArrayOrTensor, n_shapes: int, block_test: BlockTest, exact_test: ExactTest,
                       weights: torch.Tensor | None = None, block: float | None = None,
                       chunk: int = 1 << 22) -> torch.Tensor:
     """(V,) number of shapes (or sum of shape ``weights``) containing each point."""
@@ -83,13 +88,16 @@ def membership_counts(points: torch.Tensor, n_shapes: int, block_test: BlockTest
     return out
 
 
-def cone_tests(origins, dirs, half_angle_deg: float, near: float = 0.0, far: float = math.inf):
+def cone_tests(origins: ArrayOrTensor, dirs: ArrayOrTensor, half_angle_deg: float, near: float = 0.0,
+               far: float = math.inf) -> tuple[BlockTest, ExactTest]:
+    """``(block_test, exact_test)`` of the cones ``(origins, dirs, half_angle_deg)`` cut to
+    ``near <= t <= far`` (see :func:`membership_counts`)."""
     o = torch.as_tensor(origins).to(torch.float64)
     d = torch.nn.functional.normalize(torch.as_tensor(dirs).to(torch.float64), dim=1)
     a = math.radians(half_angle_deg)
     ca = math.cos(a)
 
-    def block_test(bc, rho, sidx):
+    def block_test(bc: torch.Tensor, rho: float, sidx: torch.Tensor) -> torch.Tensor:
         v = bc[:, None, :] - o[sidx][None]            # (B, S, 3)
         L = v.norm(dim=2)
         t = (v * d[sidx][None]).sum(2)
@@ -99,7 +107,7 @@ def cone_tests(origins, dirs, half_angle_deg: float, near: float = 0.0, far: flo
         inside = (L <= rho) | (ang <= a + spread)
         return inside & (t + rho >= near) & (t - rho <= far)
 
-    def exact_test(x, si):
+    def exact_test(x: torch.Tensor, si: torch.Tensor) -> torch.Tensor:
         v = x - o[si]
         t = (v * d[si]).sum(1)
         return (t >= near) & (t <= far) & (t >= v.norm(dim=1) * ca)
@@ -107,15 +115,17 @@ def cone_tests(origins, dirs, half_angle_deg: float, near: float = 0.0, far: flo
     return block_test, exact_test
 
 
-def cone_membership_counts(voxel_centres, origins, dirs, half_angle_deg: float, near: float = 0.0,
-                           far: float = math.inf, weights=None, block: float | None = None,
+def cone_membership_counts(voxel_centres: ArrayOrTensor, origins: ArrayOrTensor, dirs: ArrayOrTensor,
+                           half_angle_deg: float, near: float = 0.0, far: float = math.inf,
+                           weights: torch.Tensor | None = None, block: float | None = None,
                            chunk: int = 1 << 22) -> torch.Tensor:
     """(V,) number of cones (or sum of their ``weights``) containing each voxel centre."""
     bt, et = cone_tests(origins, dirs, half_angle_deg, near, far)
     return membership_counts(voxel_centres, int(torch.as_tensor(origins).shape[0]), bt, et, weights, block, chunk)
 
 
-def ball_membership_counts(voxel_centres, centres, radii, weights=None, block: float | None = None,
+def ball_membership_counts(voxel_centres: ArrayOrTensor, centres: ArrayOrTensor, radii: ArrayOrTensor | float,
+                           weights: torch.Tensor | None = None, block: float | None = None,
                            chunk: int = 1 << 22) -> torch.Tensor:
     """(V,) number of balls ``(centres (B, 3), radii (B,) or scalar)`` containing each voxel centre."""
     c = torch.as_tensor(centres).to(torch.float64)
@@ -123,10 +133,10 @@ def ball_membership_counts(voxel_centres, centres, radii, weights=None, block: f
     if r.ndim == 0:
         r = r.expand(c.shape[0])
 
-    def block_test(bc, rho, sidx):
+    def block_test(bc: torch.Tensor, rho: float, sidx: torch.Tensor) -> torch.Tensor:
         return (bc[:, None, :] - c[sidx][None]).norm(dim=2) <= r[sidx][None] + rho
 
-    def exact_test(x, si):
+    def exact_test(x: torch.Tensor, si: torch.Tensor) -> torch.Tensor:
         return (x - c[si]).norm(dim=1) <= r[si]
 
     return membership_counts(voxel_centres, c.shape[0], block_test, exact_test, weights, block, chunk)

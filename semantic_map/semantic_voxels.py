@@ -29,7 +29,7 @@ from semantic_map import cell_keys
 class KeyIndex:
     """int64 key → int64 row, with insert / lookup / delete (two-level sorted arrays)."""
 
-    def __init__(self, device="cpu"):
+    def __init__(self, device: str | torch.device = "cpu") -> None:
         self.device = torch.device(device)
         e = torch.empty(0, dtype=torch.int64, device=self.device)
         self.main_k, self.main_r, self.delta_k, self.delta_r = e, e.clone(), e.clone(), e.clone()
@@ -86,7 +86,14 @@ class KeyIndex:
 class SemanticVoxels:
     """Sparse semantic voxel map (see module docstring). ``vox`` in metres."""
 
-    def __init__(self, vox: float, feature_dim: int, feature_dtype: torch.dtype = torch.float32, device="cpu"):
+    # row storage, set by _alloc (capacity rows, the first n live)
+    _row_keys: torch.Tensor   # (cap,) int64 packed voxel key
+    _rgb: torch.Tensor        # (cap, 3) float32
+    _feat: torch.Tensor       # (cap, C) feature dtype
+    _count: torch.Tensor      # (cap,) float32 hit count
+
+    def __init__(self, vox: float, feature_dim: int, feature_dtype: torch.dtype = torch.float32,
+                 device: str | torch.device = "cpu") -> None:
         self.vox = float(vox)
         self.dim = int(feature_dim)
         self.dtype = feature_dtype
@@ -97,7 +104,7 @@ class SemanticVoxels:
         self._journal: list[torch.Tensor] = []   # rows changed since the consumer's last take
         self._journal_rows = 0
         self._journal_all = True                 # the consumer must take everything
-        self._journal_owner = None
+        self._journal_owner: object = None
 
     def _alloc(self, cap: int) -> None:
         dev = self.device
@@ -134,7 +141,8 @@ class SemanticVoxels:
             raise ValueError(f"feature dim {feat_sum.shape[1]} != map feature dim {self.dim}")
         uk, inv = torch.unique(keys, return_inverse=True)
         m = uk.numel()
-        sf = torch.zeros((m, self.dim), dtype=torch.float32, device=self.device).index_add_(0, inv, feat_sum.to(torch.float32))
+        sf = torch.zeros((m, self.dim), dtype=torch.float32, device=self.device).index_add_(
+            0, inv, feat_sum.to(torch.float32))
         sc = torch.zeros((m, 3), dtype=torch.float32, device=self.device).index_add_(0, inv, rgb_sum.to(torch.float32))
         cnt = torch.zeros(m, dtype=torch.float32, device=self.device).index_add_(0, inv, counts.to(torch.float32))
         rows = self.index.lookup(uk)
@@ -197,7 +205,7 @@ class SemanticVoxels:
         if self._journal_rows > max(4096, self.n // 4):
             self._journal, self._journal_rows, self._journal_all = [], 0, True
 
-    def take_changes(self, owner) -> torch.Tensor | None:
+    def take_changes(self, owner: object) -> torch.Tensor | None:
         """Rows (sorted, unique, all ``< len(self)``) written or moved since ``owner``'s last
         call, or ``None``: take everything (first call of this owner, another owner in
         between, a reload, or more changes than the journal keeps). Rows ``>= len(self)`` are
@@ -241,11 +249,11 @@ class SemanticVoxels:
         t = (self._row_keys, self._rgb, self._feat, self._count, self.index.main_k, self.index.main_r)
         return sum(x.numel() * x.element_size() for x in t)
 
-    def state(self) -> dict:
+    def state(self) -> dict[str, torch.Tensor]:
         return {"keys": self.keys.clone(), "rgb": self.rgb.clone(), "feat": self.feat.clone(),
                 "count": self.count.clone()}
 
-    def load_state(self, st: dict) -> None:
+    def load_state(self, st: dict[str, torch.Tensor]) -> None:
         n = int(st["keys"].shape[0])
         self.n = 0
         self._alloc(max(1024, n))

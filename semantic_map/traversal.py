@@ -20,8 +20,7 @@ from __future__ import annotations
 import torch
 
 from common.conventions import voxel_index
-from semantic_map import kernels
-from semantic_map import cell_keys
+from semantic_map import cell_keys, kernels
 
 DEFAULT_CHUNK = 1 << 22  # (segment, cell) pairs per chunk
 
@@ -68,7 +67,8 @@ def _chunk_cells(o: torch.Tensor, e: torch.Tensor, cell: float, base: torch.Tens
         ijk[:, a] = entered
         for b in range(3):
             if b != a:
-                ijk[:, b] = torch.floor((torch.repeat_interleave(oc[b], cnt) + t * torch.repeat_interleave(dc[b], cnt)) / cell).to(torch.int64)
+                pos = torch.repeat_interleave(oc[b], cnt) + t * torch.repeat_interleave(dc[b], cnt)
+                ijk[:, b] = torch.floor(pos / cell).to(torch.int64)
         ids_all.append(rid)
         ijk_all.append(ijk)
     if not ids_all:
@@ -83,7 +83,7 @@ def _chunk_cells(o: torch.Tensor, e: torch.Tensor, cell: float, base: torch.Tens
 
 def segment_cells(origins: torch.Tensor, ends: torch.Tensor, cell: float, *,
                   include_start: bool = True, exclude_end: torch.Tensor | None = None,
-                  chunk: int = DEFAULT_CHUNK):
+                  chunk: int = DEFAULT_CHUNK) -> tuple[torch.Tensor, torch.Tensor]:
     """All (segment, cell) pairs for segments ``origins[i]``→``ends[i]`` (float64 (N, 3)).
 
     ``exclude_end`` (N,) bool drops each flagged segment's end cell. Returns

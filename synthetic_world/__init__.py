@@ -1,5 +1,5 @@
 """The procedural synthetic outdoor world: data for the demo, ground truth for the tests,
-scenes for the benchmarks (DESIGN §6).
+scenes for the benchmarks (docs/synthetic_world.md).
 
     from synthetic_world import World
     w = World.generate(seed=0)

@@ -64,8 +64,8 @@ def _log_rerun(path: Path, world, poses, K, hw, frames_iter, seed: int) -> None:
     rec = rr.RecordingStream("rayfronts_world", recording_id=f"world-seed{seed}")
     rec.save(str(path))
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    rec.log("world", rr.AnnotationContext([(i, n, c) for i, (n, c) in enumerate(zip(world.classes, world.class_colors))]),
-            static=True)
+    classes = enumerate(zip(world.classes, world.class_colors, strict=True))
+    rec.log("world", rr.AnnotationContext([(i, n, c) for i, (n, c) in classes]), static=True)
     inst = world.instances
     rec.log("world/instances", rr.Boxes3D(
         centers=np.array([i.center for i in inst]),

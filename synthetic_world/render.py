@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -87,8 +88,9 @@ def _pixel_boxes(corners: np.ndarray, R: np.ndarray, o: np.ndarray, K: np.ndarra
     return r0, r1, c0, c1, any_ok & (c1 > c0) & (r1 > r0)
 
 
-def render_scene(scene, pose: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> Render:
-    """Render ``scene`` (a :class:`synthetic_world.World`) from camera-to-world ``pose`` (RDF)."""
+def render_scene(scene: Any, pose: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> Render:
+    """Render ``scene`` (a :class:`synthetic_world.World`; not imported here, the scene module imports
+    this one) from camera-to-world ``pose`` (RDF)."""
     pose = np.asarray(pose, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
@@ -130,7 +132,7 @@ def render_scene(scene, pose: np.ndarray, K: np.ndarray, hw: tuple[int, int]) ->
         starts = np.flatnonzero(np.r_[True, ids_s[1:] != ids_s[:-1]])
         ends = np.r_[starts[1:], len(ids_s)]
         nflat = normal.reshape(-1, 3)
-        for s0, s1 in zip(starts, ends):
+        for s0, s1 in zip(starts, ends, strict=True):
             i = ids_s[s0]
             sel = order[s0:s1]
             nflat[idx[sel]] = NORMAL[kinds[i]](pts[sel], params[kinds[i]][kidx[i]])

@@ -8,7 +8,7 @@ avoids such overlaps except where a later, smaller object sits on an earlier one
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -19,6 +19,9 @@ from . import primitives
 from .classes import CLASS_COLORS, CLASS_NAMES
 from .parts import Layout, Part
 from .render import Render, render_scene
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,7 +51,7 @@ class World:
         if len(set(self.classes)) != len(self.classes):
             raise ValueError(f"duplicate class names in {self.classes}")
         if class_colors is None:
-            default = dict(zip(CLASS_NAMES, CLASS_COLORS))
+            default = dict(zip(CLASS_NAMES, CLASS_COLORS, strict=True))
             rng = np.random.default_rng(12345)
             class_colors = [default.get(n, tuple(int(x) for x in rng.integers(40, 230, 3))) for n in self.classes]
         self.class_colors: list[tuple[int, int, int]] = [tuple(int(v) for v in c) for c in class_colors]
@@ -139,6 +142,7 @@ class World:
         return self._amin.min(0), self._amax.max(0)
 
     def instances_of(self, class_id: int) -> list[Instance]:
+        """The instances of class ``class_id`` (index into :attr:`classes`)."""
         return [i for i in self.instances if i.class_id == class_id]
 
     # ------------------------------------------------------------------ rendering
@@ -220,7 +224,8 @@ class World:
         if not 0 <= int(class_id) < len(self.classes):
             raise ValueError(f"class id {class_id} out of range 0..{len(self.classes) - 1}")
         m = self._cls == class_id
-        return {k: self._params[k][self._kidx[m & (self._kind == k)]] for k in (primitives.KIND_BOX, primitives.KIND_FRUSTUM, primitives.KIND_SPHERE)}
+        kinds = (primitives.KIND_BOX, primitives.KIND_FRUSTUM, primitives.KIND_SPHERE)
+        return {k: self._params[k][self._kidx[m & (self._kind == k)]] for k in kinds}
 
     def distance_to_class(self, points: np.ndarray, class_id: int, chunk: int = 20_000) -> np.ndarray:
         """(N,) metres from each point to the nearest solid of any instance of ``class_id``
@@ -235,8 +240,8 @@ class World:
                     out[a:a + chunk] = np.minimum(out[a:a + chunk], primitives.DIST[k](q, prm[None]).min(1))
         return out
 
-    def ray_distance_to_class(self, origin, direction, class_id: int, max_range: float | None = None,
-                              tol: float = 1e-7) -> float:
+    def ray_distance_to_class(self, origin: ArrayLike, direction: ArrayLike, class_id: int,
+                              max_range: float | None = None, tol: float = 1e-7) -> float:
         """Minimum distance (m) between the half-line ``origin + t·direction`` (t ≥ 0, up to
         ``max_range`` if given) and any solid of ``class_id`` (0 if the ray hits one; +inf if
         the class has no instance).
@@ -250,8 +255,9 @@ class World:
             raise ValueError(f"origin and direction must be 3-vectors, got shapes {o.shape}, {d.shape}")
         return float(self.rays_distance_to_class(o[None], d[None], class_id, max_range, tol)[0])
 
-    def rays_distance_to_class(self, origins, directions, class_id: int, max_range: float | None = None,
-                               tol: float = 1e-7, chunk: int = 4096) -> np.ndarray:
+    def rays_distance_to_class(self, origins: ArrayLike, directions: ArrayLike, class_id: int,
+                               max_range: float | None = None, tol: float = 1e-7,
+                               chunk: int = 4096) -> np.ndarray:
         """Batched :meth:`ray_distance_to_class`: origins and directions (N, 3) → (N,) metres."""
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)

@@ -12,14 +12,25 @@ seed-dependent point and direction:
 """
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
 from common.geometry import look_at
 
+from .parts import Layout
+
 PRESETS = ("ground", "drone")
 
 
-def loop_path(half_x: float, half_y: float, radius: float, step: float = 0.05):
+class HasLayout(Protocol):
+    """What a trajectory needs of a world (a :class:`synthetic_world.World`): its town layout."""
+
+    layout: Layout
+
+
+def loop_path(half_x: float, half_y: float, radius: float,
+              step: float = 0.05) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Dense samples of the counter-clockwise rounded-rectangle loop starting at
     ``(-half_x + radius, -half_y)`` heading east: (s, x, y, heading) arrays, heading unwrapped."""
     r = float(radius)
@@ -53,12 +64,12 @@ def loop_path(half_x: float, half_y: float, radius: float, step: float = 0.05):
     return s, xy[:, 0], xy[:, 1], hd
 
 
-def _pose(eye, yaw, pitch) -> np.ndarray:
+def _pose(eye: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
     f = np.array([np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), np.sin(pitch)])
     return look_at(eye, eye + f)
 
 
-def trajectory(world, preset: str = "ground", n_frames: int = 100, seed: int | None = 0) -> np.ndarray:
+def trajectory(world: HasLayout, preset: str = "ground", n_frames: int = 100, seed: int | None = 0) -> np.ndarray:
     """(n_frames, 4, 4) float64 camera-to-world RDF poses for ``world`` (see module doc)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown trajectory preset {preset!r}; valid presets: {', '.join(PRESETS)}")

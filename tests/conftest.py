@@ -1,14 +1,63 @@
 """Shared fixtures. Torch thread counts are set here, per module, never at import time (an
 import-time ``torch.set_num_threads`` leaks into every test collected after it)."""
+import signal
+
 import pytest
 import torch
+
+
+def _torch_threads(n: int):
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    yield
+    torch.set_num_threads(old)
 
 
 @pytest.fixture(scope="module")
 def torch_two_threads():
     """Run a module's tests with 2 torch threads (the build machine's core count), then
     restore the previous setting."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(old)
+    yield from _torch_threads(2)
+
+
+@pytest.fixture(scope="module")
+def torch_one_thread():
+    """Run a module's tests with 1 torch thread, as the map runs per stage (tiny tensors and
+    spare threads on a busy 2-core box spend their time in OpenMP barriers), then restore
+    the previous setting."""
+    yield from _torch_threads(1)
+
+
+@pytest.fixture
+def procs():
+    """The test's :class:`tests.support.Proc` children; those still running at teardown are
+    SIGKILLed (a test stops the ones whose exit it checks)."""
+    from tests.support.processes import stop_all
+
+    started: list = []
+    yield started
+    stop_all(reversed(started), signal.SIGKILL)
+
+
+@pytest.fixture(scope="session")
+def pca_file(tmp_path_factory):
+    """A fixed PCA basis (``rayfronts edge fit-pca``, :func:`tests.support.fit_pca`) so
+    restarted edges share one feature space; fitted once per session."""
+    from tests.support.roles import fit_pca
+
+    return fit_pca(tmp_path_factory.mktemp("pca") / "pca.npz")
+
+
+@pytest.fixture
+def closer():
+    """Collects :class:`tests.support.zenoh_agent.Agent` / ``Router`` children and closes them
+    (reverse order) whatever happens."""
+    from tests.support.zenoh_agent import Agent
+
+    items: list = []
+    yield items
+    for it in reversed(items):
+        try:
+            it.close() if isinstance(it, Agent) else it.stop()
+        except Exception:
+            pass

@@ -81,7 +81,7 @@ def main() -> int:
         gid = bytes(range(16))
         n = 0
         latched = [c for c in conns if c.topic in a.latch]
-        for conn, ns, raw in (reader.messages(connections=latched) if latched else ()):  # [] would mean all
+        for conn, _ns, raw in (reader.messages(connections=latched) if latched else ()):  # [] would mean all
             pubs[conn.id][0].put(bytes(raw))
             n += 1
         print("READY", flush=True)

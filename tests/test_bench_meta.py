@@ -71,7 +71,8 @@ def test_bench_all_quick_and_table(tmp_path, monkeypatch):
     monkeypatch.chdir(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     out = tmp_path / "b"
     assert main(["bench", "all", "--quick", "--only", "world,mapper_kernels_vs_torch", "--json", str(out)]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["all.json", "mapper_kernels_vs_torch.json", "table.md", "world.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["all.json", "mapper_kernels_vs_torch.json", "table.md",
+                                                     "world.json"]
     mk = json.loads((out / "mapper_kernels_vs_torch.json").read_text())
     assert mk["maps_identical"] is True and set(mk["sides"]) == {"kernels", "torch"}
     assert mk["meta"]["argv"][:3] == ["rayfronts", "bench", "mapper"]
@@ -99,3 +100,18 @@ def test_bench_all_lists_every_readme_figure():
     for _, full, quick in ALL:
         assert full[0] in TARGETS and quick[0] == full[0]
     assert sys.modules["apps.bench"].run_all is not None
+
+
+def test_bench_search_quick(tmp_path):
+    """`bench search` on a small map: every stage timed, look-next goals from the frames'
+    frontiers, the three occupancy queries measured; the JSON carries the meta block."""
+    f = tmp_path / "s.json"
+    assert main(["bench", "search", "--voxels", "5k", "--queries", "2", "--rays", "50", "--frames", "2",
+                 "--json", str(f)]) == 0
+    d = json.loads(f.read_text())
+    row = d["sizes"]["5k"]
+    assert row["voxels"] >= 5000 and row["frontiers"] > 0 and row["look_next"] > 0
+    assert {"encode", "similarity", "instances", "look_next", "beyond", "total"} <= set(row["stage_p50_ms"])
+    assert row["search_ms"]["n"] == 2 and row["search_ms"]["p50"] > 0
+    assert set(row["occupancy_ms"]) == {"box_40x40x6m", "slice_80x80m", "points_1000_r1m"}
+    assert d["meta"]["process"]["cpu_s"] > 0 and "search_5k" in [s["name"] for s in d["meta"]["sections"]]

@@ -24,7 +24,6 @@ import signal
 import socket
 import struct
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -34,7 +33,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support.ports import free_port
+from tests.support.processes import ROOT, Proc, stop_all, stop_process, wait_log
 
 
 class WS:
@@ -134,20 +134,10 @@ class Chromium:
         return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
 
     def close(self):
-        try:
-            self.p.terminate()
-            self.p.wait(10)
-        except Exception:
-            self.p.kill()
+        stop_process(self.p, signal.SIGTERM, 10)
 
 
 # ----------------------------------------------------------------------------- the test
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _chromium_exe() -> str:
     exe = shutil.which("chromium") or shutil.which("chromium-browser")
     if exe:
@@ -155,18 +145,6 @@ def _chromium_exe() -> str:
     if os.environ.get("CI"):
         pytest.fail("chromium is not installed: deploy/setup_dev.sh installs Debian's chromium with the test extra")
     pytest.skip("chromium is not installed here (apt-get install chromium); under CI this test fails instead")
-
-
-def _wait_log(p, log: Path, pattern: str, timeout: float) -> re.Match:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        m = re.search(pattern, log.read_text(errors="replace")) if log.exists() else None
-        if m:
-            return m
-        if p.poll() is not None:
-            raise AssertionError(f"process exited ({p.returncode}):\n{log.read_text(errors='replace')[-3000:]}")
-        time.sleep(0.2)
-    raise AssertionError(f"{pattern!r} not in {log} after {timeout} s:\n{log.read_text(errors='replace')[-3000:]}")
 
 
 def _near(img: np.ndarray, colours: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -206,17 +184,15 @@ def test_web_viewer_draws_map_and_heatmap(tmp_path):
     exe = _chromium_exe()
     from query_client.client import Client
 
-    ep = f"tcp/127.0.0.1:{_free_port()}"
-    grpc, web = _free_port(), _free_port()
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    grpc, web = free_port(), free_port()
     env = dict(os.environ, RUST_LOG="error", PYTHONUNBUFFERED="1")
-    py = [sys.executable, "-m", "apps.cli"]
     procs = []
 
     def start(name, args):
-        log = tmp_path / f"{name}.log"
-        p = subprocess.Popen(py + args, cwd=ROOT, env=env, stdout=open(log, "wb"), stderr=subprocess.STDOUT)
-        procs.append((name, p))
-        return p, log
+        p = Proc(name, args, tmp_path, env=env)
+        procs.append(p)
+        return p.p, tmp_path / f"{name}.log"
 
     browser = None
     artefacts = Path(os.environ.get("RAYFRONTS_ARTEFACTS", ROOT / "out" / "test-artefacts"))
@@ -224,12 +200,12 @@ def test_web_viewer_draws_map_and_heatmap(tmp_path):
     shot = artefacts / "browser_view.png"
     try:
         r, rlog = start("router", ["router", "--listen", ep])
-        _wait_log(r, rlog, "listening on", 60)
+        wait_log(r, rlog, "listening on", 60)
         m, mlog = start("mapper", ["mapper", "--mode", "client", "--connect", ep, "--serve-web", "--grpc-port",
                                    str(grpc), "--web-port", str(web), "map.vox_size=0.5", "map.depth_limit=20",
                                    "layers.rate_hz=1", "snapshots.on_exit=false"])
-        url = _wait_log(m, mlog, r"web viewer at (http://127\.0\.0\.1:\d+/\?url=\S+)", 120).group(1)
-        _wait_log(m, mlog, "mapper up", 120)
+        url = wait_log(m, mlog, r"web viewer at (http://127\.0\.0\.1:\d+/\?url=\S+)", 120).group(1)
+        wait_log(m, mlog, "mapper up", 120)
         e, elog = start("edge", ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.kind=synthetic",
                                  "source.n_frames=30", "source.resolution=120x160", "source.depth_limit=20",
                                  "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4"])
@@ -260,11 +236,4 @@ def test_web_viewer_draws_map_and_heatmap(tmp_path):
     finally:
         if browser is not None:
             browser.close()
-        for name, p in reversed(procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(60)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        stop_all(reversed(procs), signal.SIGINT, 60)

@@ -1,15 +1,14 @@
 """The ``rayfronts`` command: every subcommand has a working --help; config errors are clear."""
 import subprocess
-import sys
 
 import pytest
 
 from apps.cli import SUBCOMMANDS
+from tests.support.processes import cli_cmd
 
 
 def _run(*args, timeout=120):
-    return subprocess.run([sys.executable, "-m", "apps.cli", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(cli_cmd(*args), capture_output=True, text=True, timeout=timeout)
 
 
 def test_top_level_help_lists_every_subcommand():

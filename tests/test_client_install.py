@@ -57,8 +57,8 @@ def mapper():
     import torch
 
     from common.feature_space import FeatureSpace
-    from encoders.text import make_text_encoder
     from common.zenoh_session import free_tcp_port
+    from encoders.text import make_text_encoder
     from mapper.service import MapperService
     from mapper.service_config import load_mapper_config
     from mapper.service_map import create_map

@@ -85,6 +85,7 @@ def test_make_certs_rejects_bad_input(tmp_path, args):
 
 def test_shipped_acl_example_matches_generator_and_opens():
     import zenoh
+
     from common.zenoh_session import ZenohConfig, free_tcp_port, open_session
 
     f = DEPLOY / "acl" / "acl.example.json5"
@@ -176,7 +177,6 @@ def test_dockerfiles():
 
 def test_example_configs_use_existing_keys():
     from common.config import load_config
-
     from edge.runtime import edge_config_schema
     from mapper.service_config import MapperConfig
     edge = load_config(edge_config_schema(), DEPLOY / "examples" / "edge.yaml")

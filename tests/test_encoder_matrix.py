@@ -14,8 +14,8 @@ processes, and the ones it does not accept are refused at start-up with one line
 """
 from __future__ import annotations
 
+import signal
 import subprocess
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -26,17 +26,12 @@ import pytest
 
 from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
-from test_robustness import wait_for
+from tests.support.processes import ROOT, cli_cmd, start_cli, stop_all, wait_for
 
-ROOT = Path(__file__).resolve().parents[1]
 FRAMES = 4
 RES = "48x64"                 # NARADIO: a 3x4 patch grid; label: 6x8 cells
 MAPPER = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0",
           "snapshots.on_exit=false", "queues.per_robot=1000"]
-
-
-def _cmd(*a):
-    return [sys.executable, "-m", "apps.cli", *a]
 
 
 @pytest.fixture(scope="module")
@@ -63,10 +58,6 @@ def _edge_items(kind: str, mdir: Path, output: str = "radio", pca: bool = True, 
     return items + list(extra)
 
 
-def _wait(fn, timeout, what):
-    return wait_for(fn, timeout, every=0.5, what=what)
-
-
 def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
     """Mapper + edge for one combination: frames mapped, the map's space, one query."""
     from query_client import Client
@@ -74,11 +65,9 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = zenoh_env()
     logs = {k: open(logdir / f"{name}.{k}.log", "wb") for k in ("mapper", "edge")}
-    mp = subprocess.Popen(_cmd("mapper", "--mode", "router", "--listen", ep, *MAPPER,
-                               f"query.image_model_dir={mdir}"),
-                          stdout=logs["mapper"], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
-    ed = subprocess.Popen(_cmd("edge", "--connect", ep, f"robot={name}", *items),
-                          stdout=logs["edge"], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
+    mp = start_cli(["mapper", "--mode", "router", "--listen", ep, *MAPPER, f"query.image_model_dir={mdir}"],
+                   logs["mapper"], env=env)
+    ed = start_cli(["edge", "--connect", ep, f"robot={name}", *items], logs["edge"], env=env)
     out: dict = {"name": name}
     try:
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000), timeout=60.0) as c:
@@ -92,7 +81,7 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
                     and not sum(s["queues"].values()) and s["map_version"] == s["flushed_version"] else None
 
             try:
-                st = _wait(done, 600, f"{name}: {FRAMES} frames mapped")
+                st = wait_for(done, 600, every=0.5, what=f"{name}: {FRAMES} frames mapped")
             except AssertionError as e:
                 logs["mapper"].flush()
                 tail = (logdir / f"{name}.mapper.log").read_text()[-3000:]
@@ -111,14 +100,7 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
             out["n_voxels_answered"] = len(r.voxel_xyz)
             out["scores_finite"] = bool(np.isfinite(r.voxel_score).all())
     finally:
-        for p in (ed, mp):
-            if p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        stop_all((ed, mp), signal.SIGTERM, 30)
         for f in logs.values():
             f.close()
     return out
@@ -175,18 +157,17 @@ def test_impossible_combinations_are_refused_with_one_line(model_dir, tmp_path):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = zenoh_env()
     mlog = open(tmp_path / "mapper.log", "wb")
-    mp = subprocess.Popen(_cmd("mapper", "--mode", "router", "--listen", ep, *MAPPER),
-                          stdout=mlog, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
+    mp = start_cli(["mapper", "--mode", "router", "--listen", ep, *MAPPER], mlog, env=env)
     try:
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000), timeout=30.0) as c:
-            _wait(lambda: c.stats(timeout=5.0), 120, "mapper up")
+            wait_for(lambda: c.stats(timeout=5.0), 120, every=0.5, what="mapper up")
 
             def run(robot):
-                return subprocess.run(_cmd("edge", "--connect", ep, f"robot={robot}", *cases[robot][0]),
+                return subprocess.run(cli_cmd("edge", "--connect", ep, f"robot={robot}", *cases[robot][0]),
                                       capture_output=True, text=True, env=env, cwd=str(ROOT), timeout=300)
 
             with ThreadPoolExecutor(4) as ex:
-                outs = dict(zip(cases, ex.map(run, cases)))
+                outs = dict(zip(cases, ex.map(run, cases), strict=True))
             # a missing model file is caught by the command line before the edge connects (one line,
             # exit 1, nothing to tell the mapper); the others by the running edge (exit 2, reported)
             early = {"no_weights"}
@@ -201,9 +182,9 @@ def test_impossible_combinations_are_refused_with_one_line(model_dir, tmp_path):
                 assert o.returncode == 2 and len(errors) == 1, (robot, o.returncode, o.stderr[-3000:])
                 assert "refused to start" in errors[0] and all(w in errors[0] for w in words), (robot, errors)
             late = [r for r in cases if r not in early]
-            st = _wait(lambda: (lambda s: s if all(s["robots"].get(r, {}).get("edge_state") == "refused"
-                                                   for r in late) else None)(c.stats(timeout=5.0)),
-                       30, "the mapper sees every refusal")
+            st = wait_for(lambda: (lambda s: s if all(s["robots"].get(r, {}).get("edge_state") == "refused"
+                                                      for r in late) else None)(c.stats(timeout=5.0)),
+                          30, every=0.5, what="the mapper sees every refusal")
             for robot in late:
                 assert all(w in st["robots"][robot]["edge_reason"] for w in cases[robot][1]), st["robots"][robot]
             time.sleep(2.0)   # a retrying mapper would warn again within this time

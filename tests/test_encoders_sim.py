@@ -7,9 +7,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from synthetic_world import CLASS_NAMES
 from encoders import EncoderConfig, make_encoder
 from encoders.sim import SimEncoder
+from synthetic_world import CLASS_NAMES
 
 B, T = CLASS_NAMES.index("building"), CLASS_NAMES.index("tree")
 

@@ -64,9 +64,9 @@ def world():
 def test_language_plumbing(models):
     """Class texts come from the SigLIP text model; map features go through the head after
     averaging (independently: head(mean) vs the similarity callable)."""
-    from encoders.text.siglip import SiglipText
-    from encoders import EncoderConfig, make_encoder
     from apps.evaluation.language import eval_language, text_model_dir
+    from encoders import EncoderConfig, make_encoder
+    from encoders.text.siglip import SiglipText
 
     enc = make_encoder(EncoderConfig(**_enc_cfg(models)))
     names = ["car", "tree", "wall"]
@@ -92,8 +92,8 @@ def test_language_plumbing(models):
 
 
 def test_language_dim_mismatch(models, tmp_path):
-    from encoders import EncoderConfig, make_encoder
     from apps.evaluation.language import eval_language
+    from encoders import EncoderConfig, make_encoder
 
     enc = make_encoder(EncoderConfig(**_enc_cfg(models)))
     other = tmp_path / "other"
@@ -240,7 +240,7 @@ def _write_ply(path, xyz, labels, binary):
         rec["x"], rec["y"], rec["z"], rec["label"] = xyz[:, 0], xyz[:, 1], xyz[:, 2], labels
         path.write_bytes(head.encode() + rec.tobytes())
     else:
-        body = "\n".join(f"{x:.6f} {y:.6f} {z:.6f} 7 {int(l)}" for (x, y, z), l in zip(xyz, labels))
+        body = "\n".join(f"{x:.6f} {y:.6f} {z:.6f} 7 {int(lb)}" for (x, y, z), lb in zip(xyz, labels, strict=True))
         path.write_text(head + body + "\n")
 
 
@@ -285,8 +285,8 @@ def test_voxelize_majority_and_bad_files(tmp_path):
     xyz = np.array([[0.1, 0.1, 0.1], [0.2, 0.2, 0.2], [0.3, 0.3, 0.3], [1.5, 0.1, 0.1], [1.6, 0.1, 0.1],
                     [2.5, 0, 0], [-0.5, 0, 0]])
     lab = np.array([3, 2, 2, 4, 1, 0, 5])
-    c, l = voxelize_labels(xyz, lab, 1.0)
-    got = {tuple(np.floor(p).astype(int)): int(v) for p, v in zip(c, l)}
+    c, lb = voxelize_labels(xyz, lab, 1.0)
+    got = {tuple(np.floor(p).astype(int)): int(v) for p, v in zip(c, lb, strict=True)}
     assert got == {(0, 0, 0): 2, (1, 0, 0): 1, (-1, 0, 0): 5}      # majority; tie -> smallest; 0 ignored
     np.testing.assert_allclose(c[np.argsort(c[:, 0])][0], [-0.5, 0.5, 0.5])
     with pytest.raises(FileNotFoundError):

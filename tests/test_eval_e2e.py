@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from common.config import merge
-from synthetic_world import World
 from apps.evaluation.semseg import SemsegConfig, run_semseg
 from apps.evaluation.srchvol import ALL_METHODS, SrchvolConfig, run_srchvol
+from common.config import merge
+from synthetic_world import World
 
 pytestmark = pytest.mark.usefixtures("torch_two_threads")
 
@@ -33,7 +33,7 @@ def test_srchvol_outputs(sv_run):
     out, summary = sv_run
     top = json.loads((out / "summary.json").read_text())
     assert set(top) == {"0m", "10m"}
-    for dk, per in top.items():
+    for per in top.values():
         for m in ALL_METHODS:
             assert m in per
             s = per[m]
@@ -81,8 +81,8 @@ def test_srchvol_paper_shape(sv_run):
 def test_shared_semantic_voxels_equal_separate_map(world):
     """Semantic Voxels evaluated on the RayFronts map (share_maps) is exact: the separate
     semantic_voxels map has the same voxels and occupancy."""
-    from encoders import EncoderConfig, make_encoder
     from apps.evaluation.srchvol import method_map_config
+    from encoders import EncoderConfig, make_encoder
     from semantic_map.map import RayFrontsMap
 
     cfg = SrchvolConfig()
@@ -100,7 +100,8 @@ def test_shared_semantic_voxels_equal_separate_map(world):
         mp.flush()
     a, b = (mp.voxels() for mp in maps)
     assert a.xyz.shape[0] > 0 and len(maps[0].ray_store) > 0 and len(maps[1].ray_store) == 0
-    ia, ib = torch.argsort(a.xyz[:, 0] * 1e6 + a.xyz[:, 1] * 1e3 + a.xyz[:, 2]), torch.argsort(b.xyz[:, 0] * 1e6 + b.xyz[:, 1] * 1e3 + b.xyz[:, 2])
+    ia = torch.argsort(a.xyz[:, 0] * 1e6 + a.xyz[:, 1] * 1e3 + a.xyz[:, 2])
+    ib = torch.argsort(b.xyz[:, 0] * 1e6 + b.xyz[:, 1] * 1e3 + b.xyz[:, 2])
     torch.testing.assert_close(a.xyz[ia], b.xyz[ib])
     torch.testing.assert_close(a.features[ia], b.features[ib])
     oa, ob = maps[0].occupancy.active(), maps[1].occupancy.active()
@@ -108,8 +109,8 @@ def test_shared_semantic_voxels_equal_separate_map(world):
 
 
 def test_semseg_synthetic_label_encoder(tmp_path, world):
-    cfg = merge(SemsegConfig(), dict(source=dict(n_frames=8, resolution="48x64"), vox=0.5, depth_range=20.0, progress=False,
-                                     encoder=dict(label_stride=2)))
+    cfg = merge(SemsegConfig(), dict(source=dict(n_frames=8, resolution="48x64"), vox=0.5, depth_range=20.0,
+                                     progress=False, encoder=dict(label_stride=2)))
     s = run_semseg(cfg, tmp_path, world=world)
     top = json.loads((tmp_path / "summary.json").read_text())
     assert set(top) >= {"miou", "fmiou", "acc", "miou_bg", "fmiou_bg", "acc_bg", "per_class"}
@@ -133,9 +134,12 @@ def _write_tartanair(root, world, n=8, hw=(64, 64)):
     W = np.array([[0, 1, 0], [1, 0, 0], [0, 0, -1]], float)      # ENU -> NED
     B = np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0]], float)       # FRD coords -> RDF coords
     lines = []
+
+    def rep(a):
+        return np.repeat(np.repeat(a, up, 0), up, 1)
+
     for i, p in enumerate(world.trajectory("ground", 3 * n)[::3][:n]):
         r = world.render(p, K, hw)
-        rep = lambda a: np.repeat(np.repeat(a, up, 0), up, 1)
         d = rep(np.where(np.isfinite(r.depth), r.depth, 10000.0).astype("<f4"))
         rgba = np.frombuffer(d.tobytes(), np.uint8).reshape(*d.shape, 4)
         for sub in ("image", "depth", "seg"):
@@ -147,14 +151,16 @@ def _write_tartanair(root, world, n=8, hw=(64, 64)):
         q = Rotation.from_matrix(Rn).as_quat()
         lines.append(" ".join(repr(float(v)) for v in [*(W @ p[:3, 3]), *q]))
     (traj / f"pose_{cam}.txt").write_text("\n".join(lines) + "\n")
-    (root / "Synth" / "seg_label_map.json").write_text(json.dumps({"name_map": {c: i for i, c in enumerate(world.classes)}}))
+    (root / "Synth" / "seg_label_map.json").write_text(
+        json.dumps({"name_map": {c: i for i, c in enumerate(world.classes)}}))
     return root
 
 
 def test_semseg_tartanair_fixture(tmp_path, world):
     root = _write_tartanair(tmp_path / "tartan", world, n=6)
     from edge.sources import SourceConfig, open_source
-    src = open_source(SourceConfig(kind="tartanair", path=str(root), scene="Synth", sequence="P0000", resolution="64x64"))
+    src = open_source(SourceConfig(kind="tartanair", path=str(root), scene="Synth", sequence="P0000",
+                                   resolution="64x64"))
     f0 = next(iter(src))
     np.testing.assert_allclose(f0.pose, world.trajectory("ground", 24)[0], atol=1e-6)   # the fixture is right
     assert src.class_names[:4] == world.classes[:4]

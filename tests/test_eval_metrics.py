@@ -133,7 +133,7 @@ def test_exact_grid_alignment():
 # ----------------------------------------------------------------------------- shapes
 def test_reference_cone_radius_hand():
     r = metrics.reference_cone_radius([1, 5, 9, 100], 1.0, 4, 45.0)
-    np.testing.assert_allclose(r, [4, 5, 6, 28.75])      # 4 m + 0.25 m per metre (brief §6.2)
+    np.testing.assert_allclose(r, [4, 5, 6, 28.75])      # 4 m + 0.25 m per metre
     np.testing.assert_allclose(metrics.reference_cone_radius([1, 5, 50], 1.0, 5, 45.0), [5, 5, 5])   # cylinder
     r = metrics.reference_cone_radius([2, 10], 0.5, 4, 30.0)   # r0 = 2 at 0.5 m, 5*0.5*tan30 = 1.443 at 2.5 m
     np.testing.assert_allclose(r, [2 + 1.5 * (2.5 * math.tan(math.radians(30)) - 2) / 2,

@@ -7,9 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from apps.evaluation import raster, shapes
 from common.config import merge
-from apps.evaluation import raster
-from apps.evaluation import shapes
 
 pytestmark = pytest.mark.usefixtures("torch_two_threads")
 
@@ -17,7 +16,8 @@ pytestmark = pytest.mark.usefixtures("torch_two_threads")
 def _case(rng, vox):
     lo = rng.integers(-30, 10, 3)
     dims = rng.integers(4, 30, 3)
-    g = np.stack(np.meshgrid(*[np.arange(a, a + n) for a, n in zip(lo, dims)], indexing="ij"), -1).reshape(-1, 3)
+    g = np.stack(np.meshgrid(*[np.arange(a, a + n) for a, n in zip(lo, dims, strict=True)], indexing="ij"),
+                 -1).reshape(-1, 3)
     ijk = g[rng.random(len(g)) < 0.6]
     n = 10
     # origins on voxel centres, on voxel corners and anywhere, partly outside the box

@@ -3,8 +3,8 @@ ground-truth label features): RayFronts' SCVR AUC beats each frontier baseline (
 Unidirectional Semantic Frontiers) at 10 m and 20 m depth, on several small seeds."""
 import pytest
 
-from common.config import merge
 from apps.evaluation.srchvol import SrchvolConfig, run_srchvol
+from common.config import merge
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("torch_two_threads")]
 
@@ -13,7 +13,8 @@ SEEDS = (0, 1, 2)
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_rayfronts_beats_frontier_baselines_sim_encoder(tmp_path, seed):
-    cfg = merge(SrchvolConfig(), dict(source=dict(seed=seed, n_frames=60, resolution="64x64"), depth_limits=[10.0, 20.0],
+    cfg = merge(SrchvolConfig(), dict(source=dict(seed=seed, n_frames=60, resolution="64x64"),
+                                      depth_limits=[10.0, 20.0],
                                       methods=["rayfronts", "spherical_semfronts", "unidirectional_semfronts"],
                                       every=5, progress=False, plots=False, encoder=dict(kind="sim")))
     out = run_srchvol(cfg, tmp_path)

@@ -1,4 +1,4 @@
-"""Faults and hostile input with real processes over loopback Zenoh (issue 13).
+"""Faults and hostile input with real processes over loopback Zenoh.
 
 Process faults: a mapper SIGKILLed and restarted from its snapshot answers as before; a
 corrupt latest snapshot falls back to the older intact one; a SIGSTOPped edge and an edge
@@ -7,20 +7,19 @@ CLI defaults; an edge replaying a recording with a corrupt frame skips it and go
 query during a 3-edge flood is answered (from the last consistent copy when the map lock is
 busy) with bounded queues and memory.
 
-Helpers (processes, the PCA basis, waits, the shared text-embedding cache) are the
-robustness suite's. Speed is not asserted here: the query latency under flood against the
-unloaded one (issue 13.6's p95 bound) and the measured gone-after-kill / -freeze times are
-``rayfronts bench faults`` figures. What stays are functional contracts, and the only time
-bound is one the configuration sets: a robot whose link goes silent is marked gone when the
-link lease expires, so "within the lease + slack" is the lease doing its job, not a speed
-figure (see :data:`GONE_S`). Processes that do not interfere share one run: the restore and
-the snapshot-fallback tests start their mappers from copies of one module-scoped run's
-snapshots.
+Helpers (processes, the PCA basis, waits, the shared text-embedding cache) are
+:mod:`tests.support`'s, shared with the robustness suite. Speed is not asserted here: the
+query latency under flood against the unloaded one (the p95 bound) and the measured
+gone-after-kill / -freeze times are ``rayfronts bench faults`` figures. What stays are
+functional contracts, and the only time bound is one the configuration sets: a robot whose
+link goes silent is marked gone when the link lease expires, so "within the lease + slack"
+is the lease doing its job, not a speed figure (see :data:`GONE_S`). Processes that do not
+interfere share one run: the restore and the snapshot-fallback tests start their mappers
+from copies of one module-scoped run's snapshots.
 """
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -30,17 +29,15 @@ import time
 import uuid
 
 import pytest
-import test_robustness as _rb
-from test_robustness import ROOT, Proc, client, edge_args, mapped, mapper_args, wait_for
 
 from apps.bench.faults import hostile_frame_headers, reject_costs
 from apps.bench.faults import sample_frame_bytes as _frame_bytes
 from common.zenoh_session import DEFAULT_LEASE_MS, free_tcp_port
+from tests.support.netns import ip, network_namespaces
+from tests.support.processes import ROOT, Proc, proc_env, stop_all, wait_for
+from tests.support.roles import client, edge_args, mapped, mapper_args, zenoh_client_config
 
-pca_file = _rb.pca_file   # fixtures shared with the robustness suite
-procs = _rb.procs
-
-#: issue 13.4: a frozen / partitioned edge is marked gone within 3 s with the CLI defaults.
+#: a frozen / partitioned edge is marked gone within 3 s with the CLI defaults.
 #: The link lease (``DEFAULT_LEASE_MS`` = 2 s, keep-alives every 0.5 s) closes a silent link
 #: one lease after the last message; 1 s of slack covers the keep-alive phase and a loaded
 #: machine. A contract derived from the configured lease, not a speed figure.
@@ -66,10 +63,7 @@ def shared_mapper(tmp_path_factory):
         assert m.p.poll() is None, "the shared mapper died"
         assert m.stop() == 0
     finally:
-        if m.p.poll() is None:
-            m.p.kill()
-            m.p.wait()
-        m.log.close()
+        stop_all([m], signal.SIGKILL)
 
 
 def _counters(c) -> dict:
@@ -82,7 +76,7 @@ def _delta(now: dict, before: dict) -> dict:
     return {k: v for k, v in out.items() if v}
 
 
-# --------------------------------------------------------------------- 13.4 freeze
+# --------------------------------------------------------------------- freeze
 @pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_sigstop_edge_marked_gone_within_3s(tmp_path, procs, pca_file, shared_mapper):
@@ -109,38 +103,15 @@ def test_sigstop_edge_marked_gone_within_3s(tmp_path, procs, pca_file, shared_ma
     edge.p.wait()
 
 
-# -------------------------------------------------------------------- 13.4 partition
-def _ip(*a, check=True):
-    return subprocess.run(["ip", *a], capture_output=True, text=True, check=check, timeout=20)
-
-
+# -------------------------------------------------------------------- partition
 @pytest.fixture
 def two_namespaces():
     """Edge namespace A and base-station namespace B joined by one veth pair (10.79.0.0/24)."""
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        pytest.skip("needs root and iproute2")
     tag = uuid.uuid4().hex[:6]
     a, b = f"rfpA{tag}", f"rfpB{tag}"
     va, vb = f"pa{tag}", f"pb{tag}"
-    made = []
-    try:
-        for n in (a, b):
-            r = _ip("netns", "add", n, check=False)
-            if r.returncode != 0:
-                pytest.skip(f"ip netns add failed: {r.stderr.strip()}")
-            made.append(n)
-        _ip("link", "add", va, "type", "veth", "peer", "name", vb)
-        _ip("link", "set", va, "netns", a)
-        _ip("link", "set", vb, "netns", b)
-        _ip("-n", a, "addr", "add", "10.79.0.1/24", "dev", va)
-        _ip("-n", b, "addr", "add", "10.79.0.2/24", "dev", vb)
-        for n, d in ((a, va), (b, vb)):
-            _ip("-n", n, "link", "set", d, "up")
-            _ip("-n", n, "link", "set", "lo", "up")
+    with network_namespaces([a, b], [(a, b, va, vb, "10.79.0.1/24", "10.79.0.2/24")]):
         yield a, b, va
-    finally:
-        for n in made:
-            _ip("netns", "del", n, check=False)
 
 
 WATCHER = textwrap.dedent("""
@@ -173,16 +144,13 @@ WATCHER = textwrap.dedent("""
 @pytest.mark.timeout(240)
 def test_partitioned_edge_marked_gone_within_3s(tmp_path, two_namespaces, pca_file):
     a, b, va = two_namespaces
-    env = _rb.proc_env()
-    logs, ps = [], []
+    env = proc_env()
+    ps = []
 
     def spawn(ns, name, args):
-        f = open(tmp_path / f"{name}.log", "wb")
-        logs.append(f)
-        p = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "apps.cli", *args],
-                             stdout=f, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
+        p = Proc(name, args, tmp_path, prefix=("ip", "netns", "exec", ns))
         ps.append(p)
-        return p
+        return p.p
 
     shm = ["--zenoh-set", "transport/shared_memory/enabled=false"]
     try:
@@ -194,7 +162,7 @@ def test_partitioned_edge_marked_gone_within_3s(tmp_path, two_namespaces, pca_fi
         ps.append(w)
         assert w.stdout.readline().strip() == "ready", w.stderr.read()[-2000:]
         t_cut = time.time()
-        _ip("-n", a, "link", "set", va, "down")        # the radio link drops: no FIN, no RST
+        ip("-n", a, "link", "set", va, "down")         # the radio link drops: no FIN, no RST
         out, err = w.communicate(timeout=60)
         assert out.strip(), f"robot never marked gone after the partition: {err[-2000:]}"
         gone_after = json.loads(out.strip().splitlines()[-1])["gone_at"] - t_cut
@@ -202,19 +170,10 @@ def test_partitioned_edge_marked_gone_within_3s(tmp_path, two_namespaces, pca_fi
         assert 0 < gone_after <= GONE_S, f"partitioned edge marked gone {gone_after:.2f} s after the cut"
         assert mapper.poll() is None, "mapper died"
     finally:
-        for p in reversed(ps):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-        for f in logs:
-            f.close()
+        stop_all(reversed(ps), signal.SIGINT, 20)
 
 
-# ----------------------------------------------------------- 13.5 corrupt recording
+# ----------------------------------------------------------- corrupt recording
 @pytest.mark.slow
 @pytest.mark.timeout(180)
 def test_edge_skips_corrupt_recording_frame(tmp_path, procs, pca_file, shared_mapper):
@@ -251,11 +210,11 @@ def test_edge_skips_corrupt_recording_frame(tmp_path, procs, pca_file, shared_ma
     assert "'frames_skipped': 1" in log and "'frames_sent': 5" in log
 
 
-# ------------------------------------------------- 13.2 / 13.7 codec (unit level)
+# ------------------------------------------------- codec (unit level)
 def test_rejected_header_costs_bounded_cpu():
-    """13.2: whatever the header, rejecting it costs little CPU (``rayfronts bench faults``'
+    """Whatever the header, rejecting it costs little CPU (``rayfronts bench faults``'
     measurement: best of 5 per header; a hostile header that is accepted or raises anything
-    but ``WireError`` fails it; the worst is printed). The bound here is 2.5x the issue's
+    but ``WireError`` fails it; the worst is printed). The bound here is 2.5x the required
     10 ms so a loaded CI machine cannot flake, while the old decoder took 680 ms - 3.4 s on the
     first two."""
     rc = reject_costs(repeats=5)
@@ -292,7 +251,7 @@ def test_frame_header_over_limit_refused_on_encode():
 
 
 def test_reject_reasons_specific_and_bounded():
-    """13.7: the reason names the field (``frame.depth``, ``frame.pose``...) from a fixed
+    """The reason names the field (``frame.depth``, ``frame.pose``...) from a fixed
     vocabulary, whatever text the error carries."""
     import struct
 
@@ -338,7 +297,7 @@ def test_reject_reasons_specific_and_bounded():
     assert seen <= allowed, seen - allowed
 
 
-# ----------------------------------------------- 13.6 incremental copy (unit level)
+# ----------------------------------------------- incremental copy (unit level)
 def test_semantic_change_journal_keeps_a_copy_exact():
     """A copy maintained from ``take_changes`` (changed rows only) equals the store after any
     mix of fuses and prunes; a second owner, a reload or an overflow asks for everything."""
@@ -390,7 +349,7 @@ def test_semantic_change_journal_keeps_a_copy_exact():
     assert sem._journal_rows <= max(4096, len(sem) // 4)
 
 
-# ------------------------------------------------------------ 13.1 restore answers
+# ------------------------------------------------------------ restore answers
 QUERIES = ("car", "tree", "building")
 
 
@@ -438,17 +397,22 @@ def snapshot_run(tmp_path_factory, pca_file):
         m1.p.wait()
         yield {"snaps": snaps, "before": before, "before_st": before_st}
     finally:
-        for p in reversed(started):
-            if p.p.poll() is None:
-                p.p.kill()
-                p.p.wait()
-            p.log.close()
+        stop_all(reversed(started), signal.SIGKILL)
 
 
 def _snap_copy(run, tmp_path):
     dst = tmp_path / "snaps"
     shutil.copytree(run["snaps"], dst)
     return dst
+
+
+def _mapper_from(snaps, tmp_path, procs) -> tuple[str, Proc]:
+    """(endpoint, process) of a mapper ``mapper2`` restoring the snapshot directory ``snaps``."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0",
+                                          "queues.idle_flush_s=0.5"]), tmp_path)
+    procs.append(m2)
+    return ep, m2
 
 
 @pytest.mark.slow
@@ -459,10 +423,7 @@ def test_sigkilled_mapper_restored_answers_the_same(tmp_path, procs, snapshot_ru
     before, before_st = snapshot_run["before"], snapshot_run["before_st"]
     assert any(len(a["voxel_xyz"]) for a in before.values())
     snaps = _snap_copy(snapshot_run, tmp_path)
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0",
-                                          "queues.idle_flush_s=0.5"]), tmp_path)
-    procs.append(m2)
+    ep, m2 = _mapper_from(snaps, tmp_path, procs)
     with client(ep) as c:
         st = wait_for(lambda: _flushed(c), 60, what="restored mapper flushed")
         assert st["snapshot"].get("restored") is True and st["frames"]["mapped"] == 8
@@ -497,10 +458,7 @@ def test_corrupt_latest_snapshot_falls_back_to_older(tmp_path, procs, snapshot_r
     arrays = newest / "map" / "arrays.npz"
     data = arrays.read_bytes()
     arrays.write_bytes(data[: len(data) // 2])            # the newest generation is corrupt
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0",
-                                          "queues.idle_flush_s=0.5"]), tmp_path)
-    procs.append(m2)
+    ep, m2 = _mapper_from(snaps, tmp_path, procs)
     with client(ep) as c:
         st = wait_for(lambda: _flushed(c), 60, what="restarted mapper, flushed")
         snap = st["snapshot"]
@@ -513,7 +471,7 @@ def test_corrupt_latest_snapshot_falls_back_to_older(tmp_path, procs, snapshot_r
     assert f"snapshot {newest} is broken" in log and f"restored snapshot {older}" in log, log[-3000:]
 
 
-# ------------------------------------------------ 13.3 frames in a wrong feature space
+# ------------------------------------------------ frames in a wrong feature space
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_wrong_feature_space_frames_cost_no_real_frames(tmp_path, procs, pca_file, shared_mapper):
@@ -535,7 +493,7 @@ def test_wrong_feature_space_frames_cost_no_real_frames(tmp_path, procs, pca_fil
         real = decode_frame(RecordingReader(rec).read_bytes(0))
         real.feature_space = "label:bogus:pca-0000:16"
         bad = encode_frame(real)
-        s = zenoh.open(_rb._zcfg(ep))
+        s = zenoh.open(zenoh_client_config(ep))
         try:
             pub = s.declare_publisher("rayfronts/robots/rw/frames", congestion_control=zenoh.CongestionControl.BLOCK)
             n_bad = 0
@@ -556,16 +514,16 @@ def test_wrong_feature_space_frames_cost_no_real_frames(tmp_path, procs, pca_fil
         assert rej == {"feature_space_mismatch": n_bad}, rej
 
 
-# ----------------------------------------------------------- 13.6 flood query bound
+# ----------------------------------------------------------- flood query bound
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_queries_answered_during_three_edge_flood(tmp_path, procs, pca_file, shared_mapper):
-    """13.6, the functional part: while 3 edges flood the mapper at full rate, every query
+    """The flood query bound, functional part: while 3 edges flood the mapper at full rate, every query
     is answered with the mapped voxels (from the last consistent copy when the map lock is
     busy for longer than ``query.lock_timeout_s``, flagged ``stale``), queues stay within
     ``queues.per_robot`` (defaults: 0.25 s, 8), every frame a robot sent is mapped or
     dropped (counted), and the mapper's memory stays bounded. How long the
-    queries take against the unloaded ones (the issue's p95 <= lock_timeout + 3 x unloaded)
+    queries take against the unloaded ones (the bound: p95 <= lock_timeout + 3 x unloaded)
     is ``rayfronts bench faults``' figure; the per-query times are printed here only."""
     import numpy as np
 
@@ -614,7 +572,7 @@ def test_queries_answered_during_three_edge_flood(tmp_path, procs, pca_file, sha
 
 
 def test_incremental_query_copy_answers_as_a_full_copy():
-    """13.6: the query copy synced with the changed rows only answers exactly like a fresh
+    """The query copy synced with the changed rows only answers exactly like a fresh
     full copy, through fuses, new voxels and prunes; after the first sync it copies only the
     changed rows (what the map lock is held for)."""
     import numpy as np
@@ -647,7 +605,7 @@ def test_incremental_query_copy_answers_as_a_full_copy():
 
 
 def test_frame_callback_only_enqueues_and_the_queue_is_bounded(monkeypatch):
-    """13.2: the Zenoh frame callback does not decode (a hostile payload costs it a copy);
+    """The Zenoh frame callback does not decode (a hostile payload costs it a copy);
     the decode thread validates and counts; a full queue waits, then drops the oldest, counted."""
     import threading
 
@@ -697,7 +655,7 @@ def test_frame_callback_only_enqueues_and_the_queue_is_bounded(monkeypatch):
 
 
 def test_rejected_query_request_costs_bounded_cpu():
-    """13.2 for the query queryable: hostile request headers are rejected cheaply too."""
+    """Cheap rejects for the query queryable: hostile request headers are rejected cheaply too."""
     import struct
 
     import msgpack

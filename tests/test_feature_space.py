@@ -6,14 +6,8 @@ import pytest
 import torch
 
 from common.feature_space import FeatureSpace, FeatureSpaceError
-from common.pca import PCA
 from common.language_head import MLP2, MLP2Config
-
-
-def _pca(d=32, k=8, seed=0):
-    rng = np.random.default_rng(seed)
-    X = rng.normal(size=(2000, 6)) @ rng.normal(size=(6, d)) + 0.1 * rng.normal(size=(2000, d)) + rng.normal(size=d)
-    return PCA.fit(X, k), X
+from tests.support.data import low_rank_pca
 
 
 def _head(d=32, out=12, seed=0):
@@ -23,8 +17,8 @@ def _head(d=32, out=12, seed=0):
 
 
 def test_id_changes_with_basis():
-    p1, _ = _pca(seed=0)
-    p2, _ = _pca(seed=1)
+    p1, _ = low_rank_pca(seed=0)
+    p2, _ = low_rank_pca(seed=1)
     a = FeatureSpace("label", "minilm-l6.1", 32, pca=p1)
     b = FeatureSpace("label", "minilm-l6.1", 32, pca=p2)
     assert a.id == f"label-minilm-l6.1-{p1.content_hash}-8"
@@ -33,7 +27,7 @@ def test_id_changes_with_basis():
 
 
 def test_body_roundtrip_with_pca_and_head():
-    p, _ = _pca()
+    p, _ = low_rank_pca()
     hc, hs = _head()
     fs = FeatureSpace("naradio", "radio_v2.5-b.abcd", 32, "siglip", p, hc, hs)
     body = fs.to_body()
@@ -47,7 +41,7 @@ def test_body_roundtrip_with_pca_and_head():
 
 
 def test_body_validation():
-    p, _ = _pca()
+    p, _ = low_rank_pca()
     hc, hs = _head()
     body = FeatureSpace("naradio", "v1", 32, "siglip", p, hc, hs).to_body()
     bad = dict(body, **{"pca.basis": body["pca.basis"][:, :7]})
@@ -75,7 +69,7 @@ def slow_cos(fs, y, q):
 
 
 def test_similarity_fast_path_equals_slow_path():
-    p, X = _pca()
+    p, X = low_rank_pca()
     fs = FeatureSpace("label", "minilm-l6.1", 32, pca=p)
     y = torch.from_numpy(p.compress(X[:500])).float()
     q = torch.randn(5, 32, dtype=torch.float64).float()
@@ -88,7 +82,7 @@ def test_similarity_fast_path_equals_slow_path():
 
 
 def test_similarity_with_head_and_raw():
-    p, X = _pca()
+    p, X = low_rank_pca()
     hc, hs = _head()
     fs = FeatureSpace("naradio", "v1", 32, "siglip", p, hc, hs)
     y = torch.from_numpy(p.compress(X[:300])).float()
@@ -123,7 +117,7 @@ def test_from_decoded_message_has_writable_arrays_and_no_torch_warning():
 
     from common.messages import decode_feature_space, encode_feature_space
 
-    p, X = _pca()
+    p, X = low_rank_pca()
     hc, hs = _head()
     fs = FeatureSpace("naradio", "v1", 32, "siglip", p, hc, hs)
     _, body = decode_feature_space(encode_feature_space("r1", fs.to_body()))

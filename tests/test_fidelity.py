@@ -1,5 +1,5 @@
-"""Method-fidelity regressions from the audit (issue 14): B1 re-cast direction, B2 cost
-modes, B3 subsampling 1, B5 int8 bound of the occupancy weight."""
+"""Method-fidelity regressions (docs/method.md): re-cast direction, cost scales,
+subsampling 1, int8 bound of the occupancy weight."""
 import math
 
 import pytest
@@ -15,7 +15,7 @@ def _unit(v):
 
 
 @pytest.mark.parametrize("psi", [360.0, 30.0])
-def test_b1_requeue_uses_stored_mean_direction(psi):
+def test_requeue_uses_stored_mean_direction(psi):
     """Re-queued rays of a vanished frontier keep the bin's weighted mean direction, not the
     bin centre (which for the single 360° bin is always +x)."""
     fk = cell_keys.pack(torch.tensor([[3, -2, 1], [0, 0, 5]]))
@@ -44,9 +44,9 @@ def test_b1_requeue_uses_stored_mean_direction(psi):
     assert len(rs) == 1 and int(rs.fkey[0]) == int(fk[1])
 
 
-def test_b1_requeue_in_map_keeps_direction():
+def test_requeue_in_map_keeps_direction():
     """End to end on the map: a spherical-baseline map with ray tracing on re-casts the rays
-    of a vanished frontier along their mean direction (audit: 40/40 went along +x)."""
+    of a vanished frontier along their mean direction (the bin centre sent every one along +x)."""
     from semantic_map.config import map_config
     from semantic_map.map import RayFrontsMap
     cfg = map_config("online", {"vox_size": 1.0, "ray_tracing": True, "depth_limit": 10.0},
@@ -59,16 +59,16 @@ def test_b1_requeue_in_map_keeps_direction():
     assert math.degrees(math.acos(float(out[1][0] @ _unit([0.0, 1.0, 0.2])))) < 1e-3
 
 
-# --------------------------------------------------------------------------- B2 cost modes
+# --------------------------------------------------------------------------- cost modes
 def _one_ray():
     o = torch.zeros(1, 3, dtype=torch.float64)
     d = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
     return o, d
 
 
-def test_b2_paper_cost_lone_candidate_and_second_candidate():
+def test_paper_cost_lone_candidate_and_second_candidate():
     """Paper mode: a lone candidate costs 1; a worse second candidate lowers the chosen one's
-    cost (the audit's 0.05 -> 0.256 weight jump). Absolute mode: the chosen cost is the same
+    cost (its weight jumps from the 0.05 floor). Absolute mode: the chosen cost is the same
     hand-computed value with or without the second candidate."""
     from semantic_map.ray_frontiers import associate
     beta, D = 2.0, 40.0
@@ -87,7 +87,7 @@ def test_b2_paper_cost_lone_candidate_and_second_candidate():
     assert abs(float(e1[0]) - want) < 1e-6 and float(e1[0]) == float(e2[0])
 
 
-def test_b2_absolute_cost_can_pick_a_different_frontier():
+def test_absolute_cost_can_pick_a_different_frontier():
     """The two scales rank candidates differently. Ray from (0, .4, .4) along +x, beta 1,
     max_dist 100: A = centre (2.5, .5, -.5) (d_ortho .906, d_orig 2.658), B = centre
     (29.5, .5, .5) (d_ortho .141, d_orig 29.5). Paper: A (1 + .090)/2 = .545 < B (.156 + 1)/2
@@ -108,7 +108,7 @@ def test_b2_absolute_cost_can_pick_a_different_frontier():
 
 @pytest.mark.parametrize("seed,beta,max_dist,close", [(0, 1.0, 15.0, False), (1, 0.5, 8.0, True),
                                                       (2, 2.0, -1.0, False)])
-def test_b2_absolute_kernel_torch_bruteforce_identical(seed, beta, max_dist, close):
+def test_absolute_cost_kernel_torch_bruteforce_identical(seed, beta, max_dist, close):
     from semantic_map import kernels
     from semantic_map.ray_frontiers import associate, associate_bruteforce
     g = torch.Generator().manual_seed(seed)
@@ -123,7 +123,7 @@ def test_b2_absolute_kernel_torch_bruteforce_identical(seed, beta, max_dist, clo
     paper = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost="paper")
     assert t[0].numel() > 20
     for a, b in ((k, t), (t, ref)):
-        for x, y in zip(a, b):
+        for x, y in zip(a, b, strict=True):
             assert x.dtype == y.dtype and torch.equal(x, y)
     # same candidate sets, different costs
     assert torch.equal(ref[0], paper[0]) and not torch.equal(ref[2], paper[2])
@@ -131,7 +131,7 @@ def test_b2_absolute_kernel_torch_bruteforce_identical(seed, beta, max_dist, clo
         assert float(ref[2].max()) <= 1.0
 
 
-def test_b2_map_weights_absolute_no_floor():
+def test_map_weights_absolute_no_floor():
     """Map level: absolute mode stores 1 - c (no 0.05 floor); paper mode floors lone candidates."""
     from semantic_map.config import map_config
     from semantic_map.map import RayFrontsMap
@@ -154,7 +154,7 @@ def test_b2_map_weights_absolute_no_floor():
     assert ws["absolute"] == pytest.approx(want, rel=1e-5)
 
 
-# --------------------------------------------------------------------------- B3, B5
+# --------------------------------------------------------------------------- subsampling 1, occupancy weight
 def _frontier_frames():
     from common.geometry import intrinsics_from_fov, look_at
     K = intrinsics_from_fov(90.0, 32, 32)
@@ -164,10 +164,11 @@ def _frontier_frames():
     return pose, K, depth
 
 
-def test_b3_subsampling_one_keeps_every_fine_frontier():
+def test_subsampling_one_keeps_every_fine_frontier():
     """fronti_subsampling=1 with the default min_fronti (12) gave 0 frontiers silently; now,
     as the reference, subsampling is skipped at 1 and every fine frontier voxel is a frontier."""
     import numpy as np
+
     from semantic_map.config import map_config
     from semantic_map.frontiers import subsample
     from semantic_map.map import RayFrontsMap
@@ -191,7 +192,7 @@ def test_b3_subsampling_one_keeps_every_fine_frontier():
     assert counts[1] > counts[2] >= 0
 
 
-def test_b5_occ_observ_weight_names_the_int8_bound():
+def test_occ_observ_weight_names_the_int8_bound():
     from common.config import ConfigError
     from semantic_map.config import map_config
     with pytest.raises(ConfigError, match=r"occ_observ_weight must be in 1\.\.128 .*int8.*got 200"):
@@ -200,6 +201,7 @@ def test_b5_occ_observ_weight_names_the_int8_bound():
         map_config("default", {"occ_observ_weight": 0})
     # the bound itself is usable: a voxel block with increment +127 runs
     import numpy as np
+
     from semantic_map.map import RayFrontsMap
     cfg = map_config("default", {"occ_observ_weight": 128, "max_occ_cnt": 127, "vox_accum_period": 1,
                                  "depth_limit": 6.0, "vox_size": 0.5})
@@ -211,10 +213,10 @@ def test_b5_occ_observ_weight_names_the_int8_bound():
 
 
 def test_srchvol_variants_are_rayfronts_with_overrides():
-    """eval srchvol variants (the B2 ablation): RayFronts' map config plus the overrides, at
+    """eval srchvol variants (the cost-scale ablation): RayFronts' map config plus the overrides, at
     every depth RayFronts runs (zero-depth mode at 0 m); names may not shadow a method."""
-    from common.config import ConfigError, merge
     from apps.evaluation.srchvol import SrchvolConfig, method_map_config
+    from common.config import ConfigError, merge
     cfg = merge(SrchvolConfig(), {"variants": {"rf_abs": {"ray_cost_norm": "absolute"}}}).validate()
     assert cfg.all_methods()[-1] == "rf_abs" and cfg.all_methods()[:-1] == cfg.methods
     for d in (0.0, 10.0, 20.0):

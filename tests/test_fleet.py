@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from common.feature_space import FeatureSpace
+from common.feature_space import FeatureSpace, compatibility
 from common.pca import PCA
 from mapper.fleet import (
     DropWarner,
@@ -22,7 +22,6 @@ from mapper.fleet import (
     StatusPublisher,
     TransformError,
     advised_rate,
-    compatibility,
     evictions,
     expire_pending,
     parse_transform,
@@ -114,6 +113,10 @@ def test_reprojection_loss_of_bases_on_different_classes_is_reported():
     assert e["max_abs"] > 0.3 and e["top1_agree"] < 0.8, e
     own = reprojection_score_error(robot_fs, robot_fs, x, torch.as_tensor(emb[second]))
     assert own["max_abs"] < 0.1 and own["top1_agree"] > 0.9, own     # its own basis keeps them
+    # what the mapper can report without the raw features: the share of the robot's variance
+    # its basis holds and the map's keeps (warned about below fleet.reproject_warn_kept)
+    assert Reprojection(map_fs, robot_fs).kept_of_raw < 0.3
+    assert Reprojection(robot_fs, robot_fs).kept_of_raw > 0.95
 
 
 def test_label_encoder_reprojection_error_is_rounding_only():
@@ -322,3 +325,44 @@ def test_edge_status_watcher_logs_changes_and_auto_rate(caplog):
     assert len(refused) == 1 and refused[0].levelno == logging.WARNING and "not me" not in caplog.text
     assert 2.0 < auto.current() < 2.5                              # 10 -> 2 Hz, half way per update
     assert AutoRate(min_hz=1.0).advise(0.01) == pytest.approx(5.5)    # clamped to min_hz before smoothing
+
+
+def test_frame_order_does_not_change_the_map():
+    """Robots interleave in any order at the mapper: the same frames in another order give the
+    same voxels and features (so a fleet run and a single-basis run differ only by the frames
+    each mapped; the runtime tests make the edges lossless for that reason)."""
+    import random
+
+    import torch
+
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
+    from synthetic_world import World
+
+    w = World.generate(0)
+    hw = (48, 64)
+    K = w.camera(hw, 90.0)
+    n_cls = len(w.classes)
+    frames = []
+    for robot in range(3):
+        for p in w.trajectory("ground", 6, seed=100 + robot):
+            r = w.render(p, K, hw)
+            oh = torch.nn.functional.one_hot(torch.as_tensor(r.labels.astype(np.int64)), n_cls)
+            frames.append((p, r.depth.astype(np.float32), r.rgb, oh.permute(2, 0, 1).float()))
+    cfg = map_config("throughput", {"vox_size": 0.5, "depth_limit": 20.0})
+
+    def run(order):
+        m = RayFrontsMap(cfg, n_cls, "labels", occupancy_backend="torch")
+        for p, d, rgb, f in order:
+            m.integrate(p, K, d, rgb, f)
+        m.flush()
+        feat = m.sem.feat.float()
+        feat = feat / feat.norm(dim=1, keepdim=True).clamp_min(1e-9)
+        return dict(zip(map(tuple, m.sem.ijk().tolist()), feat.numpy(), strict=True))
+
+    a = run(frames)
+    shuffled = frames[:]
+    random.Random(1).shuffle(shuffled)
+    b = run(shuffled)
+    assert set(a) == set(b) and len(a) > 1000
+    assert max(float(np.abs(a[k] - b[k]).max()) for k in a) < 1e-3

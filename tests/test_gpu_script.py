@@ -36,7 +36,8 @@ def test_gpu_check_script_quick_on_cpu(tmp_path):
     e = d["e2e"]
     assert e["rc"] == 0 and e["frames_mapped"] == 6 and e["e2e_fps"] > 0 and e["bytes_per_frame"] > 0
     e2e_sub = json.loads((work / "e2e.json").read_text())
-    assert e2e_sub["settings"]["model"] == "radio_v2.5-b" and "encoder.dtype=bfloat16" in e2e_sub["settings"]["edge_set"]
+    assert e2e_sub["settings"]["model"] == "radio_v2.5-b"
+    assert "encoder.dtype=bfloat16" in e2e_sub["settings"]["edge_set"]
     assert d["paper"]["e2e_hz"] == 8.84 and d["paper"]["encoder_hz"] == 17.5
     assert d["paper_comparison"]["e2e_vs_paper"] == pytest.approx(e["e2e_fps"] / 8.84, rel=1e-2)
     assert "meta" in d and d["meta"]["machine"]["logical_cores"] >= 1

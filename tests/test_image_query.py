@@ -4,27 +4,21 @@ answers with a ray that passes the water tower, a crop of a car with car voxels;
 inputs give one error line (CLI) or a QueryError (API)."""
 from __future__ import annotations
 
+import signal
 import subprocess
-import sys
-import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from apps.demo import zenoh_env
-from synthetic_world import World
 from common.zenoh_session import ZenohConfig, free_tcp_port
+from synthetic_world import World
+from tests.support.processes import ROOT, cli_cmd, start_cli, stop_all, wait_for
 
-ROOT = Path(__file__).resolve().parents[1]
 FRAMES = 40
 RES = (240, 320)
 VOX = 0.5
-
-
-def _cmd(*a):
-    return [sys.executable, "-m", "apps.cli", *a]
 
 
 @pytest.fixture(scope="module")
@@ -36,37 +30,28 @@ def mapped_world(tmp_path_factory):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = zenoh_env()
     logs = [open(d / f"{n}.log", "wb") for n in ("mapper", "edge")]
-    mapper = subprocess.Popen(_cmd("mapper", "--mode", "router", "--listen", ep, "preset=throughput",
-                                   f"map.vox_size={VOX}", "map.depth_limit=20", "layers.rate_hz=0",
-                                   "snapshots.on_exit=false", "queues.per_robot=100000"),
-                              stdout=logs[0], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
-    edge = subprocess.Popen(_cmd("edge", "--connect", ep, "--rate", "0", "robot=cam", "source.kind=synthetic",
-                                 f"source.n_frames={FRAMES}", f"source.resolution={RES[0]}x{RES[1]}",
-                                 "source.depth_limit=20", "encoder.kind=label", "pca.out_dim=64",
-                                 "pca.fit_frames=8", "publish.linger_s=0.5"),
-                            stdout=logs[1], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
+    mapper = start_cli(["mapper", "--mode", "router", "--listen", ep, "preset=throughput", f"map.vox_size={VOX}",
+                        "map.depth_limit=20", "layers.rate_hz=0", "snapshots.on_exit=false",
+                        "queues.per_robot=100000"], logs[0], env=env)
+    edge = start_cli(["edge", "--connect", ep, "--rate", "0", "robot=cam", "source.kind=synthetic",
+                      f"source.n_frames={FRAMES}", f"source.resolution={RES[0]}x{RES[1]}", "source.depth_limit=20",
+                      "encoder.kind=label", "pca.out_dim=64", "pca.fit_frames=8", "publish.linger_s=0.5"],
+                     logs[1], env=env)
     try:
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=30.0) as c:
-            end = time.monotonic() + 240
-            while time.monotonic() < end:
-                try:
-                    st = c.stats(timeout=5.0)
-                    if edge.poll() is not None and st["frames"]["mapped"] >= FRAMES - 2 and not sum(st["queues"].values()):
-                        break
-                except Exception:
-                    pass
-                time.sleep(0.5)
-            else:
-                raise AssertionError((d / "edge.log").read_text()[-2000:] + (d / "mapper.log").read_text()[-2000:])
+            def done():
+                st = c.stats(timeout=5.0)
+                return (edge.poll() is not None and st["frames"]["mapped"] >= FRAMES - 2
+                        and not sum(st["queues"].values()))
+
+            try:
+                wait_for(done, 240, every=0.5, what="the edge's frames mapped")
+            except AssertionError:
+                raise AssertionError((d / "edge.log").read_text()[-2000:]
+                                     + (d / "mapper.log").read_text()[-2000:]) from None
         yield ep, World.generate(0), d
     finally:
-        for p in (edge, mapper):
-            if p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        stop_all((edge, mapper), signal.SIGTERM, 30)
         for f in logs:
             f.close()
 
@@ -123,7 +108,7 @@ def test_car_crop_answers_with_car_voxels(mapped_world, tmp_path):
     f = tmp_path / "car.jpg"
     ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(crop[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
     f.write_bytes(buf.tobytes())
-    out = subprocess.run(_cmd("query", "--image", str(f), "--connect", ep, "--json", "--top-k", "10"),
+    out = subprocess.run(cli_cmd("query", "--image", str(f), "--connect", ep, "--json", "--top-k", "10"),
                          capture_output=True, text=True, env=zenoh_env(), cwd=str(ROOT), timeout=120)
     assert out.returncode == 0, out.stderr
     import json
@@ -149,7 +134,7 @@ def test_bad_image_inputs_one_line_each(mapped_world, tmp_path):
     cases = {str(tmp_path / "missing.png"): "not found", str(empty): "empty", str(text): "not an image",
              str(huge): "over the limit"}
     for path, needle in cases.items():
-        out = subprocess.run(_cmd("query", "--image", path, "--connect", ep, "--timeout", "5"),
+        out = subprocess.run(cli_cmd("query", "--image", path, "--connect", ep, "--timeout", "5"),
                              capture_output=True, text=True, env=zenoh_env(), cwd=str(ROOT), timeout=60)
         lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
         assert out.returncode != 0 and len(lines) == 1 and needle in lines[0], (path, out.returncode, out.stderr)

@@ -1,6 +1,8 @@
-"""Import layers (ARCHITECTURE.md): ``common`` imports only ``common``; ``edge``, ``mapper`` and
-``query_client`` import only ``common`` and themselves; ``apps`` may import anything. And no
-import cycles between our modules.
+"""Import layers (ARCHITECTURE.md, ``ALLOWED`` below): ``common`` imports only itself; the
+libraries ``semantic_map``, ``synthetic_world`` and ``encoders`` import ``common`` (``encoders``
+also ``synthetic_world``); the roles ``edge``, ``mapper`` and ``query_client`` import
+``common``, the libraries they need and themselves, never another role; ``apps`` may import
+anything. And no import cycles between our modules.
 
 Every import statement counts: module level, inside functions (lazy imports), under
 ``if TYPE_CHECKING``, and ``importlib.import_module("literal")``. Read from the source with
@@ -162,7 +164,7 @@ def test_no_import_cycles():
         lines.append("cycle: " + " <-> ".join(comp))
         members = set(comp)
         for m in comp:
-            for target, line, text in edges[m]:
+            for target, line, _text in edges[m]:
                 if target in members:
                     lines.append(f"    {modules[m].relative_to(ROOT)}:{line}: -> {target}")
     assert not cycles, "import cycles (module-level or lazy):\n" + "\n".join(lines)

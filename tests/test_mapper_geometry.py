@@ -13,7 +13,8 @@ def _slab_cells(o, e, vox, exclude_end=False):
     with positive length (float64 slab test)."""
     lo = np.floor(np.minimum(o, e) / vox).astype(int) - 1
     hi = np.floor(np.maximum(o, e) / vox).astype(int) + 1
-    g = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)
+    g = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)], indexing="ij"),
+                 -1).reshape(-1, 3)
     bmin, bmax = g * vox, (g + 1) * vox
     d = e - o
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -98,7 +99,8 @@ def test_frame_geometry_matches_bruteforce():
     # semantic points are the unprojected finite pixels
     fin = np.isfinite(flat)
     assert g.pts_pix.numel() == fin.sum()
-    np.testing.assert_allclose(g.pts_xyz.numpy(), _unproject(pose, K, h, w, np.where(fin, flat, 0))[g.pts_pix.numpy()], atol=1e-4)
+    np.testing.assert_allclose(g.pts_xyz.numpy(), _unproject(pose, K, h, w, np.where(fin, flat, 0))[g.pts_pix.numpy()],
+                               atol=1e-4)
 
 
 def test_nan_ignored_inf_carves_to_range_and_empty_frame():

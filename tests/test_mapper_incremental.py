@@ -11,20 +11,14 @@ import pytest
 import torch
 
 from common.conventions import voxel_center
-from synthetic_world import World
 from semantic_map import cell_keys
 from semantic_map.config import map_config
 from semantic_map.frontiers import FrontierTable
 from semantic_map.map import RayFrontsMap
 from semantic_map.ray_frontiers import RayStore, angle_bins
+from synthetic_world import World
 
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def _ref_replace(keys, counts, clo, chi, fine, s, min_fronti):
@@ -125,7 +119,7 @@ def test_ray_store_prune_keys_and_merge_match_full_scan(psi, dtype):
     g = torch.Generator().manual_seed(int(psi))
     new, ref = RayStore(1.2, psi, 6, dtype), _RefStore(1.2, psi, 6, dtype)
     table = torch.unique(cell_keys.pack(torch.randint(-6, 6, (40, 3), generator=g)))
-    for step in range(40):
+    for _ in range(40):
         # frontiers vanish and appear
         drop = torch.rand(table.numel(), generator=g) < 0.15
         gone = table[drop]
@@ -135,7 +129,7 @@ def test_ray_store_prune_keys_and_merge_match_full_scan(psi, dtype):
         rb = new.prune_keys(torch.unique(gone), requeue=True)
         assert (ra is None) == (rb is None)
         if ra is not None and rb is not None:
-            for x, y in zip(ra, rb):
+            for x, y in zip(ra, rb, strict=True):
                 assert torch.equal(x, y)
         _same_store(ref, new)
         n = int(torch.randint(1, 200, (1,), generator=g))

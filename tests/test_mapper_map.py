@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from common.geometry import intrinsics_from_fov, look_at
+from mapper.snapshot import SnapshotError, load_map, save_map
 from semantic_map import cell_keys
 from semantic_map.config import METHODS, PRESETS, map_config
 from semantic_map.map import RayFrontsMap
-from mapper.snapshot import SnapshotError, load_map, save_map
 
 HW = (24, 32)
 
@@ -57,25 +57,28 @@ def _run(cfg, frames, backend="auto"):
 
 
 def test_presets_and_methods_follow_the_reference():
-    """Preset / method values against the reference's configs as the brief lists them
-    (§6.2 srchvol configs, §8.2 shipped YAML) — an independent spec, not the code's dicts."""
+    """Preset / method values against the reference's configs (its srchvol experiment
+    configs and shipped map YAML), written out here as an independent spec, not the code's dicts."""
     for p in PRESETS:
         for me in METHODS:
             map_config(p, method=me)            # every combination validates
     on = map_config("online")
-    assert (on.vox_size, on.fronti_subsampling, on.fronti_subsampling_min_fronti, on.angle_bin_size) == (1.0, 4, 5, 30.0)
+    assert (on.vox_size, on.fronti_subsampling, on.fronti_subsampling_min_fronti, on.angle_bin_size) == \
+        (1.0, 4, 5, 30.0)
     assert (on.occ_observ_weight, on.max_occ_cnt, on.max_empty_cnt, on.occ_thickness) == (100, 100, 10, 2)
     assert (on.ray_accum_period, on.ray_accum_phase, on.vox_accum_period, on.ray_erosion) == (8, 4, 2, 32)
     assert on.ray_tracing and on.ray_range_factor == 4.0 and on.max_rays_per_frame == 10000
     d = map_config("default")
     assert (d.vox_size, d.fronti_subsampling, d.fronti_subsampling_min_fronti, d.angle_bin_size) == (0.3, 5, 12, 20.0)
     # ray tracing per method as the reference runs them: on for rayfronts_10/20, off for the frontier baselines
-    sph, uni = map_config("online", method="spherical_semfronts"), map_config("online", method="unidirectional_semfronts")
+    sph = map_config("online", method="spherical_semfronts")
+    uni = map_config("online", method="unidirectional_semfronts")
     assert sph.angle_bin_size == uni.angle_bin_size == 360.0 and not sph.infer_direction and uni.infer_direction
     assert not sph.ray_tracing and not uni.ray_tracing and map_config("online", method="rayfronts").ray_tracing
     assert uni.infer_direction_scale == "fine"          # the reference reads neighbours at +-1 voxel
     z = map_config("online", method="rayfronts_zero_depth")
-    assert z.zero_depth_mode and (z.fronti_min_unobserved, z.fronti_min_empty, z.fronti_subsampling_min_fronti) == (0, 0, 1)
+    assert z.zero_depth_mode
+    assert (z.fronti_min_unobserved, z.fronti_min_empty, z.fronti_subsampling_min_fronti) == (0, 0, 1)
     sp = map_config("online", method="semantic_poses")
     assert sp.zero_depth_mode and sp.global_encoding
     assert not map_config("online", method="semantic_voxels").semantic_rays
@@ -154,7 +157,7 @@ def test_baseline_modes():
     # offsets to unobserved neighbours minus the others, at +-1 voxel (the reference)
     vox, beta = uni.cfg.vox_size, uni.cfg.beta
     checked = 0
-    for key, got in zip(r.frontier_keys.tolist(), r.directions):
+    for key, got in zip(r.frontier_keys.tolist(), r.directions, strict=True):
         c = (cell_keys.unpack(torch.tensor([key]))[0].double() + 0.5) * beta
         acc = torch.zeros(3, dtype=torch.float64)
         for dx in (-1, 0, 1):

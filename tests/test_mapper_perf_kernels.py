@@ -15,15 +15,15 @@ import pytest
 import torch
 
 from common.conventions import sanitize_depth, voxel_index
-from semantic_map import kernels
-from semantic_map import cell_keys
+from semantic_map import cell_keys, kernels
 from semantic_map.config import map_config
 from semantic_map.depth_geometry import aggregate_samples, erode_out_of_range, frame_geometry, sample_image
 from semantic_map.map import RayFrontsMap
 from semantic_map.ray_frontiers import associate, associate_bruteforce
 from semantic_map.traversal import segment_cells, unique_cells
 
-needs_kernels = pytest.mark.skipif(not kernels.available(), reason=f"semantic_map._rfkernels not built: {kernels.IMPORT_ERROR}")
+needs_kernels = pytest.mark.skipif(not kernels.available(),
+                                   reason=f"semantic_map._rfkernels not built: {kernels.IMPORT_ERROR}")
 
 
 def both(fn):
@@ -50,7 +50,7 @@ def assert_same(a, b):
         assert torch.equal(a, b)
         return
     assert len(a) == len(b)
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert_same(x, y)
 
 
@@ -121,7 +121,7 @@ def test_associate_degenerate_inputs():
     e = torch.empty((0, 3), dtype=torch.int64)
     pairs = []
     for args in ((o[:0], d[:0], fr), (o, d, e)):
-        k, t = both(lambda: associate(*args, 1.0, max_dist=5.0))
+        k, t = both(lambda args=args: associate(*args, 1.0, max_dist=5.0))
         assert t[0].numel() == 0
         pairs.append((k, t))
     # a single frontier straight ahead: cost 0.5 (ortho term 0, distance term 1)
@@ -150,7 +150,7 @@ def test_voxel_keys_and_range_errors():
     x[:100] = torch.round(x[:100] / 0.3) * 0.3  # on (or next to) voxel boundaries
     pairs = []
     for xx in (x, x.to(torch.float32)):
-        k, t = both(lambda: kernels.voxel_keys(xx, 0.3))
+        k, t = both(lambda xx=xx: kernels.voxel_keys(xx, 0.3))
         assert torch.equal(t, cell_keys.pack(voxel_index(xx.to(torch.float64), 0.3)))
         pairs.append((k, t))
     far = torch.tensor([[4e6, 0.0, 0.0]], dtype=torch.float64)
@@ -172,7 +172,7 @@ def test_unique_cells_kernel_torch_dense_sparse():
     excl = torch.tensor(rng.uniform(size=120) < 0.5)
     pairs = []
     for chunk in (397, 1 << 22):
-        k, t = both(lambda: unique_cells(o, e, 0.5, exclude_end=excl, chunk=chunk))
+        k, t = both(lambda chunk=chunk: unique_cells(o, e, 0.5, exclude_end=excl, chunk=chunk))
         with kernels.disabled():
             sparse = unique_cells(o, e, 0.5, exclude_end=excl, chunk=chunk, max_dense=0)
         pairs.append((k, t))
@@ -206,9 +206,11 @@ def test_frame_geometry_kernel_equals_torch(vox, thick, stride, budgets):
         kw = dict(max_depth_sensing=20.0, occ_thickness=thick, ray_erosion=3, free_stride=stride)
         if budgets:
             kw.update(max_pts=500, max_empty_pts=800, max_rays=50)
-        k, t = both(lambda: frame_geometry(pose, K, d, vox, generator=torch.Generator().manual_seed(3), **kw))
+        k, t = both(lambda pose=pose, K=K, d=d, kw=kw: frame_geometry(pose, K, d, vox,
+                                                                     generator=torch.Generator().manual_seed(3), **kw))
         assert t.occ_ijk.shape[0] > 10 and t.free_ijk.shape[0] > 10
-        pairs.append((None if k is None else tuple(getattr(k, f) for f in fields), tuple(getattr(t, f) for f in fields)))
+        pairs.append((None if k is None else tuple(getattr(k, f) for f in fields),
+                      tuple(getattr(t, f) for f in fields)))
     kernel_same(*pairs)
 
 
@@ -224,8 +226,10 @@ def test_erosion_random_masks_vs_pooling():
 
 
 # ------------------------------------------------------------------------- feature sampling
-@pytest.mark.parametrize("src_hw,dtype,mode", [((5, 7), torch.float16, "bilinear"), ((5, 7), torch.float32, "nearest"),
-                                               ((30, 40), torch.float32, "bilinear"), ((30, 40), torch.float32, "nearest"),
+@pytest.mark.parametrize("src_hw,dtype,mode", [((5, 7), torch.float16, "bilinear"),
+                                               ((5, 7), torch.float32, "nearest"),
+                                               ((30, 40), torch.float32, "bilinear"),
+                                               ((30, 40), torch.float32, "nearest"),
                                                ((12, 40), torch.float32, "bilinear")])
 def test_aggregate_kernel_torch_and_reference(src_hw, dtype, mode):
     g = torch.Generator().manual_seed(5)
@@ -268,7 +272,7 @@ def test_map_kernel_equals_torch_end_to_end():
 
     def run():
         m = RayFrontsMap(cfg, 5, "t")
-        for (p, K, d, rgb), f in zip(frames, feats):
+        for (p, K, d, rgb), f in zip(frames, feats, strict=True):
             m.integrate(p, K, d, rgb, f)
         m.flush()
         return m

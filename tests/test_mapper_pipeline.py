@@ -13,23 +13,16 @@ import numpy as np
 import pytest
 import torch
 
-from synthetic_world import World
+from mapper.pipeline import MapPipeline
+from mapper.snapshot import load_map, save_map
 from semantic_map.config import map_config
 from semantic_map.map import RayFrontsMap
-from mapper.snapshot import load_map, save_map
-from mapper.pipeline import MapPipeline
+from synthetic_world import World
 
 HW = (48, 64)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One torch thread per stage, as the map runs (tiny tensors + spare threads on a busy
-    2-core box spend their time in OpenMP barriers)."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

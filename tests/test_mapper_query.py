@@ -4,7 +4,12 @@ import math
 import torch
 
 from semantic_map.query import run_query
-from semantic_map.search_volume import ball_membership_counts, cone_membership_counts, frontier_ball_radii, search_volume_mask
+from semantic_map.search_volume import (
+    ball_membership_counts,
+    cone_membership_counts,
+    frontier_ball_radii,
+    search_volume_mask,
+)
 
 
 def test_query_topk_softmax_denoise_vs_bruteforce():

@@ -31,7 +31,7 @@ def test_associate_matches_bruteforce(seed, beta, max_dist, close):
     a = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, chunk=5000)
     b = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close)
     assert a[0].numel() > 20
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert torch.equal(x, y)
 
 
@@ -40,7 +40,7 @@ def test_associate_sparse_lookup_path_matches():
     fr = torch.cat([fr, torch.randint(-5, 5, (300, 3), generator=torch.Generator().manual_seed(9))]).unique(dim=0)
     a = associate(o, d, fr, 1.0, max_dist=30.0)
     b = associate_bruteforce(o, d, fr, 1.0, max_dist=30.0)
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert torch.equal(x, y)
 
 
@@ -114,7 +114,8 @@ def test_infer_direction_points_to_unobserved():
 
     grid = make_occupancy(1.0, -5, 30, backend="torch")
     # observed (free) half-space x < 2; neighbours sampled at +-beta around the centre
-    ijk = torch.stack(torch.meshgrid(torch.arange(-8, 2), torch.arange(-8, 16), torch.arange(-8, 16), indexing="ij"), -1).reshape(-1, 3)
+    ijk = torch.stack(torch.meshgrid(torch.arange(-8, 2), torch.arange(-8, 16), torch.arange(-8, 16), indexing="ij"),
+                      -1).reshape(-1, 3)
     grid.update(ijk, -1)
     fk = cell_keys.pack(torch.tensor([[0, 1, 1]]))  # coarse cell (0,1,1) of beta 2 -> centre (1, 3, 3)
     d = infer_directions(grid, fk, beta=2.0, vox=1.0, scale="coarse")

@@ -67,7 +67,7 @@ def test_map_pruning_removes_exactly_voxels_at_or_below_threshold():
     m.prune_semantic()
     after = set(map(tuple, m.sem.ijk().tolist()))
     q = m.occupancy.query(touched)
-    removed = {tuple(c) for c, v in zip(touched.tolist(), q.tolist()) if v <= 2}
+    removed = {tuple(c) for c, v in zip(touched.tolist(), q.tolist(), strict=True) if v <= 2}
     assert after == before - removed and removed
 
 
@@ -77,7 +77,8 @@ def test_frontier_subsampling_strict_and_incremental_region():
     assert c.tolist() == [[0, 0, 0], [1, 1, 1]] and n.tolist() == [3, 4]
     # hand-made grid: free slab next to unobserved space
     grid = make_occupancy(1.0, -5, 30, backend="torch")
-    free = torch.stack(torch.meshgrid(torch.arange(0, 8), torch.arange(0, 8), torch.arange(0, 3), indexing="ij"), -1).reshape(-1, 3)
+    free = torch.stack(torch.meshgrid(torch.arange(0, 8), torch.arange(0, 8), torch.arange(0, 3), indexing="ij"),
+                       -1).reshape(-1, 3)
     grid.update(free, -1)
     ft = FrontierTable(1.0, 4, 3)
     ft.update(grid, free.min(0).values, free.max(0).values, min_unobserved=9, min_free=4)

@@ -124,7 +124,8 @@ def ref_forward(sd, x01, naclip_sigma=None, normalize=True, reduced=False, ls=No
             break
         t = t + a
         y = F.layer_norm(t, (D,), sd[b + "norm2.weight"], sd[b + "norm2.bias"], eps=1e-6)
-        m = F.gelu(y @ sd[b + "mlp.fc1.weight"].T + sd[b + "mlp.fc1.bias"]) @ sd[b + "mlp.fc2.weight"].T + sd[b + "mlp.fc2.bias"]
+        m = (F.gelu(y @ sd[b + "mlp.fc1.weight"].T + sd[b + "mlp.fc1.bias"]) @ sd[b + "mlp.fc2.weight"].T
+             + sd[b + "mlp.fc2.bias"])
         if ls:
             m = m * sd[b + f"ls2.{ls}"]
         t = t + m
@@ -191,9 +192,9 @@ def test_config_inferred_from_args_and_shapes(ckpt_path):
 
 
 def test_preset_dims():
-    b, l = RadioConfig.preset("radio_v2.5-b"), RadioConfig.preset("radio_v2.5-l")
+    b, lg = RadioConfig.preset("radio_v2.5-b"), RadioConfig.preset("radio_v2.5-l")
     assert (b.embed_dim, b.depth, b.num_heads, b.num_prefix) == (768, 12, 12, 8)
-    assert (l.embed_dim, l.depth, l.num_heads, l.pos_grid) == (1024, 24, 16, 128)
+    assert (lg.embed_dim, lg.depth, lg.num_heads, lg.pos_grid) == (1024, 24, 16, 128)
 
 
 def test_forward_matches_independent_reference(ckpt_path):

@@ -29,7 +29,7 @@ def seq_reference(updates, lo, hi):
     ref = {}
     for ijk, inc in updates:
         inc = np.broadcast_to(np.asarray(inc), (len(ijk),))
-        for row, a in zip(np.asarray(ijk).tolist(), inc.tolist()):
+        for row, a in zip(np.asarray(ijk).tolist(), inc.tolist(), strict=True):
             key = tuple(row)
             ref[key] = min(max(ref.get(key, 0) + int(a), lo), hi)
     return ref
@@ -173,7 +173,7 @@ def test_random_updates_match_sequential_reference(backend):
     ref = seq_reference(updates, lo, hi)
     ijk, vals = g.active()
     assert len(ref) == g.num_active == ijk.shape[0]
-    got = dict(zip(map(tuple, ijk.tolist()), vals.tolist()))
+    got = dict(zip(map(tuple, ijk.tolist()), vals.tolist(), strict=True))
     assert got == ref
     probe = rng.integers(-8, 8, size=(500, 3))
     q = g.query(probe)
@@ -383,7 +383,7 @@ def test_first_blocked_vs_march(backend):
     keep = rng.random(len(box)) > 0.03     # some never-observed holes
     box, vals = box[keep], vals[keep]
     g = grid_from(backend, box, vals, vox)
-    ref_vals = dict(zip(map(tuple, box.tolist()), vals.tolist()))
+    ref_vals = dict(zip(map(tuple, box.tolist()), vals.tolist(), strict=True))
     n = 40
     o = rng.uniform(-0.5, 0.5, size=(n, 3))
     d = rng.normal(size=(n, 3))

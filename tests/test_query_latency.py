@@ -9,25 +9,16 @@ import threading
 import numpy as np
 import pytest
 import torch
-from test_runtime import _bfs_components  # the brute-force 26-neighbour oracle
 
+from common.cones import cone_union_volume
 from common.conventions import voxel_center
 from common.feature_space import FeatureSpace
-from common.messages import QueryRequest
-from common.pca import PCA
 from common.language_head import MLP2, MLP2Config
-from semantic_map import cell_keys
-from semantic_map.query_snapshot import SCORE_ATOL
-from common.cones import cone_union_volume
+from common.messages import QueryRequest
 from mapper.query_answer import answer_snapshot, top_stable
-from mapper.service_map import create_map
-from semantic_map.query_snapshot import QuerySnapshot
-
-
-def _pca(d=32, k=8, seed=0):
-    rng = np.random.default_rng(seed)
-    X = rng.normal(size=(3000, 6)) @ rng.normal(size=(6, d)) + 0.1 * rng.normal(size=(3000, d)) + rng.normal(size=d)
-    return PCA.fit(X, k), X
+from semantic_map import cell_keys
+from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+from tests.support.data import bfs_components, low_rank_pca, query_map
 
 
 def _slow_cos(fs, y, q):
@@ -43,7 +34,7 @@ def _slow_cos(fs, y, q):
 
 # ------------------------------------------------------------------ prepared similarity
 def test_prepared_similarity_equals_exact_cosine():
-    p, X = _pca()
+    p, X = low_rank_pca(n=3000)
     torch.manual_seed(0)
     head = MLP2(MLP2Config(32, 20, 12, num_inner=1))
     hs = {k: v.detach().numpy().copy() for k, v in head.state_dict().items()}
@@ -105,31 +96,8 @@ def test_cone_union_samples_vs_fine_grid():
 
 
 # ------------------------------------------------------------------ answer vs brute force
-def _map(n_side=14, n_rays=300, seed=0):
-    from mapper.service_config import load_mapper_config
-
-    p, X = _pca(seed=seed)
-    fs = FeatureSpace("label", "1", 32, pca=p)
-    cfg = load_mapper_config(None, ["preset=throughput", "map.vox_size=0.5"])
-    m = create_map(cfg, fs)
-    g = torch.Generator().manual_seed(seed)
-    ijk = torch.stack(torch.meshgrid(*[torch.arange(n_side)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    xyz = (ijk.float() + 0.5) * 0.5
-    # two strongly matching blobs so that clusters are non-trivial
-    feats = torch.from_numpy(p.compress(X[torch.randint(0, 3000, (len(xyz),), generator=g).numpy()]
-                                        .astype(np.float32)))
-    m.sem.fuse(xyz, torch.rand((len(xyz), 3), generator=g), feats)
-    fk = torch.unique(cell_keys.pack(torch.randint(-50, 50, (n_rays, 3), generator=g)))
-    r = fk.numel()
-    z = torch.zeros(r, dtype=torch.int64)
-    m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(), "feat": torch.randn((r, p.out_dim), generator=g),
-                            "weight": torch.ones(r),
-                            "dsum": torch.nn.functional.normalize(torch.randn((r, 3), generator=g), dim=1)})
-    return m, fs, cfg, X
-
-
 def test_answer_snapshot_matches_bruteforce():
-    m, fs, cfg, X = _map()
+    m, fs, cfg, X = query_map()
     qcfg = cfg.query
     qcfg.cluster_candidates = 300
     q = np.asarray(X[7], np.float32)
@@ -147,7 +115,7 @@ def test_answer_snapshot_matches_bruteforce():
     cand = order[:300]
     keep = cand[vs[cand] >= vs.min() + qcfg.cluster_rel_score * (vs[cand[0]] - vs.min())]
     ijk = cell_keys.unpack(keys[torch.from_numpy(keep)]).numpy()
-    lab = _bfs_components(ijk)
+    lab = bfs_components(ijk)  # the brute-force 26-neighbour oracle
     best = np.array([vs[keep][lab == c].max() for c in range(lab.max() + 1)])
     cl = np.argsort(-best, kind="stable")[:5]
     np.testing.assert_allclose(res.cluster_score, best[cl], atol=SCORE_ATOL)
@@ -169,7 +137,7 @@ def test_answer_snapshot_matches_bruteforce():
 
 
 def test_snapshot_is_isolated_from_later_map_changes():
-    m, fs, cfg, X = _map(n_side=8)
+    m, fs, cfg, X = query_map(n_side=8)
     q = QueryRequest(embedding=np.asarray(X[3], np.float32), top_k=4)
     snap = QuerySnapshot().take(m, 1)
     before = answer_snapshot(snap, fs, q, cfg.query)
@@ -189,7 +157,7 @@ def test_query_does_not_wait_past_lock_timeout_while_map_is_busy():
     from mapper.service import MapperService
     from mapper.service_config import load_mapper_config
 
-    m, fs, _, X = _map(n_side=6)
+    m, fs, _, X = query_map(n_side=6)
     cfg = load_mapper_config(None, ["preset=throughput", "query.lock_timeout_s=0.05"])
     svc = MapperService(cfg)
     svc.map, svc.space, svc.map_gen, svc.mapped = m, fs, 1, 3

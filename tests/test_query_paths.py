@@ -15,7 +15,7 @@ from common.messages import QueryRequest
 from mapper import query_answer
 from mapper.query_answer import SOFTMAX_TEMPERATURE, answer_snapshot
 from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
-from test_query_latency import _map
+from tests.support.data import query_map
 
 
 def _eval_scores(m, fs, queries: torch.Tensor, softmax: bool, k: int):
@@ -26,7 +26,7 @@ def _eval_scores(m, fs, queries: torch.Tensor, softmax: bool, k: int):
 
 @pytest.mark.parametrize("softmax", [False, True])
 def test_service_and_evaluation_give_equal_answers(softmax):
-    m, fs, cfg, X = _map(seed=3)
+    m, fs, cfg, X = query_map(seed=3)
     q = torch.from_numpy(np.asarray(X[11:14], np.float32))      # the query and two others
     k = 6
     standing = [QueryRequest(embedding=q[i].numpy(), id=f"s{i}") for i in (1, 2)]
@@ -39,8 +39,8 @@ def test_service_and_evaluation_give_equal_answers(softmax):
     np.testing.assert_allclose(res.ray_score, tr.score.numpy(), atol=SCORE_ATOL)
     # the same voxels and rays where the scores are not within the tolerance of a tie
     checked = 0
-    for full, got, want in ((ev.voxel_sim[0].numpy(), zip(res.voxel_xyz, res.voxel_score), tv.xyz.numpy()),
-                            (ev.ray_sim[0].numpy(), zip(res.ray_origin, res.ray_score), tr.xyz.numpy())):
+    for full, got, want in ((ev.voxel_sim[0].numpy(), zip(res.voxel_xyz, res.voxel_score, strict=True), tv.xyz.numpy()),
+                            (ev.ray_sim[0].numpy(), zip(res.ray_origin, res.ray_score, strict=True), tr.xyz.numpy())):
         for i, (xyz, s) in enumerate(got):
             if np.sum(np.abs(full - s) <= 2 * SCORE_ATOL) == 1:
                 np.testing.assert_allclose(xyz, want[i], atol=1e-5)
@@ -52,7 +52,7 @@ def test_service_and_evaluation_give_equal_answers(softmax):
 
 def test_service_scores_through_the_map_scoring_function(monkeypatch):
     """answer_snapshot reaches semantic_map.query.score_rows (replacing it changes the answer)."""
-    m, fs, cfg, X = _map(seed=4)
+    m, fs, cfg, X = query_map(seed=4)
     req = QueryRequest(embedding=np.asarray(X[5], np.float32), top_k=3)
     snap = QuerySnapshot().take(m, 1)
     before = answer_snapshot(snap, fs, req, cfg.query)

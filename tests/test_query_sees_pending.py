@@ -5,15 +5,16 @@ processes on loopback."""
 from __future__ import annotations
 
 import pytest
-from test_robustness import Proc, client, edge_args, mapped, mapper_args, pca_file, procs, wait_for  # noqa: F401
 
 from common.zenoh_session import free_tcp_port
+from tests.support.processes import Proc, wait_for
+from tests.support.roles import client, edge_args, mapped, mapper_args
 
 FRAMES = 5
 
 
 @pytest.mark.timeout(180)
-def test_query_right_after_frames_mapped_sees_their_voxels(tmp_path, procs, pca_file):  # noqa: F811
+def test_query_right_after_frames_mapped_sees_their_voxels(tmp_path, procs, pca_file):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     # blocks every 100 frames and no idle flush for 10 min: without the query's flush the
     # FRAMES frames stay buffered (0 voxels) for the whole test

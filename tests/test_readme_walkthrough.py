@@ -13,9 +13,7 @@ from __future__ import annotations
 import json
 import os
 import re
-import shlex
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -24,7 +22,9 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support.ports import free_port, port_is_free
+from tests.support.processes import ROOT, stop_process, wait_log
+
 SECTION = "## Run it as three machines on one"
 KEEPS = re.compile(r"keeps running; wait for `([^`]+)`")
 
@@ -44,20 +44,12 @@ def readme_blocks() -> list[dict]:
     return blocks
 
 
-def _free(port: int) -> bool:
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-            return True
-        except OSError:
-            return False
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def planner_loop() -> str:
+    """The ```python block of the README's "For planners" section."""
+    text = (ROOT / "README.md").read_text()
+    body = text.split("## For planners", 1)[1].split("\n## ", 1)[0]
+    (code,) = re.findall(r"```python\n(.*?)```", body, re.S)
+    return code
 
 
 def test_readme_parses_into_the_walkthrough():
@@ -66,6 +58,8 @@ def test_readme_parses_into_the_walkthrough():
                                                                   ["rayfronts", "edge"]]
     assert blocks[0]["wait_for"] and blocks[1]["wait_for"] and not blocks[2]["wait_for"]
     assert all(c.startswith("rayfronts query") for c in blocks[3]["commands"])
+    assert all(c.startswith("rayfronts search") for c in blocks[4]["commands"])
+    assert "from query_client import Client" in planner_loop()
     assert "--serve-web" in blocks[1]["commands"][0]
 
 
@@ -80,12 +74,12 @@ def test_readme_walkthrough_runs_literally(tmp_path):
     alltext = "\n".join(c for b in blocks for c in b["commands"])
     subst = {}
     for port in sorted({int(p) for p in re.findall(r"127\.0\.0\.1:(\d+)", alltext)}):
-        if not _free(port):
-            subst[f"127.0.0.1:{port}"] = f"127.0.0.1:{_free_port()}"
+        if not port_is_free(port):
+            subst[f"127.0.0.1:{port}"] = f"127.0.0.1:{free_port()}"
     extra_mapper = []
     for port, opt in ((9090, "--web-port"), (9876, "--grpc-port")):
-        if not _free(port):
-            extra_mapper += [opt, str(_free_port())]
+        if not port_is_free(port):
+            extra_mapper += [opt, str(free_port())]
 
     def fix(cmd: str) -> str:
         for a, b in subst.items():
@@ -99,7 +93,7 @@ def test_readme_walkthrough_runs_literally(tmp_path):
     outputs: dict[str, str] = {}
     try:
         for i, b in enumerate(blocks):
-            if b["commands"][0].startswith("rayfronts query"):
+            if b["commands"][0].startswith(("rayfronts query", "rayfronts search")):
                 _wait_mapped(endpoint, timeout=120)
             for cmd in b["commands"]:
                 cmd = fix(cmd)
@@ -109,7 +103,7 @@ def test_readme_walkthrough_runs_literally(tmp_path):
                     p = subprocess.Popen(["bash", "-c", f"exec {cmd}"], cwd=tmp_path, env=env,
                                          stdout=open(log, "wb"), stderr=subprocess.STDOUT)
                     background.append((name, p, log))
-                    _wait_text(p, log, b["wait_for"], timeout=150)
+                    wait_log(p, log, re.escape(b["wait_for"]), timeout=150)
                 else:
                     r = subprocess.run(["bash", "-c", cmd], cwd=tmp_path, env=env, capture_output=True, text=True,
                                        timeout=240)
@@ -121,36 +115,31 @@ def test_readme_walkthrough_runs_literally(tmp_path):
         assert "query 'vehicle'" in q["vehicle"] and "voxel clusters" in q["vehicle"], q["vehicle"]
         wt = json.loads(q["water tower"])
         assert wt["query"] == "water tower" and len(wt["ray_origin"]) >= 1, wt.keys()
+        # the planner's view: vehicles found with ids, goals in free space (one JSON object)
+        (search_out,) = [out for c, out in outputs.items() if c.startswith("rayfronts search")]
+        found = json.loads(search_out)
+        assert found["found"] and all(isinstance(i["id"], int) and i["target"] == "vehicle" for i in found["found"])
+        assert found["look_next"], found.keys()
+        # "For planners": the Python loop, run as written against the same mapper
+        loop = planner_loop().replace("tcp/127.0.0.1:7447", endpoint)
+        r = subprocess.run([sys.executable, "-c", loop], cwd=ROOT, env=env, capture_output=True, text=True,
+                           timeout=180)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert re.search(r"^(found vehicle #\d+ at|look next at) ", r.stdout, re.M), r.stdout
+        assert re.search(r"^goal cell state -?\d", r.stdout, re.M), r.stdout
+        ids = {int(i) for i in re.findall(r"found vehicle #(\d+)", r.stdout)}
+        assert ids <= {i["id"] for i in found["found"]}, (ids, found["found"])   # the same ids as the CLI's
         # the web viewer the mapper serves (rendering is tests/test_browser_view.py)
         web = 9090 if "--web-port" not in extra_mapper else int(extra_mapper[extra_mapper.index("--web-port") + 1])
         with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as resp:
             assert resp.status == 200 and b"rerun" in resp.read().lower()
     finally:
         codes = {}
-        for name, p, log in reversed(background):  # Ctrl-C, as the README says
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(60)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-            codes[name] = p.returncode
-    assert all(c == 0 for c in codes.values()), {n: (c, (tmp_path / log.name).read_text()[-1500:])
-                                                 for (n, _, log), c in zip(reversed(background), codes.values())}
-
-
-def _wait_text(p: subprocess.Popen, log: Path, text: str, timeout: float) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        out = log.read_text(errors="replace") if log.exists() else ""
-        if text in out:
-            return
-        if p.poll() is not None:
-            raise AssertionError(f"{shlex.join(p.args)} exited ({p.returncode}) before printing {text!r}:\n"
-                                 f"{out[-3000:]}")
-        time.sleep(0.2)
-    raise AssertionError(f"{text!r} not printed within {timeout} s:\n{log.read_text(errors='replace')[-3000:]}")
+        for name, p, _ in reversed(background):  # Ctrl-C, as the README says
+            codes[name] = stop_process(p, signal.SIGINT, 60)
+    assert all(c == 0 for c in codes.values()), {
+        n: (c, (tmp_path / log.name).read_text()[-1500:])
+        for (n, _, log), c in zip(reversed(background), codes.values(), strict=False)}
 
 
 def _wait_mapped(endpoint: str, timeout: float) -> None:

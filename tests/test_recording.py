@@ -50,7 +50,7 @@ def test_write_and_read_back(tmp_path):
     assert dt.datetime.fromisoformat(info["created"]).tzinfo is not None
     got = list(r)
     assert [g.seq for g in got] == [0, 1, 2, 3, 4]
-    for a, b in zip(frames, got):
+    for a, b in zip(frames, got, strict=True):
         np.testing.assert_array_equal(a.rgb, b.rgb)
         np.testing.assert_array_equal(a.pose, b.pose)
         np.testing.assert_array_equal(a.features, b.features)

@@ -3,9 +3,9 @@
 Each test starts ``rayfronts mapper`` (router mode, the base station) and ``rayfronts edge``
 processes (client mode) and talks to them with ``query_client.Client``.
 
-Speed (these helpers are shared by the process-level test files): every process started
-through :class:`Proc` (and the PCA fit) gets ``RAYFRONTS_TEXT_CACHE`` pointing at one
-directory per pytest session, so only the first edge of a session loads the MiniLM text
+Speed (the helpers are :mod:`tests.support`'s, shared by the process-level test files): every
+process started through :class:`Proc` (and the PCA fit) gets ``RAYFRONTS_TEXT_CACHE`` pointing
+at one directory per pytest session, so only the first edge of a session loads the MiniLM text
 model to embed its class names, and a mapper loads it only for a query text no earlier
 process embedded (``encoders.text.base``; the embeddings read back are the exact float32
 rows). The PCA basis is fitted once per session. Clients retry their connection every
@@ -16,139 +16,23 @@ belong to ``rayfronts bench`` (``bench faults``).
 """
 from __future__ import annotations
 
-import atexit
 import json
-import os
-import shutil
 import signal
 import subprocess
-import sys
-import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from common.zenoh_session import DEFAULT_LEASE_MS, ZenohConfig, free_tcp_port
 from apps.demo import zenoh_env
-
-ROOT = Path(__file__).resolve().parents[1]
-RES = "96x128"
-FAST_MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0",
-            "rerun.file=", "snapshots.on_exit=false"]
-
+from common.zenoh_session import DEFAULT_LEASE_MS, free_tcp_port
+from tests.support.processes import ROOT, Proc, cli_cmd, stop_all, wait_for
+from tests.support.roles import FAST_MAP, client, edge_args, mapped, mapper_args, zenoh_client_config
 
 #: a robot whose edge died is marked gone within the link lease (the CLI default, when the
 #: FIN/RST of a killed process is lost) plus 1 s of slack for a loaded machine: a functional
 #: contract derived from the configured lease, not a speed figure (those are in bench faults)
 GONE_BOUND_S = DEFAULT_LEASE_MS / 1000 + 1.0
-
-_TEXT_CACHE: list[str] = []
-
-
-def text_cache_dir() -> str:
-    """The session's shared text-embedding cache directory (created on first use, removed
-    at exit)."""
-    if not _TEXT_CACHE:
-        d = tempfile.mkdtemp(prefix="rayfronts-text-cache-")
-        atexit.register(shutil.rmtree, d, True)
-        _TEXT_CACHE.append(d)
-    return _TEXT_CACHE[0]
-
-
-def proc_env() -> dict:
-    """The environment of the processes the tests start (Zenoh settings + the text cache)."""
-    return {**zenoh_env(), "RAYFRONTS_TEXT_CACHE": text_cache_dir()}
-
-
-def _cmd(*args):
-    return [sys.executable, "-m", "apps.cli", *args]
-
-
-class Proc:
-    def __init__(self, name, args, logdir: Path, nice: int = 0):
-        self.name = name
-        self.log = open(logdir / f"{name}.log", "ab")
-        self.p = subprocess.Popen(_cmd(*args), stdout=self.log, stderr=subprocess.STDOUT, env=proc_env(),
-                                  cwd=str(ROOT), preexec_fn=(lambda: os.nice(nice)) if nice else None)
-
-    def stop(self, sig=signal.SIGINT, timeout=30.0) -> int:
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-            try:
-                self.p.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
-                raise AssertionError(f"{self.name} did not exit within {timeout} s after {sig!r}")
-        self.log.close()
-        return self.p.returncode
-
-
-@pytest.fixture
-def procs():
-    started: list[Proc] = []
-    yield started
-    for p in reversed(started):
-        if p.p.poll() is None:
-            p.p.kill()
-            p.p.wait()
-
-
-_PCA: list[Path] = []
-
-
-@pytest.fixture(scope="module")
-def pca_file(tmp_path_factory):
-    """A fixed PCA basis (``rayfronts edge fit-pca``) so restarted edges share one feature
-    space; fitted once per session (the modules that re-export this fixture share it)."""
-    if _PCA and _PCA[0].is_file():
-        return _PCA[0]
-    out = tmp_path_factory.mktemp("pca") / "pca.npz"
-    r = subprocess.run(_cmd("edge", "fit-pca", "--out", str(out), "--frames", "4", f"source.resolution={RES}",
-                            "source.n_frames=40", "pca.out_dim=16"),
-                       env=proc_env(), cwd=str(ROOT), capture_output=True, timeout=120)
-    assert r.returncode == 0, r.stderr.decode()[-2000:]
-    assert out.is_file()
-    _PCA[:] = [out]
-    return out
-
-
-def edge_args(ep, pca, robot="r1", frames=40, rate=5.0, extra=()):
-    return ["edge", "--connect", ep, "--rate", str(rate), f"robot={robot}", f"source.resolution={RES}",
-            f"source.n_frames={frames}", "source.depth_limit=20", f"pca.basis={pca}", "pca.out_dim=16",
-            "zenoh.connect_retry_s=0.2", *extra]
-
-
-def mapper_args(ep, extra=()):
-    return ["mapper", "--mode", "router", "--listen", ep, *FAST_MAP, *extra]
-
-
-def client(ep):
-    from query_client import Client
-
-    return Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000, connect_retry_s=0.2), timeout=20.0)
-
-
-def wait_for(fn, timeout=60.0, every=0.2, what="condition"):
-    end = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except Exception as e:  # mapper not up yet etc.
-            last = e
-        time.sleep(every)
-    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
-
-
-def mapped(c, robot=None) -> int:
-    st = c.stats(timeout=5.0)
-    return st["robots"].get(robot, {}).get("mapped", 0) if robot else st["frames"]["mapped"]
-
 
 @pytest.fixture(scope="module")
 def queue2_mapper(tmp_path_factory):
@@ -163,10 +47,7 @@ def queue2_mapper(tmp_path_factory):
         assert m.p.poll() is None, "the shared mapper died"
         assert m.stop() == 0, "the shared mapper exited uncleanly"
     finally:
-        if m.p.poll() is None:
-            m.p.kill()
-            m.p.wait()
-        m.log.close()
+        stop_all([m], signal.SIGKILL)
 
 
 # --------------------------------------------------------------------------- tests
@@ -189,7 +70,7 @@ def test_edge_sigkill_robot_gone_and_restart(tmp_path, procs, pca_file, queue2_m
         h.cancel()
         assert h.id not in c.stats()["standing_queries"]
         # the command line client
-        q = subprocess.run(_cmd("query", "car", "--json", "--top-k", "2", "--connect", ep), env=zenoh_env(),
+        q = subprocess.run(cli_cmd("query", "car", "--json", "--top-k", "2", "--connect", ep), env=zenoh_env(),
                            cwd=str(ROOT), capture_output=True, text=True, timeout=60)
         assert q.returncode == 0, q.stderr[-1500:]
         assert json.loads(q.stdout)["query"] == "car"
@@ -218,12 +99,12 @@ def test_edge_sigkill_robot_gone_and_restart(tmp_path, procs, pca_file, queue2_m
 def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pca_file):
     import zenoh
 
+    from common.feature_space import FeatureSpace
     from common.frame import Frame
     from common.recording import RecordingReader
     from common.wire import decode_frame, encode_frame, encode_message
     from mapper.service_config import load_mapper_config
     from mapper.service_map import create_map, flush, integrate, layer_arrays
-    from common.feature_space import FeatureSpace
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs.append(Proc("mapper", mapper_args(ep, ["queues.per_robot=100000", "layers.max_voxels=100000000",
@@ -251,7 +132,7 @@ def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pc
                                          np.ones((4, 4), np.float32), np.zeros((4, 4, 3), np.uint8),
                                          features=np.zeros((16, 2, 2), np.float16))),  # wrong robot for key
         ]
-        s = zenoh.open(_zcfg(ep))
+        s = zenoh.open(zenoh_client_config(ep))
         try:
             pub = s.declare_publisher("rayfronts/robots/r1/frames", congestion_control=zenoh.CongestionControl.BLOCK)
             for i in range(10_000):
@@ -299,18 +180,6 @@ def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pc
     assert mp.stop() == 0
 
 
-def _zcfg(ep):
-    import json
-
-    import zenoh
-
-    c = zenoh.Config()
-    c.insert_json5("mode", '"client"')
-    c.insert_json5("connect/endpoints", json.dumps([ep]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    return c
-
-
 @pytest.mark.timeout(180)
 def test_fast_edge_bounded_queue_counts_drops(tmp_path, procs, pca_file, queue2_mapper):
     ep = queue2_mapper
@@ -346,6 +215,10 @@ def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, p
                                   extra=["publish.loop=true", "--zenoh-set", 'connect/retry={"period_init_ms": 200, '
                                          '"period_max_ms": 500, "period_increase_factor": 2}']), tmp_path)
     procs.append(edge)
+    watcher = client(ep)                 # a standing query that lives through the restart
+    seen: list[int] = []
+    wait_for(lambda: watcher.stats(), 60, what="mapper up")
+    watcher.watch("car", lambda r: seen.append(int(r.frames_mapped)), top_k=3, timeout=60.0)
     with client(ep) as c:
         wait_for(lambda: c.snapshot().get("frames_mapped", 0) >= 4, 150, what="a periodic snapshot of >= 4 frames")
         m1.p.kill()   # no clean shutdown: only the periodic snapshot survives
@@ -353,10 +226,15 @@ def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, p
     latest = (snaps / "LATEST").read_text().strip()
     import json as _json
 
-    saved = _json.loads((snaps / latest / "meta.json").read_text())["frames_mapped"]
-    assert saved >= 4
+    meta = _json.loads((snaps / latest / "meta.json").read_text())
+    saved = meta["frames_mapped"]
+    assert saved >= 4 and len(meta["standing"]) == 1      # the standing query is in the snapshot
+    before = len(seen)
     m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0"]), tmp_path)
     procs.append(m2)
+    # the watch keeps delivering from the restarted mapper, answers of a map that grows past the snapshot
+    wait_for(lambda: any(f > saved for f in seen[before:]), 120, what="standing query answers after the restart")
+    watcher.close()
     with client(ep) as c:
         st = wait_for(lambda: c.stats(), 60, what="restarted mapper")
         assert st["snapshot"].get("restored") is True

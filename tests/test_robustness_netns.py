@@ -4,56 +4,27 @@ laptop (zC) each reach only the base station (zB), which runs the mapper as the 
 from __future__ import annotations
 
 import json
-import os
-import shutil
+import signal
 import subprocess
 import sys
 import textwrap
 import uuid
-from pathlib import Path
 
 import pytest
 
 from apps.demo import zenoh_env
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _ip(*a, check=True):
-    return subprocess.run(["ip", *a], capture_output=True, text=True, check=check)
+from tests.support.netns import network_namespaces
+from tests.support.processes import ROOT, Proc, cli_cmd, stop_all
 
 
 @pytest.fixture
 def netns():
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        pytest.skip("needs root and iproute2")
     tag = uuid.uuid4().hex[:6]
     a, b, c = f"rfA{tag}", f"rfB{tag}", f"rfC{tag}"
-    made = []
-    try:
-        for n in (a, b, c):
-            r = _ip("netns", "add", n, check=False)
-            if r.returncode != 0:
-                pytest.skip(f"ip netns add failed: {r.stderr.strip()}")
-            made.append(n)
-        va, vb, vc, vb2 = f"va{tag}", f"vb{tag}", f"vc{tag}", f"vd{tag}"
-        _ip("link", "add", va, "type", "veth", "peer", "name", vb)
-        _ip("link", "set", va, "netns", a)
-        _ip("link", "set", vb, "netns", b)
-        _ip("link", "add", vc, "type", "veth", "peer", "name", vb2)
-        _ip("link", "set", vc, "netns", c)
-        _ip("link", "set", vb2, "netns", b)
-        _ip("-n", a, "addr", "add", "10.77.0.1/24", "dev", va)
-        _ip("-n", b, "addr", "add", "10.77.0.2/24", "dev", vb)
-        _ip("-n", c, "addr", "add", "10.78.0.3/24", "dev", vc)
-        _ip("-n", b, "addr", "add", "10.78.0.2/24", "dev", vb2)
-        for n, devs in ((a, [va]), (b, [vb, vb2]), (c, [vc])):
-            for d in devs + ["lo"]:
-                _ip("-n", n, "link", "set", d, "up")
+    va, vb, vc, vb2 = f"va{tag}", f"vb{tag}", f"vc{tag}", f"vd{tag}"
+    with network_namespaces([a, b, c], [(a, b, va, vb, "10.77.0.1/24", "10.77.0.2/24"),
+                                        (c, b, vc, vb2, "10.78.0.3/24", "10.78.0.2/24")]):
         yield a, b, c
-    finally:
-        for n in made:
-            _ip("netns", "del", n, check=False)
 
 
 CLIENT = textwrap.dedent("""
@@ -85,18 +56,14 @@ def test_three_namespaces_no_shm(netns, tmp_path):
     a, b, c = netns
     env = zenoh_env()
     pca = tmp_path / "pca.npz"
-    r = subprocess.run([sys.executable, "-m", "apps.cli", "edge", "fit-pca", "--out", str(pca), "--frames", "3",
-                        "source.resolution=96x128", "source.n_frames=20", "pca.out_dim=16"],
+    r = subprocess.run(cli_cmd("edge", "fit-pca", "--out", str(pca), "--frames", "3", "source.resolution=96x128",
+                               "source.n_frames=20", "pca.out_dim=16"),
                        env=env, cwd=str(ROOT), capture_output=True, timeout=120)
     assert r.returncode == 0, r.stderr.decode()[-1500:]
     shm = ["--zenoh-set", "transport/shared_memory/enabled=false"]
-    logs = []
 
     def spawn(ns, name, args):
-        f = open(tmp_path / f"{name}.log", "wb")
-        logs.append(f)
-        return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "apps.cli", *args],
-                                stdout=f, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))
+        return Proc(name, args, tmp_path, env=env, prefix=("ip", "netns", "exec", ns))
 
     mapper = spawn(b, "mapper", ["mapper", "--mode", "router", "--listen", "tcp/0.0.0.0:7447", *shm,
                                  "preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0"])
@@ -111,14 +78,5 @@ def test_three_namespaces_no_shm(netns, tmp_path):
         assert res["mapped"] >= 12 and res["voxels"] > 0 and res["rejected"] == 0
         assert res["robots"] == ["r1"]   # the laptop sees the edge's liveliness through the router
     finally:
-        for p in (edge, mapper):
-            if p.poll() is None:
-                p.send_signal(2)
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-        for f in logs:
-            f.close()
-    assert mapper.returncode == 0 and edge.returncode == 0
+        stop_all((edge, mapper), signal.SIGINT, 30)
+    assert mapper.p.returncode == 0 and edge.p.returncode == 0

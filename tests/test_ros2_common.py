@@ -34,7 +34,8 @@ def test_key_layouts():
     assert publish_key("/chatter", "std_msgs/msg/Int32", "rmw_zenoh", 0) == \
         "0/chatter/std_msgs::msg::dds_::Int32_/TypeHashNotSupported"
     h = "RIHS01_" + "ab" * 32
-    assert parse_key(f"3/a/b/sensor_msgs::msg::dds_::Image_/{h}", "rmw_zenoh", 3) == ("/a/b", "sensor_msgs/msg/Image", h)
+    assert parse_key(f"3/a/b/sensor_msgs::msg::dds_::Image_/{h}", "rmw_zenoh", 3) == \
+        ("/a/b", "sensor_msgs/msg/Image", h)
     assert parse_key("a/b", "bridge") == ("/a/b", None, None)
     for bad in ("", "/", "/a/*", "/a//b", "/a b"):
         with pytest.raises(RosKeyError):
@@ -96,8 +97,8 @@ def test_output_messages_decode(distro, store):
     rec = np.frombuffer(bytes(m.data), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")])
     np.testing.assert_array_equal(np.stack([rec["x"], rec["y"], rec["z"]], 1), xyz)
     assert list(rec["rgb"]) == [0xFF000A, 0x010203]
-    empty = store.deserialize_cdr(cdr.serialize(pointcloud2(T, "map", 0.0, np.zeros((0, 3))), "sensor_msgs/msg/PointCloud2",
-                                                distro), "sensor_msgs/msg/PointCloud2")
+    empty = store.deserialize_cdr(cdr.serialize(pointcloud2(T, "map", 0.0, np.zeros((0, 3))),
+                                                "sensor_msgs/msg/PointCloud2", distro), "sensor_msgs/msg/PointCloud2")
     assert empty.width == 0 and len(empty.data) == 0
 
     o = np.array([[0, 0, 0], [1, 1, 1]], np.float32)

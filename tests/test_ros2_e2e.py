@@ -5,6 +5,7 @@ needed) → the mapper process. The frames the edge sent and the mapper's map mu
 those built in-process from the bag source reading the same bag."""
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -12,17 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer
-from rosbags.typesys import Stores, get_typestore
 
 from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
 from edge.sources import SourceConfig, open_source
 from edge.sources.transforms import matrix_to_quat
-from test_robustness import wait_for
+from tests.support import rosbag_data as bagdata
+from tests.support.processes import start_cli, stop_all, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
-TS = get_typestore(Stores.ROS2_HUMBLE)
-T = TS.types
+TS, T = bagdata.TS, bagdata.T
 T0 = 1_750_000_000.0
 N = 10
 FAST_MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0", "rerun.file=",
@@ -32,17 +32,8 @@ TOPICS = ["source.rgb_topic=/camera/color/image_raw", "source.depth_topic=/camer
           "source.body_axes=RDF"]
 
 
-def _hdr(t, frame):
-    sec = int(t)
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9))),
-                                    frame_id=frame)
-
-
 def _image(t, arr, enc):
-    data = np.ascontiguousarray(arr).view(np.uint8).reshape(-1)
-    h = arr.shape[0]
-    return T["sensor_msgs/msg/Image"](header=_hdr(t, "camera_color_optical_frame"), height=h, width=arr.shape[1],
-                                      encoding=enc, is_bigendian=0, step=data.size // h, data=data)
+    return bagdata.image(t, "camera_color_optical_frame", arr, enc)
 
 
 @pytest.fixture(scope="module")
@@ -59,15 +50,9 @@ def world_bag(tmp_path_factory) -> Path:
             t = T0 + 0.1 * k
             q = matrix_to_quat(f.pose[:3, :3])
             p = f.pose[:3, 3]
-            pose = T["geometry_msgs/msg/PoseStamped"](header=_hdr(t, "map"), pose=T["geometry_msgs/msg/Pose"](
-                position=T["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]),
-                orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+            pose = T["geometry_msgs/msg/PoseStamped"](header=bagdata.header(t, "map"), pose=bagdata.pose(p, q))
             if k == 0:
-                info = T["sensor_msgs/msg/CameraInfo"](
-                    header=_hdr(t, "camera_depth_optical_frame"), height=48, width=64, distortion_model="plumb_bob",
-                    d=np.zeros(5), k=f.intrinsics.ravel(), r=np.eye(3).ravel(), p=np.zeros(12), binning_x=0,
-                    binning_y=0, roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                                          do_rectify=False))
+                info = bagdata.camera_info(t, "camera_depth_optical_frame", f.intrinsics, 48, 64)
                 w.write(c_i, int((t - 0.05) * 1e9), TS.serialize_cdr(info, "sensor_msgs/msg/CameraInfo"))
             ns = int(t * 1e9)
             w.write(c_p, ns, TS.serialize_cdr(pose, "geometry_msgs/msg/PoseStamped"))
@@ -89,12 +74,7 @@ def radio(tmp_path_factory):
 
 
 def _run(args, log):
-    return subprocess.Popen([sys.executable, "-m", "apps.cli", *args], stdout=log, stderr=subprocess.STDOUT,
-                            env=zenoh_env(), cwd=str(ROOT))
-
-
-def _wait(fn, timeout, what):
-    return wait_for(fn, timeout, what=what)
+    return start_cli(args, log, env=zenoh_env())
 
 
 @pytest.mark.slow
@@ -106,8 +86,8 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     from common.feature_space import FeatureSpace
     from common.recording import RecordingReader
     from common.wire import decode_frame, encode_frame
-    from encoders import EncoderConfig, make_encoder
     from edge.runtime import compress_features
+    from encoders import EncoderConfig, make_encoder
     from mapper.service_config import load_mapper_config
     from mapper.service_map import create_map, flush, integrate, layer_arrays
     from query_client import Client
@@ -121,30 +101,25 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     try:
         procs.append(_run(["mapper", "--mode", "router", "--listen", ep_m, *FAST_MAP], logs[0]))
         with Client(ZenohConfig(connect=[ep_m], connect_timeout_ms=60_000), timeout=20.0) as c:
-            _wait(lambda: c.mapper_alive(), 60, "mapper alive")
+            wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
             procs.append(_run(["edge", "--connect", ep_m, "--rate", "4", "--record", str(rec), "robot=r1", "threads=1",
                                "source.kind=ros2", f"source.ros_connect=[{ep_r}]", "source.ros_idle_timeout=3",
                                f"source.ros_keys={layout}", "publish.linger_s=8",
                                *TOPICS, *enc_args], logs[1]))
-            _wait(lambda: "r1" in c.robots(), 60, "edge r1 alive")
+            wait_for(lambda: "r1" in c.robots(), 60, what="edge r1 alive")
             procs.append(subprocess.Popen([sys.executable, str(ROOT / "tests" / "ros2_replay.py"), str(world_bag),
                                            "--listen", ep_r, "--layout", layout, "--distro", "jazzy",
                                            "--wait-subs", "4", "--speed", "1"],
                                           stdout=logs[2], stderr=subprocess.STDOUT, env=zenoh_env(), cwd=str(ROOT)))
             assert procs[2].wait(90) == 0
             assert procs[1].wait(90) == 0, (tmp_path / "edge.log").read_text()[-3000:]
-            st = _wait(lambda: (lambda s: s if s["frames"]["mapped"] == N and s["flushed_version"] == s["map_version"]
-                                else None)(c.stats()), 90, f"{N} frames mapped")
+            st = wait_for(lambda: (lambda s: s if s["frames"]["mapped"] == N
+                                   and s["flushed_version"] == s["map_version"] else None)(c.stats()),
+                          90, what=f"{N} frames mapped")
             vox_remote, _ = c.layer("voxels")
             n_rays = st["map"]["n_rays"]
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        stop_all(procs, signal.SIGTERM, 20)
         for f in logs:
             f.close()
 
@@ -172,7 +147,7 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
 
     pub = load_config(EdgeConfig, None, []).publish  # the edge's wire settings (defaults)
     local = []
-    for f, x, s in zip(ref, feats, sent):
+    for f, x, s in zip(ref, feats, sent, strict=True):
         g = decode_frame(encode_frame(type(f)(**{**f.__dict__, "features": x, "feature_space": fs.id, "meta": {}}),
                                       feature_codec=pub.feature_codec, jpeg_quality=pub.jpeg_quality))
         assert s.stamp == g.stamp

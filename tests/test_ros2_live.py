@@ -9,6 +9,7 @@ faults of a live stream must be counted, never crash.
 from __future__ import annotations
 
 import logging
+import signal
 import subprocess
 import sys
 import threading
@@ -18,18 +19,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Writer
-from rosbags.typesys import Stores, get_typestore
 
 from apps.demo import zenoh_env
 from common.zenoh_session import free_tcp_port
 from edge.sources import SourceConfig, SourceError, open_source
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import test_sources_rosbag as bagdata  # noqa: E402  (the bag test's messages and hand-written poses)
-
-TS = get_typestore(Stores.ROS2_HUMBLE)
-T = TS.types
+from tests.support import rosbag_data as bagdata
+from tests.support.processes import ROOT, cli_cmd, stop_process
+from tests.support.rosbag_data import T0, TS, H, T, W
 
 
 class Replay:
@@ -55,9 +51,7 @@ class Replay:
         return int(out.split("DONE")[1].split()[0])
 
     def kill(self):
-        if self.p.poll() is None:
-            self.p.kill()
-            self.p.wait()
+        stop_process(self.p, signal.SIGKILL)
 
 
 @pytest.fixture
@@ -86,7 +80,7 @@ def live_frames(ep, layout="rmw_zenoh", **kw):
 
 def assert_same_frames(live, ref):
     assert [f.meta["index"] for f in live] == [f.meta["index"] for f in ref]
-    for a, b in zip(live, ref):
+    for a, b in zip(live, ref, strict=True):
         assert a.stamp == b.stamp
         np.testing.assert_array_equal(a.pose, b.pose)
         np.testing.assert_array_equal(a.intrinsics, b.intrinsics)
@@ -120,7 +114,7 @@ def test_live_frames_equal_bag_frames(bag, tmp_path, replays, layout, distro, po
     # and the hand-written poses of the bag test hold for the live frames too
     off = np.array([0.0, -0.1, 0.2]) if "camera_frame" in pose else np.zeros(3)
     for f in frames:
-        np.testing.assert_allclose(f.pose, bagdata._expected_rdf(f.stamp, off), atol=1e-6)
+        np.testing.assert_allclose(f.pose, bagdata.expected_rdf(f.stamp, off), atol=1e-6)
 
 
 def test_latched_tf_static_and_camera_info_reach_a_late_edge(bag, tmp_path, replays):
@@ -155,12 +149,10 @@ def test_list_topics_from_graph_tokens_and_keys(bag, tmp_path, replays):
 
 
 # ---------------------------------------------------------------------- faults
-H, W = 6, 8
-T0 = 1_700_000_000.0
 
 
 def _img(t, arr, enc):
-    return bagdata._image(t, "camera_optical_frame", arr, enc)
+    return bagdata.image(t, "camera_optical_frame", arr, enc)
 
 
 def write_fault_bag(path: Path) -> Path:
@@ -178,17 +170,18 @@ def write_fault_bag(path: Path) -> Path:
         for k in range(40):
             t = T0 + 0.1 * k
             bag_t = T0 + 2.0 if 20 <= k < 30 else t
-            d = bagdata._depth_values(k % 5)
+            d = bagdata.depth_values(k % 5)
             if k == 5:
                 msgs.append((bag_t, c_d, "sensor_msgs/msg/Image", _img(t, np.zeros((H, W, 2), np.uint8), "yuv422")))
             else:
                 msgs.append((bag_t, c_d, "sensor_msgs/msg/Image", _img(t, d, "32FC1")))
             if t < T0 + 3.0:
                 tr = t - 0.5 if k == 12 else t + 0.01
-                msgs.append((bag_t + 0.001, c_rgb, "sensor_msgs/msg/Image", _img(tr, bagdata._rgb_values(k % 5), "rgb8")))
+                msgs.append((bag_t + 0.001, c_rgb, "sensor_msgs/msg/Image",
+                             _img(tr, bagdata.rgb_values(k % 5), "rgb8")))
             if t <= T0 + 2.6:
                 msgs.append((bag_t + 0.002, c_pose, "geometry_msgs/msg/PoseStamped", T["geometry_msgs/msg/PoseStamped"](
-                    header=bagdata._header(t, "map"), pose=bagdata._pose((0.1 * k, 0, 1), (0, 0, 0, 1)))))
+                    header=bagdata.header(t, "map"), pose=bagdata.pose((0.1 * k, 0, 1), (0, 0, 0, 1)))))
         msgs.sort(key=lambda m: m[0])
         for t, conn, typ, msg in msgs:
             w.write(conn, int(t * 1e9), TS.serialize_cdr(msg, typ))
@@ -278,16 +271,16 @@ def test_cli_list_topics_bridge_and_config_error(bag, tmp_path, replays):
     ros2 edge without topics fails with one error line."""
     r = Replay(bag, tmp_path, "bridge", "humble", wait_subs=1, speed=1.0)
     replays.append(r)
-    out = subprocess.run([sys.executable, "-m", "apps.cli", "edge", "--list-topics", f"source.ros_connect=[{r.ep}]",
-                          "source.ros_keys=bridge", "--list-seconds", "3"], capture_output=True, text=True,
+    out = subprocess.run(cli_cmd("edge", "--list-topics", f"source.ros_connect=[{r.ep}]",
+                          "source.ros_keys=bridge", "--list-seconds", "3"), capture_output=True, text=True,
                          env=zenoh_env(), cwd=str(ROOT), timeout=90)
     assert out.returncode == 0, out.stderr[-2000:]
     for topic in ("/cam/color", "/cam/depth", "/odom", "/tf_static"):
         assert topic in out.stdout
     assert "data" in out.stdout and "Hz" in out.stdout
     r.finish()
-    bad = subprocess.run([sys.executable, "-m", "apps.cli", "edge", "source.kind=ros2", "source.pose_topic=/odom",
-                          "--connect", "tcp/127.0.0.1:1"], capture_output=True, text=True, env=zenoh_env(),
+    bad = subprocess.run(cli_cmd("edge", "source.kind=ros2", "source.pose_topic=/odom",
+                          "--connect", "tcp/127.0.0.1:1"), capture_output=True, text=True, env=zenoh_env(),
                          cwd=str(ROOT), timeout=90)
     assert bad.returncode != 0
     assert "rgb_topic" in bad.stderr and "Traceback" not in bad.stderr

@@ -5,12 +5,9 @@ map's own layers (via the query client), the rmw_zenoh graph tokens `ros2 topic 
 reads, and a standing query sent as a std_msgs/String."""
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
+import signal
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,22 +16,14 @@ from rosbags.typesys import Stores, get_typestore
 
 from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
-from test_robustness import wait_for
+from tests.support.processes import start_cli, stop_all, wait_for
+from tests.support.roles import zenoh_client_config
 
-ROOT = Path(__file__).resolve().parents[1]
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0", "rerun.file=",
        "snapshots.on_exit=false", "layers.max_voxels=100000000", "layers.max_rays=100000000",
        "ros.enabled=true", "ros.rate_hz=2", "ros.frame_id=odom", "ros.max_rays=100000000", "queues.idle_flush_s=0.5",
        "queues.per_robot=1000"]
-
-
-def _session(ep):
-    c = zenoh.Config()
-    c.insert_json5("mode", '"client"')
-    c.insert_json5("connect/endpoints", json.dumps([ep]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(c)
 
 
 def _dds(t):
@@ -69,10 +58,6 @@ class Latest:
             return self.samples[-1] if self.samples else None
 
 
-def _wait(fn, timeout, what):
-    return wait_for(fn, timeout, what=what)
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
@@ -81,22 +66,22 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     logs = [open(tmp_path / n, "wb") for n in ("mapper.log", "edge.log")]
     env = zenoh_env()
-    procs = [subprocess.Popen([sys.executable, "-m", "apps.cli", "mapper", "--mode", "router", "--listen", ep, *MAP],
-                              stdout=logs[0], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT))]
+    procs = [start_cli(["mapper", "--mode", "router", "--listen", ep, *MAP], logs[0], env=env)]
     s = None
     try:
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0) as c:
-            _wait(lambda: c.mapper_alive(), 60, "mapper alive")
-            s = _session(ep)
+            wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
+            s = zenoh.open(zenoh_client_config(ep))
             subs = {n: Latest(s, f"0/rayfronts/{n}/*/*") for n in ("voxels", "frontiers", "rays")}
             qsub = Latest(s, "0/rayfronts/query/ros_vehicle/*/*")
-            procs.append(subprocess.Popen(
-                [sys.executable, "-m", "apps.cli", "edge", "--connect", ep, "--rate", "0", "robot=r1",
-                 "source.resolution=96x128", "source.n_frames=12", "source.depth_limit=20", "pca.out_dim=16",
-                 "pca.fit_frames=4", "publish.linger_s=8"], stdout=logs[1], stderr=subprocess.STDOUT, env=env, cwd=str(ROOT)))
+            procs.append(start_cli(
+                ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.resolution=96x128", "source.n_frames=12",
+                 "source.depth_limit=20", "pca.out_dim=16", "pca.fit_frames=4", "publish.linger_s=8"],
+                logs[1], env=env))
             assert procs[1].wait(120) == 0
-            st = _wait(lambda: (lambda x: x if x["frames"]["mapped"] == 12 and x["flushed_version"] == x["map_version"]
-                                else None)(c.stats()), 60, "12 frames mapped and flushed")
+            st = wait_for(lambda: (lambda x: x if x["frames"]["mapped"] == 12
+                                   and x["flushed_version"] == x["map_version"] else None)(c.stats()),
+                          60, what="12 frames mapped and flushed")
             vox_l, _ = c.layer("voxels")
             fr_l, _ = c.layer("frontiers")
             rays_l, _ = c.layer("rays")
@@ -111,10 +96,12 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
                 return last if msg.width == n else None
 
             try:
-                key, raw, att = _wait(lambda: final("voxels", n_vox), 60, "the final voxel cloud")
+                key, raw, att = wait_for(lambda: final("voxels", n_vox), 60, what="the final voxel cloud")
             except AssertionError as e:
-                widths = [JAZZY.deserialize_cdr(r, "sensor_msgs/msg/PointCloud2").width for _, r, _ in subs["voxels"].samples]
-                raise AssertionError(f"{e}; voxel clouds seen: {widths}, map has {n_vox}; stats {c.stats()['map']}")
+                widths = [JAZZY.deserialize_cdr(r, "sensor_msgs/msg/PointCloud2").width
+                          for _, r, _ in subs["voxels"].samples]
+                raise AssertionError(f"{e}; voxel clouds seen: {widths}, map has {n_vox}; stats {c.stats()['map']}"
+                                     ) from None
             # rmw_zenoh key with Jazzy's type hash, computed here by rosbags
             assert key == f"0/rayfronts/voxels/{_dds('sensor_msgs/msg/PointCloud2')}/" \
                           f"{JAZZY.hash_rihs01('sensor_msgs/msg/PointCloud2')}"
@@ -130,7 +117,7 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
             np.testing.assert_array_equal(xyz[o_r], vox_l["xyz"][o_l])
             np.testing.assert_array_equal(rgb[o_r], vox_l["rgb"][o_l])
 
-            fkey, fraw, _ = _wait(lambda: final("frontiers", len(fr_l["xyz"])), 30, "the frontier cloud")
+            fkey, fraw, _ = wait_for(lambda: final("frontiers", len(fr_l["xyz"])), 30, what="the frontier cloud")
             fc = _cloud(JAZZY.deserialize_cdr(fraw, "sensor_msgs/msg/PointCloud2"))
             fxyz = np.stack([fc["x"], fc["y"], fc["z"]], 1)
             np.testing.assert_array_equal(fxyz[np.lexsort(fxyz.T)], fr_l["xyz"][np.lexsort(fr_l["xyz"].T)])
@@ -165,7 +152,7 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
             h = JAZZY.hash_rihs01("std_msgs/msg/String")
             s.put(f"0/rayfronts/query_text/{_dds('std_msgs/msg/String')}/{h}",
                   bytes(JAZZY.serialize_cdr(T["std_msgs/msg/String"](data="vehicle"), "std_msgs/msg/String")))
-            qkey, qraw, _ = _wait(lambda: qsub.last(), 30, "the standing query cloud")
+            qkey, qraw, _ = wait_for(lambda: qsub.last(), 30, what="the standing query cloud")
             qc = _cloud(JAZZY.deserialize_cdr(qraw, "sensor_msgs/msg/PointCloud2"))
             assert set(qc) == {"x", "y", "z", "score"} and len(qc["score"]) > 0
             ref = c.query("vehicle", top_k=1000)
@@ -179,13 +166,7 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
     finally:
         if s is not None:
             s.close()
-        for p in procs:
-            if p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        stop_all(procs, signal.SIGTERM, 30)
         for f in logs:
             f.close()
     assert procs[0].returncode == 0, (tmp_path / "mapper.log").read_text()[-3000:]

@@ -128,8 +128,9 @@ def test_sdk_publishers_feed_the_live_source(router, sdk):
                 return
             stamp = T["builtin_interfaces/msg/Time"](sec=T0 + k, nanosec=0)
             hdr = T["std_msgs/msg/Header"](stamp=stamp, frame_id="cam_optical_frame")
-            pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=float(k), y=0.0, z=1.0),
-                                               orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+            pose = T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=float(k), y=0.0, z=1.0),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
             pubs["pose"].publish(header=hdr, pose=pose)
             d = np.full((H, W), 1.0 + k, np.float32)
             pubs["depth"].publish(header=hdr, height=H, width=W, encoding="32FC1", is_bigendian=0, step=W * 4,

@@ -6,9 +6,10 @@ import threading
 import numpy as np
 import pytest
 
-from edge.runtime import LatestSlot
 from common.cones import cone_union_volume
+from edge.runtime import LatestSlot
 from mapper.query_answer import cluster_voxels
+from tests.support.data import bfs_components
 
 
 def test_latest_slot_replaces_unsent_and_counts():
@@ -27,36 +28,13 @@ def test_latest_slot_replaces_unsent_and_counts():
     assert s.get(1.0) is None
 
 
-def _bfs_components(ijk):
-    idx = {tuple(v): i for i, v in enumerate(ijk.tolist())}
-    lab = -np.ones(len(ijk), int)
-    c = 0
-    for i in range(len(ijk)):
-        if lab[i] >= 0:
-            continue
-        stack = [i]
-        lab[i] = c
-        while stack:
-            j = stack.pop()
-            x, y, z = ijk[j]
-            for dx in (-1, 0, 1):
-                for dy in (-1, 0, 1):
-                    for dz in (-1, 0, 1):
-                        k = idx.get((x + dx, y + dy, z + dz))
-                        if k is not None and lab[k] < 0:
-                            lab[k] = c
-                            stack.append(k)
-        c += 1
-    return lab
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_cluster_voxels_matches_bfs(seed):
     rng = np.random.default_rng(seed)
     ijk = np.unique(rng.integers(-6, 6, size=(150, 3)), axis=0)
-    a, b = cluster_voxels(ijk), _bfs_components(ijk)
+    a, b = cluster_voxels(ijk), bfs_components(ijk)
     # same partition (labels may be permuted)
-    assert len(set(zip(a.tolist(), b.tolist()))) == len(set(a.tolist())) == len(set(b.tolist()))
+    assert len(set(zip(a.tolist(), b.tolist(), strict=True))) == len(set(a.tolist())) == len(set(b.tolist()))
 
 
 def test_cone_union_volume_exact_cases():
@@ -101,8 +79,8 @@ def test_cli_help_lists_every_config_key(capsys):
 
 def test_mapper_config_preset_and_overrides():
     from common.config import ConfigError
-    from semantic_map.config import PRESETS
     from mapper.service_config import load_mapper_config
+    from semantic_map.config import PRESETS
 
     cfg = load_mapper_config(None, ["preset=online", "map.vox_size=0.7", "queues.per_robot=3"])
     assert cfg.map.vox_size == 0.7 and cfg.queues.per_robot == 3

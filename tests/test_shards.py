@@ -10,6 +10,7 @@ from common.cones import cone_union_volume
 from common.fleet import decode_shard_info, encode_shard_info
 from common.messages import QueryResult
 from query_client.merge import merge_results
+from tests.support.processes import Proc, stop_all, wait_for
 
 
 def _res(clusters, voxels, rays, frames=1, vol=0.0):
@@ -84,8 +85,6 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
     """A router, two shard mappers (west / east of x = 0) and a third mapper holding every
     frame, fed by one robot driving a lap across both halves. One ``get`` reaches all three
     queryables; the two shards' merged answer matches the whole-map mapper's."""
-    from test_robustness import Proc, wait_for
-
     from apps.bench.fleet import render_recordings
     from common.fleet import decode_shard_info
     from common.messages import QueryRequest, decode_query_result, encode_query_request
@@ -159,8 +158,4 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
             r = c.query("car", top_k=5)
             assert r.timings.get("shards") == 3.0
     finally:
-        for p in reversed(procs):
-            try:
-                p.stop()
-            except AssertionError:
-                pass
+        stop_all(reversed(procs))

@@ -280,7 +280,8 @@ def replica_root(tmp_path_factory) -> Path:
 
 
 def _replica_depth(i):
-    return (np.arange(24 * 40).reshape(24, 40) * 37 + 1000 * i).astype(np.uint16).astype(np.float32) / np.float32(6553.5)
+    raw = (np.arange(24 * 40).reshape(24, 40) * 37 + 1000 * i).astype(np.uint16)
+    return raw.astype(np.float32) / np.float32(6553.5)
 
 
 def test_replica_reads(replica_root):
@@ -352,10 +353,11 @@ def test_resize_nearest_centres():
 
 
 def test_progress_bar_yields_same_frames(replica_root, capsys):
-    a = [f.depth for f in open_source(SourceConfig(kind="replica", path=str(replica_root), scene="room0", max_frames=3))]
+    a = [f.depth for f in open_source(SourceConfig(kind="replica", path=str(replica_root), scene="room0",
+                                                   max_frames=3))]
     b = [f.depth for f in open_source(SourceConfig(kind="replica", path=str(replica_root), scene="room0", max_frames=3,
                                                    progress=True))]
     assert len(a) == len(b) == 3
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
     assert "replica:room0" in capsys.readouterr().err

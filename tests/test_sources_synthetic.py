@@ -4,10 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import synthetic_world as world_mod
 from common.geometry import camera_rays, intrinsics_from_fov
 from edge.sources import SourceConfig, SourceError, open_source, select_indices
-
-import synthetic_world as world_mod
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,7 @@ def minilm():
 
 def test_minilm_matches_sentence_transformers(minilm):
     import sentence_transformers as st  # independent reference (test extra)
+
     from encoders.text.minilm import minilm_model_dir
     ref = st.SentenceTransformer(str(minilm_model_dir()), device="cpu")
     texts = ["car", "antenna mast", "a red door on a brick wall"]

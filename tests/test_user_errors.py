@@ -12,14 +12,8 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _dead_endpoint() -> str:
-    """A loopback TCP endpoint nobody listens on (bound then closed)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+from tests.support.ports import dead_endpoint
+from tests.support.processes import ROOT, cli_cmd
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +26,7 @@ def busy_port():
 
 
 def _cases(tmp: Path, busy: int):
-    dead = _dead_endpoint()
+    dead = dead_endpoint()
     not_image = tmp / "notes.jpg"
     not_image.write_text("this is not a picture\n")
     return {
@@ -62,7 +56,7 @@ def test_each_mistake_is_one_line_naming_the_cause(tmp_path, busy_port):
     procs = {}
     t0 = time.monotonic()
     for name, (argv, _, _) in cases.items():
-        procs[name] = subprocess.Popen([sys.executable, "-m", "apps.cli", *argv], cwd=ROOT, text=True,
+        procs[name] = subprocess.Popen(cli_cmd(*argv), cwd=ROOT, text=True,
                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     failures = []
     for name, p in procs.items():
@@ -104,7 +98,7 @@ HELPS = [
 
 
 def test_help_on_every_sub_action():
-    procs = [(prog, subprocess.Popen([sys.executable, "-m", "apps.cli", *argv], cwd=ROOT, text=True,
+    procs = [(prog, subprocess.Popen(cli_cmd(*argv), cwd=ROOT, text=True,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE)) for argv, prog in HELPS]
     failures = []
     for prog, p in procs:

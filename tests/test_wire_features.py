@@ -113,10 +113,10 @@ def test_640x480_label_frames_under_100kb_and_the_map_answers_the_same():
     from apps.demo import DEFAULT_QUERIES
     from common.feature_space import FeatureSpace
     from common.pca import OnlinePCAFitter
-    from encoders.text import MiniLMText
-    from encoders import EncoderConfig, make_encoder
     from edge.runtime import compress_features
     from edge.sources import SourceConfig, open_source
+    from encoders import EncoderConfig, make_encoder
+    from encoders.text import MiniLMText
     from semantic_map.config import map_config
     from semantic_map.map import RayFrontsMap
 
@@ -134,7 +134,7 @@ def test_640x480_label_frames_under_100kb_and_the_map_answers_the_same():
     sizes = []
     import dataclasses
 
-    for f, x in zip(frames, feats):
+    for f, x in zip(frames, feats, strict=True):
         out = dataclasses.replace(f, features=compress_features(pca, x), feature_space=fs.id)
         for k, m in maps.items():
             data = encode_frame(out, feature_codec=k, jpeg_quality=80)  # as the edge sends (q16z default)

@@ -284,32 +284,10 @@ def value_mutation(rnd: random.Random, data: bytes) -> tuple[str, bytes, bool]:
         extra["pose"] = p
     elif k == 1:
         K = arr("intrinsics")
-        i = rnd.randrange(3)
-        if i == 0:
-            j = rnd.choice([0, 1])
-            K[j, j] = rnd.choice([0.0, -5.0, -1e-9])
-            kind = "intrinsics.focal"
-        elif i == 1:
-            K[rnd.randrange(3), rnd.randrange(3)] = np.nan
-            kind = "intrinsics.nan"
-        else:
-            K[2] = [0.0, 0.0, 2.0]
-            kind = "intrinsics.last_row"
+        kind = _intrinsics_change(rnd, K)
         extra["intrinsics"] = K
     elif k == 2 and h.get("features") is not None:
-        F = arr("features")
-        j = rnd.randrange(3)
-        if j == 0:
-            F.reshape(-1)[rnd.randrange(F.size)] = rnd.choice([np.nan, np.inf])
-            kind = "features.nonfinite"
-        elif j == 1:
-            H, W = h["depth"]["shape"]
-            F = np.zeros((F.shape[0], H + rnd.randint(1, 5), 2), np.float16)
-            kind = "features.taller_than_depth"
-        else:
-            F = np.zeros((0, 2, 2), np.float16)
-            kind = "features.no_channels"
-        extra["features"] = F
+        kind, extra["features"] = _features_change(rnd, arr("features"), h["depth"]["shape"])
     elif k == 3 and h.get("global_feature") is not None:
         g = arr("global_feature")
         extra["global_feature"] = np.concatenate([g, g[:1]])
@@ -337,7 +315,38 @@ def value_mutation(rnd: random.Random, data: bytes) -> tuple[str, bytes, bool]:
         h["depth"]["shape"] = [rnd.randint(5000, 2**31), rnd.randint(5000, 2**31)]
         kind = "depth.shape_huge"
 
-    # rebuild: refs for replaced arrays point at new buffers appended after the old region
+    return kind, _rebuild(h, region, extra), must
+
+
+def _intrinsics_change(rnd: random.Random, K: np.ndarray) -> str:
+    """Break the 3x3 intrinsics ``K`` in place; the mutation's kind."""
+    i = rnd.randrange(3)
+    if i == 0:
+        j = rnd.choice([0, 1])
+        K[j, j] = rnd.choice([0.0, -5.0, -1e-9])
+        return "intrinsics.focal"
+    if i == 1:
+        K[rnd.randrange(3), rnd.randrange(3)] = np.nan
+        return "intrinsics.nan"
+    K[2] = [0.0, 0.0, 2.0]
+    return "intrinsics.last_row"
+
+
+def _features_change(rnd: random.Random, F: np.ndarray, depth_shape) -> tuple[str, np.ndarray]:
+    """(kind, broken feature array) from the message's features ``F``."""
+    j = rnd.randrange(3)
+    if j == 0:
+        F.reshape(-1)[rnd.randrange(F.size)] = rnd.choice([np.nan, np.inf])
+        return "features.nonfinite", F
+    if j == 1:
+        H, W = depth_shape
+        return "features.taller_than_depth", np.zeros((F.shape[0], H + rnd.randint(1, 5), 2), np.float16)
+    return "features.no_channels", np.zeros((0, 2, 2), np.float16)
+
+
+def _rebuild(h: dict, region: bytes, extra: dict[str, np.ndarray]) -> bytes:
+    """The message with header ``h``: refs for the replaced arrays ``extra`` (and the re-encoded
+    depth / labels data) point at new buffers appended after the old region."""
     region = bytearray(region)
     for name, a in extra.items():
         a = np.ascontiguousarray(a)
@@ -350,7 +359,7 @@ def value_mutation(rnd: random.Random, data: bytes) -> tuple[str, bytes, bool]:
             off = (len(region) + 7) & ~7
             region += b"\0" * (off - len(region)) + a.tobytes()
             h[spec]["data"] = {"__nd__": ["|u1", [a.size], off, a.size]}
-    return kind, repack(h, bytes(region)), must
+    return repack(h, bytes(region))
 
 
 def structural_mutation(rnd: random.Random, data: bytes) -> tuple[str, bytes, bool]:

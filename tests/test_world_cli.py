@@ -12,6 +12,7 @@ from synthetic_world import World
 
 def test_rayfronts_world_writes_recording_and_rrd(tmp_path, capsys):
     import rerun as rr
+
     from common.recording import RecordingReader
 
     out = tmp_path / "w"

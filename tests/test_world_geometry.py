@@ -247,7 +247,7 @@ def test_batched_ray_distances_match_single_rays(mixed):
     o = rng.uniform(-6, 6, size=(40, 3))
     d = rng.normal(size=(40, 3))
     got = world.rays_distance_to_class(o, d, 2)
-    one = [world.ray_distance_to_class(a, b, 2) for a, b in zip(o, d)]
+    one = [world.ray_distance_to_class(a, b, 2) for a, b in zip(o, d, strict=True)]
     np.testing.assert_allclose(got, one, atol=1e-9)
     lim = world.rays_distance_to_class(o, d, 2, max_range=0.5)  # shorter segments: never closer
     assert np.all(lim >= got - 1e-9)

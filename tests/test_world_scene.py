@@ -133,7 +133,7 @@ def test_rendered_labels_match_solid_membership(world, ground_views):
     hw, K, poses, views = ground_views
     rays = camera_rays(K, *hw)
     agree, empty = [], []
-    for p, v in zip(poses[::3], views[::3]):
+    for p, v in zip(poses[::3], views[::3], strict=True):
         m = np.isfinite(v.depth)
         d = rays[m] @ p[:3, :3].T
         du = d / np.linalg.norm(d, axis=1, keepdims=True)

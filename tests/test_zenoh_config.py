@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 import zenoh  # noqa: F401  (core dependency: a missing one fails, never skips)
 
 from common.config import ConfigError, load_config  # noqa: E402

@@ -1,4 +1,4 @@
-"""The key space (common.keys): DESIGN §3 keys, prefix handling, id validation, parsers."""
+"""The key space (common.keys): docs/key_space.md keys, prefix handling, id validation, parsers."""
 from __future__ import annotations
 
 import pytest
@@ -38,7 +38,8 @@ def test_custom_prefix_multi_chunk():
     assert KeySpace("a") == KeySpace("a") and KeySpace("a") != KeySpace("b")
 
 
-@pytest.mark.parametrize("prefix", ["", "/rayfronts", "rayfronts/", "a//b", "a/*", "a/**", "a b", "a?x", "a#b", "a$b", 3])
+@pytest.mark.parametrize("prefix", ["", "/rayfronts", "rayfronts/", "a//b", "a/*", "a/**", "a b", "a?x", "a#b", "a$b",
+                                    3])
 def test_bad_prefix_rejected(prefix):
     with pytest.raises(InvalidKey):
         KeySpace(prefix)

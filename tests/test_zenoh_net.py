@@ -1,24 +1,23 @@
 """`rayfronts router` and client sessions over real Zenoh, in separate processes.
 
 Loopback only (unique free ports on 127.0.0.1), multicast off, shared memory off, every
-wait bounded, every process closed. Helpers: tests/test_zenoh_agent.py.
+wait bounded, every process closed. Helpers: tests/support/zenoh_agent.py.
 """
 from __future__ import annotations
 
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
-
 import zenoh  # noqa: F401,E402  (core dependency: a missing one fails)
 
 from common.keys import KeySpace  # noqa: E402
 from common.zenoh_session import free_tcp_port  # noqa: E402
-from test_zenoh_agent import Agent, Router, await_route, closer, get_replies, lget_keys  # noqa: E402,F401
+from tests.support.processes import cli_cmd  # noqa: E402
+from tests.support.zenoh_agent import Agent, Router, await_route, get_replies, lget_keys  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 K = KeySpace()
@@ -90,10 +89,10 @@ def test_router_sigint_exit_code_zero(closer):
 
 def test_router_rejects_bad_options():
     env = dict(os.environ, PYTHONPATH=str(ROOT), RUST_LOG="error")
-    r = subprocess.run([sys.executable, "-m", "apps.cli", "router", "--listen", "127.0.0.1:7447"],
+    r = subprocess.run(cli_cmd("router", "--listen", "127.0.0.1:7447"),
                        capture_output=True, text=True, env=env, cwd=str(ROOT), timeout=60)
     assert r.returncode == 2 and "proto/address" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "apps.cli", "router", "--zenoh-config", "/nonexistent.json5"],
+    r = subprocess.run(cli_cmd("router", "--zenoh-config", "/nonexistent.json5"),
                        capture_output=True, text=True, env=env, cwd=str(ROOT), timeout=60)
     assert r.returncode == 2 and "not found" in r.stderr
 

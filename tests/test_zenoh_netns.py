@@ -4,53 +4,27 @@ over veth pairs on private subnets; shared memory is off so data really crosses 
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
 
 import pytest
-
 import zenoh  # noqa: F401,E402  (core dependency: a missing one fails)
 
 from common.keys import KeySpace  # noqa: E402
-from test_zenoh_agent import Agent, Router, await_route, get_replies  # noqa: E402
+from tests.support.netns import network_namespaces  # noqa: E402
+from tests.support.zenoh_agent import Agent, Router, await_route, get_replies  # noqa: E402
 
 K = KeySpace()
 pytestmark = [pytest.mark.netns, pytest.mark.timeout(120)]
 
 
-def _ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, timeout=20)
-
-
 @pytest.fixture
 def namespaces():
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        pytest.skip("needs root and iproute2")
     tag = f"rf{os.getpid() % 100000}"
     a, b, c = f"{tag}a", f"{tag}b", f"{tag}c"
-    made: list[str] = []
-    try:
-        for ns in (a, b, c):
-            try:
-                _ip("netns", "add", ns)
-            except subprocess.CalledProcessError as e:
-                pytest.skip(f"ip netns add failed: {e.stderr.decode().strip()}")
-            made.append(ns)
-            _ip("-n", ns, "link", "set", "lo", "up")
-        # A <-> B on 10.213.1.0/24, C <-> B on 10.213.2.0/24; no forwarding between them
-        for left, right, net in ((a, b, "1"), (c, b, "2")):
-            la, lb = f"{tag}{net}l", f"{tag}{net}r"
-            _ip("link", "add", la, "type", "veth", "peer", "name", lb)
-            _ip("link", "set", la, "netns", left)
-            _ip("link", "set", lb, "netns", right)
-            _ip("-n", left, "addr", "add", f"10.213.{net}.1/24", "dev", la)
-            _ip("-n", right, "addr", "add", f"10.213.{net}.2/24", "dev", lb)
-            _ip("-n", left, "link", "set", la, "up")
-            _ip("-n", right, "link", "set", lb, "up")
+    # A <-> B on 10.213.1.0/24, C <-> B on 10.213.2.0/24; no forwarding between them
+    links = [(left, right, f"{tag}{net}l", f"{tag}{net}r", f"10.213.{net}.1/24", f"10.213.{net}.2/24")
+             for left, right, net in ((a, b, "1"), (c, b, "2"))]
+    with network_namespaces([a, b, c], links):
         yield a, b, c
-    finally:
-        for ns in made:
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)
 
 
 def test_three_namespaces_through_router(namespaces):

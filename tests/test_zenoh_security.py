@@ -15,12 +15,11 @@ import sys
 from pathlib import Path
 
 import pytest
-
 import zenoh  # noqa: F401,E402  (core dependency: a missing one fails)
 
 from common.keys import KeySpace  # noqa: E402
 from common.zenoh_session import free_tcp_port  # noqa: E402
-from test_zenoh_agent import Agent, Router, await_route, closer, get_replies, lget_keys  # noqa: E402,F401
+from tests.support.zenoh_agent import Agent, Router, await_route, get_replies, lget_keys  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 ZDIR = ROOT / "deploy" / "zenoh"

@@ -99,7 +99,7 @@ def _pct(a) -> dict:
             "n": int(a.size)}
 
 
-def encoder_items(args, work: Path) -> list[str]:
+def encoder_items(args: argparse.Namespace, work: Path) -> list[str]:
     """The edge's encoder config overrides for ``--model`` (the same for the in-process
     measurement and the edge process)."""
     if args.model == "label":
@@ -203,7 +203,7 @@ class _ScoreChange:
             self.what = "random language-space queries"
         self.dmax, self.same, self.n = 0.0, 0, 0
 
-    def add(self, f16, decoded) -> None:
+    def add(self, f16: np.ndarray, decoded: np.ndarray) -> None:
         import torch
 
         a = torch.as_tensor(np.asarray(f16, np.float32)).reshape(f16.shape[0], -1).T
@@ -263,7 +263,8 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: i
         m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(),
                                 "feat": torch.randn((r, pca.out_dim), generator=g), "weight": torch.ones(r),
                                 "dsum": torch.nn.functional.normalize(torch.randn((r, 3), generator=g), dim=1)})
-    write_snapshot(root, capture_map(m), encode_feature_space("bench", fs.to_body()), {"frames_mapped": 0, "robots": {}})
+    write_snapshot(root, capture_map(m), encode_feature_space("bench", fs.to_body()),
+                   {"frames_mapped": 0, "robots": {}})
     return np.random.default_rng(0).standard_normal(pca.in_dim).astype(np.float32)
 
 
@@ -292,16 +293,10 @@ def run(args: argparse.Namespace) -> dict:
         return p
 
     def stop_all():
-        import signal
+        from apps.processes import stop_process
 
         for p, f in reversed(procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(60)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+            stop_process(p, timeout=60)
             f.close()
         procs.clear()
 

@@ -28,9 +28,14 @@ import argparse
 import statistics
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from edge.runtime import EdgeConfig
+    from encoders import ImageEncoder
 
 HELP = "image-encoder throughput (NARADIO with random weights, or the label encoder)"
 
@@ -95,7 +100,7 @@ def _label_image(h: int, w: int, rng) -> np.ndarray:
     return lab
 
 
-def random_model_dir(model: str, root: Path, dtype=None) -> Path:
+def random_model_dir(model: str, root: Path, dtype: torch.dtype | None = None) -> Path:
     """Write random weights of ``model``'s real architecture as ``<root>/<model>.safetensors``
     (our flat layout, what ``rayfronts models convert`` writes); returns ``root``."""
     from encoders.radio import RadioConfig, save_flat
@@ -107,12 +112,13 @@ def random_model_dir(model: str, root: Path, dtype=None) -> Path:
     return Path(root)
 
 
-def edge_encoder(cfg_items: list[str], class_names=None):
+def edge_encoder(cfg_items: list[str], class_names: Sequence[str] | None = None
+                 ) -> tuple[ImageEncoder, EdgeConfig, int]:
     """``(encoder, edge config, torch threads)`` built exactly as ``rayfronts edge`` builds them
     from the config overrides ``cfg_items`` (thread count: ``edge.runtime.resolve_threads``)."""
     from common.config import load_config
-    from encoders import make_encoder
     from edge.runtime import EdgeConfig, resolve_threads
+    from encoders import make_encoder
 
     ecfg = load_config(EdgeConfig, None, list(cfg_items))
     n = resolve_threads(ecfg) or torch.get_num_threads()

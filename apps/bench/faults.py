@@ -1,4 +1,4 @@
-"""``rayfronts bench faults``: the timing figures of the fault tests (issue 13).
+"""``rayfronts bench faults``: the timing figures of the fault tests.
 
 ``tests/test_faults.py`` and ``tests/test_robustness.py`` assert what is functional (queries
 answered during a flood, nothing lost, bounded queues and memory, a dead or frozen robot
@@ -9,7 +9,7 @@ same real processes over loopback:
   maps ``--frames`` frames of one edge; ``--queries`` text queries are timed on the idle
   mapper (unloaded), then ``--floods`` edges (niced: they stand for the robots' own
   computers) flood it with looping frames at full rate and the same queries are timed
-  again. Reported: p50 / p95 / max ms of both, the issue's bound ``lock_timeout + 3 x the
+  again. Reported: p50 / p95 / max ms of both, the bound ``lock_timeout + 3 x the
   unloaded median`` and whether the flood p95 is within it, stale answers (served from the
   last consistent copy), the mapper's RSS, frames mapped / dropped.
 * ``gone``: seconds from SIGKILL and from SIGSTOP of a looping edge to the ``gone_at`` the
@@ -31,8 +31,14 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
+
+from apps.processes import stop_process, wait_for
+
+if TYPE_CHECKING:
+    from query_client.client import Client
 
 HELP = "fault timings: query latency unloaded vs during an edge flood, gone-after-SIGKILL/SIGSTOP (real processes)"
 
@@ -51,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workdir", type=Path, default=None, help="keep logs here")
 
 
-def sample_frame_bytes(**kw) -> bytes:
+def sample_frame_bytes(**kw: Any) -> bytes:
     """A small valid frame message (48×64, 16-d features): the decode cost's reference."""
     from common.frame import Frame
     from common.wire import encode_frame
@@ -61,7 +67,7 @@ def sample_frame_bytes(**kw) -> bytes:
                               features=np.zeros((16, 6, 8), np.float16), feature_space="x", **kw))
 
 
-def hostile_frame_headers():
+def hostile_frame_headers() -> Iterator[tuple[str, bytes]]:
     """(name, message bytes): frame headers built to be expensive to decode, each within the
     frame header's 64 KiB limit or just over it (the old decoder took 0.7-3.4 s on the first
     two). Shared with ``tests/test_faults.py``."""
@@ -69,23 +75,23 @@ def hostile_frame_headers():
 
     import msgpack
 
-    H = {"schema": "rayfronts.frame", "v": 1}
+    head = {"schema": "rayfronts.frame", "v": 1}
 
-    def m(hdr: bytes) -> bytes:
+    def framed(hdr: bytes) -> bytes:
         return struct.pack("<I", len(hdr)) + hdr
 
-    yield "8.9 MB map", m(msgpack.packb({**H, **{f"k{i}": i for i in range(700_000)}}))
-    yield "2 MB nested list", m(b"\x91" * 2_000_000 + b"\xc0")
-    yield "64 KiB nested list", m(b"\x91" * 65_535 + b"\xc0")
-    yield "64 KiB nested maps", m(b"\x81\xa1a" * 21_000 + b"\xc0")
-    yield "tree of ints", m(msgpack.packb({**H, "x": [[[1] * 127] * 127] * 3 + [[[1] * 127] * 120]}))
-    yield "tree of empty lists", m(msgpack.packb({**H, "x": [[[[]] * 127] * 127] * 3 + [[[[]] * 127] * 120]}))
-    yield "tree of empty maps", m(msgpack.packb({**H, "x": [[[{}] * 127] * 127] * 3 + [[[{}] * 127] * 120]}))
-    yield "one long list", m(msgpack.packb({**H, "x": list(range(20_000))}))
-    yield "64 KiB of strings", m(msgpack.packb({**H, "x": ["a" * 16_000] * 4}))
-    yield "huge shape", m(msgpack.packb({**H, "robot": "r1", "seq": 0, "stamp": 0.0,
-                                         "pose": {"__nd__": ["<f8", list(range(10_000)), 0, 8]}}))
-    yield "binary in header", m(msgpack.packb({**H, "robot": "r1", "x": b"\0" * 60_000}, use_bin_type=True))
+    yield "8.9 MB map", framed(msgpack.packb({**head, **{f"k{i}": i for i in range(700_000)}}))
+    yield "2 MB nested list", framed(b"\x91" * 2_000_000 + b"\xc0")
+    yield "64 KiB nested list", framed(b"\x91" * 65_535 + b"\xc0")
+    yield "64 KiB nested maps", framed(b"\x81\xa1a" * 21_000 + b"\xc0")
+    yield "tree of ints", framed(msgpack.packb({**head, "x": [[[1] * 127] * 127] * 3 + [[[1] * 127] * 120]}))
+    yield "tree of empty lists", framed(msgpack.packb({**head, "x": [[[[]] * 127] * 127] * 3 + [[[[]] * 127] * 120]}))
+    yield "tree of empty maps", framed(msgpack.packb({**head, "x": [[[{}] * 127] * 127] * 3 + [[[{}] * 127] * 120]}))
+    yield "one long list", framed(msgpack.packb({**head, "x": list(range(20_000))}))
+    yield "64 KiB of strings", framed(msgpack.packb({**head, "x": ["a" * 16_000] * 4}))
+    yield "huge shape", framed(msgpack.packb({**head, "robot": "r1", "seq": 0, "stamp": 0.0,
+                                              "pose": {"__nd__": ["<f8", list(range(10_000)), 0, 8]}}))
+    yield "binary in header", framed(msgpack.packb({**head, "robot": "r1", "x": b"\0" * 60_000}, use_bin_type=True))
 
 
 def reject_costs(repeats: int = 5) -> dict:
@@ -118,7 +124,7 @@ def reject_costs(repeats: int = 5) -> dict:
     return {"real_frame_cpu_ms": real_ms, "worst": worst, "worst_cpu_ms": rows[worst]["cpu_ms"], "headers": rows}
 
 
-def timed_queries(c, n: int, text: str = "car", top_k: int = 5) -> list[dict]:
+def timed_queries(c: Client, n: int, text: str = "car", top_k: int = 5) -> list[dict]:
     """``n`` queries through client ``c``, each followed by a stats call: per query the wall
     seconds, the reply's voxel count, ``stale``, its server timings and the mapper's RSS.
     Shared with the flood test (which asserts only what is functional about them)."""
@@ -155,28 +161,18 @@ class _Procs:
         for p, f in reversed(self.items):
             if p.poll() is None:
                 p.send_signal(signal.SIGCONT)
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(20)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+            stop_process(p, signal.SIGINT, 20)
             f.close()
         self.items.clear()
 
 
+def _absent(r: dict) -> dict | None:
+    """The robot entry ``r`` once the mapper reports it gone, else None (keep waiting)."""
+    return r if not r["present"] else None
+
+
 def _wait(fn, timeout: float, what: str, every: float = 0.05):
-    end = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except Exception as e:  # the mapper is still starting
-            last = e
-        time.sleep(every)
-    raise RuntimeError(f"bench faults: timed out waiting for {what} (last: {last!r})")
+    return wait_for(fn, timeout, every, what, error=RuntimeError, prefix="bench faults: ")
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -254,11 +250,10 @@ def run(args: argparse.Namespace) -> dict:
                 for how, sig in (("sigkill", signal.SIGKILL), ("sigstop", signal.SIGSTOP)):
                     name = f"g{how}"
                     p = ps.start(f"edge-{how}", edge(ep, name, 400, 5.0, loop=True))
-                    _wait(lambda: robot(c, name).get("mapped", 0) >= 2, 300, f"{name} mapping")
+                    _wait(lambda name=name: robot(c, name).get("mapped", 0) >= 2, 300, f"{name} mapping")
                     p.send_signal(sig)
                     t = time.time()
-                    r = _wait(lambda: (lambda r: r if not r["present"] else None)(robot(c, name)), 60,
-                              f"{name} gone")
+                    r = _wait(lambda name=name: _absent(robot(c, name)), 60, f"{name} gone")
                     gone[f"after_{how}_s"] = round(r["gone_at"] - t, 3)
                     p.send_signal(signal.SIGCONT)
                     p.kill()

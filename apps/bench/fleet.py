@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -32,6 +31,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from apps.processes import stop_process
 
 HELP = "several robots on one mapper from recordings: total / per-robot fused rate, latency, mapper RSS"
 
@@ -91,7 +92,7 @@ class _Procs:
 
         self.work, self.env, self.items = work, zenoh_env(), []
 
-    def start(self, name: str, *args) -> subprocess.Popen:
+    def start(self, name: str, *args: str) -> subprocess.Popen:
         f = open(self.work / f"{name}.log", "wb")
         p = subprocess.Popen([sys.executable, "-m", "apps.cli", *args], stdout=f, stderr=subprocess.STDOUT,
                              env=self.env)
@@ -100,13 +101,7 @@ class _Procs:
 
     def stop_all(self) -> None:
         for p, f in reversed(self.items):
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(30)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+            stop_process(p, timeout=30)
             f.close()
         self.items.clear()
 
@@ -124,7 +119,7 @@ def _pca_file(work: Path, rec: Path, dim: int) -> Path:
     return out
 
 
-def run_fleet(n: int, recs: list[Path], args, work: Path) -> dict:
+def run_fleet(n: int, recs: list[Path], args: argparse.Namespace, work: Path) -> dict:
     """One measurement with ``n`` robots (see module doc)."""
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from query_client.client import Client
@@ -180,16 +175,17 @@ def run_fleet(n: int, recs: list[Path], args, work: Path) -> dict:
             "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()]}
 
 
-def fake_ids_probe(k: int, args, work: Path, evict_s: float = 8.0, legacy: bool = False, reps: int = 3) -> dict:
+def fake_ids_probe(k: int, args: argparse.Namespace, work: Path, evict_s: float = 8.0, legacy: bool = False,
+                   reps: int = 3) -> dict:
     """Mapper RSS with ``k`` robot ids that send frames but never serve a feature space."""
     import dataclasses
 
     from common.conventions import sanitize_depth
     from common.frame import Frame
     from common.wire import encode_frame
-    from synthetic_world.scene import World
     from common.zenoh_session import ZenohConfig, free_tcp_port, open_session
     from query_client.client import Client
+    from synthetic_world.scene import World
 
     procs = _Procs(work)
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"

@@ -40,10 +40,13 @@ PAPER = {"platform": "NVIDIA Jetson AGX Orin", "e2e_hz": 8.84, "encoder_hz": 17.
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cuda", help="torch device (default cuda; cpu for the smoke test)")
-    parser.add_argument("--quick", action="store_true", help="tiny sizes and few frames (smoke test; figures meaningless)")
-    parser.add_argument("--dtypes", default="float16,bfloat16", help="encoder compute dtypes (default float16,bfloat16)")
+    parser.add_argument("--quick", action="store_true",
+                        help="tiny sizes and few frames (smoke test; figures meaningless)")
+    parser.add_argument("--dtypes", default="float16,bfloat16",
+                        help="encoder compute dtypes (default float16,bfloat16)")
     parser.add_argument("--models", default="radio_v2.5-b,radio_v2.5-l", help="NARADIO models (default b and l)")
-    parser.add_argument("--resolutions", default="224x224,480x640", help="encoder input sizes HxW (default 224x224,480x640)")
+    parser.add_argument("--resolutions", default="224x224,480x640",
+                        help="encoder input sizes HxW (default 224x224,480x640)")
     parser.add_argument("--skip", default="", help="comma-separated stages to skip: encoder, mapper, e2e")
     parser.add_argument("--workdir", type=Path, default=None, help="keep each run's JSON and logs here")
     parser.add_argument("--timeout", type=float, default=1800.0, help="seconds per run (default 1800)")
@@ -139,9 +142,9 @@ def run(args: argparse.Namespace) -> dict:
             for r in resolutions:
                 for dt in dtypes:
                     key = f"{model}@{r}@{dt}"
-                    rec = _run(f"encoder_{model}_{r}_{dt}", ["encoder", "--model", model, "--resolution", r, "--dtype", dt,
-                                                             "--device", dev, "--frames", enc_frames,
-                                                             "--warmup", enc_warm], work, args.timeout)
+                    rec = _run(f"encoder_{model}_{r}_{dt}",
+                               ["encoder", "--model", model, "--resolution", r, "--dtype", dt,
+                                "--device", dev, "--frames", enc_frames, "--warmup", enc_warm], work, args.timeout)
                     res["encoder"][key] = _enc_summary(rec)
     if "mapper" not in skip:
         res["mapper"] = {}

@@ -26,6 +26,16 @@ from __future__ import annotations
 import argparse
 import resource
 import time
+from typing import TYPE_CHECKING, Callable, Sequence
+
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
+
+    from semantic_map.map import RayFrontsMap
+
+    #: one pre-rendered frame: (pose 4×4, depth (H, W) float32, rgb (H, W, 3) uint8, features (C, h, w) float16)
+    BenchFrame = tuple[np.ndarray, np.ndarray, np.ndarray, torch.Tensor]
 
 HELP = "RayFronts map throughput and memory on synthetic frames (JSON)"
 
@@ -41,16 +51,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-limit", type=float, default=20.0, help="simulated sensor range in m (default 20)")
     parser.add_argument("--seed", type=int, default=0, help="world / feature seed")
     parser.add_argument("--threads", type=int, default=1,
-                        help="torch CPU threads per stage (default 1; more threads on a shared 2-core box slow torch down)")
+                        help="torch CPU threads per stage (default 1; more threads on a shared 2-core box "
+                             "slow torch down)")
     parser.add_argument("--trajectory", choices=["ground", "drone"], default="ground", help="camera trajectory")
     parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE", help="map config overrides")
     parser.add_argument("--no-kernels", action="store_true",
-                        help="use the pure-torch paths instead of the C++ kernels (semantic_map._rfkernels); same results")
+                        help="use the pure-torch paths instead of the C++ kernels (semantic_map._rfkernels); "
+                             "same results")
     parser.add_argument("--no-pipeline", action="store_true",
                         help="integrate sequentially on one thread instead of the two-stage pipeline; same map")
     parser.add_argument("--compare", choices=["kernels", "pipeline"], default=None,
                         help="time both sides interleaved in one run (kernels vs torch, pipeline vs sequential)")
-    parser.add_argument("--block", type=int, default=25, help="frames per interleaved block with --compare (default 25)")
+    parser.add_argument("--block", type=int, default=25,
+                        help="frames per interleaved block with --compare (default 25)")
     parser.add_argument("--growing", action="store_true", help="report CPU ms/frame per window of --window frames")
     parser.add_argument("--window", type=int, default=200, help="window size for --growing (default 200)")
     parser.add_argument("--device", default="cpu",
@@ -65,7 +78,7 @@ def _rss_mb() -> float:
 class _Side:
     """One map fed frame blocks; sums wall and process CPU over its blocks."""
 
-    def __init__(self, name, m, pipeline: bool, kernels_on: bool, threads: int):
+    def __init__(self, name: str, m: RayFrontsMap, pipeline: bool, kernels_on: bool, threads: int) -> None:
         from mapper.pipeline import MapPipeline
         self.name, self.map, self.kernels_on = name, m, kernels_on
         self.pipe = MapPipeline(m, prepare_threads=threads) if pipeline else None
@@ -73,7 +86,7 @@ class _Side:
         self.frames = 0
         self.stages: dict[str, float] = {}
 
-    def feed(self, frames, K) -> None:
+    def feed(self, frames: Sequence[BenchFrame], K: np.ndarray) -> None:
         from apps.bench import meta
         from semantic_map import kernels
         old = kernels.set_enabled(self.kernels_on)
@@ -115,7 +128,7 @@ class _Side:
                 "stage_ms_per_frame": {k: round(v / n, 3) for k, v in sorted(self.stages.items())}}
 
 
-def maps_identical(a, b) -> bool:
+def maps_identical(a: RayFrontsMap, b: RayFrontsMap) -> bool:
     """Every array of two maps' state equal (voxels, frontiers, rays, occupancy sample)."""
     import torch
     va, vb = a.voxels(), b.voxels()
@@ -129,15 +142,32 @@ def maps_identical(a, b) -> bool:
     return a.counters == b.counters and int(a.occupancy.num_active) == int(b.occupancy.num_active)
 
 
-def run(args: argparse.Namespace) -> dict:
-    import os
-
+def _render_frames(args: argparse.Namespace, hw: tuple[int, int]) -> tuple[list[BenchFrame], np.ndarray, float]:
+    """``(frames, K, seconds)``: the trajectory's frames rendered up front, each with random
+    float16 features at 1/16 resolution."""
     import numpy as np
     import torch
 
-    from apps.bench import meta
-    from common.config import parse_override
     from synthetic_world import World
+
+    world = World.generate(args.seed)
+    poses = world.trajectory(args.trajectory, args.frames, seed=args.seed)
+    K = world.camera(hw, 90.0)
+    g = torch.Generator().manual_seed(args.seed)
+    fh, fw = max(1, hw[0] // 16), max(1, hw[1] // 16)
+    t = time.perf_counter()
+    frames = []
+    for p in poses:
+        r = world.render(p, K, hw)
+        frames.append((p, r.depth.astype(np.float32), r.rgb,
+                       torch.randn(args.feature_dim, fh, fw, generator=g).to(torch.float16)))
+    return frames, K, time.perf_counter() - t
+
+
+def run(args: argparse.Namespace) -> dict:
+    import torch
+
+    from common.config import parse_override
     from semantic_map import kernels
     from semantic_map.config import map_config
     from semantic_map.map import RayFrontsMap
@@ -156,23 +186,12 @@ def run(args: argparse.Namespace) -> dict:
     for item in args.override:
         over.update(parse_override(item))
     cfg = map_config(args.preset, over)
-    world = World.generate(args.seed)
-    poses = world.trajectory(args.trajectory, args.frames, seed=args.seed)
-    K = world.camera(hw, 90.0)
-    g = torch.Generator().manual_seed(args.seed)
-    fh, fw = max(1, hw[0] // 16), max(1, hw[1] // 16)
-    t = time.perf_counter()
-    frames = []
-    for p in poses:
-        r = world.render(p, K, hw)
-        frames.append((p, r.depth.astype(np.float32), r.rgb,
-                       torch.randn(args.feature_dim, fh, fw, generator=g).to(torch.float16)))
-    render_s = time.perf_counter() - t
+    frames, K, render_s = _render_frames(args, hw)
     rss_before = _rss_mb()
     n = len(frames)
     use_kernels = kernels.enabled() and not args.no_kernels
 
-    def new_map():
+    def new_map() -> RayFrontsMap:
         return RayFrontsMap(cfg, args.feature_dim, "bench", device=args.device, occupancy_backend=args.backend)
 
     res: dict = {"target": "mapper", "preset": args.preset, "resolution_hw": list(hw), "frames": n,
@@ -181,31 +200,52 @@ def run(args: argparse.Namespace) -> dict:
                  "feature_dim": args.feature_dim, "trajectory": args.trajectory, "device": str(args.device),
                  "render_s_excluded": round(render_s, 2), "rss_after_render_mb": round(rss_before, 1)}
     if args.compare:
-        if args.compare == "kernels":
-            sides = [_Side("kernels", new_map(), not args.no_pipeline, True, args.threads),
-                     _Side("torch", new_map(), not args.no_pipeline, False, args.threads)]
-        else:
-            sides = [_Side("pipeline", new_map(), True, use_kernels, args.threads),
-                     _Side("sequential", new_map(), False, use_kernels, args.threads)]
-        with meta.timed("interleaved", frames=2 * n):
-            for s in range(0, n, args.block):
-                for side in sides:
-                    side.feed(frames[s:s + args.block], K)
-        for side in sides:
-            side.close()
-            side.map.flush()
-        a, b = sides
-        res.update(compare=args.compare, block=args.block,
-                   pipeline=(not args.no_pipeline) if args.compare == "kernels" else "both",
-                   sides={s.name: s.summary() for s in sides}, maps_identical=maps_identical(a.map, b.map))
-        res[f"{a.name}_vs_{b.name}_fps"] = (round(res["sides"][a.name]["frames_per_s"] / res["sides"][b.name]["frames_per_s"], 3)
-                                           if res["sides"][b.name]["frames_per_s"] else None)
-        res[f"{a.name}_vs_{b.name}_cpu"] = round(a.cpu / b.cpu, 3) if b.cpu else None
-        res["peak_rss_mb"] = round(_rss_mb(), 1)
-        res["main_section"] = None
-        return res
+        return _run_compare(args, res, new_map, frames, K, use_kernels)
+    return _run_main(args, res, new_map(), frames, K, use_kernels)
 
-    side = _Side("main", new_map(), not args.no_pipeline, use_kernels, args.threads)
+
+def _run_compare(args: argparse.Namespace, res: dict, new_map: Callable[[], RayFrontsMap],
+                 frames: list[BenchFrame], K: np.ndarray, use_kernels: bool) -> dict:
+    """``--compare``: two sides fed the same frames interleaved in blocks; ``res`` completed."""
+    from apps.bench import meta
+
+    n = len(frames)
+    if args.compare == "kernels":
+        sides = [_Side("kernels", new_map(), not args.no_pipeline, True, args.threads),
+                 _Side("torch", new_map(), not args.no_pipeline, False, args.threads)]
+    else:
+        sides = [_Side("pipeline", new_map(), True, use_kernels, args.threads),
+                 _Side("sequential", new_map(), False, use_kernels, args.threads)]
+    with meta.timed("interleaved", frames=2 * n):
+        for s in range(0, n, args.block):
+            for side in sides:
+                side.feed(frames[s:s + args.block], K)
+    for side in sides:
+        side.close()
+        side.map.flush()
+    a, b = sides
+    res.update(compare=args.compare, block=args.block,
+               pipeline=(not args.no_pipeline) if args.compare == "kernels" else "both",
+               sides={s.name: s.summary() for s in sides}, maps_identical=maps_identical(a.map, b.map))
+    fps_b = res["sides"][b.name]["frames_per_s"]
+    res[f"{a.name}_vs_{b.name}_fps"] = round(res["sides"][a.name]["frames_per_s"] / fps_b, 3) if fps_b else None
+    res[f"{a.name}_vs_{b.name}_cpu"] = round(a.cpu / b.cpu, 3) if b.cpu else None
+    res["peak_rss_mb"] = round(_rss_mb(), 1)
+    res["main_section"] = None
+    return res
+
+
+def _run_main(args: argparse.Namespace, res: dict, m: RayFrontsMap, frames: list[BenchFrame], K: np.ndarray,
+              use_kernels: bool) -> dict:
+    """One map fed every frame (per window with ``--growing``), flushed and queried; ``res`` completed."""
+    import os
+
+    import torch
+
+    from apps.bench import meta
+
+    n = len(frames)
+    side = _Side("main", m, not args.no_pipeline, use_kernels, args.threads)
     windows = []
     step = args.window if args.growing else n
     with meta.timed("integrate", frames=n):
@@ -214,16 +254,8 @@ def run(args: argparse.Namespace) -> dict:
             load0 = meta.loadavg()
             side.feed(frames[s:s + step], K)
             if args.growing:
-                k = min(step, n - s)
-                st = side.map.stats()
-                windows.append({"frames": [s, s + k], "cpu_ms_per_frame": round(1e3 * (side.cpu - c0) / k, 2),
-                                "wall_ms_per_frame": round(1e3 * (side.wall - w0) / k, 2),
-                                "load_before": load0, "load_after": meta.loadavg(),
-                                "stage_ms_per_frame": {key: round((v - st0.get(key, 0.0)) / k, 3)
-                                                       for key, v in sorted(side.stages.items())},
-                                "n_voxels": st["n_voxels"], "n_frontiers": st["n_frontiers"], "n_rays": st["n_rays"]})
+                windows.append(_window_record(side, s, min(step, n - s), c0, w0, st0, load0))
     side.close()
-    m = side.map
     t1 = time.perf_counter()
     m.flush()
     t2 = time.perf_counter()
@@ -250,3 +282,18 @@ def run(args: argparse.Namespace) -> dict:
             res["growth_cpu_ratio"] = round(windows[-1]["cpu_ms_per_frame"] / windows[0]["cpu_ms_per_frame"], 3)
             res["growth_first_last_cpu_ms"] = [windows[0]["cpu_ms_per_frame"], windows[-1]["cpu_ms_per_frame"]]
     return res
+
+
+def _window_record(side: _Side, s: int, k: int, c0: float, w0: float, st0: dict[str, float],
+                   load0: list[float]) -> dict:
+    """``--growing``: one window of ``k`` frames from frame ``s`` (side totals before it: CPU
+    ``c0``, wall ``w0``, stages ``st0``; load average ``load0``)."""
+    from apps.bench import meta
+
+    st = side.map.stats()
+    return {"frames": [s, s + k], "cpu_ms_per_frame": round(1e3 * (side.cpu - c0) / k, 2),
+            "wall_ms_per_frame": round(1e3 * (side.wall - w0) / k, 2),
+            "load_before": load0, "load_after": meta.loadavg(),
+            "stage_ms_per_frame": {key: round((v - st0.get(key, 0.0)) / k, 3)
+                                   for key, v in sorted(side.stages.items())},
+            "n_voxels": st["n_voxels"], "n_frontiers": st["n_frontiers"], "n_rays": st["n_rays"]}

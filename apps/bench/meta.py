@@ -28,6 +28,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
+from typing import Callable, Iterator
 
 _SECTIONS: list[dict] = []
 _LOCK = threading.Lock()
@@ -149,7 +150,7 @@ def reset() -> None:
 
 
 @contextmanager
-def run_meta(argv: list[str] | None = None):
+def run_meta(argv: list[str] | None = None) -> Iterator[dict]:
     """Wrap one benchmark run: yields a dict that holds the ``meta`` block on exit."""
     reset()
     out: dict = {}
@@ -187,7 +188,8 @@ def attach(result: dict, meta: dict) -> dict:
     return out
 
 
-def interleaved(fns: dict, reps: int, warmup: int = 1, sync=None) -> dict[str, list[float]]:
+def interleaved(fns: dict[str, Callable[[], object]], reps: int, warmup: int = 1,
+                sync: Callable[[], object] | None = None) -> dict[str, list[float]]:
     """Time each callable of ``fns`` ``reps`` times in alternation (after ``warmup`` rounds):
     {name: [seconds, ...]}. ``sync()`` (e.g. CUDA synchronise) runs after each call."""
     for _ in range(max(0, warmup)):

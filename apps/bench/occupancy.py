@@ -11,12 +11,12 @@ from __future__ import annotations
 import math
 import statistics
 import time
+from functools import partial
 
 import numpy as np
 import torch
 
 from common.conventions import voxel_index
-
 from semantic_map.occupancy import make_occupancy, vdb_available
 
 
@@ -81,7 +81,8 @@ def _ms(fn) -> tuple[float, object]:
 def run_occupancy_bench(n_frames: int = 10, rays: int = 20000, vox: float = 0.05,
                         lo: int = -5, hi: int = 30, occ_inc: int = 6, prune_every: int = 5,
                         prune_tol: int = 2, n_query: int = 200_000, n_rays: int = 5000,
-                        frontier=(4, 2, 0, 1), backends=None, seed: int = 0) -> dict:
+                        frontier: tuple[int, int, int, int] = (4, 2, 0, 1), backends: list[str] | None = None,
+                        seed: int = 0) -> dict:
     """Time both occupancy backends on the same synthetic frames; returns a JSON-able
     dict: per backend median ms for update (free then occupied), query, frontiers (bbox
     of the frame), prune, first_blocked, plus map size, memory and an identity check."""
@@ -104,13 +105,13 @@ def run_occupancy_bench(n_frames: int = 10, rays: int = 20000, vox: float = 0.05
             inc = np.concatenate([np.full(len(free), -1), np.full(len(occ), occ_inc)])
             ijk_t = torch.from_numpy(ijk.astype(np.int32))
             inc_t = torch.from_numpy(inc.astype(np.int32))
-            times["update"].append(_ms(lambda: g.update(ijk_t, inc_t))[0])
+            times["update"].append(_ms(partial(g.update, ijk_t, inc_t))[0])
             bbox = (tuple(ijk.min(0).tolist()), tuple(ijk.max(0).tolist()))
-            ms, fr = _ms(lambda: g.frontiers(*frontier, bbox=bbox))
+            ms, fr = _ms(partial(g.frontiers, *frontier, bbox=bbox))
             times["frontiers"].append(ms)
             n_front.append(int(fr.shape[0]))
             if prune_every and (f + 1) % prune_every == 0:
-                times["prune"].append(_ms(lambda: g.prune(prune_tol))[0])
+                times["prune"].append(_ms(partial(g.prune, prune_tol))[0])
         act_ijk, act_val = g.active()
         q_rng = np.random.default_rng(seed + 2)
         known = act_ijk[torch.from_numpy(q_rng.integers(0, len(act_ijk), n_query // 2))]
@@ -119,12 +120,12 @@ def run_occupancy_bench(n_frames: int = 10, rays: int = 20000, vox: float = 0.05
                                                size=(n_query - n_query // 2, 3)))
         q = torch.cat([known, rand]).to(torch.int32)
         for _ in range(3):
-            ms, qv = _ms(lambda: g.query(q))
+            ms, qv = _ms(partial(g.query, q))
             times["query"].append(ms)
         for _ in range(3):
-            ms, fb = _ms(lambda: g.first_blocked(ro, rd, 8.0))
+            ms, fb = _ms(partial(g.first_blocked, ro, rd, 8.0))
             times["first_blocked"].append(ms)
-        ms_all, fr_all = _ms(lambda: g.frontiers(*frontier))
+        ms_all, fr_all = _ms(partial(g.frontiers, *frontier))
         final[name] = (act_ijk, act_val, qv, fb, fr_all)
         out["backends"][name] = {
             "ms": {k: (statistics.median(v) if v else None) for k, v in times.items()},
@@ -137,7 +138,7 @@ def run_occupancy_bench(n_frames: int = 10, rays: int = 20000, vox: float = 0.05
     if len(final) > 1:
         ref = final[backends[0]]
         out["identical"] = all(
-            all(torch.equal(a, b) for a, b in zip(ref, other)) for other in final.values())
+            all(torch.equal(a, b) for a, b in zip(ref, other, strict=True)) for other in final.values())
         t, v = out["backends"].get("torch"), out["backends"].get("vdb")
         if t and v:
             out["speedup_vdb_over_torch"] = {

@@ -23,8 +23,14 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace
+    from mapper.service_config import MapperConfig
+    from semantic_map.map import RayFrontsMap
 
 HELP = "query latency on 100k..5M-voxel maps: in process (steady, first after a change) and client round trip"
 
@@ -60,13 +66,13 @@ def _space(dim: int):
     return FeatureSpace("label", "bench", in_dim, pca=pca)
 
 
-def build_map(n: int, dim: int, n_rays: int, fs, seed: int = 0):
+def build_map(n: int, dim: int, n_rays: int, fs: FeatureSpace, seed: int = 0) -> RayFrontsMap:
     """A RayFrontsMap (default mapper config) holding ``n`` voxels and ``n_rays`` rays."""
     import torch
 
-    from semantic_map import cell_keys
     from mapper.service_config import MapperConfig
     from mapper.service_map import create_map
+    from semantic_map import cell_keys
 
     cfg = MapperConfig()
     m = create_map(cfg, fs)
@@ -105,16 +111,15 @@ def _pct(a) -> dict:
             "max": float(a.max())}
 
 
-def in_process(cfg, m, fs, args, n: int) -> dict:
+def in_process(cfg: MapperConfig, m: RayFrontsMap, fs: FeatureSpace, args: argparse.Namespace, n: int) -> dict:
     import threading
 
     import torch
 
     from common.messages import QueryRequest
     from mapper.query_answer import answer_snapshot
-    from semantic_map.query_snapshot import QuerySnapshot
-
     from mapper.service_config import resolve_query_threads
+    from semantic_map.query_snapshot import QuerySnapshot
 
     # as the mapper does per query: a MapperService run before (client_round_trip) leaves
     # this thread's torch thread count at its map thread's
@@ -172,7 +177,7 @@ def in_process(cfg, m, fs, args, n: int) -> dict:
             "voxels": len(m.sem), "rays": len(m.ray_store)}
 
 
-def client_round_trip(cfg, m, fs, args) -> dict:
+def client_round_trip(cfg: MapperConfig, m: RayFrontsMap, fs: FeatureSpace, args: argparse.Namespace) -> dict:
     from common.messages import encode_feature_space, encode_query_result
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from mapper.service import MapperService

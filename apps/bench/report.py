@@ -60,7 +60,8 @@ def _world(d: dict) -> tuple[str, str]:
 
 
 def _encoder(d: dict) -> tuple[str, str]:
-    txt = f"{_f(d.get('fps'), 2)} frames/s ({d.get('device', 'cpu')}, {d.get('dtype', 'float32')}, {d.get('resolution')})"
+    txt = (f"{_f(d.get('fps'), 2)} frames/s ({d.get('device', 'cpu')}, {d.get('dtype', 'float32')}, "
+           f"{d.get('resolution')})")
     if d.get("naclip_overhead_ratio") is not None:
         txt += f"; NACLIP last block / plain = {_f(d['naclip_overhead_ratio'], 2)}"
     cpu = d.get("cpu_ms_per_frame")
@@ -119,12 +120,26 @@ def _query(d: dict) -> tuple[str, str]:
     return "; ".join(parts), ", ".join(cpu) or "–"
 
 
+def _search(d: dict) -> tuple[str, str]:
+    parts, cpu = [], []
+    for size, row in (d.get("sizes") or {}).items():
+        w, occ = row.get("search_ms") or {}, row.get("occupancy_ms") or {}
+        if (row.get("search_cpu_ms") or {}).get("p50") is not None:
+            cpu.append(f"{size}: {_f(row['search_cpu_ms']['p50'])}/search")
+        parts.append(f"{size}: search p50 {_f(w.get('p50'))} / p95 {_f(w.get('p95'))} ms; occupancy box "
+                     f"{_f((occ.get('box_40x40x6m') or {}).get('p50'))}, slice "
+                     f"{_f((occ.get('slice_80x80m') or {}).get('p50'))}, 1000 points "
+                     f"{_f((occ.get('points_1000_r1m') or {}).get('p50'))} ms")
+    return "; ".join(parts), ", ".join(cpu) or "–"
+
+
 def _fleet(d: dict) -> tuple[str, str]:
     parts = []
     for n, r in (d.get("runs") or {}).items():
         lat = r.get("latency_ms") or {}
         parts.append(f"{n} robot{'s' if n != '1' else ''}: {_f(r.get('total_fused_hz'))} Hz total "
-                     f"(fairness min/max {_f(r.get('fairness_min_over_max'), 2)}), latency p50 {_f(lat.get('p50'), 0)} / "
+                     f"(fairness min/max {_f(r.get('fairness_min_over_max'), 2)}), "
+                     f"latency p50 {_f(lat.get('p50'), 0)} / "
                      f"p95 {_f(lat.get('p95'), 0)} ms, mapper {_f(r.get('mapper_rss_mb'), 0)} MB")
     fk = d.get("fake_ids") or {}
     if fk.get("rss_mb_after_ids") is not None:
@@ -137,14 +152,16 @@ def _faults(d: dict) -> tuple[str, str]:
     parts = []
     dc = d.get("decode") or {}
     if dc:
-        parts.append(f"worst hostile frame header rejected in {_f(dc.get('worst_cpu_ms'), 3)} CPU-ms ({dc.get('worst')}; "
+        parts.append(f"worst hostile frame header rejected in {_f(dc.get('worst_cpu_ms'), 3)} CPU-ms "
+                     f"({dc.get('worst')}; "
                      f"a real frame decodes in {_f(dc.get('real_frame_cpu_ms'), 2)})")
     q = d.get("query") or {}
     if q:
         u, f = q.get("unloaded_ms") or {}, q.get("flood_ms") or {}
         parts.append(f"query p50 / p95 {_f(u.get('p50'))} / {_f(u.get('p95'))} ms unloaded, {_f(f.get('p50'))} / "
                      f"{_f(f.get('p95'))} ms during a {q.get('floods')}-edge flood (bound {_f(q.get('bound_ms'))} ms: "
-                     f"{'met' if q.get('flood_p95_within_bound') else 'NOT met'}), {q.get('stale_answers')} stale answers, "
+                     f"{'met' if q.get('flood_p95_within_bound') else 'NOT met'}), "
+                     f"{q.get('stale_answers')} stale answers, "
                      f"mapper RSS max {_f(q.get('mapper_rss_mb_max'), 0)} MB")
     g = d.get("gone") or {}
     if g:
@@ -154,7 +171,7 @@ def _faults(d: dict) -> tuple[str, str]:
 
 
 FORMATTERS = {"mapper": _mapper, "world": _world, "encoder": _encoder, "e2e": _e2e, "query": _query,
-              "fleet": _fleet, "faults": _faults}
+              "search": _search, "fleet": _fleet, "faults": _faults}
 
 
 def _order(src: Path) -> list[Path]:

@@ -9,6 +9,11 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from apps.evaluation.semseg import SemsegConfig
+    from apps.evaluation.srchvol import SrchvolConfig
 
 HELP = "the paper's benchmarks (search volume; 3D semantic segmentation) and a results page"
 DESCRIPTION = """Benchmarks of the paper, run on this machine:
@@ -76,7 +81,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     rp = sub.add_parser("report", help="collect run directories into one Markdown page")
     rp.add_argument("runs", nargs="+", metavar="RUN_DIR", help="srchvol / semseg output directories")
-    rp.add_argument("--out", required=True, metavar="FILE.md", help="Markdown file to write (plots are linked relatively)")
+    rp.add_argument("--out", required=True, metavar="FILE.md",
+                    help="Markdown file to write (plots are linked relatively)")
     rp.add_argument("--title", default="RayFronts benchmark results", help="page title")
 
 
@@ -93,7 +99,7 @@ def _source_overrides(args) -> dict:
     return s
 
 
-def build_config(args):
+def build_config(args: argparse.Namespace) -> SrchvolConfig | SemsegConfig:
     """The action's config from --config, the options and the key=value overrides."""
     from apps.evaluation.semseg import SemsegConfig
     from apps.evaluation.srchvol import SrchvolConfig

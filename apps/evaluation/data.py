@@ -5,7 +5,7 @@
 * :func:`ground_truth` — the scene volume and per-voxel GT classes at voxel size ``vox``:
 
   - scene volume = every voxel a full-range occupancy pass over the trajectory observes
-    (the reference's construction, brief §6.2: all active voxels, free or occupied), with
+    (the reference's construction, docs/method.md#evaluation: all active voxels, free or occupied), with
     depth beyond ``gt_range`` treated as out of range (+inf pixels carve free space up to
     ``gt_range``, like the reference's 50 m TartanAir cutoff). To keep it affordable the
     pass may use every ``frame_stride``-th frame and every ``pixel_stride``-th pixel.
@@ -20,12 +20,18 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 import torch
 
 from apps.evaluation.metrics import EMPTY, IGNORE
 from common.frame import Frame
+
+if TYPE_CHECKING:
+    from edge.sources import FrameSource, SourceConfig
+    from synthetic_world import World
 
 
 @dataclass
@@ -45,12 +51,13 @@ class GroundTruth:
         return np.bincount(lab, minlength=len(self.class_names))
 
 
-def pack(ijk) -> np.ndarray:
+def pack(ijk: npt.ArrayLike) -> np.ndarray:
     from semantic_map import cell_keys
     return cell_keys.pack(torch.as_tensor(np.asarray(ijk), dtype=torch.int64)).numpy()
 
 
-def load_frames(source_cfg, progress: bool = True, world=None) -> tuple[list[Frame], object]:
+def load_frames(source_cfg: SourceConfig, progress: bool = True,
+                world: World | None = None) -> tuple[list[Frame], FrameSource]:
     """All frames of the source (depth limit removed) and the source object."""
     from edge.sources import open_source
 
@@ -62,7 +69,8 @@ def load_frames(source_cfg, progress: bool = True, world=None) -> tuple[list[Fra
     return frames, src
 
 
-def subsample_frame(depth: np.ndarray, K: np.ndarray, stride: int, labels=None):
+def subsample_frame(depth: np.ndarray, K: np.ndarray, stride: int, labels: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Every ``stride``-th pixel (pixel centres at +0.5): depth, K and labels."""
     if stride <= 1:
         return depth, K, labels
@@ -77,7 +85,8 @@ def subsample_frame(depth: np.ndarray, K: np.ndarray, stride: int, labels=None):
 
 
 def ground_truth(frames: list[Frame], class_names: list[str], vox: float, gt_range: float = 50.0,
-                 world=None, frame_stride: int = 1, pixel_stride: int = 1, scene_volume: str = "observed",
+                 world: World | None = None, frame_stride: int = 1, pixel_stride: int = 1,
+                 scene_volume: str = "observed",
                  occupancy_backend: str = "auto", progress: bool = False) -> GroundTruth:
     """Scene volume and GT classes (see module doc)."""
     from semantic_map.config import map_config
@@ -110,7 +119,7 @@ def ground_truth(frames: list[Frame], class_names: list[str], vox: float, gt_ran
     ijk = ijk.numpy().astype(np.int64)
     if scene_volume == "bbox" and len(ijk):
         lo, hi = ijk.min(0), ijk.max(0)
-        g = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), -1)
+        g = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi, strict=True)], indexing="ij"), -1)
         ijk = g.reshape(-1, 3)
     keys = pack(ijk)
     order = np.argsort(keys, kind="stable")

@@ -20,6 +20,10 @@ import io
 import json
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING, Iterable, Sequence
+
+if TYPE_CHECKING:
+    import matplotlib.figure
 
 METRICS = (("mIoU", "miou_auc"), ("SCV", "scv_auc"), ("Recall", "recall_auc"), ("SCVR", "scvr_auc"))
 #: one colour and line style per method, the same in every figure
@@ -51,7 +55,7 @@ def _depth_key(d: float) -> str:
     return f"{float(d):g}m"
 
 
-def load_run(run_dir) -> tuple[list[dict], dict, dict]:
+def load_run(run_dir: str | Path) -> tuple[list[dict], dict, dict]:
     """(rows of steps.json, summary keyed by depth, run_info) of a srchvol run directory."""
     run = Path(run_dir)
     rows = json.loads((run / "steps.json").read_text())
@@ -79,7 +83,7 @@ def class_mean_curves(rows: list[dict]) -> dict:
     return out
 
 
-def figure_for_depth(d: float, per: dict, titles: dict | None = None):
+def figure_for_depth(d: float, per: dict, titles: dict | None = None) -> matplotlib.figure.Figure:
     """The matplotlib figure comparing the methods ``per`` = {method: [(step, scvr)]} at depth ``d``."""
     import matplotlib
 
@@ -103,7 +107,7 @@ def figure_for_depth(d: float, per: dict, titles: dict | None = None):
     return fig
 
 
-def compare_figures(run_dir, rows: list[dict] | None = None, dpi: int = 110) -> list[Path]:
+def compare_figures(run_dir: str | Path, rows: list[dict] | None = None, dpi: int = 110) -> list[Path]:
     """Write ``plots/compare_scvr_<depth>.png`` for every depth limit; return the paths."""
     import matplotlib.pyplot as plt
 
@@ -123,7 +127,7 @@ def compare_figures(run_dir, rows: list[dict] | None = None, dpi: int = 110) -> 
     return paths
 
 
-def table_csv(summary: dict, methods=None, depth_keys=None) -> str:
+def table_csv(summary: dict, methods: Sequence[str] | None = None, depth_keys: Iterable[str] | None = None) -> str:
     """Table I as CSV text: ``method, <depth> mIoU (%), <depth> SCV (%), ...``; empty = not applicable."""
     depth_keys = list(depth_keys or sorted(summary, key=lambda k: float(k.rstrip("m"))))
     if methods is None:
@@ -146,7 +150,7 @@ def table_csv(summary: dict, methods=None, depth_keys=None) -> str:
     return buf.getvalue()
 
 
-def write_figures(run_dir) -> list[Path]:
+def write_figures(run_dir: str | Path) -> list[Path]:
     """The comparison figures and ``table.csv`` of one srchvol run directory."""
     run = Path(run_dir)
     rows, summary, info = load_run(run)

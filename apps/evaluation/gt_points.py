@@ -1,7 +1,7 @@
 """External semantic ground truth: labelled point clouds, voxelised by majority vote.
 
 Used where the frames carry no labels (NICE-SLAM Replica: the reference evaluates against
-external GT point clouds, brief §6.1). Files, in the source's world frame (metres):
+external GT point clouds; docs/method.md#evaluation). Files, in the source's world frame (metres):
 
 * ``.npz``: ``xyz`` (N, 3) float, ``labels`` (N,) int (class id, 0 = unlabelled) and
   optionally ``class_names`` (K,) str (index = class id);
@@ -20,9 +20,21 @@ _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short":
               "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
 
 
+#: a PLY header element: (name, count, [(property, numpy type code | None for a list property)])
+_PlyElement = tuple[str, int, list[tuple[str, str | None]]]
+
+
 def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
     """The scalar properties of a PLY file's ``vertex`` element: ``{name: (N,) array}``."""
     p = Path(path)
+    fmt, elements, body = _read_ply_header(p)
+    if fmt == "ascii":
+        return _ascii_vertices(p, elements, body)
+    return _binary_vertices(p, elements, body, "<" if fmt == "binary_little_endian" else ">")
+
+
+def _read_ply_header(p: Path) -> tuple[str, list[_PlyElement], bytes]:
+    """``(format, elements, body bytes after the header)`` of the PLY file ``p``."""
     raw = p.read_bytes()
     end = raw.find(b"end_header")
     if not raw.startswith(b"ply") or end < 0:
@@ -39,39 +51,58 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
         elif t[0] == "element":
             elements.append((t[1], int(t[2]), []))
         elif t[0] == "property" and elements:
-            if t[1] == "list":
-                elements[-1][2].append((t[-1], None))
-            else:
-                if t[1] not in _PLY_TYPES:
-                    raise ValueError(f"{p}: unknown PLY property type {t[1]!r}")
-                elements[-1][2].append((t[2], _PLY_TYPES[t[1]]))
+            elements[-1][2].append(_ply_property(p, t))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise ValueError(f"{p}: unsupported PLY format {fmt!r}")
+    return fmt, elements, body
+
+
+def _ply_property(p: Path, t: list[str]) -> tuple[str, str | None]:
+    """``(name, numpy type code)`` of a header ``property`` line's tokens ``t`` (None for a list)."""
+    if t[1] == "list":
+        return (t[-1], None)
+    if t[1] not in _PLY_TYPES:
+        raise ValueError(f"{p}: unknown PLY property type {t[1]!r}")
+    return (t[2], _PLY_TYPES[t[1]])
+
+
+def _check_scalar_props(p: Path, name: str, props: list[tuple[str, str | None]]) -> None:
+    """Raise unless element ``name`` (read or skipped before the vertices) has only scalar properties."""
+    if any(dt is None for _, dt in props):
+        if name == "vertex":
+            raise ValueError(f"{p}: list properties in the vertex element are not supported")
+        raise ValueError(f"{p}: element {name!r} with list properties comes before 'vertex'")
+
+
+def _ascii_vertices(p: Path, elements: list[_PlyElement], body: bytes) -> dict[str, np.ndarray]:
+    """The ``vertex`` properties of an ascii PLY body (one element row per line)."""
     offset = 0
-    lines = body.decode("ascii", "replace").splitlines() if fmt == "ascii" else None
+    lines = body.decode("ascii", "replace").splitlines()
     for name, count, props in elements:
-        if any(dt is None for _, dt in props):
-            if name == "vertex":
-                raise ValueError(f"{p}: list properties in the vertex element are not supported")
-            if name != "vertex":
-                raise ValueError(f"{p}: element {name!r} with list properties comes before 'vertex'")
-        if fmt == "ascii":
-            if name == "vertex":
-                vals = np.loadtxt(lines[offset:offset + count], ndmin=2) if count else np.zeros((0, len(props)))
-                if vals.shape[1] < len(props):
-                    raise ValueError(f"{p}: vertex rows have {vals.shape[1]} values, header declares {len(props)}")
-                return {n: vals[:, i].astype(dt) for i, (n, dt) in enumerate(props)}
-            offset += count
-        else:
-            end_c = "<" if fmt == "binary_little_endian" else ">"
-            dt = np.dtype([(n, end_c + t) for n, t in props])
-            if name == "vertex":
-                need = count * dt.itemsize
-                if len(body) - offset < need:
-                    raise ValueError(f"{p}: truncated vertex data ({len(body) - offset} of {need} bytes)")
-                arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
-                return {n: arr[n].astype(arr.dtype[n].newbyteorder("=")) for n, _ in props}
-            offset += count * dt.itemsize
+        _check_scalar_props(p, name, props)
+        if name == "vertex":
+            vals = np.loadtxt(lines[offset:offset + count], ndmin=2) if count else np.zeros((0, len(props)))
+            if vals.shape[1] < len(props):
+                raise ValueError(f"{p}: vertex rows have {vals.shape[1]} values, header declares {len(props)}")
+            return {n: vals[:, i].astype(dt) for i, (n, dt) in enumerate(props)}
+        offset += count
+    raise ValueError(f"{p}: no 'vertex' element")
+
+
+def _binary_vertices(p: Path, elements: list[_PlyElement], body: bytes, end_c: str) -> dict[str, np.ndarray]:
+    """The ``vertex`` properties of a binary PLY body with byte order ``end_c`` (``<`` / ``>``),
+    in native byte order."""
+    offset = 0
+    for name, count, props in elements:
+        _check_scalar_props(p, name, props)
+        dt = np.dtype([(n, end_c + str(t)) for n, t in props])
+        if name == "vertex":
+            need = count * dt.itemsize
+            if len(body) - offset < need:
+                raise ValueError(f"{p}: truncated vertex data ({len(body) - offset} of {need} bytes)")
+            arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
+            return {n: arr[n].astype(arr.dtype[n].newbyteorder("=")) for n, _ in props}
+        offset += count * dt.itemsize
     raise ValueError(f"{p}: no 'vertex' element")
 
 

@@ -7,7 +7,7 @@
   ``text_model_dir``, default ``<encoder.model_dir or $RAYFRONTS_MODEL_DIR>/siglip_text``),
   and map features are compared through
   :meth:`common.feature_space.FeatureSpace.similarity` — the head is applied to the
-  *averaged* voxel / ray features at query time (brief §4.3), exactly as the mapper does.
+  *averaged* voxel / ray features at query time (docs/method.md#language-head), exactly as the mapper does.
   Image-level (global) features are already language-space (``encode_global`` applies the
   head): Semantic Poses maps them directly and uses cosine.
 """
@@ -15,11 +15,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import torch
 
 from common.feature_space import FeatureSpace, FeatureSpaceError
+
+if TYPE_CHECKING:
+    from encoders import ImageEncoder
 
 Similarity = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -36,7 +39,7 @@ class EvalLanguage:
         return int(self.text.shape[1])
 
 
-def text_model_dir(enc, configured: str = "") -> str | None:
+def text_model_dir(enc: ImageEncoder, configured: str = "") -> str | None:
     """Directory of the encoder's text model: ``configured``, else for SigLIP
     ``<encoder model_dir or default model dir>/siglip_text``, else None (MiniLM: the package's)."""
     if configured:
@@ -48,7 +51,7 @@ def text_model_dir(enc, configured: str = "") -> str | None:
     return None
 
 
-def use_templates(setting, enc) -> bool:
+def use_templates(setting: bool | str, enc: ImageEncoder) -> bool:
     """Resolve a ``templates`` setting (true / false / "auto") for encoder ``enc``: auto = the
     paper's 80 prompt templates for language encoders (class texts from a text tower aligned
     with an image model: a language head or the SigLIP text model), raw names for the label
@@ -60,7 +63,7 @@ def use_templates(setting, enc) -> bool:
     return getattr(enc, "language_head", None) is not None or getattr(enc, "text_model", "") == "siglip"
 
 
-def eval_language(enc, class_names: Sequence[str], templates: bool = False, model_dir: str = "",
+def eval_language(enc: ImageEncoder, class_names: Sequence[str], templates: bool = False, model_dir: str = "",
                   device: str | torch.device = "cpu") -> EvalLanguage:
     """Class embeddings and similarity for the encoder ``enc`` (see module doc);
     ``templates``: mean of the 80 ImageNet prompt embeddings instead of the raw names."""

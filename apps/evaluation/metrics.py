@@ -13,8 +13,10 @@ All ratios are fractions in [0, 1]; an undefined ratio (0/0) is ``NaN``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 IGNORE = -1
 EMPTY = 0
@@ -82,8 +84,8 @@ def normalized_count_mask(counts: np.ndarray, thresh: float = 0.05) -> np.ndarra
     return c / mx > thresh
 
 
-def srchvol_metrics(masks: dict[int, np.ndarray | None], gt: np.ndarray, classes, default_prediction: bool = True
-                    ) -> dict[int, dict[str, float]]:
+def srchvol_metrics(masks: dict[int, np.ndarray | None], gt: np.ndarray, classes: Sequence[int],
+                    default_prediction: bool = True) -> dict[int, dict[str, float]]:
     """Per class ``c`` in ``classes``: tp, fp, fn, tn, vol, scv, recall, scvr.
 
     ``masks[c]``: the class's search volume over the unobserved voxels (absent / ``None``
@@ -103,7 +105,8 @@ def srchvol_metrics(masks: dict[int, np.ndarray | None], gt: np.ndarray, classes
 
 
 # ----------------------------------------------------------------------------- AUC over time
-def auc_stopping(steps, values, observed_frac, stop: float = 0.5) -> float:
+def auc_stopping(steps: npt.ArrayLike, values: npt.ArrayLike, observed_frac: npt.ArrayLike,
+                 stop: float = 0.5) -> float:
     """Time-average of ``values`` over the steps before the class is "mapped".
 
     Kept steps: those **before** the first step whose ``observed_frac`` (fraction of the
@@ -145,7 +148,7 @@ def auc_table(rows: list[dict], metric: str, stop: float = 0.5) -> float:
 
 
 # ----------------------------------------------------------------------------- segmentation
-def confusion_per_class(gt: np.ndarray, pred: np.ndarray, classes) -> dict[int, tuple[int, int, int]]:
+def confusion_per_class(gt: np.ndarray, pred: np.ndarray, classes: Sequence[int]) -> dict[int, tuple[int, int, int]]:
     """``{c: (TP, FP, FN)}`` over the voxels whose GT is one of ``classes`` (GT 0 =
     unlabelled and GT classes not listed — e.g. ignored background — are not evaluated).
     A prediction 0 ("none") is a false negative of the GT class and no false positive."""
@@ -167,7 +170,7 @@ def iou(tp: int, fp: int, fn: int) -> float:
     return tp / (tp + fp + fn) if tp + fn > 0 else float("nan")
 
 
-def semseg_scores(gt: np.ndarray, pred: np.ndarray, classes) -> dict:
+def semseg_scores(gt: np.ndarray, pred: np.ndarray, classes: Sequence[int]) -> dict:
     """mIoU (nanmean of per-class IoU), f-mIoU (IoU weighted by class frequency TP+FN),
     Acc (fraction of GT-labelled voxels — GT class in ``classes`` — predicted correctly) and
     ``per_class`` {c: {iou, tp, fp, fn}} for the GT classes ``classes``."""
@@ -186,7 +189,7 @@ def semseg_scores(gt: np.ndarray, pred: np.ndarray, classes) -> dict:
                            for i, c in enumerate(classes)})
 
 
-def observed_iou(gt_labels: np.ndarray, pred_labels: np.ndarray, classes) -> dict[int, float]:
+def observed_iou(gt_labels: np.ndarray, pred_labels: np.ndarray, classes: Sequence[int]) -> dict[int, float]:
     """Observed-region IoU per class over a shared voxel list (aligned GT and predicted
     label per voxel, 0 = empty / none): TP/(TP+FP+FN) with FP counted on every voxel
     (empty GT included); NaN when the class is neither in GT nor predicted."""
@@ -269,9 +272,9 @@ def _pack(ijk: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- reference cones
-def reference_cone_radius(z, vox: float, subsampling: float, half_angle_deg: float):
+def reference_cone_radius(z: npt.ArrayLike, vox: float, subsampling: float, half_angle_deg: float) -> np.ndarray:
     """Circumradius at depth ``z`` (m along the ray) of the reference's evaluation "cone"
-    (brief §6.2): a six-sided open pyramid through a hexagon of radius ``vox·s`` at
+    (docs/method.md#evaluation): a six-sided open pyramid through a hexagon of radius ``vox·s`` at
     ``z = vox`` and one of radius ``5·vox·tan(α)`` at ``z = 5·vox``; linear in between and
     beyond (``r₀ + (z − vox)(5 tan α − s)/4``); the pyramid starts at ``z = vox``."""
     z = np.asarray(z, dtype=np.float64)

@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 from typing import Callable
 
 import numpy as np
+import numpy.typing as npt
 import torch
 
 from semantic_map import search_volume
@@ -276,7 +278,7 @@ def cone_intervals(grid: RowGrid, origins: np.ndarray, dirs: np.ndarray, half_an
         res = [np.empty((len(sidx), nb_, nc_)) for _ in range(4)]
         for k in np.unique(ks):
             m = ks == k
-            for r_, v_ in zip(res, group(sidx[m], pad, int(k))):
+            for r_, v_ in zip(res, group(sidx[m], pad, int(k)), strict=True):
                 r_[m] = v_
         return tuple(res)
 
@@ -338,7 +340,13 @@ def _pad(grid: RowGrid) -> float:
     return 1e-4 * grid.vox
 
 
-def cone_counts(grid: RowGrid, origins, dirs, half_angle_deg: float, cells=None) -> np.ndarray:
+def _exact_on_rows(exact: ExactTest, rows: torch.Tensor, x: torch.Tensor, si: torch.Tensor) -> torch.Tensor:
+    """``exact`` (a test over all shapes) on the shapes ``rows[si]`` (``si`` indexes a subset)."""
+    return exact(x, rows[si])
+
+
+def cone_counts(grid: RowGrid, origins: npt.ArrayLike, dirs: npt.ArrayLike, half_angle_deg: float,
+                cells: np.ndarray | None = None) -> np.ndarray:
     """Counts of true cones (apex ``origins``, axes ``dirs``, infinite) — equal to
     :func:`apps.evaluation.shapes.cone_counts` on the voxel centres. A cone whose axis makes
     the angle α with the row axis (a generator along the rows, e.g. (1, 1, 0)/√2 at 45°) is
@@ -359,27 +367,29 @@ def cone_counts(grid: RowGrid, origins, dirs, half_angle_deg: float, cells=None)
             continue
         g = grid.along(k)
         fn = cone_intervals(g, on[sel], d[sel], half_angle_deg)
-        cnt = raster_counts(g, len(sel), fn, lambda x, si, _s=torch.from_numpy(sel): exact(x, _s[si]), _pad(g), cells)
+        rows = torch.from_numpy(sel)
+        cnt = raster_counts(g, len(sel), fn, partial(_exact_on_rows, exact, rows), _pad(g), cells)
         out = cnt if out is None else out + cnt
     return out
 
 
-def ball_counts(grid: RowGrid, centres, radii, cells=None) -> np.ndarray:
+def ball_counts(grid: RowGrid, centres: npt.ArrayLike, radii: npt.ArrayLike,
+                cells: np.ndarray | None = None) -> np.ndarray:
     """Counts of balls — equal to :func:`apps.evaluation.shapes.ball_counts` on the voxel centres."""
     c = torch.as_tensor(centres).to(torch.float64).reshape(-1, 3)
     r = torch.as_tensor(radii, dtype=torch.float64).reshape(-1)
     if r.numel() == 1 and c.shape[0] != 1:
         r = r.expand(c.shape[0])
 
-    def exact(x, si):
+    def exact(x: torch.Tensor, si: torch.Tensor) -> torch.Tensor:
         return (x - c[si]).norm(dim=1) <= r[si]
 
     fn = ball_intervals(grid, c.numpy(), r.numpy())
     return raster_counts(grid, c.shape[0], fn, exact, _pad(grid), cells)
 
 
-def reference_cone_counts(grid: RowGrid, origins, dirs, subsampling: float, half_angle_deg: float,
-                          num_segs: int = 6, cells=None) -> np.ndarray:
+def reference_cone_counts(grid: RowGrid, origins: npt.ArrayLike, dirs: npt.ArrayLike, subsampling: float,
+                          half_angle_deg: float, num_segs: int = 6, cells: np.ndarray | None = None) -> np.ndarray:
     """Counts of the reference's hexagonal pyramids (:mod:`apps.evaluation.shapes`) — equal to
     :func:`apps.evaluation.shapes.reference_cone_counts` on the voxel centres."""
     from apps.evaluation.shapes import reference_pyramid_tests, rotation_z_to

@@ -15,6 +15,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import Iterable
 
 
 def _load(run: Path) -> dict:
@@ -29,7 +30,8 @@ def _mean(vals):
     return sum(v) / len(v) if v else float("nan")
 
 
-def write_report(run_dirs, out_file, title: str = "RayFronts benchmark results") -> Path:
+def write_report(run_dirs: Iterable[str | Path], out_file: str | Path, title: str = "RayFronts benchmark results"
+                 ) -> Path:
     """Write the Markdown page ``out_file`` for ``run_dirs``; return its path."""
     from apps.evaluation.semseg import semseg_table
 

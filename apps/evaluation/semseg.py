@@ -1,11 +1,11 @@
-"""Offline zero-shot 3D semantic segmentation (paper §IV-B, Tables II/III; brief §6.1).
+"""Offline zero-shot 3D semantic segmentation (paper §IV-B, Tables II/III; docs/method.md#evaluation).
 
 1. Map the sequence with semantic voxels only (``RayFrontsMap`` with ``semantic_rays=False``
    — the reference's SemanticVoxelMap; semantic pruning is off, ``sem_pruning_period = -1``,
    so the occupancy grid does not change the voxels).
 2. Predict every voxel: softmax (temperature) over the class-name text embeddings (raw
    names, or the mean of the encoder's prompt templates with ``templates=true``), prompt
-   denoising over the **whole map** (not per chunk — reference bug §10.2 #10), prediction
+   denoising over the **whole map** (the reference denoises per chunk), prediction
    threshold (below → 0 = no prediction).
 3. GT voxels: the synthetic world's exact ``voxel_labels`` of the voxels the GT pass
    observes as occupied, or for datasets the majority of the fused one-hot GT label images
@@ -22,7 +22,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal, Sequence
 
 import numpy as np
 import torch
@@ -32,10 +32,15 @@ from apps.evaluation.data import load_frames
 from apps.evaluation.language import eval_language
 from apps.evaluation.srchvol import _json_safe
 from common.config import ConfigError, field_, section, to_dict
-from encoders.config import EncoderConfig
 from edge.sources.config import SourceConfig
+from encoders.config import EncoderConfig
 
-#: the reference's background classes (Replica; ScanNet adds the three "other*" classes), brief §6.1
+if TYPE_CHECKING:
+    from encoders import ImageEncoder
+    from semantic_map.query import Similarity
+    from synthetic_world import World
+
+#: the reference's background classes (Replica; ScanNet adds the three "other*" classes)
 BACKGROUND_REFERENCE = ["wall", "floor", "ceiling", "door", "window", "background", "otherprop", "otherstructure",
                         "otherfurniture"]
 #: the synthetic world's background-like classes (its stand-ins for floor / wall / sky); ours, not the paper's
@@ -85,14 +90,14 @@ class SemsegConfig:
         return self
 
 
-def class_text(enc, class_names, templates: bool, model_dir: str = "") -> torch.Tensor:
+def class_text(enc: ImageEncoder, class_names: Sequence[str], templates: bool, model_dir: str = "") -> torch.Tensor:
     """(K, D) class-name embeddings in the encoder's language space (raw names, or the mean
     of the 80 ImageNet prompt templates); see :mod:`apps.evaluation.language`."""
     return eval_language(enc, class_names, templates, model_dir).text
 
 
 def predict_labels(feats: torch.Tensor, text: torch.Tensor, temperature: float = 100.0, denoise: float = 0.5,
-                   thresh: float = 0.1, similarity=None) -> np.ndarray:
+                   thresh: float = 0.1, similarity: Similarity | None = None) -> np.ndarray:
     """(N,) class id per feature row: argmax of softmax(temperature·cos) over the classes,
     classes whose maximum probability over **all** rows is < ``denoise`` disabled, 0 where
     the best probability is < ``thresh`` (class 0 itself is a valid prediction only if it
@@ -104,12 +109,14 @@ def predict_labels(feats: torch.Tensor, text: torch.Tensor, temperature: float =
         return np.zeros(0, dtype=np.int64)
     empty = torch.empty((0, feats.shape[1]))
     res = run_query(text, feats, torch.zeros((n, 3)), empty, torch.empty((0, 3)), torch.empty((0, 3)),
-                    similarity=similarity, softmax=True, temperature=temperature, top_k=0, denoise=denoise, threshold=thresh)
+                    similarity=similarity, softmax=True, temperature=temperature, top_k=0, denoise=denoise,
+                    threshold=thresh)
     lab = res.voxel_labels.cpu().numpy().astype(np.int64)
     return np.where(lab < 0, 0, lab)
 
 
-def scores_with_without_bg(gt: np.ndarray, pred: np.ndarray, class_names, background) -> dict:
+def scores_with_without_bg(gt: np.ndarray, pred: np.ndarray, class_names: Sequence[str],
+                           background: Sequence[str]) -> dict:
     """{miou, fmiou, acc} without background classes, {..._bg} with all, per_class."""
     present = sorted(int(c) for c in np.unique(gt) if c > 0)
     bg = {i for i, n in enumerate(class_names) if n.lower() in {b.lower() for b in background}}
@@ -121,7 +128,7 @@ def scores_with_without_bg(gt: np.ndarray, pred: np.ndarray, class_names, backgr
                 per_class={class_names[c]: dict(s_all["per_class"][c], background=c in bg) for c in present})
 
 
-def run_semseg(cfg: SemsegConfig, out_dir, world=None) -> dict:
+def run_semseg(cfg: SemsegConfig, out_dir: str | Path, world: World | None = None) -> dict:
     """Map, predict, align and score one sequence; write ``summary.json`` (and
     ``run_info.json``) into ``out_dir``; return the summary."""
     cfg.validate()
@@ -217,6 +224,7 @@ def semseg_table(summaries: dict[str, dict]) -> str:
 
     def f(v):
         return "nan" if v is None or not math.isfinite(v) else f"{100 * v:.2f}"
+    metrics = ("miou", "fmiou", "acc", "miou_bg", "fmiou_bg", "acc_bg")
     for name, s in summaries.items():
-        lines.append(f"| {name} | " + " | ".join(f(s.get(k)) for k in ("miou", "fmiou", "acc", "miou_bg", "fmiou_bg", "acc_bg")) + " |")
+        lines.append(f"| {name} | " + " | ".join(f(s.get(k)) for k in metrics) + " |")
     return "\n".join(lines) + "\n"

@@ -2,7 +2,7 @@
 
 * ``true`` cones: :func:`semantic_map.search_volume.cone_membership_counts` (half-angle α, apex at
   the ray origin, infinite).
-* ``reference`` "cones" (brief §6.2, §10.2 #18): the reference evaluation's six-sided open
+* ``reference`` "cones" (docs/method.md#evaluation): the reference evaluation's six-sided open
   pyramid. Local frame: +z along the ray, x/y from the Rodrigues rotation taking +z to the
   ray direction (roll as the reference's ``rays_to_pose_4x4``). Its side faces pass through a
   hexagon of circumradius ``r₀ = vox·s`` at ``z = vox`` and one of circumradius
@@ -18,11 +18,16 @@ All functions take (V, 3) voxel centres in metres and return (V,) int64 counts.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 import torch
 
 from semantic_map import search_volume
+
+if TYPE_CHECKING:
+    from semantic_map.depth_geometry import ArrayOrTensor
 
 
 def rotation_z_to(dirs: torch.Tensor) -> torch.Tensor:
@@ -47,8 +52,9 @@ def rotation_z_to(dirs: torch.Tensor) -> torch.Tensor:
     return R
 
 
-def reference_pyramid_tests(origins, dirs, vox: float, subsampling: float, half_angle_deg: float,
-                            num_segs: int = 6):
+def reference_pyramid_tests(origins: ArrayOrTensor, dirs: ArrayOrTensor, vox: float, subsampling: float,
+                            half_angle_deg: float, num_segs: int = 6
+                            ) -> tuple[search_volume.BlockTest, search_volume.ExactTest]:
     """(block_test, exact_test) for :func:`semantic_map.search_volume.membership_counts`."""
     o = torch.as_tensor(origins, dtype=torch.float64).reshape(-1, 3)
     R = rotation_z_to(torch.as_tensor(dirs, dtype=torch.float64).reshape(-1, 3))
@@ -58,17 +64,17 @@ def reference_pyramid_tests(origins, dirs, vox: float, subsampling: float, half_
     normals = torch.stack([torch.cos(ang), torch.sin(ang)], 1)      # face normals (apothem directions)
     apo = math.cos(math.pi / num_segs)                                # apothem / circumradius
 
-    def local(x, si):
+    def local(x: torch.Tensor, si: torch.Tensor) -> torch.Tensor:
         v = x - o[si]
         return torch.einsum("nji,nj->ni", R[si], v)                    # R^T v
 
-    def exact_test(x, si):
+    def exact_test(x: torch.Tensor, si: torch.Tensor) -> torch.Tensor:
         p = local(x, si)
         r = r0 + (p[:, 2] - vox) * slope
         inside = (p[:, :2] @ normals.T <= (r * apo)[:, None] + 1e-12).all(1)
         return inside & (p[:, 2] >= vox)
 
-    def block_test(bc, rho, sidx):
+    def block_test(bc: torch.Tensor, rho: float, sidx: torch.Tensor) -> torch.Tensor:
         v = bc[:, None, :] - o[sidx][None]                            # (B, S, 3)
         p = torch.einsum("sji,bsj->bsi", R[sidx], v)
         z = p[..., 2]
@@ -79,27 +85,28 @@ def reference_pyramid_tests(origins, dirs, vox: float, subsampling: float, half_
     return block_test, exact_test
 
 
-def reference_cone_counts(voxel_centres, origins, dirs, vox: float, subsampling: float, half_angle_deg: float,
-                          num_segs: int = 6) -> torch.Tensor:
+def reference_cone_counts(voxel_centres: ArrayOrTensor, origins: ArrayOrTensor, dirs: ArrayOrTensor, vox: float,
+                          subsampling: float, half_angle_deg: float, num_segs: int = 6) -> torch.Tensor:
     """(V,) number of reference pyramids (see module doc) holding each voxel centre."""
     bt, et = reference_pyramid_tests(origins, dirs, vox, subsampling, half_angle_deg, num_segs)
     n = int(torch.as_tensor(origins).reshape(-1, 3).shape[0])
     return search_volume.membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), n, bt, et)
 
 
-def cone_counts(voxel_centres, origins, dirs, half_angle_deg: float) -> torch.Tensor:
+def cone_counts(voxel_centres: ArrayOrTensor, origins: ArrayOrTensor, dirs: ArrayOrTensor,
+                half_angle_deg: float) -> torch.Tensor:
     """(V,) number of true cones of ``half_angle_deg`` holding each voxel centre."""
     return search_volume.cone_membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), origins, dirs,
                                                 half_angle_deg)
 
 
-def ball_counts(voxel_centres, centres, radii) -> torch.Tensor:
+def ball_counts(voxel_centres: ArrayOrTensor, centres: ArrayOrTensor, radii: ArrayOrTensor | float) -> torch.Tensor:
     """(V,) number of balls holding each voxel centre."""
     return search_volume.ball_membership_counts(torch.as_tensor(voxel_centres, dtype=torch.float64), centres, radii)
 
 
-def brute_force_reference_inside(points: np.ndarray, origin, direction, vox: float, subsampling: float,
-                                 half_angle_deg: float, num_segs: int = 6) -> np.ndarray:
+def brute_force_reference_inside(points: np.ndarray, origin: npt.ArrayLike, direction: npt.ArrayLike, vox: float,
+                                 subsampling: float, half_angle_deg: float, num_segs: int = 6) -> np.ndarray:
     """Independent half-space construction of one reference pyramid (for tests): the
     planes through consecutive hexagon vertices at ``z = vox`` and ``z = 5·vox`` (plus the
     near plane), inside = on the inner side of every plane."""

@@ -1,4 +1,4 @@
-"""Online search-volume benchmark (paper §IV-A, Table I; reference brief §6.2).
+"""Online search-volume benchmark (paper §IV-A, Table I; docs/method.md#evaluation).
 
 For every depth limit and method a :class:`semantic_map.map.RayFrontsMap` is fed the same frames
 (read / rendered and encoded once). Every ``every`` frames and at the end, per GT class:
@@ -47,20 +47,26 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Iterable, Literal, Sequence
 
 import numpy as np
 import torch
 
-from common.config import ConfigError, field_, section, to_dict
-from encoders.config import EncoderConfig
-from edge.sources.config import SourceConfig
-from apps.evaluation import metrics as M
-from apps.evaluation import raster as R
-from apps.evaluation import shapes as S
+from apps.evaluation import metrics, raster, shapes
 from apps.evaluation.data import GroundTruth, ground_truth, load_frames, pack
 from apps.evaluation.figures import METHOD_TITLES
-from apps.evaluation.language import eval_language
+from apps.evaluation.language import EvalLanguage, eval_language
+from common.config import ConfigError, field_, section, to_dict
+from common.frame import Frame
+from edge.sources.config import SourceConfig
+from encoders.config import EncoderConfig
+from semantic_map.query import Similarity
+
+if TYPE_CHECKING:
+    from encoders import ImageEncoder
+    from semantic_map.config import MapConfig
+    from semantic_map.map import RayFrontsMap
+    from synthetic_world import World
 
 log = logging.getLogger("rayfronts.eval")
 
@@ -90,7 +96,7 @@ class SrchvolConfig:
     scene_volume: Literal["observed", "bbox"] = field_(
         "observed", "scene volume: voxels the full-range GT pass observes, or its whole bounding box")
     cone_shape: Literal["true", "reference"] = field_(
-        "true", "ray search shape: true cones of cone_half_angle, or the reference's hexagonal pyramids (brief §6.2)")
+        "true", "ray search shape: true cones of cone_half_angle, or the reference's hexagonal pyramids")
     cone_half_angle: float = field_(-1.0, "cone half-angle alpha (deg); <0 = max(FoV)/2 of the camera")
     scoring: Literal["raster", "blocks"] = field_(
         "raster", "shape counting: exact row rasterisation (fast) or the block-test path (slow; identical counts)")
@@ -148,7 +154,7 @@ def applicable(method: str, depth: float) -> bool:
     return method != "semantic_poses"
 
 
-def method_map_config(cfg: SrchvolConfig, method: str, depth: float, width: int):
+def method_map_config(cfg: SrchvolConfig, method: str, depth: float, width: int) -> MapConfig:
     from semantic_map.config import map_config
 
     over = dict(cfg.map)
@@ -181,7 +187,8 @@ class Snapshot:
     voxel_labels: np.ndarray           # (N,) class id, 0 = none
 
 
-def snapshot(rmap, text: torch.Tensor, cfg: SrchvolConfig, with_rays: bool = True, similarity=None) -> Snapshot:
+def snapshot(rmap: RayFrontsMap, text: torch.Tensor, cfg: SrchvolConfig, with_rays: bool = True,
+             similarity: Similarity | None = None) -> Snapshot:
     """Observed set and labelled voxels/rays of a map (query: softmax over ``text`` rows,
     denoising over the whole layer, threshold; label = class id, 0 = none/sky).
     ``similarity``: map features × class texts → (K, N) (e.g. through a language head;
@@ -209,17 +216,17 @@ class ScoringContext:
 
     gt: GroundTruth
     centres: np.ndarray               # (V, 3) float64 GT voxel centres
-    grid: R.RowGrid
+    grid: raster.RowGrid
     cells: np.ndarray                 # (V,) flat grid cell of each GT voxel
 
     @classmethod
     def build(cls, gt: GroundTruth) -> "ScoringContext":
         if len(gt.keys) == 0:
             raise ValueError("the ground-truth scene volume is empty (no frame observed anything)")
-        grid = R.RowGrid.around(gt.ijk, gt.vox)
-        if grid.box_cells > R.MAX_BOX_CELLS:
+        grid = raster.RowGrid.around(gt.ijk, gt.vox)
+        if grid.box_cells > raster.MAX_BOX_CELLS:
             log.warning("scene-volume box of %d cells is too large for the row rasteriser (max %d): "
-                        "scoring with the slower block path", grid.box_cells, R.MAX_BOX_CELLS)
+                        "scoring with the slower block path", grid.box_cells, raster.MAX_BOX_CELLS)
         return cls(gt, gt.centres(), grid, grid.cells(gt.ijk))
 
     def observed_mask(self, observed_keys: np.ndarray) -> np.ndarray:
@@ -232,7 +239,7 @@ class ScoringContext:
         return obs
 
 
-def search_volumes(snap: Snapshot, method: str, ctx: ScoringContext, un_idx: np.ndarray, classes,
+def search_volumes(snap: Snapshot, method: str, ctx: ScoringContext, un_idx: np.ndarray, classes: Sequence[int],
                    cfg: SrchvolConfig, half_angle: float, beta: float) -> dict[int, np.ndarray]:
     """{class: bool mask over the unobserved voxels ``un_idx`` (indices into the GT voxels)}
     for classes with at least one ray. ``cfg.scoring`` picks the counting path (same counts)."""
@@ -242,45 +249,45 @@ def search_volumes(snap: Snapshot, method: str, ctx: ScoringContext, un_idx: np.
     spherical = method == "spherical_semfronts"
     if spherical:
         uo, inv = np.unique(np.round(snap.ray_origins, 6), axis=0, return_inverse=True)
-        radii = S.search_volume.frontier_ball_radii(torch.as_tensor(uo), beta).numpy()[inv.reshape(-1)]
-    raster = (cfg.scoring == "raster" and (spherical or cfg.cone_shape == "reference" or 0 < half_angle < 90)
-              and ctx.grid.box_cells <= R.MAX_BOX_CELLS)
+        radii = shapes.search_volume.frontier_ball_radii(torch.as_tensor(uo), beta).numpy()[inv.reshape(-1)]
+    use_raster = (cfg.scoring == "raster" and (spherical or cfg.cone_shape == "reference" or 0 < half_angle < 90)
+                  and ctx.grid.box_cells <= raster.MAX_BOX_CELLS)
     cells = ctx.cells[un_idx]
-    xyz = None if raster else ctx.centres[un_idx]
+    xyz = None if use_raster else ctx.centres[un_idx]
     for c in classes:
         sel = snap.ray_labels == c
         if not sel.any():
             continue
         o, d = snap.ray_origins[sel], snap.ray_dirs[sel]
         if spherical:
-            cnt = (R.ball_counts(ctx.grid, o, radii[sel], cells) if raster else
-                   S.ball_counts(xyz, o, radii[sel]).numpy())
+            cnt = (raster.ball_counts(ctx.grid, o, radii[sel], cells) if use_raster else
+                   shapes.ball_counts(xyz, o, radii[sel]).numpy())
         elif cfg.cone_shape == "reference":
             s = beta / cfg.vox
-            cnt = (R.reference_cone_counts(ctx.grid, o, d, s, half_angle, cells=cells) if raster else
-                   S.reference_cone_counts(xyz, o, d, cfg.vox, s, half_angle).numpy())
+            cnt = (raster.reference_cone_counts(ctx.grid, o, d, s, half_angle, cells=cells) if use_raster else
+                   shapes.reference_cone_counts(xyz, o, d, cfg.vox, s, half_angle).numpy())
         else:
-            cnt = (R.cone_counts(ctx.grid, o, d, half_angle, cells) if raster else
-                   S.cone_counts(xyz, o, d, half_angle).numpy())
-        out[int(c)] = M.normalized_count_mask(cnt, cfg.srchvol_thresh)
+            cnt = (raster.cone_counts(ctx.grid, o, d, half_angle, cells) if use_raster else
+                   shapes.cone_counts(xyz, o, d, half_angle).numpy())
+        out[int(c)] = metrics.normalized_count_mask(cnt, cfg.srchvol_thresh)
     return out
 
 
-def score_step(snap: Snapshot, ctx: ScoringContext, method: str, classes, cfg: SrchvolConfig, half_angle: float,
-               beta: float, gt_counts: np.ndarray) -> list[dict]:
+def score_step(snap: Snapshot, ctx: ScoringContext, method: str, classes: list[int], cfg: SrchvolConfig,
+               half_angle: float, beta: float, gt_counts: np.ndarray) -> list[dict]:
     """Rows (one per GT class) of the step's metrics."""
     gt = ctx.gt
     obs = ctx.observed_mask(snap.observed_keys)
     un_idx = np.flatnonzero(~obs)
     gt_un = gt.labels[un_idx]
     masks = search_volumes(snap, method, ctx, un_idx, classes, cfg, half_angle, beta)
-    sv = M.srchvol_metrics(masks, gt_un, classes, cfg.default_prediction)
+    sv = metrics.srchvol_metrics(masks, gt_un, classes, cfg.default_prediction)
     # observed region: semantic-voxel labels vs GT
     g_obs = gt.labels[obs]
-    keep = g_obs != M.IGNORE
+    keep = g_obs != metrics.IGNORE
     g_obs = np.where(g_obs < 0, 0, g_obs)
-    pred = M.knn_align(ctx.centres[obs], snap.voxel_xyz, snap.voxel_labels, cfg.align_k, gt.vox)
-    ious = M.observed_iou(g_obs[keep], pred[keep], classes)
+    pred = metrics.knn_align(ctx.centres[obs], snap.voxel_xyz, snap.voxel_labels, cfg.align_k, gt.vox)
+    ious = metrics.observed_iou(g_obs[keep], pred[keep], classes)
     obs_counts = np.bincount(g_obs, minlength=len(gt.class_names))
     n_ray = np.bincount(snap.ray_labels, minlength=len(gt.class_names)) if snap.ray_labels.size else \
         np.zeros(len(gt.class_names), dtype=np.int64)
@@ -303,7 +310,7 @@ def summarize(rows: list[dict], stop: float) -> dict:
     rr = [dict(r, **{"class": r["class_id"]}) for r in rows]
     out = {}
     for key, m in (("miou_auc", "iou"), ("scv_auc", "scv"), ("recall_auc", "recall"), ("scvr_auc", "scvr")):
-        v = M.auc_table(rr, m, stop)
+        v = metrics.auc_table(rr, m, stop)
         if key == "miou_auc" and not math.isfinite(v):
             v = 0.0
         out[key] = v
@@ -311,13 +318,105 @@ def summarize(rows: list[dict], stop: float) -> dict:
 
 
 # ----------------------------------------------------------------------------- run
-def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
+#: a map's key: (depth limit, method)
+MapKey = tuple[float, str]
+#: one evaluated (depth, method): (depth, method, key of the map it reads, with rays)
+Evaluation = tuple[float, str, MapKey, bool]
+
+
+def _encode_frame(enc: ImageEncoder, f: Frame) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(feature map, image-level feature)`` of frame ``f`` (no autograd)."""
+    with torch.inference_mode():
+        if hasattr(enc, "encode_with_global"):
+            return enc.encode_with_global(f.rgb, f.labels)
+        return enc.encode(f.rgb, f.labels), enc.encode_global(f.rgb, f.labels)
+
+
+def _build_maps(cfg: SrchvolConfig, enc: ImageEncoder, lang: EvalLanguage, first: tuple[torch.Tensor, torch.Tensor],
+                width: int) -> tuple[dict[MapKey, RayFrontsMap], dict[MapKey, Similarity | None], list[Evaluation]]:
+    """``(maps, similarities, evaluations)``: one map per applicable (depth, method) —
+    "semantic_voxels" may share the rayfronts map (evaluated without its rays). Maps of
+    image-level features (Semantic Poses) hold language-space vectors: cosine, no head."""
+    from semantic_map.map import RayFrontsMap
+
+    maps: dict[MapKey, RayFrontsMap] = {}
+    sims: dict[MapKey, Similarity | None] = {}
+    evals: list[Evaluation] = []
+    for d in cfg.depth_limits:
+        for m in cfg.all_methods():
+            if not applicable("rayfronts" if m in cfg.variants else m, d):
+                continue
+            if m == "semantic_voxels" and cfg.share_maps and "rayfronts" in cfg.methods:
+                evals.append((d, m, (d, "rayfronts"), False))
+                continue
+            mc = method_map_config(cfg, m, d, width)
+            dim = int(first[1].shape[0]) if mc.global_encoding else enc.feature_dim
+            if mc.global_encoding and dim != lang.lang_dim:
+                raise ValueError(f"image-level features are {dim}-d but class texts {lang.lang_dim}-d")
+            maps[(d, m)] = RayFrontsMap(mc, dim, enc.name, device=cfg.device,
+                                        occupancy_backend=cfg.occupancy_backend)
+            sims[(d, m)] = None if mc.global_encoding else lang.similarity
+            evals.append((d, m, (d, m), m != "semantic_voxels"))
+    return maps, sims, evals
+
+
+def _integrate(maps: dict[MapKey, RayFrontsMap], f: Frame, feats: torch.Tensor, gfeat: torch.Tensor,
+               last: bool) -> None:
+    """Frame ``f`` into every map (flushed after the ``last`` frame): image-level maps take
+    only the global feature, the others only the feature map."""
+    for rmap in maps.values():
+        g = rmap.cfg.global_encoding
+        rmap.integrate(f.pose, f.intrinsics, f.depth, f.rgb, None if g else feats, gfeat if g else None)
+    if last:
+        for rmap in maps.values():
+            rmap.flush()
+
+
+@dataclass
+class _StepScorer:
+    """Scores every evaluated (depth, method) at a step: what the steps of a run share."""
+
+    cfg: SrchvolConfig
+    text: torch.Tensor
+    ctx: ScoringContext
+    classes: list[int]
+    half_angle: float
+    gt_counts: np.ndarray
+    maps: dict[MapKey, RayFrontsMap]
+    sims: dict[MapKey, Similarity | None]
+    evals: list[Evaluation]
+
+    def score(self, step: int, rows: dict[MapKey, list[dict]]) -> None:
+        """Append the rows of ``step`` (one per GT class) to ``rows[(depth, method)]``."""
+        snaps = {key: snapshot(mp, self.text, self.cfg, True, self.sims[key]) for key, mp in self.maps.items()}
+        for d, m, key, with_rays in self.evals:
+            sn = snaps[key]
+            if not with_rays:
+                sn = dataclasses.replace(sn, ray_origins=np.empty((0, 3)), ray_dirs=np.empty((0, 3)),
+                                         ray_labels=np.empty(0, np.int64))
+            for r in score_step(sn, self.ctx, m, self.classes, self.cfg, self.half_angle, self.maps[key].cfg.beta,
+                                self.gt_counts):
+                r.update(step=step, depth_limit=d, method=m)
+                rows[(d, m)].append(r)
+
+
+def _summaries(cfg: SrchvolConfig, rows: dict[MapKey, list[dict]]) -> dict[str, dict]:
+    """``{depth_key: {method: AUCs or None (not applicable)}}``."""
+    summary: dict[str, dict] = {}
+    for d in cfg.depth_limits:
+        dk = depth_key(d)
+        summary[dk] = {}
+        for m in cfg.all_methods():
+            summary[dk][m] = summarize(rows[(d, m)], cfg.stop_frac) if (d, m) in rows else None
+    return summary
+
+
+def run_srchvol(cfg: SrchvolConfig, out_dir: str | Path, world: World | None = None) -> dict:
     """Run the benchmark; write CSV/JSON rows, summary.json, table.md and plots into
     ``out_dir``. Returns ``{depth_key: {method: {metric: value}}}`` (values in [0, 1] or
     ``None`` for N/A)."""
     cfg.validate()
     from encoders import make_encoder
-    from semantic_map.map import RayFrontsMap
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -340,86 +439,44 @@ def run_srchvol(cfg: SrchvolConfig, out_dir, world=None) -> dict:
     from apps.evaluation.language import use_templates
     templates = use_templates(cfg.templates, enc)
     lang = eval_language(enc, class_names, templates, model_dir=cfg.text_model_dir, device=cfg.device)
-    text = lang.text
     H, W = frames[0].depth.shape
     K0 = frames[0].intrinsics
     fov = (math.degrees(2 * math.atan(0.5 * W / K0[0, 0])), math.degrees(2 * math.atan(0.5 * H / K0[1, 1])))
     half_angle = cfg.cone_half_angle if cfg.cone_half_angle > 0 else max(fov) / 2
     ctx = ScoringContext.build(gt)
 
-    def encode(f):
-        with torch.inference_mode():
-            if hasattr(enc, "encode_with_global"):
-                return enc.encode_with_global(f.rgb, f.labels)
-            return enc.encode(f.rgb, f.labels), enc.encode_global(f.rgb, f.labels)
-
-    # maps: (depth, method) -> map; "semantic_voxels" may share the rayfronts map. Maps of
-    # image-level features (Semantic Poses) hold language-space vectors: cosine, no head.
-    maps: dict[tuple[float, str], object] = {}
-    sims: dict[tuple[float, str], object] = {}
-    evals: list[tuple[float, str, tuple[float, str], bool]] = []   # (depth, method, map key, with rays)
-    first = encode(frames[0])
-    for d in cfg.depth_limits:
-        for m in cfg.all_methods():
-            if not applicable("rayfronts" if m in cfg.variants else m, d):
-                continue
-            if m == "semantic_voxels" and cfg.share_maps and "rayfronts" in cfg.methods:
-                evals.append((d, m, (d, "rayfronts"), False))
-                continue
-            mc = method_map_config(cfg, m, d, W)
-            dim = int(first[1].shape[0]) if mc.global_encoding else enc.feature_dim
-            if mc.global_encoding and dim != lang.lang_dim:
-                raise ValueError(f"image-level features are {dim}-d but class texts {lang.lang_dim}-d")
-            maps[(d, m)] = RayFrontsMap(mc, dim, enc.name, device=cfg.device,
-                                        occupancy_backend=cfg.occupancy_backend)
-            sims[(d, m)] = None if mc.global_encoding else lang.similarity
-            evals.append((d, m, (d, m), m != "semantic_voxels"))
-    rows: dict[tuple[float, str], list[dict]] = {(d, m): [] for d, m, _, _ in evals}
+    first = _encode_frame(enc, frames[0])
+    maps, sims, evals = _build_maps(cfg, enc, lang, first, W)
+    scorer = _StepScorer(cfg, lang.text, ctx, classes, half_angle, gt_counts, maps, sims, evals)
+    rows: dict[MapKey, list[dict]] = {(d, m): [] for d, m, _, _ in evals}
     n = len(frames)
     steps = sorted(set(list(range(cfg.every, n + 1, cfg.every)) + [n]))
-    it = enumerate(frames)
+    it: Iterable[tuple[int, Frame]] = enumerate(frames)
     if cfg.progress:
         from tqdm import tqdm
         it = tqdm(it, total=n, desc="search volume", unit="frame")
     t_map = t_score = 0.0
     for i, f in it:
         t0 = time.perf_counter()
-        feats, gfeat = first if i == 0 else encode(f)
-        for rmap in maps.values():
-            g = rmap.cfg.global_encoding       # image-level maps take only the global feature, the others only the map
-            rmap.integrate(f.pose, f.intrinsics, f.depth, f.rgb, None if g else feats, gfeat if g else None)
+        feats, gfeat = first if i == 0 else _encode_frame(enc, f)
         step = i + 1
-        if step == n:
-            for rmap in maps.values():
-                rmap.flush()
+        _integrate(maps, f, feats, gfeat, last=step == n)
         t1 = time.perf_counter()
         t_map += t1 - t0
         if step in steps:
-            snaps = {key: snapshot(mp, text, cfg, True, sims[key]) for key, mp in maps.items()}
-            for d, m, key, with_rays in evals:
-                sn = snaps[key]
-                if not with_rays:
-                    sn = dataclasses.replace(sn, ray_origins=np.empty((0, 3)), ray_dirs=np.empty((0, 3)),
-                                             ray_labels=np.empty(0, np.int64))
-                for r in score_step(sn, ctx, m, classes, cfg, half_angle, maps[key].cfg.beta, gt_counts):
-                    r.update(step=step, depth_limit=d, method=m)
-                    rows[(d, m)].append(r)
+            scorer.score(step, rows)
             t_score += time.perf_counter() - t1
-    first = None
+    del first
     t_end = time.perf_counter()
 
-    summary: dict[str, dict] = {}
-    for d in cfg.depth_limits:
-        dk = depth_key(d)
-        summary[dk] = {}
-        for m in cfg.all_methods():
-            summary[dk][m] = summarize(rows[(d, m)], cfg.stop_frac) if (d, m) in rows else None
+    summary = _summaries(cfg, rows)
     info = dict(
         config=to_dict(cfg), class_names=class_names, classes_evaluated=[class_names[c] for c in classes],
         gt_class_voxels={class_names[c]: int(gt_counts[c]) for c in classes}, scene_volume_voxels=int(len(gt.keys)),
         frames=n, resolution=[H, W], fov_deg=list(fov), cone_half_angle_deg=half_angle, encoder=enc.name,
         templates=templates, softmax_set=list(class_names),
-        encoder_version=getattr(enc, "version", ""), text_model=lang.text_model, language_head=lang.similarity is not None,
+        encoder_version=getattr(enc, "version", ""), text_model=lang.text_model,
+        language_head=lang.similarity is not None,
         source=getattr(src, "name", cfg.source.kind), steps=steps,
         map_configs={f"{d:g}m/{m}": to_dict(maps[(d, m)].cfg) for (d, m) in maps},
         timings_s=dict(load=t_load - t_start, ground_truth=t_gt - t_load, mapping=t_map, scoring=t_score,
@@ -434,7 +491,7 @@ def depth_key(d: float) -> str:
 
 
 # ----------------------------------------------------------------------------- outputs
-def _json_safe(v):
+def _json_safe(v: object) -> object:
     if isinstance(v, float) and not math.isfinite(v):
         return None
     if isinstance(v, dict):
@@ -476,7 +533,7 @@ def write_outputs(out: Path, rows: dict, summary: dict, info: dict, cfg: Srchvol
         write_figures(out)
 
 
-def table_markdown(summary: dict, methods, depth_keys) -> str:
+def table_markdown(summary: dict, methods: Sequence[str], depth_keys: Sequence[str]) -> str:
     """Table I layout: one row per method, (mIoU, SCV, Recall, SCVR) AUCs in % per depth."""
     cols = ["mIoU", "SCV", "Recall", "SCVR"]
     keys = ["miou_auc", "scv_auc", "recall_auc", "scvr_auc"]
@@ -498,7 +555,8 @@ def table_markdown(summary: dict, methods, depth_keys) -> str:
                     continue
                 v = s[k]
                 txt = "nan" if v is None or not math.isfinite(v) else f"{100 * v:.2f}"
-                if k == "scvr_auc" and best[dk] is not None and v is not None and math.isfinite(v) and v == best[dk] and v > 0:
+                is_best = best[dk] is not None and v is not None and math.isfinite(v) and v == best[dk] and v > 0
+                if k == "scvr_auc" and is_best:
                     txt = f"**{txt}**"
                 cells.append(txt)
         lines.append(f"| {METHOD_TITLES.get(m, m)} | " + " | ".join(cells) + " |")

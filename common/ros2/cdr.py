@@ -10,8 +10,12 @@ from __future__ import annotations
 
 import struct
 from functools import cache
+from typing import TYPE_CHECKING, Any
 
 from common.ros2.keys import TYPE_HASH_NONE
+
+if TYPE_CHECKING:
+    from rosbags.typesys.store import Typestore
 
 DISTROS = ("humble", "iron", "jazzy", "kilted")
 
@@ -21,7 +25,8 @@ class CdrError(ValueError):
 
 
 @cache
-def typestore(distro: str = "humble"):
+def typestore(distro: str = "humble") -> Typestore:
+    """The ``rosbags`` typestore of ``distro`` (cached)."""
     try:
         from rosbags.typesys import Stores, get_typestore
     except ImportError as e:
@@ -33,12 +38,12 @@ def typestore(distro: str = "humble"):
     return get_typestore(names[distro])
 
 
-def types(distro: str = "humble"):
+def types(distro: str = "humble") -> dict[str, type]:
     """The typestore's message classes, by name (``types()['sensor_msgs/msg/Image']``)."""
     return typestore(distro).types
 
 
-def deserialize(raw, msgtype: str):
+def deserialize(raw: bytes | bytearray | memoryview, msgtype: str) -> Any:
     """CDR bytes (with the 4-byte encapsulation header) → message object; CdrError on failure."""
     if len(raw) < 4:
         raise CdrError(f"payload of {len(raw)} bytes is too short for CDR")
@@ -52,7 +57,7 @@ def deserialize(raw, msgtype: str):
         raise CdrError(f"cannot decode as {msgtype}: {e}") from None
 
 
-def deserialize_any(raw, candidates: tuple[str, ...]):
+def deserialize_any(raw: bytes | bytearray | memoryview, candidates: tuple[str, ...]) -> tuple[Any, str]:
     """Try each type in order; ``(msg, type)`` of the first that decodes the whole payload
     (rosbags rejects a size mismatch), else CdrError listing the reasons."""
     errs = []
@@ -64,7 +69,7 @@ def deserialize_any(raw, candidates: tuple[str, ...]):
     raise CdrError("; ".join(errs) or "no candidate types")
 
 
-def serialize(msg, msgtype: str, distro: str = "humble") -> bytes:
+def serialize(msg: Any, msgtype: str, distro: str = "humble") -> bytes:
     """Message object (a class of ``types(distro)``) → little-endian CDR bytes (with the
     encapsulation header). Jazzy's visualization_msgs/Marker has fields Humble's lacks, so
     build and serialise with the distro whose type hash you advertise."""
@@ -86,7 +91,8 @@ def attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
     return struct.pack("<qqB", int(seq), int(stamp_ns), 16) + bytes(gid)
 
 
-def parse_attachment(data) -> tuple[int, int, bytes] | None:
+def parse_attachment(data: bytes | bytearray | memoryview) -> tuple[int, int, bytes] | None:
+    """Inverse of :func:`attachment`: ``(seq, stamp_ns, gid)``, or None when ``data`` is not one."""
     b = bytes(data)
     if len(b) != 33 or b[16] != 16:
         return None

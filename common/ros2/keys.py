@@ -29,7 +29,7 @@ def check_layout(layout: str) -> str:
     return layout
 
 
-def check_domain(domain) -> int:
+def check_domain(domain: int | str) -> int:
     d = int(domain)
     if not 0 <= d <= 232:
         raise RosKeyError(f"ROS domain id must be in 0..232, got {domain}")
@@ -79,6 +79,7 @@ def subscribe_key(topic: str, layout: str, domain: int = 0) -> str:
 
 
 def publish_key(topic: str, msgtype: str, layout: str, domain: int = 0, type_hash: str = TYPE_HASH_NONE) -> str:
+    """The data key a publisher of ``topic`` (ROS type ``msgtype``) puts samples on in ``layout``."""
     body = topic_chunks(topic)
     if check_layout(layout) == BRIDGE:
         return body

@@ -1,4 +1,4 @@
-"""Wire codec (DESIGN §4): the generic envelope and the frame message.
+"""Wire codec (docs/messages.md): the generic envelope and the frame message.
 
 Module map
 ----------
@@ -6,7 +6,7 @@ Module map
   header, 8-byte aligned out-of-band numpy buffers), :class:`WireLimits`, :class:`WireError`,
   :func:`encode_message` / :func:`decode_message`. Every schema (frames, and the control
   messages of :mod:`common.messages`) is carried by it.
-* :mod:`common.wire.frame`: the ``rayfronts.frame`` v1 schema: :func:`encode_frame` /
+* :mod:`common.wire.frame`: the ``rayfronts.frame`` v2 schema (reads v1): :func:`encode_frame` /
   :func:`decode_frame`, field validation, :func:`validate_robot_id`.
 * :mod:`common.wire.images`: depth / RGB / label / confidence image codecs (PNG, JPEG,
   zlib f32, f16) with the pre-decode PNG chunk walk and JPEG header parse. OpenCV is

@@ -1,4 +1,4 @@
-"""Generic wire envelope: msgpack header + 8-byte aligned out-of-band array buffers (DESIGN §4).
+"""Generic wire envelope: msgpack header + 8-byte aligned out-of-band array buffers (docs/messages.md#envelope).
 
 Part of the ``common.wire`` package (module map in ``common/wire/__init__.py``). This module
 knows nothing of any schema; :mod:`common.wire.frame` and :mod:`common.messages` build on it.

@@ -1,4 +1,4 @@
-"""The frame message ``rayfronts.frame`` v2 (DESIGN §4): :func:`encode_frame` / :func:`decode_frame`.
+"""The frame message ``rayfronts.frame`` v2 (docs/messages.md#frame): :func:`encode_frame` / :func:`decode_frame`.
 
 Versions: v2 (written now) differs from v1 only in ``features``, which may also be a
 compressed map ``{"codec": "q16z" | "q8z", "shape": [C, h, w], "scale": <f4 (C,), "data": <u1 (n,)}``:
@@ -147,77 +147,15 @@ def encode_frame(
         raise WireError(f"cannot encode frame: expected a common.frame.Frame, got {_tname(frame)}")
     if feature_codec not in FEATURE_CODECS:
         raise _enc_err("features", f"unknown feature codec {feature_codec!r}; choose one of {FEATURE_CODECS}")
-    try:
-        validate_robot_id(frame.robot)
-    except WireError as e:
-        raise WireError(f"cannot encode frame: {e}") from None
-    seq = frame.seq
-    if isinstance(seq, np.integer):
-        seq = int(seq)
-    if type(seq) is not int or seq < 0 or seq >= 1 << 64:
-        raise _enc_err("seq", f"expected an int in [0, 2**64), got {seq!r}")
-    try:
-        stamp = float(frame.stamp)
-    except (TypeError, ValueError):
-        raise _enc_err("stamp", f"expected a float, got {_tname(frame.stamp)}") from None
-    if isinstance(frame.stamp, bool) or not math.isfinite(stamp):
-        raise _enc_err("stamp", f"expected a finite float, got {frame.stamp!r}")
-    pose = _as_array(frame.pose, "pose")
-    if pose.shape != (4, 4) or pose.dtype.kind not in "fiu":
-        raise _enc_err("pose", f"expected a (4, 4) float array, got shape {pose.shape} dtype {pose.dtype}")
-    pose = np.ascontiguousarray(pose, dtype="<f8")
-    if not is_rigid(pose):
-        raise _enc_err("pose", "not a finite rigid transform (proper rotation, last row 0 0 0 1)")
-    K = _as_array(frame.intrinsics, "intrinsics")
-    if K.shape != (3, 3) or K.dtype.kind not in "fiu":
-        raise _enc_err("intrinsics", f"expected a (3, 3) float array, got shape {K.shape} dtype {K.dtype}")
-    K = np.ascontiguousarray(K, dtype="<f8")
-    _check_intrinsics(K, _enc_err)
+    seq, stamp = _encode_id_fields(frame)
+    pose, K = _encode_geometry(frame)
 
     depth = _encode_depth(frame.depth, depth_codec)
     h, w = depth["shape"]
     rgb = _encode_rgb(frame.rgb, rgb_codec, jpeg_quality)
-
-    features = None
-    if frame.features is not None:
-        features = _encode_f16(frame.features, "features", 3)
-        c, fh, fw = features.shape
-        if fh > h or fw > w:
-            raise _enc_err("features", f"feature map {fh}x{fw} is larger than the depth image {h}x{w}")
-    global_feature = None
-    if frame.global_feature is not None:
-        global_feature = _encode_f16(frame.global_feature, "global_feature", 1)
-        if features is not None and global_feature.shape[0] != features.shape[0]:
-            raise _enc_err(
-                "global_feature",
-                f"length {global_feature.shape[0]} != feature channels {features.shape[0]}",
-            )
-
-    labels = None
-    if frame.labels is not None:
-        lab = _as_array(frame.labels, "labels")
-        if lab.shape != (h, w) or lab.dtype.kind not in "biu":
-            raise _enc_err("labels", f"expected an ({h}, {w}) int array, got shape {lab.shape} dtype {lab.dtype}")
-        if lab.size and (int(lab.min()) < 0 or int(lab.max()) > 65535):
-            raise _enc_err("labels", f"values must be in [0, 65535], got [{lab.min()}, {lab.max()}]")
-        labels = {
-            "codec": "png16",
-            "data": _png_encode(lab.astype(np.uint16), "labels"),
-        }
-
-    confidence = None
-    if frame.confidence is not None:
-        conf = _as_array(frame.confidence, "confidence")
-        if conf.shape != (h, w) or conf.dtype.kind not in "fiub":
-            raise _enc_err(
-                "confidence", f"expected an ({h}, {w}) float array, got shape {conf.shape} dtype {conf.dtype}"
-            )
-        q = np.nan_to_num(conf.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
-        q = np.rint(np.clip(q, 0.0, 1.0) * 255.0).astype(np.uint8)
-        confidence = {
-            "codec": "png8",
-            "data": _png_encode(q, "confidence"),
-        }
+    features, global_feature = _encode_features(frame, h, w)
+    labels = _encode_labels(frame.labels, h, w)
+    confidence = _encode_confidence(frame.confidence, h, w)
 
     fs = frame.feature_space if frame.feature_space is not None else ""
     if type(fs) is not str:
@@ -226,18 +164,7 @@ def encode_frame(
     # Refuse what a decoder with the default limits would reject, rather than send it.
     lim = DEFAULT_LIMITS
     meta = _encode_meta(frame.meta)
-    for field, npix in (("depth", h * w), ("rgb", rgb["shape"][0] * rgb["shape"][1])):
-        if npix > lim.max_pixels:
-            raise _enc_err(field, f"{npix} pixels is over the wire limit {lim.max_pixels}")
-    for field, arr in (("features", features), ("global_feature", global_feature)):
-        if arr is not None and arr.shape[0] > lim.max_channels:
-            raise _enc_err(field, f"{arr.shape[0]} channels is over the wire limit {lim.max_channels}")
-    if len(fs) > lim.max_string_len:
-        raise _enc_err("feature_space", f"{len(fs)} chars is over the wire limit {lim.max_string_len}")
-    try:
-        _decode_meta(meta, lim)
-    except WireError as e:
-        raise WireError(f"cannot encode {e}") from None
+    _check_encode_limits(lim, (h, w), rgb, features, global_feature, fs, meta)
 
     body = {
         "robot": frame.robot,
@@ -260,6 +187,118 @@ def encode_frame(
         raise _enc_err("meta", f"the frame header is {hl} bytes, over the wire limit {lim.max_frame_header_bytes} "
                                "(meta too large)")
     return out
+
+
+def _encode_id_fields(frame: Frame) -> tuple[int, float]:
+    """Validate the robot id; ``(seq, stamp)`` as a plain int and a finite float (seconds)."""
+    try:
+        validate_robot_id(frame.robot)
+    except WireError as e:
+        raise WireError(f"cannot encode frame: {e}") from None
+    seq = frame.seq
+    if isinstance(seq, np.integer):
+        seq = int(seq)
+    if type(seq) is not int or seq < 0 or seq >= 1 << 64:
+        raise _enc_err("seq", f"expected an int in [0, 2**64), got {seq!r}")
+    try:
+        stamp = float(frame.stamp)
+    except (TypeError, ValueError):
+        raise _enc_err("stamp", f"expected a float, got {_tname(frame.stamp)}") from None
+    if isinstance(frame.stamp, bool) or not math.isfinite(stamp):
+        raise _enc_err("stamp", f"expected a finite float, got {frame.stamp!r}")
+    return seq, stamp
+
+
+def _encode_geometry(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+    """``(pose, K)`` as little-endian float64: a rigid (4, 4) camera-to-world pose, (3, 3) intrinsics."""
+    pose = _as_array(frame.pose, "pose")
+    if pose.shape != (4, 4) or pose.dtype.kind not in "fiu":
+        raise _enc_err("pose", f"expected a (4, 4) float array, got shape {pose.shape} dtype {pose.dtype}")
+    pose = np.ascontiguousarray(pose, dtype="<f8")
+    if not is_rigid(pose):
+        raise _enc_err("pose", "not a finite rigid transform (proper rotation, last row 0 0 0 1)")
+    K = _as_array(frame.intrinsics, "intrinsics")
+    if K.shape != (3, 3) or K.dtype.kind not in "fiu":
+        raise _enc_err("intrinsics", f"expected a (3, 3) float array, got shape {K.shape} dtype {K.dtype}")
+    K = np.ascontiguousarray(K, dtype="<f8")
+    _check_intrinsics(K, _enc_err)
+    return pose, K
+
+
+def _encode_features(frame: Frame, h: int, w: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(features, global_feature)`` as float16 (or None), checked against the depth size ``h`` × ``w``."""
+    features = None
+    if frame.features is not None:
+        features = _encode_f16(frame.features, "features", 3)
+        c, fh, fw = features.shape
+        if fh > h or fw > w:
+            raise _enc_err("features", f"feature map {fh}x{fw} is larger than the depth image {h}x{w}")
+    global_feature = None
+    if frame.global_feature is not None:
+        global_feature = _encode_f16(frame.global_feature, "global_feature", 1)
+        if features is not None and global_feature.shape[0] != features.shape[0]:
+            raise _enc_err(
+                "global_feature",
+                f"length {global_feature.shape[0]} != feature channels {features.shape[0]}",
+            )
+    return features, global_feature
+
+
+def _encode_labels(labels: Any, h: int, w: int) -> dict | None:
+    """The ``labels`` map (16-bit PNG) or None."""
+    if labels is None:
+        return None
+    lab = _as_array(labels, "labels")
+    if lab.shape != (h, w) or lab.dtype.kind not in "biu":
+        raise _enc_err("labels", f"expected an ({h}, {w}) int array, got shape {lab.shape} dtype {lab.dtype}")
+    if lab.size and (int(lab.min()) < 0 or int(lab.max()) > 65535):
+        raise _enc_err("labels", f"values must be in [0, 65535], got [{lab.min()}, {lab.max()}]")
+    return {
+        "codec": "png16",
+        "data": _png_encode(lab.astype(np.uint16), "labels"),
+    }
+
+
+def _encode_confidence(confidence: Any, h: int, w: int) -> dict | None:
+    """The ``confidence`` map (8-bit PNG of ``round(c·255)``, c clipped to [0, 1]) or None."""
+    if confidence is None:
+        return None
+    conf = _as_array(confidence, "confidence")
+    if conf.shape != (h, w) or conf.dtype.kind not in "fiub":
+        raise _enc_err(
+            "confidence", f"expected an ({h}, {w}) float array, got shape {conf.shape} dtype {conf.dtype}"
+        )
+    q = np.nan_to_num(conf.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    q = np.rint(np.clip(q, 0.0, 1.0) * 255.0).astype(np.uint8)
+    return {
+        "codec": "png8",
+        "data": _png_encode(q, "confidence"),
+    }
+
+
+def _check_encode_limits(
+    lim: WireLimits,
+    hw: tuple[int, int],
+    rgb: dict,
+    features: np.ndarray | None,
+    global_feature: np.ndarray | None,
+    fs: str,
+    meta: dict,
+) -> None:
+    """Raise what a decoder with the limits ``lim`` would reject."""
+    h, w = hw
+    for field, npix in (("depth", h * w), ("rgb", rgb["shape"][0] * rgb["shape"][1])):
+        if npix > lim.max_pixels:
+            raise _enc_err(field, f"{npix} pixels is over the wire limit {lim.max_pixels}")
+    for field, arr in (("features", features), ("global_feature", global_feature)):
+        if arr is not None and arr.shape[0] > lim.max_channels:
+            raise _enc_err(field, f"{arr.shape[0]} channels is over the wire limit {lim.max_channels}")
+    if len(fs) > lim.max_string_len:
+        raise _enc_err("feature_space", f"{len(fs)} chars is over the wire limit {lim.max_string_len}")
+    try:
+        _decode_meta(meta, lim)
+    except WireError as e:
+        raise WireError(f"cannot encode {e}") from None
 
 
 def _encode_q(f16: np.ndarray, codec: str) -> dict:
@@ -360,6 +399,42 @@ def decode_frame(data: bytes | bytearray | memoryview, limits: WireLimits | None
 
 
 def _decode_frame_body(b: dict, lim: WireLimits, version: int = FRAME_VERSION) -> Frame:
+    robot, seq, stamp = _decode_id_fields(b, lim)
+    pose, K = _decode_geometry(b)
+    fs = b.get("feature_space", "")
+    if fs is None:
+        fs = ""
+    if type(fs) is not str or len(fs) > lim.max_string_len:
+        raise _err("feature_space", f"expected a str of at most {lim.max_string_len} chars, got {_tname(fs)}")
+    meta = _decode_meta(b.get("meta"), lim)
+    features, gf = _decode_features(b, lim, version)
+    _precheck_images(b, lim, features)
+
+    depth = _decode_depth(b, lim)
+    hw = (depth.shape[0], depth.shape[1])
+    rgb = _decode_rgb(b, lim)
+    labels = _decode_labels(b, hw)
+    conf = _decode_confidence(b, hw)
+
+    return Frame(
+        robot=robot,
+        seq=seq,
+        stamp=float(stamp),
+        pose=pose.copy(),
+        intrinsics=K.copy(),
+        depth=depth,
+        rgb=rgb,
+        features=features,
+        feature_space=fs,
+        labels=labels,
+        confidence=conf,
+        global_feature=gf,
+        meta=meta,
+    )
+
+
+def _decode_id_fields(b: dict, lim: WireLimits) -> tuple[str, int, float | int]:
+    """``(robot, seq, stamp)`` of a frame header, validated (stamp in seconds, as sent)."""
     robot = _req(b, "robot")
     try:
         validate_robot_id(robot, lim)
@@ -371,6 +446,11 @@ def _decode_frame_body(b: dict, lim: WireLimits, version: int = FRAME_VERSION) -
     stamp = _req(b, "stamp")
     if type(stamp) not in (float, int) or not math.isfinite(stamp):
         raise _err("stamp", f"expected a finite float, got {stamp!r:.50}")
+    return robot, seq, stamp
+
+
+def _decode_geometry(b: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(pose, K)`` of a frame header: a rigid (4, 4) camera-to-world pose and (3, 3) intrinsics."""
     pose = _nd(_req(b, "pose"), "pose", "<f8", 2)
     if pose.shape != (4, 4):
         raise _err("pose", f"expected shape (4, 4), got {pose.shape}")
@@ -382,13 +462,12 @@ def _decode_frame_body(b: dict, lim: WireLimits, version: int = FRAME_VERSION) -
     if K.shape != (3, 3):
         raise _err("intrinsics", f"expected shape (3, 3), got {K.shape}")
     _check_intrinsics(K, _err)
-    fs = b.get("feature_space", "")
-    if fs is None:
-        fs = ""
-    if type(fs) is not str or len(fs) > lim.max_string_len:
-        raise _err("feature_space", f"expected a str of at most {lim.max_string_len} chars, got {_tname(fs)}")
-    meta = _decode_meta(b.get("meta"), lim)
+    return pose, K
 
+
+def _decode_features(b: dict, lim: WireLimits, version: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(features, global_feature)`` as float16 (or None); the feature map's finiteness is
+    checked later (:func:`_precheck_images`), after its size."""
     features = b.get("features")
     if features is not None:
         if version >= 2 and type(features) is dict:
@@ -407,63 +486,62 @@ def _decode_frame_body(b: dict, lim: WireLimits, version: int = FRAME_VERSION) -
             raise _err("global_feature", f"length {gf.shape[0]} != feature channels {features.shape[0]}")
         if not _f16_finite(gf):
             raise _err("global_feature", "holds NaN or inf")
+    return features, gf
 
-    # Cheap checks on the declared sizes come before any image decoding.
+
+def _precheck_images(b: dict, lim: WireLimits, features: np.ndarray | None) -> None:
+    """Cheap checks before any image decoding: the declared sizes, the feature map's values,
+    then the structure of every compressed image."""
     dspec = b.get("depth")
-    if type(dspec) is dict and "shape" in dspec:
-        h, w = _shape(dspec["shape"], "depth.shape", 2, lim)
+    declared = dspec if type(dspec) is dict and "shape" in dspec else None
+    if declared is not None:
+        h, w = _shape(declared["shape"], "depth.shape", 2, lim)
         if features is not None:
             _, fh, fw = features.shape
             if not (1 <= fh <= h and 1 <= fw <= w):
                 raise _err("features", f"feature map {fh}x{fw} must be non-empty and at most the depth size {h}x{w}")
     if features is not None and not _f16_finite(features):
         raise _err("features", "holds NaN or inf")
-    # The structure of every compressed image (PNG chunk walk with CRCs, JPEG frame header)
-    # is checked before any of them is decoded, so a broken one costs no image decode.
-    if type(dspec) is dict and "shape" in dspec:
-        if dspec.get("codec") == "png16mm" and "data" in dspec:
-            _png_check(_bytes_array(dspec["data"], "depth.data"), "depth.data", (h, w), 16)
-        rspec = b.get("rgb")
-        if type(rspec) is dict and rspec.get("codec") == "jpeg" and "data" in rspec:
-            _jpeg_size(_bytes_array(rspec["data"], "rgb.data"), "rgb.data")
-        for field, codec, bits in (("labels", "png16", 16), ("confidence", "png8", 8)):
-            if b.get(field) is not None:
-                spec = _image_spec(b, field, ("codec", "data"))
-                if spec["codec"] == codec:
-                    _png_check(_bytes_array(spec["data"], f"{field}.data"), f"{field}.data", (h, w), bits)
+    if declared is not None:
+        _check_image_structure(b, declared, (h, w))
 
-    depth = _decode_depth(b, lim)
-    hw = depth.shape
-    rgb = _decode_rgb(b, lim)
 
-    labels = b.get("labels")
-    if labels is not None:
-        spec = _image_spec(b, "labels", ("codec", "data"))
-        if spec["codec"] != "png16":
-            raise _err("labels.codec", f"unknown codec {spec['codec']!r:.50} (known: png16)")
-        labels = _png_decode(_bytes_array(spec["data"], "labels.data"), "labels.data", hw, np.uint16)
-        labels = labels.astype(np.int32)
-    conf = b.get("confidence")
-    if conf is not None:
-        spec = _image_spec(b, "confidence", ("codec", "data"))
-        if spec["codec"] != "png8":
-            raise _err("confidence.codec", f"unknown codec {spec['codec']!r:.50} (known: png8)")
-        q = _png_decode(_bytes_array(spec["data"], "confidence.data"), "confidence.data", hw, np.uint8)
-        conf = q.astype(np.float32)
-        conf /= np.float32(255.0)
+def _check_image_structure(b: dict, dspec: dict, hw: tuple[int, int]) -> None:
+    """The structure of every compressed image (PNG chunk walk with CRCs, JPEG frame header)
+    is checked before any of them is decoded, so a broken one costs no image decode."""
+    if dspec.get("codec") == "png16mm" and "data" in dspec:
+        _png_check(_bytes_array(dspec["data"], "depth.data"), "depth.data", hw, 16)
+    rspec = b.get("rgb")
+    if type(rspec) is dict and rspec.get("codec") == "jpeg" and "data" in rspec:
+        _jpeg_size(_bytes_array(rspec["data"], "rgb.data"), "rgb.data")
+    for field, codec, bits in (("labels", "png16", 16), ("confidence", "png8", 8)):
+        if b.get(field) is not None:
+            spec = _image_spec(b, field, ("codec", "data"))
+            if spec["codec"] == codec:
+                _png_check(_bytes_array(spec["data"], f"{field}.data"), f"{field}.data", hw, bits)
 
-    return Frame(
-        robot=robot,
-        seq=seq,
-        stamp=float(stamp),
-        pose=pose.copy(),
-        intrinsics=K.copy(),
-        depth=depth,
-        rgb=rgb,
-        features=features,
-        feature_space=fs,
-        labels=labels,
-        confidence=conf,
-        global_feature=gf,
-        meta=meta,
-    )
+
+def _decode_png_field(b: dict, field: str, codec: str, hw: tuple[int, int], dtype: type) -> np.ndarray | None:
+    """The PNG image of ``field`` (codec ``codec``, shape ``hw``, ``dtype``) or None if absent."""
+    if b.get(field) is None:
+        return None
+    spec = _image_spec(b, field, ("codec", "data"))
+    if spec["codec"] != codec:
+        raise _err(f"{field}.codec", f"unknown codec {spec['codec']!r:.50} (known: {codec})")
+    return _png_decode(_bytes_array(spec["data"], f"{field}.data"), f"{field}.data", hw, dtype)
+
+
+def _decode_labels(b: dict, hw: tuple[int, int]) -> np.ndarray | None:
+    """The labels as int32 ``hw`` (16-bit PNG) or None."""
+    labels = _decode_png_field(b, "labels", "png16", hw, np.uint16)
+    return None if labels is None else labels.astype(np.int32)
+
+
+def _decode_confidence(b: dict, hw: tuple[int, int]) -> np.ndarray | None:
+    """The confidence as float32 ``hw`` in [0, 1] (8-bit PNG, ``q / 255``) or None."""
+    q = _decode_png_field(b, "confidence", "png8", hw, np.uint8)
+    if q is None:
+        return None
+    conf = q.astype(np.float32)
+    conf /= np.float32(255.0)
+    return conf

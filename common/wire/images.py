@@ -116,7 +116,7 @@ def _png_check(buf: np.ndarray, field: str, hw: tuple[int, int], bit_depth: int)
     depth, greyscale), every chunk inside the buffer with a correct CRC, IEND last.
 
     OpenCV trusts chunk lengths: one flipped bit in a length costs it a second of CPU."""
-    mv = memoryview(buf)
+    mv = buf.data  # memoryview(buf); numpy's stubs give ndarray no __buffer__ before Python 3.12
     n = len(mv)
     if n < 8 + 25 + 12 or bytes(mv[:8]) != _PNG_SIG:
         raise _err(field, "not a PNG image")
@@ -162,7 +162,7 @@ def _png_decode(buf: np.ndarray, field: str, hw: tuple[int, int], dtype: type) -
 
 def _jpeg_size(buf: np.ndarray, field: str) -> tuple[int, int, int]:
     """(height, width, components) from the JPEG's SOF segment, without decoding it."""
-    b = memoryview(buf)
+    b = buf.data  # memoryview(buf), as in _png_check
     n = len(b)
     if n < 4 or b[0] != 0xFF or b[1] != 0xD8:
         raise _err(field, "not a JPEG image (no SOI marker)")
@@ -210,7 +210,7 @@ def _decode_depth(body: dict, lim: WireLimits) -> np.ndarray:
         want = h * w * 4
         try:
             z = zlib.decompressobj()
-            raw = z.decompress(buf, want)
+            raw = z.decompress(buf.data, want)  # the array's buffer (see _png_check)
             extra = False
             if len(raw) == want and not z.eof:  # stopped at max_length: is there more?
                 extra = bool(z.decompress(z.unconsumed_tail, 1))

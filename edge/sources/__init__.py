@@ -1,5 +1,5 @@
 """Frame sources for the edge: each yields :class:`common.frame.Frame` objects obeying
-DESIGN §2 (pose 4×4 camera-to-world with RDF camera axes, z-up world where the source
+docs/conventions.md (pose 4×4 camera-to-world with RDF camera axes, z-up world where the source
 allows it; planar depth in metres, NaN = no measurement, +inf = beyond range; intrinsics
 at depth resolution; sizes (H, W)).
 
@@ -23,6 +23,8 @@ World frame per kind (``src.world_frame`` says it in one sentence):
 """
 from __future__ import annotations
 
+from typing import Any
+
 from edge.sources.base import FrameSource, select_indices
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
@@ -40,7 +42,7 @@ KINDS = {
 }
 
 
-def open_source(cfg: SourceConfig, **kwargs) -> FrameSource:
+def open_source(cfg: SourceConfig, **kwargs: Any) -> FrameSource:
     """Open the frame source ``cfg.kind`` (modules are imported lazily, so the robot needs
     only the dependencies of the source it uses). Raises :class:`SourceError` with the
     missing path / topic / bad setting named."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Iterator, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +28,9 @@ from common.geometry import scale_intrinsics
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 from edge.sources.imageops import parse_resolution, resize_nearest, resize_rgb
+
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +49,7 @@ def select_indices(candidates: Sequence[int], frame_skip: int, max_frames: int |
 
 
 class FrameSource:
-    """An iterable of posed RGB-D :class:`Frame` objects obeying DESIGN §2.
+    """An iterable of posed RGB-D :class:`Frame` objects obeying docs/conventions.md.
 
     Attributes:
         name: short description (kind and scene).
@@ -89,6 +93,7 @@ class FrameSource:
     # ---- shared ------------------------------------------------------------------------
     @property
     def fps(self) -> float:
+        """Nominal frame rate, Hz: ``cfg.fps`` when set, else the source's default."""
         return float(self.cfg.fps) if self.cfg.fps else self.default_fps
 
     def _select(self, candidates: Sequence[int]) -> None:
@@ -188,8 +193,10 @@ class FrameSource:
         return f"<{type(self).__name__} {self.name!r}: {len(self)} frames, {self.world_frame}>"
 
 
-def native_frame(index: int, stamp: float, pose, K, depth, rgb, labels=None, **meta) -> Frame:
-    """A native-resolution frame as ``_load`` returns it (robot/seq filled in by the base)."""
+def native_frame(index: int, stamp: float, pose: ArrayLike, K: ArrayLike, depth: np.ndarray, rgb: np.ndarray,
+                 labels: np.ndarray | None = None, **meta: Any) -> Frame:
+    """A native-resolution frame as ``_load`` returns it (robot/seq filled in by the base; ``stamp`` in
+    seconds, ``pose`` camera-to-world RDF, ``K`` at the depth resolution)."""
     return Frame(robot="", seq=0, stamp=float(stamp), pose=np.asarray(pose, dtype=np.float64),
                  intrinsics=np.asarray(K, dtype=np.float64), depth=depth, rgb=rgb, labels=labels,
                  meta={"index": int(index), **meta})

@@ -46,9 +46,11 @@ class SourceConfig:
               "town: the same seed (the world), different trajectory_seed")
 
     # datasets
-    scene: str = field_("", "replica/scannet/tartanair: scene (environment) directory under path ('' = path is the scene)")
+    scene: str = field_("", "replica/scannet/tartanair: scene (environment) directory under path "
+                            "('' = path is the scene)")
     sequence: str = field_("", "tartanair: trajectory directory, e.g. 'P0000' ('' = path/scene/difficulty is it)")
-    difficulty: str = field_("Data_ground", "tartanair: difficulty directory, e.g. 'Data_ground', 'Data_easy', 'Data_hard'")
+    difficulty: str = field_("Data_ground", "tartanair: difficulty directory, e.g. 'Data_ground', 'Data_easy', "
+                                            "'Data_hard'")
     camera: str = field_("lcam_front", "tartanair: camera name used in the directory and file names")
     depth_cutoff: float = field_(
         100.0, "tartanair: finite depth beyond this (metres) becomes +inf (the reference uses 100, and 50 "

@@ -58,7 +58,7 @@ def read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def read_png_unchanged(path: Path, dtypes=(np.uint8, np.uint16)) -> np.ndarray:
+def read_png_unchanged(path: Path, dtypes: tuple[type, ...] = (np.uint8, np.uint16)) -> np.ndarray:
     """Read a PNG with its stored depth and channels (``IMREAD_UNCHANGED``)."""
     img = cv2.imread(str(_check_file(path)), cv2.IMREAD_UNCHANGED)
     if img is None:

@@ -62,7 +62,8 @@ class ReplicaSource(FrameSource):
         try:
             cam = json.loads(params.read_text())["camera"]
             w, h = int(cam["w"]), int(cam["h"])
-            self.native_K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]], dtype=np.float64)
+            self.native_K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]],
+                                     dtype=np.float64)
             self.depth_scale = float(cam.get("scale", 6553.5))
         except (KeyError, TypeError, ValueError, json.JSONDecodeError) as e:
             raise SourceError(f"replica: {params} lacks camera w/h/fx/fy/cx/cy ({e})") from None

@@ -57,6 +57,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -83,6 +84,9 @@ from edge.sources.ros_msgs import (
     stamp_seconds,
 )
 
+if TYPE_CHECKING:
+    from common.zenoh_session import ZenohConfig
+
 log = logging.getLogger(__name__)
 
 STALL_S = 2.0
@@ -100,13 +104,14 @@ ROLE_TYPES = {
 class RateLimitedLog:
     """At most one line per key per ``every`` seconds; the next line says how many were held back."""
 
-    def __init__(self, every: float, logger=log):
+    def __init__(self, every: float, logger: logging.Logger = log):
         self.every = float(every)
         self.log = logger
         self._last: dict[str, float] = {}
         self._held: Counter = Counter()
 
-    def warn(self, key: str, msg: str, *args) -> None:
+    def warn(self, key: str, msg: str, *args: Any) -> None:
+        """Log ``msg % args`` as a warning unless ``key`` was logged less than ``every`` seconds ago."""
         now = time.monotonic()
         last = self._last.get(key)
         if last is not None and now - last < self.every:
@@ -117,7 +122,7 @@ class RateLimitedLog:
         self.log.warning(msg + (f" (+{held} more since the last report)" if held else ""), *args)
 
 
-def _ros_session_config(cfg: SourceConfig, zenoh):
+def _ros_session_config(cfg: SourceConfig, zenoh: ZenohConfig | None) -> ZenohConfig:
     from common.zenoh_session import ZenohConfig
 
     if cfg.ros_connect:
@@ -308,55 +313,66 @@ class Ros2Source(FrameSource):
             items = {r: list(b) for r, b in self._inbox.items() if b}
             for r in items:
                 self._inbox[r].clear()
-        cfg = self.cfg
         for role in ("tf_static", "tf", "info", "pose", "rgb", "depth"):
             for key, payload, t_recv, index in items.get(role, ()):
-                topic = self.topics[role]
-                if role == "depth":  # frame_skip on the depth ordinal, as in a bag
-                    if index % (cfg.frame_skip + 1):
-                        continue
-                dec = self._decode(role, key, payload)
-                if dec is None:
-                    if role == "depth":
-                        self._skip(f"undecodable depth message on {topic}")
-                    continue
-                msg, mtype = dec
-                self._tstats[topic]["decoded"] += 1
-                if role in ("tf", "tf_static"):
-                    self.lookup.tree.add_message(msg, role == "tf_static", None if cfg.use_header_stamps else t_recv)
-                elif role == "info":
-                    if self._info is None:
-                        self._info = camera_info(msg)
-                elif role == "pose":
-                    t = self._stamp(msg, t_recv)
-                    if self._in_order(topic, t):
-                        self.lookup.add_pose(msg, mtype, t)
-                elif role == "rgb":
-                    t = self._stamp(msg, t_recv)
-                    if self._in_order(topic, t):
-                        self._rgb.append((t, index, msg, mtype))
-                else:
-                    t = self._stamp(msg, t_recv)
-                    if not self._in_order(topic, t):
-                        self._skip("out-of-order depth stamp")
-                        continue
-                    try:
-                        d = decode_depth(msg, mtype, cfg.depth_scale)
-                    except ValueError as e:
-                        self._bad(topic, str(e))
-                        self._skip(f"unsupported depth message on {topic}")
-                        continue
-                    if self.native_hw is None:
-                        self.native_hw = d.shape
-                    elif d.shape != self.native_hw:
-                        self._bad(topic, f"depth size changed from {self.native_hw} to {d.shape}")
-                        self._skip("depth size changed")
-                        continue
-                    if len(self._pending) >= cfg.ros_queue:
-                        self._pending.popleft()
-                        self._tstats[topic]["dropped_full"] += 1
-                        self._skip("depth buffer full (matching fell behind)")
-                    self._pending.append((index, t, d, time.monotonic()))
+                self._take(role, key, payload, t_recv, index)
+
+    def _take(self, role: str, key: str, payload: bytes, t_recv: float, index: int) -> None:
+        """Decode one received message (``t_recv``: arrival wall clock, s; ``index``: arrival
+        ordinal on its topic) and file it: tf tree, CameraInfo, pose lookup, colour or depth buffer."""
+        cfg = self.cfg
+        topic = self.topics[role]
+        if role == "depth":  # frame_skip on the depth ordinal, as in a bag
+            if index % (cfg.frame_skip + 1):
+                return
+        dec = self._decode(role, key, payload)
+        if dec is None:
+            if role == "depth":
+                self._skip(f"undecodable depth message on {topic}")
+            return
+        msg, mtype = dec
+        self._tstats[topic]["decoded"] += 1
+        if role in ("tf", "tf_static"):
+            self.lookup.tree.add_message(msg, role == "tf_static", None if cfg.use_header_stamps else t_recv)
+        elif role == "info":
+            if self._info is None:
+                self._info = camera_info(msg)
+        elif role == "pose":
+            t = self._stamp(msg, t_recv)
+            if self._in_order(topic, t):
+                self.lookup.add_pose(msg, mtype, t)
+        elif role == "rgb":
+            t = self._stamp(msg, t_recv)
+            if self._in_order(topic, t):
+                self._rgb.append((t, index, msg, mtype))
+        else:
+            self._take_depth(topic, msg, mtype, t_recv, index)
+
+    def _take_depth(self, topic: str, msg: Any, mtype: str, t_recv: float, index: int) -> None:
+        """Decode a depth message and queue it for matching (skipped and counted when out of
+        order, undecodable or of a changed size)."""
+        cfg = self.cfg
+        t = self._stamp(msg, t_recv)
+        if not self._in_order(topic, t):
+            self._skip("out-of-order depth stamp")
+            return
+        try:
+            d = decode_depth(msg, mtype, cfg.depth_scale)
+        except ValueError as e:
+            self._bad(topic, str(e))
+            self._skip(f"unsupported depth message on {topic}")
+            return
+        if self.native_hw is None:
+            self.native_hw = d.shape
+        elif d.shape != self.native_hw:
+            self._bad(topic, f"depth size changed from {self.native_hw} to {d.shape}")
+            self._skip("depth size changed")
+            return
+        if len(self._pending) >= cfg.ros_queue:
+            self._pending.popleft()
+            self._tstats[topic]["dropped_full"] += 1
+            self._skip("depth buffer full (matching fell behind)")
+        self._pending.append((index, t, d, time.monotonic()))
 
     # ------------------------------------------------------------------ matching
     def _skip_log(self, reason: str, detail: str = "") -> None:
@@ -497,7 +513,7 @@ class Ros2Source(FrameSource):
 
 
 # ---------------------------------------------------------------------- listing
-def list_topics(cfg: SourceConfig, zenoh=None, seconds: float = 2.0) -> list[dict]:
+def list_topics(cfg: SourceConfig, zenoh: ZenohConfig | None = None, seconds: float = 2.0) -> list[dict]:
     """What the robot publishes: rmw_zenoh publisher tokens of ``ros_domain`` and the data
     keys seen during ``seconds`` (both layouts), one dict per topic (topic, type, via,
     publishers, samples, bytes)."""
@@ -549,6 +565,7 @@ def list_topics(cfg: SourceConfig, zenoh=None, seconds: float = 2.0) -> list[dic
 
 
 def format_topics(rows: list[dict]) -> str:
+    """A text table of :func:`list_topics` rows (rates in Hz)."""
     if not rows:
         return "no ROS 2 topics seen (check source.ros_keys, source.ros_domain and source.ros_connect)"
     w = max(len(r["topic"]) for r in rows)

@@ -12,6 +12,7 @@ sample, else interpolation across at most ``pose_max_gap``, else the nearest wit
 from __future__ import annotations
 
 from collections import defaultdict, deque
+from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -19,6 +20,12 @@ import numpy as np
 from common.geometry import invert_pose, scale_intrinsics
 from edge.sources.errors import SourceError
 from edge.sources.transforms import PoseTrack, pose_from_tq
+
+if TYPE_CHECKING:
+    from edge.sources.config import SourceConfig
+
+#: a tf chain: (parent, child, forward) edges, forward = parent → child
+TfChain = list[tuple[str, str, bool]]
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -36,16 +43,18 @@ def norm_type(t: str) -> str:
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else t
 
 
-def stamp_seconds(stamp) -> float:
+def stamp_seconds(stamp: Any) -> float:
+    """A ROS ``builtin_interfaces/Time`` (sec, nanosec) in seconds."""
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
 
 
-def tq(translation, rotation) -> np.ndarray:
+def tq(translation: Any, rotation: Any) -> np.ndarray:
+    """4×4 transform from a ROS ``Vector3``/``Point`` translation (m) and ``Quaternion`` rotation."""
     return pose_from_tq([translation.x, translation.y, translation.z],
                         [rotation.x, rotation.y, rotation.z, rotation.w])
 
 
-def pose_from_msg(msg, msgtype: str) -> np.ndarray:
+def pose_from_msg(msg: Any, msgtype: str) -> np.ndarray:
     """PoseStamped / Odometry → 4×4 pose of its body in its frame."""
     p = msg.pose.pose if msgtype == ODOMETRY else msg.pose
     return tq(p.position, p.orientation)
@@ -54,7 +63,7 @@ def pose_from_msg(msg, msgtype: str) -> np.ndarray:
 # ---------------------------------------------------------------- images
 
 
-def _image_rows(msg, dtype, channels: int) -> np.ndarray:
+def _image_rows(msg: Any, dtype: type, channels: int) -> np.ndarray:
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     item = np.dtype(dtype).itemsize * channels
     buf = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, dtype=np.uint8)
@@ -67,7 +76,7 @@ def _image_rows(msg, dtype, channels: int) -> np.ndarray:
     return out.astype(np.dtype(dtype).newbyteorder("="))
 
 
-def decode_rgb(msg, msgtype: str) -> np.ndarray:
+def decode_rgb(msg: Any, msgtype: str) -> np.ndarray:
     """Image / CompressedImage → (H, W, 3) uint8 RGB."""
     if msgtype == COMPRESSED:
         img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
@@ -86,7 +95,7 @@ def decode_rgb(msg, msgtype: str) -> np.ndarray:
     raise ValueError(f"unsupported colour encoding {msg.encoding!r} (use rgb8, bgr8, rgba8, bgra8, mono8)")
 
 
-def decode_depth(msg, msgtype: str, depth_scale: float) -> np.ndarray:
+def decode_depth(msg: Any, msgtype: str, depth_scale: float) -> np.ndarray:
     """Image / CompressedImage → (H, W) float32 metres (invalid values left for sanitize)."""
     if msgtype == COMPRESSED:
         fmt = msg.format.lower()
@@ -116,17 +125,19 @@ def decode_depth(msg, msgtype: str, depth_scale: float) -> np.ndarray:
 
 
 def has_valid_depth(depth: np.ndarray) -> bool:
+    """Whether any depth value is a measurement (> 0, not NaN; +inf counts: beyond range)."""
     with np.errstate(invalid="ignore"):
         return bool(np.any((depth > 0) & ~np.isneginf(depth) & ~np.isnan(depth)))
 
 
-def camera_info(msg) -> tuple[np.ndarray, tuple[int, int]]:
+def camera_info(msg: Any) -> tuple[np.ndarray, tuple[int, int]]:
     """CameraInfo → (K 3×3, (height, width))."""
     k = np.asarray(getattr(msg, "k", getattr(msg, "K", None)), dtype=np.float64).reshape(3, 3)
     return k, (int(msg.height), int(msg.width))
 
 
-def resolve_intrinsics(who: str, info, intrinsics, native_hw, info_topic: str) -> np.ndarray:
+def resolve_intrinsics(who: str, info: tuple[np.ndarray, tuple[int, int]] | None, intrinsics: Sequence[float] | None,
+                       native_hw: tuple[int, int] | None, info_topic: str) -> np.ndarray:
     """K at the depth resolution from the first CameraInfo (rescaled if it is for another
     size) or the configured ``[fx, fy, cx, cy]``; SourceError if neither is usable."""
     if info is not None:
@@ -181,6 +192,7 @@ class GrowingTrack:
         self.args = (tolerance, interpolate, max_gap)
 
     def add(self, t: float, T: np.ndarray) -> None:
+        """Append the 4×4 pose ``T`` at time ``t`` (s)."""
         self._t.append(float(t))
         self._T.append(T)
         self._track = None
@@ -190,9 +202,11 @@ class GrowingTrack:
 
     @property
     def newest(self) -> float:
+        """Time (s) of the newest sample, -inf when empty."""
         return max(self._t) if self._t else -np.inf
 
     def at(self, t: float) -> np.ndarray | None:
+        """The 4×4 pose at time ``t`` (s) as :meth:`PoseTrack.at` gives it, or None."""
         if self._track is None:
             tol, interp, gap = self.args
             self._track = PoseTrack(list(self._t), list(self._T) or np.zeros((0, 4, 4)), tol, interp, gap)
@@ -213,6 +227,7 @@ class TfTree:
         self.version = 0  # bumped when an edge appears
 
     def add(self, parent: str, child: str, t: float, T: np.ndarray, static: bool) -> None:
+        """The child's 4×4 pose ``T`` in the parent at time ``t`` (s; ignored when ``static``)."""
         parent, child = parent.lstrip("/"), child.lstrip("/")
         if static:
             if (parent, child) not in self.static:
@@ -225,7 +240,7 @@ class TfTree:
             self.version += 1
         tr.add(t, T)
 
-    def add_message(self, msg, static: bool, t_fallback: float | None = None) -> None:
+    def add_message(self, msg: Any, static: bool, t_fallback: float | None = None) -> None:
         """Every transform of a TFMessage (header stamps, or ``t_fallback`` when given)."""
         for tr in msg.transforms:
             t = stamp_seconds(tr.header.stamp) if t_fallback is None else t_fallback
@@ -239,7 +254,7 @@ class TfTree:
     def frames(self) -> set[str]:
         return {f for k in list(self.static) + list(self.dynamic) for f in k}
 
-    def path(self, src: str, dst: str) -> list[tuple[str, str, bool]] | None:
+    def path(self, src: str, dst: str) -> TfChain | None:
         """Edges from ``src`` to ``dst``: (parent, child, forward) with forward = parent→child."""
         src, dst = src.lstrip("/"), dst.lstrip("/")
         adj = defaultdict(list)
@@ -264,7 +279,7 @@ class TfTree:
             edges.append(e)
         return edges[::-1]
 
-    def lookup(self, edges, t: float) -> np.ndarray | None:
+    def lookup(self, edges: TfChain, t: float) -> np.ndarray | None:
         """Pose of the chain's last frame in its first frame at time ``t`` (None if a dynamic edge has no sample)."""
         T = np.eye(4)
         for p, c, fwd in edges:
@@ -276,7 +291,7 @@ class TfTree:
             T = T @ (E if fwd else invert_pose(E))
         return T
 
-    def newest(self, edges) -> float:
+    def newest(self, edges: TfChain) -> float:
         """Oldest of the newest samples of the chain's dynamic edges (+inf if all static)."""
         ts = [self.dynamic[(p, c)].newest for p, c, _ in edges if (p, c) not in self.static]
         return min(ts) if ts else np.inf
@@ -290,7 +305,7 @@ class PoseLookup:
     :class:`NoTfChain` while the needed chain does not exist. ``maxlen`` bounds the samples
     kept per track (live); None keeps all (bags)."""
 
-    def __init__(self, who: str, cfg, maxlen: int | None = None):
+    def __init__(self, who: str, cfg: SourceConfig, maxlen: int | None = None):
         self.who = who
         self.cfg = cfg
         args = (cfg.sync_tolerance, cfg.interpolate_pose, cfg.pose_max_gap)
@@ -302,13 +317,16 @@ class PoseLookup:
 
     @property
     def uses_tf(self) -> bool:
+        """Whether the tf tree is needed (no pose topic, or a camera_frame below the pose's body)."""
         return self.track is None or bool(self.cfg.camera_frame)
 
     @property
     def body_frame(self) -> str:
+        """The frame whose axes the camera body has (decides 'auto' body axes)."""
         return self.cfg.camera_frame or self.cfg.pose_frame or self.pose_child
 
-    def add_pose(self, msg, msgtype: str, t: float) -> None:
+    def add_pose(self, msg: Any, msgtype: str, t: float) -> None:
+        """A PoseStamped / Odometry message of type ``msgtype`` at time ``t`` (s)."""
         self.track.add(t, pose_from_msg(msg, msgtype))
         if msgtype == ODOMETRY and not self.pose_child:
             self.pose_child = msg.child_frame_id
@@ -322,7 +340,7 @@ class PoseLookup:
             return pose_frame, cfg.camera_frame
         return None
 
-    def chain(self):
+    def chain(self) -> TfChain | None:
         """The tf edges needed (None when the pose topic alone gives the camera); NoTfChain if missing."""
         need = self._need_chain()
         if need is None:
@@ -337,6 +355,7 @@ class PoseLookup:
         return self._chain
 
     def at(self, t: float) -> np.ndarray | None:
+        """The raw 4×4 camera-body pose at time ``t`` (s), or None (see the class docstring)."""
         chain = self.chain()
         if self.track is None:
             return self.tree.lookup(chain, t)
@@ -357,7 +376,8 @@ class PoseLookup:
             out = min(out, self.tree.newest(chain))
         return out
 
-    def describe(self, pose_types=()) -> str:
+    def describe(self, pose_types: Iterable[str] = ()) -> str:
+        """Where poses come from, for logs (``pose_types``: the pose topic's message types)."""
         cfg = self.cfg
         if self.track is not None:
             kinds = "/".join(sorted(t.split("/")[-1] for t in pose_types))

@@ -35,6 +35,7 @@ from __future__ import annotations
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -124,7 +125,28 @@ class RosbagSource(FrameSource):
                 return t
         return bag_ns * 1e-9
 
-    def _scan(self, reader) -> None:
+    def _scan(self, reader: Any) -> None:
+        cfg = self.cfg
+        roles, lookup, pose_c = self._scan_topics(reader)
+        rgb_t, depth_t, depth_ok, info = self._read_stamps(reader, roles, lookup)
+        if not depth_t:
+            raise SourceError(f"rosbag: no messages on depth topic {cfg.depth_topic!r} in {self.path}")
+
+        self.native_K = resolve_intrinsics("rosbag", info, cfg.intrinsics, self.native_hw, cfg.camera_info_topic)
+        body = resolve_body_axes("rosbag", cfg.body_axes, lookup.body_frame, cfg.world_axes)
+        self.body_axes = body
+        self._pose_child = lookup.pose_child
+        lookup.chain()  # raises (SourceError) when the tf chain is missing
+        src_desc = lookup.describe({_norm_type(c.msgtype) for c in pose_c or ()})
+        plans = self._plan(rgb_t, depth_t, depth_ok, lookup, body)
+        self._plans = {p.index: p for p in plans}
+        self._indices = [p.index for p in plans]
+        self.world_frame = (f"bag world frame from {src_desc} with {cfg.world_axes} axes, re-expressed as ENU "
+                            f"(z up; gravity-aligned if the bag's world is); camera body {body} converted to RDF")
+
+    def _scan_topics(self, reader: Any) -> tuple[dict[int, str], PoseLookup, list | None]:
+        """The role of each connection to read (rgb, depth, info, pose, tf, tf_static), the pose
+        lookup to fill and the pose topic's connections (None without a pose topic)."""
         cfg = self.cfg
         rgb_c = self._topic(reader, cfg.rgb_topic, IMAGE_TYPES, "rgb_topic")
         depth_c = self._topic(reader, cfg.depth_topic, IMAGE_TYPES, "depth_topic")
@@ -142,9 +164,19 @@ class RosbagSource(FrameSource):
         lookup = PoseLookup("rosbag", cfg)
         if lookup.uses_tf:  # the tf tree is needed
             roles |= {c.id: "tf" for c in tf_c} | {c.id: "tf_static" for c in tfs_c}
+        return roles, lookup, pose_c
+
+    def _read_stamps(self, reader: Any, roles: dict[int, str],
+                     lookup: PoseLookup) -> tuple[list[float], list[float], list[bool | None],
+                                                  tuple[np.ndarray, tuple[int, int]] | None]:
+        """One pass over the bag: colour and depth stamps (s), whether each depth message has a
+        valid pixel (None: corrupt, counted), the first CameraInfo; poses and tf go into ``lookup``."""
+        cfg = self.cfg
         conns = [c for c in reader.connections if c.id in roles]
-        rgb_t, depth_t, depth_ok = [], [], []
-        info = None
+        rgb_t: list[float] = []
+        depth_t: list[float] = []
+        depth_ok: list[bool | None] = []
+        info: tuple[np.ndarray, tuple[int, int]] | None = None
         for conn, ns, raw in reader.messages(connections=conns):
             role = roles[conn.id]
             mtype = _norm_type(conn.msgtype)
@@ -166,38 +198,37 @@ class RosbagSource(FrameSource):
                 rgb_t.append(self._stamp(msg, ns))
             elif role == "depth":
                 depth_t.append(self._stamp(msg, ns))
-                try:
-                    d = decode_depth(msg, mtype, cfg.depth_scale)
-                except ValueError as e:
-                    self._skip_corrupt(f"depth message {len(depth_t) - 1}",
-                                       SourceError(f"rosbag: depth message {len(depth_t) - 1} on {conn.topic}: {e}"))
-                    depth_ok.append(None)
-                    continue
-                depth_ok.append(has_valid_depth(d))
-                if self.native_hw is None:
-                    self.native_hw = d.shape
+                depth_ok.append(self._depth_ok(msg, mtype, len(depth_t) - 1, conn.topic))
             elif role == "info" and info is None:
                 info = camera_info(msg)
             elif role == "pose":
                 lookup.add_pose(msg, mtype, self._stamp(msg, ns))
             elif role in ("tf", "tf_static"):
                 lookup.tree.add_message(msg, role == "tf_static", None if cfg.use_header_stamps else ns * 1e-9)
-        if not depth_t:
-            raise SourceError(f"rosbag: no messages on depth topic {cfg.depth_topic!r} in {self.path}")
+        return rgb_t, depth_t, depth_ok, info
 
-        self.native_K = resolve_intrinsics("rosbag", info, cfg.intrinsics, self.native_hw, cfg.camera_info_topic)
-        body = resolve_body_axes("rosbag", cfg.body_axes, lookup.body_frame, cfg.world_axes)
-        self.body_axes = body
-        self._pose_child = lookup.pose_child
-        lookup.chain()  # raises (SourceError) when the tf chain is missing
-        src_desc = lookup.describe({_norm_type(c.msgtype) for c in pose_c or ()})
+    def _depth_ok(self, msg: Any, mtype: str, i: int, topic: str) -> bool | None:
+        """Whether depth message ``i`` has a valid pixel; None when it does not decode (counted).
+        The first decoded one sets ``native_hw``."""
+        try:
+            d = decode_depth(msg, mtype, self.cfg.depth_scale)
+        except ValueError as e:
+            self._skip_corrupt(f"depth message {i}", SourceError(f"rosbag: depth message {i} on {topic}: {e}"))
+            return None
+        ok = has_valid_depth(d)
+        if self.native_hw is None:
+            self.native_hw = d.shape
+        return ok
 
-        # Synchronise: depth drives; nearest colour within tolerance; pose at the depth stamp.
+    def _plan(self, rgb_t: list[float], depth_t: list[float], depth_ok: list[bool | None], lookup: PoseLookup,
+              body: str) -> list[_Plan]:
+        """Synchronise: depth drives; nearest colour within tolerance; pose at the depth stamp."""
+        cfg = self.cfg
         rgb_arr = np.asarray(rgb_t, dtype=np.float64)
         rgb_order = np.argsort(rgb_arr, kind="stable")
         rgb_sorted = rgb_arr[rgb_order]
         kept = select_indices(range(len(depth_t)), cfg.frame_skip, None)
-        plans = []
+        plans: list[_Plan] = []
         for i in kept:
             t = depth_t[i]
             if depth_ok[i] is None:   # corrupt: already counted
@@ -216,10 +247,7 @@ class RosbagSource(FrameSource):
             plans.append(_Plan(i, t, int(rgb_order[k]), convert_pose(T, body, cfg.world_axes)))
             if cfg.max_frames is not None and len(plans) >= cfg.max_frames:
                 break
-        self._plans = {p.index: p for p in plans}
-        self._indices = [p.index for p in plans]
-        self.world_frame = (f"bag world frame from {src_desc} with {cfg.world_axes} axes, re-expressed as ENU "
-                            f"(z up; gravity-aligned if the bag's world is); camera body {body} converted to RDF")
+        return plans
 
     def _iter_native(self, indices):
         plans = [self._plans[i] for i in indices]
@@ -251,7 +279,8 @@ class RosbagSource(FrameSource):
                     if need_r[p.rgb_ord] == 0:
                         del got_r[p.rgb_ord]
                     try:
-                        depth = decode_depth(reader.deserialize(draw, dconn.msgtype), types[dconn.id], self.cfg.depth_scale)
+                        depth = decode_depth(reader.deserialize(draw, dconn.msgtype), types[dconn.id],
+                                             self.cfg.depth_scale)
                         rgb = decode_rgb(reader.deserialize(rraw, rconn.msgtype), types[rconn.id])
                     except Exception as e:  # a message that does not deserialise/decode: skip it
                         self._skip_corrupt(p.index, SourceError(

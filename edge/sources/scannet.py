@@ -79,7 +79,7 @@ class ScanNetSource(FrameSource):
             raise SourceError(f"scannet: no pose files in {scene / 'pose'}")
         poses = [read_matrix(scene / "pose" / f"{i}.txt") for i in ids]
         self.poses = {i: convert_pose(p, "RDF", cfg.world_axes) if np.all(np.isfinite(p)) else p
-                      for i, p in zip(ids, poses)}
+                      for i, p in zip(ids, poses, strict=True)}
         valid = [ids[k] for k in filter_poses(poses, "pose/*.txt (ScanNet -inf poses)", self)]
 
         self.label_dir = next((d for d in (scene / "label-filt", scene / f"{scene.name}_2d-label-filt" / "label-filt")

@@ -37,7 +37,8 @@ class SyntheticSource(FrameSource):
             try:
                 world = World.generate(cfg.seed, cfg.preset)
             except (ValueError, KeyError) as e:
-                raise SourceError(f"synthetic: cannot generate world seed={cfg.seed} preset={cfg.preset!r}: {e}") from None
+                raise SourceError(f"synthetic: cannot generate world seed={cfg.seed} preset={cfg.preset!r}: "
+                                  f"{e}") from None
         self.world = world
         try:
             self.poses = np.asarray(world.trajectory(cfg.trajectory, cfg.n_frames, seed=cfg.trajectory_seed),

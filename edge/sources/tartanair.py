@@ -126,7 +126,8 @@ class TartanAirSource(FrameSource):
             depth[np.isfinite(depth) & (depth > self.cfg.depth_cutoff)] = np.inf
         K = self.native_K
         if depth.shape != self.native_hw:  # other TartanAir cameras keep the 90° FoV
-            K = np.array([[depth.shape[1] / 2, 0, depth.shape[1] / 2], [0, depth.shape[0] / 2, depth.shape[0] / 2], [0, 0, 1.0]])
+            K = np.array([[depth.shape[1] / 2, 0, depth.shape[1] / 2], [0, depth.shape[0] / 2, depth.shape[0] / 2],
+                          [0, 0, 1.0]])
         labels = None
         if self.has_seg:
             seg = read_png_unchanged(self.seg_dir / f"{i:06d}_{cam}_seg.png")

@@ -5,10 +5,15 @@ need not be normalised on input.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
+if TYPE_CHECKING:
+    from numpy.typing import ArrayLike
 
-def quat_to_matrix(q) -> np.ndarray:
+
+def quat_to_matrix(q: ArrayLike) -> np.ndarray:
     """3×3 rotation matrix of quaternion ``(x, y, z, w)``."""
     x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
     return np.array([
@@ -38,7 +43,7 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     return -q if q[3] < 0 else q
 
 
-def pose_from_tq(t, q) -> np.ndarray:
+def pose_from_tq(t: ArrayLike, q: ArrayLike) -> np.ndarray:
     """4×4 transform from translation ``t`` and quaternion ``q = (x, y, z, w)``."""
     T = np.eye(4)
     T[:3, :3] = quat_to_matrix(q)
@@ -46,7 +51,7 @@ def pose_from_tq(t, q) -> np.ndarray:
     return T
 
 
-def slerp(q0, q1, a: float) -> np.ndarray:
+def slerp(q0: ArrayLike, q1: ArrayLike, a: float) -> np.ndarray:
     """Spherical interpolation between unit quaternions (shortest arc), ``a`` in [0, 1]."""
     q0 = np.asarray(q0, dtype=np.float64) / np.linalg.norm(q0)
     q1 = np.asarray(q1, dtype=np.float64) / np.linalg.norm(q1)
@@ -76,7 +81,8 @@ class PoseTrack:
     ``max_gap`` seconds apart; else the nearest sample within ``tolerance`` seconds; else
     ``None`` (no extrapolation beyond ``tolerance``)."""
 
-    def __init__(self, times, poses, tolerance: float, interpolate: bool = True, max_gap: float = 0.5):
+    def __init__(self, times: ArrayLike, poses: ArrayLike, tolerance: float, interpolate: bool = True,
+                 max_gap: float = 0.5):
         order = np.argsort(np.asarray(times, dtype=np.float64), kind="stable")
         self.times = np.asarray(times, dtype=np.float64)[order]
         self.poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[order]

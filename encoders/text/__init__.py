@@ -4,14 +4,21 @@ the mapper applies is part of the feature space: :mod:`common.language_head`).
 Shared by the edge (label encoder, NARADIO's SigLIP head) and the mapper (query text).
 Heavy imports (transformers) happen only when an encoder is constructed.
 """
-from encoders.text.base import CachedTextEncoder, TextEncoder
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
 from common.model_files import ModelFileError
+from encoders.text.base import CachedTextEncoder, TextEncoder
 from encoders.text.templates import IMAGENET_TEMPLATES, SINGLE_TEMPLATE
 
 TEXT_MODELS = ("minilm-l6", "siglip")
 
 
-def make_text_encoder(name: str, model_dir=None, device="cpu"):
+def make_text_encoder(name: str, model_dir: str | Path | None = None,
+                      device: str | torch.device = "cpu") -> CachedTextEncoder:
     """``"minilm-l6"`` → :class:`MiniLMText`; ``"siglip"`` → :class:`SiglipText` (needs ``model_dir``)."""
     if name == "minilm-l6":
         from encoders.text.minilm import MiniLMText
@@ -24,7 +31,7 @@ def make_text_encoder(name: str, model_dir=None, device="cpu"):
     raise ValueError(f"unknown text model {name!r}; choose one of {TEXT_MODELS}")
 
 
-def __getattr__(name):  # lazy: MiniLMText / SiglipText import transformers only on use
+def __getattr__(name: str) -> type:  # lazy: MiniLMText / SiglipText import transformers only on use
     if name == "MiniLMText":
         from encoders.text.minilm import MiniLMText
         return MiniLMText
@@ -34,5 +41,5 @@ def __getattr__(name):  # lazy: MiniLMText / SiglipText import transformers only
     raise AttributeError(name)
 
 
-__all__ = ["TextEncoder", "CachedTextEncoder", "IMAGENET_TEMPLATES", "SINGLE_TEMPLATE", "TEXT_MODELS", "make_text_encoder",
-           "MiniLMText", "SiglipText"]
+__all__ = ["TextEncoder", "CachedTextEncoder", "IMAGENET_TEMPLATES", "SINGLE_TEMPLATE", "TEXT_MODELS",
+           "make_text_encoder", "MiniLMText", "SiglipText"]

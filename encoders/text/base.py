@@ -69,7 +69,7 @@ class CachedTextEncoder:
             todo = [t for t in todo if t not in found]
         if todo:
             emb = self._embed(todo).float()
-            for t, e in zip(todo, emb):
+            for t, e in zip(todo, emb, strict=False):
                 self._cache[t] = e.detach()
             self._disk_put({t: self._cache[t] for t in todo})
         if not texts:

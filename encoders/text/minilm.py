@@ -16,8 +16,8 @@ from pathlib import Path
 
 import torch
 
-from encoders.text.base import CachedTextEncoder
 from common.model_files import ModelFileError
+from encoders.text.base import CachedTextEncoder
 
 
 def minilm_model_dir() -> Path:
@@ -38,9 +38,9 @@ def _quiet_transformers():
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
     try:
-        from transformers.utils import logging as tlog
-        tlog.set_verbosity_error()
-        tlog.disable_progress_bar()
+        from transformers.utils import logging as transformers_logging
+        transformers_logging.set_verbosity_error()
+        transformers_logging.disable_progress_bar()
     except Exception:  # pragma: no cover - logging helpers moved
         pass
 

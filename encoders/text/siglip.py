@@ -18,8 +18,8 @@ from pathlib import Path
 
 import torch
 
-from encoders.text.base import CachedTextEncoder
 from common.model_files import ModelFileError
+from encoders.text.base import CachedTextEncoder
 from encoders.text.minilm import _quiet_transformers
 
 _PUNCT = re.compile("[" + re.escape(string.punctuation) + "]")

@@ -10,9 +10,13 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 from common.messages import LAYERS, MessageError, encode_error, encode_layer
 from mapper.state import MapperState
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -27,25 +31,25 @@ class LayerPublisher:
     def layer_bytes(self, layer: str) -> bytes:
         from mapper.service_map import layer_arrays
 
-        s = self.state
-        with s.lock:
-            if s.map is None:
+        state = self.state
+        with state.lock:
+            if state.map is None:
                 raise MessageError("no map yet")
-            arrays, meta = layer_arrays(s.map, layer, s.cfg.layers)
-        meta.update(frames_mapped=s.mapped, stamp=time.time())
+            arrays, meta = layer_arrays(state.map, layer, state.cfg.layers)
+        meta.update(frames_mapped=state.mapped, stamp=time.time())
         return encode_layer(layer, arrays, meta)
 
     def publish(self) -> None:
-        s = self.state
+        state = self.state
         for layer in LAYERS:
             try:
-                s.session.put(s.keys.layers(layer), self.layer_bytes(layer))
+                state.session.put(state.keys.layers(layer), self.layer_bytes(layer))
             except Exception as e:
-                s.warn("layers", "publishing layer %s failed: %s", layer, e)
+                state.warn("layers", "publishing layer %s failed: %s", layer, e)
         for f in self.followers:
             f.layers_published()
 
-    def on_layer_get(self, query) -> None:
+    def on_layer_get(self, query: zenoh.Query) -> None:
         try:
             layer = str(query.key_expr).rsplit("/", 1)[-1]
             try:

@@ -29,8 +29,17 @@ from __future__ import annotations
 
 import collections
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace
+    from common.frame import Frame
+    from common.messages import QueryRequest, QueryResult
+    from mapper.service_config import MapperConfig
+    from mapper.state import MapperState
+    from semantic_map.map import RayFrontsMap
 
 log = logging.getLogger("rayfronts.mapper.rerun")
 
@@ -77,7 +86,7 @@ class RerunLogger:
         self._traj: dict[str, list] = {}
 
     @classmethod
-    def from_config(cls, cfg) -> "RerunLogger":
+    def from_config(cls, cfg: MapperConfig) -> RerunLogger:
         """From a :class:`mapper.service_config.MapperConfig` (``rerun`` and ``query`` sections)."""
         r = cfg.rerun
         return cls(r.app_id, file=r.file or None, serve_grpc=r.serve_grpc, grpc_port=r.grpc_port,
@@ -95,7 +104,7 @@ class RerunLogger:
     def _t(self, frame_no: int) -> None:
         self.rec.set_time("frame", sequence=int(frame_no))
 
-    def log_frame(self, frame, frame_no: int) -> None:
+    def log_frame(self, frame: Frame, frame_no: int) -> None:
         """Camera pose + pinhole, RGB (JPEG), depth of one mapped frame."""
         rr = self.rr
         self._t(frame_no)
@@ -123,7 +132,8 @@ class RerunLogger:
             self._robots.append(frame.robot)
             self._send_blueprint()
 
-    def log_map(self, frame_no: int, vox_xyz, vox_rgb, frontiers, ray_o, ray_d, vox_size: float = 0.3) -> None:
+    def log_map(self, frame_no: int, vox_xyz: np.ndarray, vox_rgb: np.ndarray, frontiers: np.ndarray,
+                ray_o: np.ndarray, ray_d: np.ndarray, vox_size: float = 0.3) -> None:
         rr = self.rr
         self._t(frame_no)
         self.rec.log("world/map/voxels", rr.Points3D(vox_xyz, colors=vox_rgb, radii=vox_size / 2))
@@ -136,7 +146,8 @@ class RerunLogger:
             self._eye = eye_for(vox_xyz)
             self._send_blueprint()
 
-    def log_query(self, res, m, fs, req, frame_no: int) -> None:
+    def log_query(self, res: QueryResult, m: RayFrontsMap, fs: FeatureSpace, req: QueryRequest,
+                  frame_no: int) -> None:
         """The query's own entity tree: voxel heat (with its colour scale and range), labelled
         clusters, the best rays and the outlines of the search-volume cones; a new query text
         becomes the selected one."""
@@ -220,50 +231,50 @@ class RerunLogger:
 class RerunOutput:
     """The mapper's rerun output over the shared state (``state``: :class:`mapper.state.MapperState`)."""
 
-    def __init__(self, state, logger: RerunLogger):
+    def __init__(self, state: MapperState, logger: RerunLogger) -> None:
         self.state = state
         self.logger = logger
         self._count: collections.Counter = collections.Counter()   # mapped frames per robot
 
-    def frame_mapped(self, robot: str, frame) -> None:
+    def frame_mapped(self, robot: str, frame: Frame) -> None:
         """Log every ``rerun.every_n_frames``-th mapped frame of ``robot`` (map worker thread)."""
-        s = self.state
+        state = self.state
         self._count[robot] += 1
-        if (self._count[robot] - 1) % max(1, s.cfg.rerun.every_n_frames) == 0:
+        if (self._count[robot] - 1) % max(1, state.cfg.rerun.every_n_frames) == 0:
             try:
-                self.logger.log_frame(frame, s.mapped)
+                self.logger.log_frame(frame, state.mapped)
             except Exception as e:
-                s.warn("rerun", "rerun logging failed: %s", e)
+                state.warn("rerun", "rerun logging failed: %s", e)
 
     def log_layers(self) -> None:
         """The whole map (voxels, frontiers, rays: no layer size caps); caller holds the map lock."""
         from mapper.service_map import layer_arrays
 
-        s = self.state
-        if s.map is None:
+        state = self.state
+        if state.map is None:
             return
-        big = type(s.cfg.layers)(rate_hz=0, max_voxels=10 ** 9, max_rays=10 ** 9)
-        vox, _ = layer_arrays(s.map, "voxels", big)
-        fr, _ = layer_arrays(s.map, "frontiers", big)
-        rays, _ = layer_arrays(s.map, "rays", big)
-        self.logger.log_map(s.mapped, vox["xyz"], vox["rgb"], fr["xyz"], rays["origin"], rays["direction"],
-                            vox_size=float(s.cfg.map.vox_size))
+        big = type(state.cfg.layers)(rate_hz=0, max_voxels=10 ** 9, max_rays=10 ** 9)
+        vox, _ = layer_arrays(state.map, "voxels", big)
+        fr, _ = layer_arrays(state.map, "frontiers", big)
+        rays, _ = layer_arrays(state.map, "rays", big)
+        self.logger.log_map(state.mapped, vox["xyz"], vox["rgb"], fr["xyz"], rays["origin"], rays["direction"],
+                            vox_size=float(state.cfg.map.vox_size))
 
     def layers_published(self) -> None:
-        s = self.state
+        state = self.state
         try:
-            with s.lock:
+            with state.lock:
                 self.log_layers()
         except Exception as e:
-            s.warn("rerun", "rerun layer logging failed: %s", e)
+            state.warn("rerun", "rerun layer logging failed: %s", e)
 
-    def query_answered(self, res, req) -> None:
-        s = self.state
+    def query_answered(self, res: QueryResult, req: QueryRequest) -> None:
+        state = self.state
         try:
-            with s.lock:
-                self.logger.log_query(res, s.map, s.space, req, s.mapped)
+            with state.lock:
+                self.logger.log_query(res, state.map, state.space, req, state.mapped)
         except Exception as e:
-            s.warn("rerun", "rerun query logging failed: %s", e)
+            state.warn("rerun", "rerun query logging failed: %s", e)
 
     def close(self) -> None:
         """Log the final map and close the recording."""

@@ -41,8 +41,13 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
+import numpy.typing as npt
+
+if TYPE_CHECKING:
+    import rerun.blueprint
 
 log = logging.getLogger("rayfronts.mapper.rerun")
 
@@ -59,7 +64,7 @@ def _lut() -> np.ndarray:
 HEAT_LUT = _lut()
 
 
-def heat_colors(scores) -> tuple[np.ndarray, float, float]:
+def heat_colors(scores: npt.ArrayLike) -> tuple[np.ndarray, float, float]:
     """(N×3 uint8 colours, low, high) of ``scores``, min-max normalised onto :data:`HEAT_LUT`."""
     s = np.asarray(scores, np.float32).reshape(-1)
     if s.size == 0:
@@ -86,7 +91,7 @@ def colour_scale_image(lo: float, hi: float, width: int = 320, height: int = 56)
     return img
 
 
-def thin_labels(xyz, scores, min_sep: float, max_labels: int = 5) -> list[int]:
+def thin_labels(xyz: npt.ArrayLike, scores: npt.ArrayLike, min_sep: float, max_labels: int = 5) -> list[int]:
     """Indices (score order, best first) of the points to label: each at least ``min_sep``
     from every point already labelled, at most ``max_labels``."""
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
@@ -100,12 +105,14 @@ def thin_labels(xyz, scores, min_sep: float, max_labels: int = 5) -> list[int]:
     return keep
 
 
-def cone_outlines(origins, dirs, half_angle_deg: float, length: float, n_lines: int = 8,
-                  rings=(0.25, 0.5, 1.0), ring_pts: int = 24) -> list[np.ndarray]:
+def cone_outlines(origins: npt.ArrayLike, dirs: npt.ArrayLike, half_angle_deg: float, length: float,
+                  n_lines: int = 8, rings: Sequence[float] = (0.25, 0.5, 1.0),
+                  ring_pts: int = 24) -> list[np.ndarray]:
     """Line strips outlining each cone (apex ``o``, axis ``d``, half-angle, cut at ``length``)."""
     th = math.radians(min(max(float(half_angle_deg), 0.1), 89.0))
     strips: list[np.ndarray] = []
-    for o, d in zip(np.asarray(origins, np.float64).reshape(-1, 3), np.asarray(dirs, np.float64).reshape(-1, 3)):
+    for o, d in zip(np.asarray(origins, np.float64).reshape(-1, 3), np.asarray(dirs, np.float64).reshape(-1, 3),
+                    strict=False):
         n = np.linalg.norm(d)
         if not np.isfinite(n) or n == 0:
             continue
@@ -133,7 +140,8 @@ def query_entity(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", label)[:48] or "query"
 
 
-def build_blueprint(selected: str | None, queries, robots, eye=None):
+def build_blueprint(selected: str | None, queries: Iterable[str], robots: Sequence[str],
+                    eye: tuple[list, list] | None = None) -> rerun.blueprint.Blueprint:
     """The operator blueprint: 3D map + ``selected`` query (others hidden), legend, colour
     scale and one camera view per robot."""
     import rerun.blueprint as rrb
@@ -161,7 +169,7 @@ def build_blueprint(selected: str | None, queries, robots, eye=None):
                          rrb.TimePanel(state="collapsed"), auto_views=False)
 
 
-def eye_for(xyz) -> tuple[list, list] | None:
+def eye_for(xyz: npt.ArrayLike) -> tuple[list, list] | None:
     """A camera looking down at the map from its south-west, far enough to see all of it."""
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     if len(xyz) == 0:

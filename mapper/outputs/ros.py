@@ -33,11 +33,18 @@ import re
 import threading
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from common.config import field_
+from common.zenoh_session import close_quietly, undeclare_all
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from semantic_map.map import RayFrontsMap
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -69,13 +76,17 @@ class RosSection:
 
 
 # ------------------------------------------------------------------ message builders
-def _stamp(T, t: float):
+#: message classes by name (:func:`common.ros2.cdr.types`)
+MsgTypes = dict[str, type]
+
+
+def _stamp(types: MsgTypes, t: float) -> Any:
     sec = int(t)
-    return T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
+    return types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
 
 
-def _header(T, frame_id: str, t: float):
-    return T["std_msgs/msg/Header"](stamp=_stamp(T, t), frame_id=frame_id)
+def _header(types: MsgTypes, frame_id: str, t: float) -> Any:
+    return types["std_msgs/msg/Header"](stamp=_stamp(types, t), frame_id=frame_id)
 
 
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
@@ -84,7 +95,8 @@ def pack_rgb(rgb: np.ndarray) -> np.ndarray:
     return ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).astype("<u4").view("<f4")
 
 
-def pointcloud2(T, frame_id: str, t: float, xyz: np.ndarray, extra: dict[str, np.ndarray] | None = None):
+def pointcloud2(types: MsgTypes, frame_id: str, t: float, xyz: np.ndarray,
+                extra: dict[str, np.ndarray] | None = None) -> Any:
     """PointCloud2 with float32 fields x, y, z and then ``extra`` (name → (N,) float32), dense,
     little endian, one row."""
     xyz = np.asarray(xyz, "<f4").reshape(-1, 3)
@@ -95,15 +107,15 @@ def pointcloud2(T, frame_id: str, t: float, xyz: np.ndarray, extra: dict[str, np
     data[:, :3] = xyz
     for i, v in enumerate(extra.values()):
         data[:, 3 + i] = np.asarray(v, "<f4").reshape(-1)
-    PF = T["sensor_msgs/msg/PointField"]
-    fields = [PF(name=nm, offset=4 * i, datatype=PF.FLOAT32, count=1) for i, nm in enumerate(names)]
+    point_field: Any = types["sensor_msgs/msg/PointField"]
+    fields = [point_field(name=nm, offset=4 * i, datatype=point_field.FLOAT32, count=1) for i, nm in enumerate(names)]
     step = 4 * len(names)
-    return T[POINTCLOUD2](header=_header(T, frame_id, t), height=1, width=n, fields=fields, is_bigendian=False,
+    return types[POINTCLOUD2](header=_header(types, frame_id, t), height=1, width=n, fields=fields, is_bigendian=False,
                           point_step=step, row_step=step * n,
                           data=np.ascontiguousarray(data).view(np.uint8).reshape(-1), is_dense=True)
 
 
-def weight_colour(w: np.ndarray) -> np.ndarray:
+def weight_colour(w: npt.ArrayLike) -> np.ndarray:
     """Weights → (N, 4) RGBA in [0, 1]: blue (lightest) → green → red (heaviest), scaled to the max."""
     w = np.asarray(w, np.float64).reshape(-1)
     a = w / w.max() if len(w) and w.max() > 0 else np.zeros_like(w)
@@ -113,35 +125,39 @@ def weight_colour(w: np.ndarray) -> np.ndarray:
     return np.stack([r, g, b, np.ones_like(a)], 1)
 
 
-def ray_markers(T, frame_id: str, t: float, origin, direction, weight, length: float, distro: str):
+def ray_markers(types: MsgTypes, frame_id: str, t: float, origin: npt.ArrayLike, direction: npt.ArrayLike,
+                weight: npt.ArrayLike, length: float, distro: str) -> Any:
     """MarkerArray: DELETEALL, then one ARROW per ray (points = origin, origin + length·dir)."""
-    M = T["visualization_msgs/msg/Marker"]
-    V3, P, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"]
-    C = T["std_msgs/msg/ColorRGBA"]
-    hdr = _header(T, frame_id, t)
-    pose = T["geometry_msgs/msg/Pose"](position=P(x=0.0, y=0.0, z=0.0), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0))
-    zero = T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)
+    marker_t: Any = types["visualization_msgs/msg/Marker"]
+    vector3, point = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Point"]
+    quaternion, colour_rgba = types["geometry_msgs/msg/Quaternion"], types["std_msgs/msg/ColorRGBA"]
+    hdr = _header(types, frame_id, t)
+    pose = types["geometry_msgs/msg/Pose"](position=point(x=0.0, y=0.0, z=0.0),
+                                           orientation=quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+    zero = types["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)
     extra = {}
-    if "texture" in M.__dataclass_fields__:  # Jazzy and later
-        extra = dict(texture_resource="", uv_coordinates=[], mesh_file=T["visualization_msgs/msg/MeshFile"](
+    if "texture" in marker_t.__dataclass_fields__:  # Jazzy and later
+        extra = dict(texture_resource="", uv_coordinates=[], mesh_file=types["visualization_msgs/msg/MeshFile"](
             filename="", data=np.zeros(0, np.uint8)),
-            texture=T["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=np.zeros(0, np.uint8)))
+            texture=types["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=np.zeros(0, np.uint8)))
 
-    def marker(i, action, points=(), colour=(0, 0, 0, 0)):
-        return M(header=hdr, ns="rays", id=int(i), type=M.ARROW, action=action, pose=pose,
-                 scale=V3(x=0.05, y=0.12, z=0.2), color=C(r=float(colour[0]), g=float(colour[1]),
-                                                            b=float(colour[2]), a=float(colour[3])),
-                 lifetime=zero, frame_locked=False, points=list(points), colors=[], text="", mesh_resource="",
-                 mesh_use_embedded_materials=False, **extra)
+    def marker(i: int, action: int, points: Sequence[Any] = (),
+               colour: Sequence[float] = (0, 0, 0, 0)) -> Any:
+        return marker_t(header=hdr, ns="rays", id=int(i), type=marker_t.ARROW, action=action, pose=pose,
+                        scale=vector3(x=0.05, y=0.12, z=0.2),
+                        color=colour_rgba(r=float(colour[0]), g=float(colour[1]), b=float(colour[2]),
+                                          a=float(colour[3])),
+                        lifetime=zero, frame_locked=False, points=list(points), colors=[], text="",
+                        mesh_resource="", mesh_use_embedded_materials=False, **extra)
 
     o = np.asarray(origin, np.float64).reshape(-1, 3)
     tip = o + length * np.asarray(direction, np.float64).reshape(-1, 3)
     cols = weight_colour(weight)
-    markers = [marker(0, M.DELETEALL)]
+    markers = [marker(0, marker_t.DELETEALL)]
     for i in range(len(o)):
-        markers.append(marker(i + 1, M.ADD, (P(x=o[i, 0], y=o[i, 1], z=o[i, 2]),
-                                             P(x=tip[i, 0], y=tip[i, 1], z=tip[i, 2])), cols[i]))
-    return T[MARKER_ARRAY](markers=markers)
+        markers.append(marker(i + 1, marker_t.ADD, (point(x=o[i, 0], y=o[i, 1], z=o[i, 2]),
+                                                    point(x=tip[i, 0], y=tip[i, 1], z=tip[i, 2])), cols[i]))
+    return types[MARKER_ARRAY](markers=markers)
 
 
 def query_id(text: str) -> str:
@@ -150,7 +166,7 @@ def query_id(text: str) -> str:
     return f"ros_{slug or 'query'}"
 
 
-def ray_arrays_weighted(m, max_rays: int):
+def ray_arrays_weighted(m: RayFrontsMap, max_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ray origins, unit directions and weights (subsampled like the rays layer: seeded)."""
     rs = m.ray_store
     o = rs.origins().detach().cpu().numpy().astype(np.float32).reshape(-1, 3)
@@ -167,7 +183,9 @@ class RosOutput:
     """Publishes the shared map's layers and standing queries as ROS 2 topics; adds standing
     queries from ``<prefix>/query_text``. ``start()`` declares everything, ``close()`` undoes it."""
 
-    def __init__(self, state, cfg: RosSection | None = None):
+    # state: the mapper.state.MapperState (not imported for the annotation: mapper.service_config,
+    # which mapper.state's annotations import, imports this module)
+    def __init__(self, state, cfg: RosSection | None = None) -> None:
         from common.ros2 import cdr
         from common.ros2.keys import check_domain, check_layout, normalize_topic
 
@@ -223,20 +241,20 @@ class RosOutput:
     def start(self) -> "RosOutput":
         from common.ros2.keys import subscribe_key
 
-        s = self.state
+        state = self.state
         if self.cfg.connect:
             from common.zenoh_session import ZenohConfig, open_session
 
             self._own_session = open_session(ZenohConfig(mode="client", connect=list(self.cfg.connect)),
-                                             stop=s.stop, default_mode="client")
-        self.session = self._own_session or s.session
+                                             stop=state.stop, default_mode="client")
+        self.session = self._own_session or state.session
         self._token("NN")
         for topic, msgtype in self.topics.values():
             self._publisher(topic, msgtype)
         self._entities.append(self.session.declare_subscriber(
             subscribe_key(self.query_text_topic, self.cfg.keys, self.domain), self._on_query_text))
         self._token("MS", self.query_text_topic, STRING)
-        self._entities.append(self.session.declare_subscriber(s.keys.mapper_queries_all, self._on_standing))
+        self._entities.append(self.session.declare_subscriber(state.keys.mapper_queries_all, self._on_standing))
         if self.cfg.rate_hz > 0:
             self._thread = threading.Thread(target=self._loop, name="mapper-ros", daemon=True)
             self._thread.start()
@@ -252,17 +270,9 @@ class RosOutput:
         with self._lock:
             ents, self._entities = self._entities, []
             self._pubs = {}
-        for e in reversed(ents):
-            try:
-                e.undeclare()
-            except Exception:
-                pass
-        if self._own_session is not None:
-            try:
-                self._own_session.close()
-            except Exception:
-                pass
-            self._own_session = None
+        undeclare_all(reversed(ents))
+        close_quietly(self._own_session)
+        self._own_session = None
         self.session = None
 
     # -------------------------------------------------------------- publishing
@@ -286,13 +296,13 @@ class RosOutput:
         """{topic: (type, message)} for the current map (None before the map exists)."""
         from mapper.service_map import layer_arrays
 
-        s = self.state
-        with s.lock:
-            if s.map is None:
+        state = self.state
+        with state.lock:
+            if state.map is None:
                 return {}
-            vox, _ = layer_arrays(s.map, "voxels", s.cfg.layers)
-            fr, _ = layer_arrays(s.map, "frontiers", s.cfg.layers)
-            o, d, w = ray_arrays_weighted(s.map, self.cfg.max_rays)
+            vox, _ = layer_arrays(state.map, "voxels", state.cfg.layers)
+            fr, _ = layer_arrays(state.map, "frontiers", state.cfg.layers)
+            o, d, w = ray_arrays_weighted(state.map, self.cfg.max_rays)
         t, T, fid = time.time(), self.T, self.cfg.frame_id
         return {
             self.topics["voxels"][0]: (POINTCLOUD2, pointcloud2(T, fid, t, vox["xyz"], {"rgb": pack_rgb(vox["rgb"])})),
@@ -306,20 +316,20 @@ class RosOutput:
             self._put(topic, msgtype, msg)
 
     def _loop(self) -> None:
-        s = self.state
+        state = self.state
         period = 1.0 / self.cfg.rate_hz
-        while not self._stop.wait(period) and not s.stop.is_set():
-            ver = (s.version, s.flushed_version)  # a flush changes the map without bumping version
-            if s.map is None or ver == self._last_version:
+        while not self._stop.wait(period) and not state.stop.is_set():
+            ver = (state.version, state.flushed_version)  # a flush changes the map without bumping version
+            if state.map is None or ver == self._last_version:
                 continue
             try:
                 self._last_version = ver
                 self.publish_layers()
             except Exception as e:
                 self.errors += 1
-                s.warn("ros", "ROS 2 layer publishing failed: %s", e)
+                state.warn("ros", "ROS 2 layer publishing failed: %s", e)
 
-    def _on_standing(self, sample) -> None:
+    def _on_standing(self, sample: zenoh.Sample) -> None:
         """A standing query result (``mapper/queries/<id>``) → ``<prefix>/query/<id>`` PointCloud2."""
         from common.messages import decode_query_result
 
@@ -333,21 +343,21 @@ class RosOutput:
             self.errors += 1
             self.state.warn("ros", "ROS 2 standing-query output failed: %s", e)
 
-    def _on_query_text(self, sample) -> None:
+    def _on_query_text(self, sample: zenoh.Sample) -> None:
         """std_msgs/String on ``<prefix>/query_text`` → a standing text query."""
         from common.messages import QueryRequest
 
-        s = self.state
+        state = self.state
         try:
             msg = self.cdr.deserialize(sample.payload.to_bytes(), STRING)
             text = str(msg.data).strip()
             if not text:
                 raise ValueError("empty query text")
             req = QueryRequest(text=text, top_k=int(self.cfg.query_top_k), standing=True, id=query_id(text)).validate()
-            s.standing[req.id] = req
-            s.standing_due.set()
+            state.standing[req.id] = req
+            state.standing_due.set()
             log.info("ROS 2: standing query %r from %s (results on %s/%s)", text, self.query_text_topic,
                      self.query_topic_prefix, req.id)
         except Exception as e:
             self.errors += 1
-            s.warn("ros-query", "ROS 2 query on %s rejected: %s", self.query_text_topic, e)
+            state.warn("ros-query", "ROS 2 query on %s rejected: %s", self.query_text_topic, e)

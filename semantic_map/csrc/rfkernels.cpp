@@ -29,6 +29,8 @@
 #include <nanobind/ndarray.h>
 #include <nanobind/stl/tuple.h>
 
+#include "numpy_out.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -47,13 +49,6 @@ using F32In = nb::ndarray<const float, nb::ndim<1>, nb::c_contig, nb::device::cp
 using F64x3In = nb::ndarray<const double, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
 using I64x3In = nb::ndarray<const int64_t, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
 
-template <typename T>
-nb::ndarray<nb::numpy, T> to_numpy(std::vector<T>&& v, std::initializer_list<size_t> shape) {
-    if (v.capacity() == 0) v.reserve(1);  // never hand out a null data pointer
-    auto* heap = new std::vector<T>(std::move(v));
-    nb::capsule owner(heap, [](void* p) noexcept { delete static_cast<std::vector<T>*>(p); });
-    return nb::ndarray<nb::numpy, T>(heap->data(), shape, owner);
-}
 
 inline uint64_t mix(uint64_t x) {  // splitmix64 finaliser
     x ^= x >> 31;

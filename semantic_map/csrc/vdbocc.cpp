@@ -15,6 +15,8 @@
 #include <nanobind/stl/string.h>
 #include <nanobind/stl/tuple.h>
 
+#include "numpy_out.h"
+
 #include <openvdb/openvdb.h>
 #include <openvdb/io/File.h>
 #include <openvdb/tools/Prune.h>
@@ -53,15 +55,6 @@ using I32In = nb::ndarray<const int32_t, nb::ndim<1>, nb::c_contig, nb::device::
 using I8In = nb::ndarray<const int8_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 using F64x3In = nb::ndarray<const double, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
 
-// Hand a std::vector to numpy without copying: the vector lives on the heap, owned by a
-// capsule that numpy keeps alive. Needs the GIL.
-template <typename T>
-nb::ndarray<nb::numpy, T> to_numpy(std::vector<T>&& v, std::initializer_list<size_t> shape) {
-    if (v.capacity() == 0) v.reserve(1);  // never hand out a null data pointer
-    auto* heap = new std::vector<T>(std::move(v));
-    nb::capsule owner(heap, [](void* p) noexcept { delete static_cast<std::vector<T>*>(p); });
-    return nb::ndarray<nb::numpy, T>(heap->data(), shape, owner);
-}
 
 inline void classify(bool on, int8_t v, int& unobs, int& freec, int& occ) {
     if (!on || v == 0) ++unobs;

@@ -9,11 +9,15 @@ backends give identical results. Voxel indices: ``floor(xyz / vox)``
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 from .base import OccupancyGrid
 from .torch_backend import TorchOccupancy
 from .vdb_backend import VdbOccupancy
 from .vdb_backend import available as vdb_available
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["OccupancyGrid", "TorchOccupancy", "VdbOccupancy", "make_occupancy",
            "backend_name", "from_state", "vdb_available"]
@@ -41,7 +45,7 @@ def backend_name(backend: str = "auto") -> str:
 
 
 def make_occupancy(vox: float, lo: int = -5, hi: int = 30, backend: str = "auto",
-                   device="cpu") -> OccupancyGrid:
+                   device: str | torch.device = "cpu") -> OccupancyGrid:
     """New empty occupancy grid with voxel size ``vox`` (m) and clamp bounds [lo, hi]."""
     name = backend_name(backend)
     cls = VdbOccupancy if name == "vdb" else TorchOccupancy

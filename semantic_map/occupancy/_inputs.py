@@ -14,6 +14,8 @@ import torch
 
 from common.conventions import voxel_index
 
+from .base import BBox, GridInput
+
 BITS = 21
 OFFSET = 1 << (BITS - 1)
 IJK_MIN = -OFFSET
@@ -21,7 +23,7 @@ IJK_MAX = OFFSET - 1
 _MASK = (1 << BITS) - 1
 
 
-def as_tensor(x, name: str) -> torch.Tensor:
+def as_tensor(x: GridInput, name: str) -> torch.Tensor:
     """numpy array / torch tensor / nested sequence → CPU torch tensor (no copy if possible)."""
     if isinstance(x, torch.Tensor):
         if x.device.type != "cpu":
@@ -33,7 +35,7 @@ def as_tensor(x, name: str) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(arr))
 
 
-def as_ijk(ijk, name: str = "ijk") -> torch.Tensor:
+def as_ijk(ijk: GridInput, name: str = "ijk") -> torch.Tensor:
     """Validate voxel indices → contiguous int64 (N, 3) CPU tensor."""
     t = as_tensor(ijk, name)
     if t.ndim == 1 and t.numel() == 0:
@@ -49,7 +51,7 @@ def as_ijk(ijk, name: str = "ijk") -> torch.Tensor:
     return t
 
 
-def as_inc(inc, n: int) -> torch.Tensor:
+def as_inc(inc: GridInput | int, n: int) -> torch.Tensor:
     """Increment per row (scalar or (N,)) → int64 (N,) tensor."""
     if isinstance(inc, (int, np.integer)) and not isinstance(inc, bool):
         t = torch.full((n,), int(inc), dtype=torch.int64)
@@ -78,14 +80,17 @@ def check_bounds(vox: float, lo: int, hi: int) -> tuple[float, int, int]:
     return vox, lo, hi
 
 
-def check_tolerance(tolerance) -> int:
+def check_tolerance(tolerance: int) -> int:
     tol = int(tolerance)
     if tol != tolerance or not 0 <= tol <= 127:
         raise ValueError(f"prune tolerance must be an integer in [0, 127], got {tolerance!r}")
     return tol
 
 
-def check_frontier_args(min_unobserved, min_free, min_occupied, radius, bbox):
+def check_frontier_args(min_unobserved: int, min_free: int, min_occupied: int, radius: int, bbox: BBox | None
+                        ) -> tuple[tuple[int, int, int], int, tuple[tuple[int, ...], tuple[int, ...]] | None]:
+    """``((min_unobserved, min_free, min_occupied), radius, bbox)`` as ints, the box clipped to
+    the representable range; raises ValueError for a bad radius or box."""
     radius = int(radius)
     if not 1 <= radius <= 8:
         raise ValueError(f"frontier radius must be in [1, 8] voxels, got {radius}")
@@ -98,8 +103,8 @@ def check_frontier_args(min_unobserved, min_free, min_occupied, radius, bbox):
             hi_b = [int(v) for v in np.asarray(hi_b).reshape(3)]
         except Exception as e:  # noqa: BLE001 - re-raised with a clear message
             raise ValueError(f"bbox must be (ijk_min, ijk_max), two 3-vectors of ints: {e}") from e
-        bbox = (tuple(max(v, IJK_MIN) for v in lo_b), tuple(min(v, IJK_MAX) for v in hi_b))
-    return mins, radius, bbox
+        return mins, radius, (tuple(max(v, IJK_MIN) for v in lo_b), tuple(min(v, IJK_MAX) for v in hi_b))
+    return mins, radius, None
 
 
 def pack(ijk: torch.Tensor) -> torch.Tensor:
@@ -116,7 +121,8 @@ def unpack(keys: torch.Tensor) -> torch.Tensor:
     return torch.stack([i, j, k], dim=1) - OFFSET
 
 
-def prepare_rays(origins, directions, max_dist: float, vox: float):
+def prepare_rays(origins: GridInput, directions: GridInput, max_dist: float, vox: float
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
     """Validate rays → (origins f64 (N,3), unit directions f64 (N,3), origin voxels int64,
     max_dist). Directions are normalised; a zero or non-finite direction is an error."""
     o = as_tensor(origins, "origins").to(torch.float64)

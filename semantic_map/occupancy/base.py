@@ -13,9 +13,15 @@ sequence of calls; the tests use the torch backend as the oracle for the extensi
 """
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Protocol, Union
 
+import numpy.typing as npt
 import torch
+
+#: what the grid methods accept: a CPU torch tensor, a numpy array or a nested sequence
+GridInput = Union[torch.Tensor, npt.ArrayLike]
+#: a frontier box ``(ijk_min, ijk_max)``, inclusive, each a 3-vector of ints
+BBox = tuple[GridInput, GridInput]
 
 
 class OccupancyGrid(Protocol):
@@ -23,17 +29,17 @@ class OccupancyGrid(Protocol):
     lo: int  # clamp lower bound (e.g. -5); the paper's -max_empty_cnt
     hi: int  # clamp upper bound (e.g. 30); the paper's max_occ_cnt (<= 127)
 
-    def update(self, ijk, inc) -> None:
+    def update(self, ijk: GridInput, inc: GridInput | int) -> None:
         """``value = clamp(value + inc, lo, hi)`` per row, activating the voxel.
 
         ``ijk`` (N, 3) int; ``inc`` (N,) int or a scalar int. Rows are applied in order,
         clamping after each (duplicates allowed and applied sequentially)."""
 
-    def query(self, ijk) -> torch.Tensor:
+    def query(self, ijk: GridInput) -> torch.Tensor:
         """(N,) int8 values; 0 where unobserved/inactive. Sees pruned tiles."""
 
     def frontiers(self, min_unobserved: int, min_free: int, min_occupied: int = 0,
-                  radius: int = 1, bbox: tuple | None = None) -> torch.Tensor:
+                  radius: int = 1, bbox: BBox | None = None) -> torch.Tensor:
         """(K, 3) int64 indices of free voxels (value < 0) whose (2r+1)^3 neighbourhood,
         **self included**, holds >= min_unobserved unobserved, >= min_free free and
         >= min_occupied occupied cells. ``bbox = (ijk_min, ijk_max)`` inclusive limits the
@@ -53,7 +59,7 @@ class OccupancyGrid(Protocol):
     def active(self) -> tuple[torch.Tensor, torch.Tensor]:
         """All active voxels expanded from tiles: ((M, 3) int64 ijk sorted, (M,) int8)."""
 
-    def first_blocked(self, origins, directions, max_dist: float) -> torch.Tensor:
+    def first_blocked(self, origins: GridInput, directions: GridInput, max_dist: float) -> torch.Tensor:
         """For each ray (world origins (N, 3), unit directions (N, 3), metres), the distance
         along the ray at which it first enters a voxel with value >= 0 (unobserved or
         occupied), by exact voxel traversal (Amanatides–Woo) starting in the origin's

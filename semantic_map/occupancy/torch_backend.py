@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
 from ._inputs import (
     IJK_MAX,
@@ -32,6 +31,7 @@ from ._inputs import (
     prepare_rays,
     unpack,
 )
+from .base import BBox, GridInput
 
 _BRICK_LOG2 = 4
 _BRICK = 1 << _BRICK_LOG2   # frontier brick edge (voxels); must exceed 2 * max radius
@@ -45,7 +45,7 @@ class TorchOccupancy:
 
     backend = "torch"
 
-    def __init__(self, vox: float, lo: int = -5, hi: int = 30, device="cpu"):
+    def __init__(self, vox: float, lo: int = -5, hi: int = 30, device: str | torch.device = "cpu") -> None:
         self.vox, self.lo, self.hi = check_bounds(vox, lo, hi)
         # The map lives and is computed on `device`; inputs/outputs are CPU tensors.
         self.device = torch.device(device)
@@ -77,7 +77,7 @@ class TorchOccupancy:
             out[found] = self._vals[pos[found]]
         return out
 
-    def query(self, ijk) -> torch.Tensor:
+    def query(self, ijk: GridInput) -> torch.Tensor:
         ijk = as_ijk(ijk).to(self.device)
         return self._values_at_keys(pack(ijk)).cpu()
 
@@ -105,7 +105,7 @@ class TorchOccupancy:
         self._vals = vals.to(torch.int8)[order].contiguous()
 
     # ------------------------------------------------------------------ update
-    def update(self, ijk, inc) -> None:
+    def update(self, ijk: GridInput, inc: GridInput | int) -> None:
         dev = self.device
         ijk = as_ijk(ijk).to(dev)
         n = ijk.shape[0]
@@ -213,7 +213,7 @@ class TorchOccupancy:
 
     # ------------------------------------------------------------------ frontiers
     def frontiers(self, min_unobserved: int, min_free: int, min_occupied: int = 0,
-                  radius: int = 1, bbox: tuple | None = None) -> torch.Tensor:
+                  radius: int = 1, bbox: BBox | None = None) -> torch.Tensor:
         (mu, mf, mo), r, bbox = check_frontier_args(min_unobserved, min_free, min_occupied,
                                                     radius, bbox)
         dev = self.device
@@ -257,18 +257,20 @@ class TorchOccupancy:
         ext = (local >= B - r).to(torch.int64) - (local < r).to(torch.int64)  # -1/0/+1 per axis
         border = torch.nonzero((ext != 0).any(dim=1)).squeeze(1)
         ext_b = ext[border]
-        pv, pb, pflat = [], [], []
+        parts_v: list[torch.Tensor] = []
+        parts_b: list[torch.Tensor] = []
+        parts_flat: list[torch.Tensor] = []
 
-        def add(idx, dvec):
+        def add(idx: torch.Tensor, dvec: torch.Tensor | None) -> None:
             tb = vbrick[idx] if dvec is None else vbrick[idx] + dvec
             tk = pack(tb.clamp(IJK_MIN >> _BRICK_LOG2, IJK_MAX >> _BRICK_LOG2))
             pos = torch.searchsorted(bkeys, tk).clamp_max(nb - 1)
             ok = bkeys[pos] == tk
             idx, pos = idx[ok], pos[ok]
             loc = local[idx] + r if dvec is None else local[idx] - dvec[ok] * B + r
-            pv.append(idx)
-            pb.append(pos)
-            pflat.append((loc[:, 0] * P + loc[:, 1]) * P + loc[:, 2])
+            parts_v.append(idx)
+            parts_b.append(pos)
+            parts_flat.append((loc[:, 0] * P + loc[:, 1]) * P + loc[:, 2])
 
         add(torch.arange(ijk.shape[0], device=dev), None)
         for sub in range(1, 8):   # non-empty subsets of the axes that get the halo offset
@@ -277,20 +279,22 @@ class TorchOccupancy:
             sel = torch.nonzero(m).squeeze(1)
             if sel.numel():
                 add(border[sel], ext_b[sel] * axes)
-        pv, pb, pflat = torch.cat(pv), torch.cat(pb), torch.cat(pflat)
+        pv, pb, pflat = torch.cat(parts_v), torch.cat(parts_b), torch.cat(parts_flat)
         cl = cand - cbrick * B
         cflat = (cl[:, 0] * B + cl[:, 1]) * B + cl[:, 2]
         keep = torch.zeros(cand.shape[0], dtype=torch.bool, device=dev)
         chunk = max(1, _MAX_BRICK_CELLS // (P ** 3))
+        psel: slice | torch.Tensor
+        csel: slice | torch.Tensor
         for b0 in range(0, nb, chunk):
             b1 = min(nb, b0 + chunk)
             if b0 == 0 and b1 == nb:
-                sel, csel = slice(None), slice(None)
+                psel, csel = slice(None), slice(None)
             else:
-                sel = (pb >= b0) & (pb < b1)
+                psel = (pb >= b0) & (pb < b1)
                 csel = (cand_b >= b0) & (cand_b < b1)
             vol = torch.zeros((b1 - b0) * P ** 3, dtype=torch.int8, device=dev)
-            vol[(pb[sel] - b0) * P ** 3 + pflat[sel]] = sign[pv[sel]]
+            vol[(pb[psel] - b0) * P ** 3 + pflat[psel]] = sign[pv[psel]]
             vol = vol.view(b1 - b0, P, P, P)
             at = (cand_b[csel] - b0) * B ** 3 + cflat[csel]
             nfree = _box_count(vol == -1, r).view(-1)[at]
@@ -311,7 +315,7 @@ class TorchOccupancy:
         return s0, s1
 
     # ------------------------------------------------------------------ rays
-    def first_blocked(self, origins, directions, max_dist: float) -> torch.Tensor:
+    def first_blocked(self, origins: GridInput, directions: GridInput, max_dist: float) -> torch.Tensor:
         o, d, v, max_dist = prepare_rays(origins, directions, max_dist, self.vox)
         dev = self.device
         return _dda_first_blocked(self._values_at_ijk, o.to(dev), d.to(dev), v.to(dev),
@@ -329,9 +333,9 @@ def _box_count(mask: torch.Tensor, r: int) -> torch.Tensor:
     """(nb, P, P, P) bool → (nb, P-2r, P-2r, P-2r) counts over the (2r+1)³ cube (exact)."""
     k = 2 * r + 1
     x = mask.to(torch.float32).unsqueeze(1)
-    x = F.avg_pool3d(x, (k, 1, 1), stride=1, divisor_override=1)
-    x = F.avg_pool3d(x, (1, k, 1), stride=1, divisor_override=1)
-    x = F.avg_pool3d(x, (1, 1, k), stride=1, divisor_override=1)
+    x = torch.nn.functional.avg_pool3d(x, (k, 1, 1), stride=1, divisor_override=1)
+    x = torch.nn.functional.avg_pool3d(x, (1, k, 1), stride=1, divisor_override=1)
+    x = torch.nn.functional.avg_pool3d(x, (1, 1, k), stride=1, divisor_override=1)
     return x.squeeze(1).round().to(torch.int32)
 
 

@@ -8,11 +8,13 @@ both backends return identical tensors.
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 import torch
 
 from ._inputs import as_ijk, as_inc, check_bounds, check_frontier_args, check_tolerance, pack, prepare_rays
+from .base import BBox, GridInput
 
 try:  # the extension is optional (built only where OpenVDB was found)
     from semantic_map import _vdbocc  # type: ignore[attr-defined]
@@ -42,7 +44,8 @@ class VdbOccupancy:
 
     backend = "vdb"
 
-    def __init__(self, vox: float, lo: int = -5, hi: int = 30, device="cpu", _grid=None):
+    def __init__(self, vox: float, lo: int = -5, hi: int = 30, device: str | torch.device = "cpu",
+                 _grid: Any = None) -> None:
         if _vdbocc is None:
             raise ImportError(f"the OpenVDB occupancy extension semantic_map._vdbocc is not built "
                               f"({IMPORT_ERROR}); install libopenvdb-dev libboost-iostreams-dev "
@@ -68,25 +71,25 @@ class VdbOccupancy:
     def memory_bytes(self) -> int:
         return int(self._g.mem_bytes())
 
-    def update(self, ijk, inc) -> None:
+    def update(self, ijk: GridInput, inc: GridInput | int) -> None:
         ijk = as_ijk(ijk)
         inc = as_inc(inc, ijk.shape[0])
         if ijk.shape[0]:
             self._g.update(_np_i32(ijk), _np_i32(inc))
 
-    def query(self, ijk) -> torch.Tensor:
+    def query(self, ijk: GridInput) -> torch.Tensor:
         ijk = as_ijk(ijk)
         if ijk.shape[0] == 0:
             return torch.empty(0, dtype=torch.int8)
         return torch.from_numpy(np.asarray(self._g.query(_np_i32(ijk))))
 
     def frontiers(self, min_unobserved: int, min_free: int, min_occupied: int = 0,
-                  radius: int = 1, bbox: tuple | None = None) -> torch.Tensor:
+                  radius: int = 1, bbox: BBox | None = None) -> torch.Tensor:
         (mu, mf, mo), r, bbox = check_frontier_args(min_unobserved, min_free, min_occupied,
                                                     radius, bbox)
         use_bbox = bbox is not None
-        bmin = tuple(bbox[0]) if use_bbox else (0, 0, 0)
-        bmax = tuple(bbox[1]) if use_bbox else (0, 0, 0)
+        bmin = tuple(bbox[0]) if bbox is not None else (0, 0, 0)
+        bmax = tuple(bbox[1]) if bbox is not None else (0, 0, 0)
         out = self._g.frontiers(mu, mf, mo, r, use_bbox, bmin, bmax)
         return _sorted(out)[0]
 
@@ -97,7 +100,7 @@ class VdbOccupancy:
         ijk, vals = self._g.active()
         return _sorted(ijk, vals)
 
-    def first_blocked(self, origins, directions, max_dist: float) -> torch.Tensor:
+    def first_blocked(self, origins: GridInput, directions: GridInput, max_dist: float) -> torch.Tensor:
         o, d, v, max_dist = prepare_rays(origins, directions, max_dist, self.vox)
         if o.shape[0] == 0:
             return torch.empty(0, dtype=torch.float64)

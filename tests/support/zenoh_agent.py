@@ -1,9 +1,10 @@
 """Test helper (no tests here): a Zenoh process driven line by line over stdin/stdout.
 
-As a child (``python tests/test_zenoh_agent.py '<ZenohConfig as JSON>'``) it opens a real
+As a child (``python tests/support/zenoh_agent.py '<ZenohConfig as JSON>'``) it opens a real
 Zenoh session with :mod:`common.zenoh_session` and executes JSON commands read from stdin,
 answering one JSON line per command on stdout. As a module it provides :class:`Agent`, the
-parent-side handle the network tests use, and :func:`agents` to close them all.
+parent-side handle the network tests use, and :class:`Router`; the ``closer`` fixture
+(tests/conftest.py) closes them all.
 
 Commands: ``sub``/``lsub`` (declare a (liveliness) subscriber recording what arrives),
 ``put``, ``queryable`` (reply with a fixed payload), ``get``/``lget`` (query, liveliness
@@ -21,12 +22,110 @@ import threading
 import time
 from pathlib import Path
 
-import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 # --------------------------------------------------------------------------- child side
+class _Child:
+    """The child's session and what its commands declared; one method per command."""
+
+    def __init__(self, guard, out):
+        self.guard, self.s, self.out = guard, guard.session, out
+        self.got: dict[str, list] = {}
+        self.cond = threading.Condition()
+        self.tokens: dict[str, object] = {}
+
+    def say(self, obj) -> None:
+        self.out.write(json.dumps(obj) + "\n")
+        self.out.flush()
+
+    def recorder(self, name):
+        def cb(sample):
+            with self.cond:
+                self.got[name].append({"key": str(sample.key_expr), "kind": str(sample.kind),
+                                       "payload": sample.payload.to_string()})
+                self.cond.notify_all()
+        return cb
+
+    def op_sub(self, c):
+        self.got[c["name"]] = []
+        self.guard.add(self.s.declare_subscriber(c["key"], self.recorder(c["name"])))
+        self.say({"ok": True})
+
+    def op_lsub(self, c):
+        self.got[c["name"]] = []
+        self.guard.add(self.s.liveliness().declare_subscriber(c["key"], self.recorder(c["name"]),
+                                                              history=c.get("history", True)))
+        self.say({"ok": True})
+
+    def op_put(self, c):
+        self.s.put(c["key"], c.get("payload", "x").encode())
+        self.say({"ok": True})
+
+    def op_queryable(self, c):
+        payload = c.get("reply", "reply")
+
+        def on_query(q, payload=payload):
+            with q:
+                q.reply(q.key_expr, payload.encode())
+        self.guard.add(self.s.declare_queryable(c["key"], on_query))
+        self.say({"ok": True})
+
+    def op_get(self, c, liveliness: bool = False):
+        src = self.s.liveliness() if liveliness else self.s
+        kw = {"timeout": float(c.get("timeout", 3.0))}
+        if not liveliness:
+            kw["payload"] = c.get("payload", "")
+        res = []
+        for r in src.get(c["key"], **kw):
+            if r.ok is not None:
+                res.append({"key": str(r.ok.key_expr), "payload": r.ok.payload.to_string()})
+            else:
+                res.append({"err": r.err.payload.to_string()})
+        self.say({"ok": True, "replies": res})
+
+    def op_lget(self, c):
+        self.op_get(c, liveliness=True)
+
+    def op_token(self, c):
+        self.tokens[c["key"]] = self.guard.add(self.s.liveliness().declare_token(c["key"]))
+        self.say({"ok": True})
+
+    def op_untoken(self, c):
+        self.tokens.pop(c["key"]).undeclare()
+        self.say({"ok": True})
+
+    def op_received(self, c):
+        n, deadline = int(c.get("n", 0)), time.monotonic() + float(c.get("timeout", 0.0))
+        with self.cond:
+            while len(self.got[c["name"]]) < n and time.monotonic() < deadline:
+                self.cond.wait(max(deadline - time.monotonic(), 0.0))
+            self.say({"ok": True, "samples": list(self.got[c["name"]])})
+
+    def op_info(self, c):
+        self.say({"ok": True, "routers": [str(z) for z in self.s.info.routers_zid()],
+                  "peers": [str(z) for z in self.s.info.peers_zid()]})
+
+    def serve(self, lines) -> None:
+        """Execute one JSON command per line until ``close`` or the end of ``lines``."""
+        for line in lines:
+            line = line.strip()
+            if not line:
+                continue
+            c = json.loads(line)
+            op = c["op"]
+            if op == "close":
+                break
+            handler = getattr(self, f"op_{op}", None)
+            try:
+                if handler is None:
+                    self.say({"ok": False, "error": f"unknown op {op}"})
+                else:
+                    handler(c)
+            except Exception as e:
+                self.say({"ok": False, "error": f"{type(e).__name__}: {e}"})
+
+
 def _child(spec: dict) -> int:
     sys.path.insert(0, str(ROOT))
 
@@ -35,94 +134,19 @@ def _child(spec: dict) -> int:
     opts = spec.pop("_open", {})
     cfg = ZenohConfig(**spec)
     out = sys.stdout
-
-    def say(obj):
-        out.write(json.dumps(obj) + "\n")
-        out.flush()
-
     try:
         guard = SessionGuard(open_session(cfg, default_mode=opts.get("default_mode", "client")))
     except Exception as e:
-        say({"ok": False, "error": f"{type(e).__name__}: {e}"})
+        out.write(json.dumps({"ok": False, "error": f"{type(e).__name__}: {e}"}) + "\n")
+        out.flush()
         return 3
-    say({"ok": True, "zid": str(guard.session.zid())})
-    s = guard.session
-    got: dict[str, list] = {}
-    cond = threading.Condition()
-    tokens: dict[str, object] = {}
-
-    def recorder(name):
-        def cb(sample):
-            with cond:
-                got[name].append({"key": str(sample.key_expr), "kind": str(sample.kind),
-                                  "payload": sample.payload.to_string()})
-                cond.notify_all()
-        return cb
-
+    child = _Child(guard, out)
+    child.say({"ok": True, "zid": str(guard.session.zid())})
     try:
-        for line in sys.stdin:
-            line = line.strip()
-            if not line:
-                continue
-            c = json.loads(line)
-            op = c["op"]
-            try:
-                if op == "sub":
-                    got[c["name"]] = []
-                    guard.add(s.declare_subscriber(c["key"], recorder(c["name"])))
-                    say({"ok": True})
-                elif op == "lsub":
-                    got[c["name"]] = []
-                    guard.add(s.liveliness().declare_subscriber(c["key"], recorder(c["name"]),
-                                                               history=c.get("history", True)))
-                    say({"ok": True})
-                elif op == "put":
-                    s.put(c["key"], c.get("payload", "x").encode())
-                    say({"ok": True})
-                elif op == "queryable":
-                    payload = c.get("reply", "reply")
-
-                    def on_query(q, payload=payload):
-                        with q:
-                            q.reply(q.key_expr, payload.encode())
-                    guard.add(s.declare_queryable(c["key"], on_query))
-                    say({"ok": True})
-                elif op in ("get", "lget"):
-                    src = s.liveliness() if op == "lget" else s
-                    kw = {"timeout": float(c.get("timeout", 3.0))}
-                    if op == "get":
-                        kw["payload"] = c.get("payload", "")
-                    res = []
-                    for r in src.get(c["key"], **kw):
-                        if r.ok is not None:
-                            res.append({"key": str(r.ok.key_expr), "payload": r.ok.payload.to_string()})
-                        else:
-                            res.append({"err": r.err.payload.to_string()})
-                    say({"ok": True, "replies": res})
-                elif op == "token":
-                    tokens[c["key"]] = guard.add(s.liveliness().declare_token(c["key"]))
-                    say({"ok": True})
-                elif op == "untoken":
-                    tokens.pop(c["key"]).undeclare()
-                    say({"ok": True})
-                elif op == "received":
-                    n, deadline = int(c.get("n", 0)), time.monotonic() + float(c.get("timeout", 0.0))
-                    with cond:
-                        while len(got[c["name"]]) < n and time.monotonic() < deadline:
-                            cond.wait(max(deadline - time.monotonic(), 0.0))
-                        say({"ok": True, "samples": list(got[c["name"]])})
-                elif op == "info":
-                    say({"ok": True, "routers": [str(z) for z in s.info.routers_zid()],
-                         "peers": [str(z) for z in s.info.peers_zid()]})
-                elif op == "close":
-                    break
-                else:
-                    say({"ok": False, "error": f"unknown op {op}"})
-            except Exception as e:
-                say({"ok": False, "error": f"{type(e).__name__}: {e}"})
+        child.serve(sys.stdin)
     finally:
         guard.close()
-    say({"ok": True, "closed": True})
+    child.say({"ok": True, "closed": True})
     return 0
 
 
@@ -306,15 +330,3 @@ def get_replies(agent: Agent, key: str, tries: int = 50, **kw) -> list[dict]:
 
 if __name__ == "__main__":
     sys.exit(_child(json.loads(sys.argv[1])))
-
-
-@pytest.fixture
-def closer():
-    """Collects agents/routers and closes them (reverse order) whatever happens."""
-    items: list = []
-    yield items
-    for it in reversed(items):
-        try:
-            it.close() if isinstance(it, Agent) else it.stop()
-        except Exception:
-            pass

@@ -1,0 +1,138 @@
+"""``rayfronts bench search``: planner-search and occupancy-query latency, in process.
+
+For each map size (``--voxels 100k,1M,5M``) the query benchmark's map
+(:func:`apps.bench.query.build_map`: that many semantic voxels with random features in a
+PCA-``--dim`` label space and ``--rays`` semantic rays) also gets occupancy, frontiers and
+real rays from ``--frames`` synthetic-world frames (random features of the same dimension,
+so look-next has frontiers to score). Then, as the mapper answers a search
+(:func:`mapper.search_answer.answer_search` on the query snapshot, the map read directly for
+look-next):
+
+* ``search_ms``: wall p50 / p95 of ``--queries`` searches for one target against the
+  default background (the text embeddings cached after the first search, as in the
+  mapper), ``search_cpu_ms`` the process CPU per search, and the stages' p50
+  (``encode``, ``similarity``, ``instances``, ``look_next``, ``beyond``);
+* ``occupancy_ms``: the three occupancy queries the planners use (a 40 m × 40 m × 6 m box at
+  the map's voxel size, a 2D costmap slice over 80 m × 80 m, 1000 points with a 1 m
+  distance radius).
+
+Random features make the found instances a stress case (about one voxel in six above the
+threshold, in one dense block), not a typical map.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from apps.bench.query import _count, _pct, _space, build_map
+
+HELP = "search (found / look-next / beyond) and occupancy-query latency on 100k..5M-voxel maps, in process"
+
+TARGETS = ("car", "tree", "bench", "person", "window")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--voxels", default="100k,1M,5M", help="map sizes, comma separated (k / M suffixes)")
+    parser.add_argument("--dim", type=int, default=100, help="feature dimension (PCA output) of the map")
+    parser.add_argument("--rays", type=int, default=5000, help="random semantic rays added to the map")
+    parser.add_argument("--frames", type=int, default=12, help="synthetic-world frames for occupancy and frontiers")
+    parser.add_argument("--queries", type=int, default=10, help="searches per map size")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = the mapper's query auto)")
+
+
+def _add_frames(m, dim: int, n_frames: int) -> None:
+    """Integrate ``n_frames`` ground frames of synthetic world 0 (random ``dim`` features)."""
+    import torch
+
+    from synthetic_world import World
+
+    w = World.generate(0)
+    hw = (60, 80)
+    K = w.camera(hw, 90.0)
+    g = torch.Generator().manual_seed(2)
+    for p in w.trajectory("ground", max(n_frames, 1), seed=0)[:n_frames]:
+        r = w.render(p, K, hw)
+        m.integrate(p, K, r.depth.astype(np.float32), r.rgb, torch.randn((dim, 15, 20), generator=g))
+    m.flush()
+
+
+def _occupancy_latency(m, n: int) -> dict:
+    from semantic_map.occupancy_queries import costmap_slice, point_states, state_grid
+
+    vox = float(m.cfg.vox_size)
+    rng = np.random.default_rng(0)
+    box, sl, pts = [], [], []
+    for _ in range(n):
+        t = time.perf_counter()
+        state_grid(m.occupancy, vox, [-20, -20, 0], [20, 20, 6])
+        box.append((time.perf_counter() - t) * 1e3)
+        t = time.perf_counter()
+        costmap_slice(m.occupancy, vox, [-40, -40], [40, 40], [0.2, 2.0])
+        sl.append((time.perf_counter() - t) * 1e3)
+        q = rng.uniform([-30, -30, 0], [30, 30, 4], (1000, 3))
+        t = time.perf_counter()
+        point_states(m.occupancy, vox, q, 1.0)
+        pts.append((time.perf_counter() - t) * 1e3)
+    return {"box_40x40x6m": _pct(box), "slice_80x80m": _pct(sl), "points_1000_r1m": _pct(pts)}
+
+
+def search_latency(cfg, m, fs, queries: int) -> dict:
+    """Searches answered as the mapper does (query snapshot, cached embeddings)."""
+    from common.search_messages import SearchRequest
+    from mapper.search_answer import TrackerStore, answer_search
+    from semantic_map.query_snapshot import QuerySnapshot
+
+    snap = QuerySnapshot()
+    snap.reserve(m)
+    snap.sync(m, 1, 1)
+    trackers = TrackerStore(cfg.search.max_trackers)
+
+    def one(target: str):
+        req = SearchRequest(targets=[target], from_xyz=[0.0, 0.0, 1.5]).validate()
+        return answer_search(snap, fs, req, cfg, trackers, lambda fn: fn(m), map_version=1)
+
+    t = time.perf_counter()
+    first = one(TARGETS[0])                     # loads the text model, builds the prepared terms
+    first_ms = (time.perf_counter() - t) * 1e3
+    for tg in TARGETS[1:]:                      # each target embedded once (then cached, as in the mapper)
+        one(tg)
+    wall, cpu, stages = [], [], []
+    for i in range(queries):
+        t, c = time.perf_counter(), time.process_time()
+        rep = one(TARGETS[i % len(TARGETS)])
+        wall.append((time.perf_counter() - t) * 1e3)
+        cpu.append((time.process_time() - c) * 1e3)
+        stages.append(rep.timings_ms)
+    names = sorted({k for s in stages for k in s})
+    return {"first_search_ms": first_ms, "search_ms": _pct(wall), "search_cpu_ms": _pct(cpu),
+            "stage_p50_ms": {k: float(np.median([s.get(k, 0.0) for s in stages])) for k in names},
+            "found": len(first.found), "look_next": len(first.look_next),
+            "beyond_rays": len(first.beyond.get("rays", [])), "estimates": len(first.beyond.get("estimates", []))}
+
+
+def run(args: argparse.Namespace) -> dict:
+    import torch
+
+    from apps.bench import meta
+    from mapper.service_config import resolve_query_threads
+
+    n_threads = args.threads or resolve_query_threads(0)
+    torch.set_num_threads(n_threads)
+    fs = _space(args.dim)
+    out = {"dim": args.dim, "rays": args.rays, "frames": args.frames, "query_threads": n_threads, "sizes": {}}
+    for spec in args.voxels.split(","):
+        n = _count(spec)
+        t = time.perf_counter()
+        cfg, m = build_map(n, args.dim, args.rays, fs)
+        _add_frames(m, args.dim, args.frames)
+        row: dict = {"build_s": time.perf_counter() - t, "voxels": len(m.sem), "rays": len(m.ray_store),
+                     "frontiers": int(m.frontiers().centres.shape[0])}
+        with meta.timed(f"search_{spec}"):
+            row.update(search_latency(cfg, m, fs, args.queries))
+        with meta.timed(f"occupancy_{spec}"):
+            row["occupancy_ms"] = _occupancy_latency(m, max(3, args.queries // 2))
+        out["sizes"][spec] = row
+        del m
+    return out

@@ -1,0 +1,186 @@
+"""Search answering for planners, free of Zenoh (the queryable is :mod:`mapper.search_server`).
+
+A search scores every voxel and ray of the query snapshot
+(:class:`semantic_map.query_snapshot.QuerySnapshot`) with the softmax probability of each
+target over targets + background phrases at ``search.temperature`` (the paper's querying;
+text embedded as :func:`mapper.query_answer.embed_text` does), then:
+
+* ``found``: voxels whose probability for a target is above the request's threshold, grouped
+  and tracked with stable ids (:class:`semantic_map.instances.InstanceTracker`, one per
+  target set: targets, background, threshold), filtered to the request's area / z band,
+  best first: confidence (to 3 decimals: softmax at temperature 100 saturates), then size;
+* ``look_next``: :func:`semantic_map.look_next.look_next` on the map's occupancy and frontiers
+  (read under the map lock by the caller through ``read_map``);
+* ``beyond``: best rays per target, triangulated estimates
+  (:func:`semantic_map.beyond.triangulate`) and the search volume of the best rays' cones.
+
+World frame, metres, z up; timings in milliseconds.
+"""
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from typing import Callable
+
+import numpy as np
+import torch
+
+from common.cones import cone_union_volume
+from common.conventions import voxel_index
+from common.search_messages import SearchReply, SearchRequest
+from semantic_map.beyond import triangulate
+from semantic_map.instances import InstanceTracker
+from semantic_map.look_next import look_next, points_in_polygon
+from semantic_map.query import score_rows
+
+
+class TrackerStore:
+    """Instance trackers by target set (LRU, at most ``max_trackers``)."""
+
+    def __init__(self, max_trackers: int = 32):
+        self.max = max(1, int(max_trackers))
+        self._t: OrderedDict = OrderedDict()
+
+    def get(self, key: tuple, vox: float, min_voxels: int) -> InstanceTracker:
+        """The tracker of ``key`` (created on first use; a map with another voxel size resets it)."""
+        t = self._t.get(key)
+        if t is None or t.vox != float(vox):
+            t = InstanceTracker(vox, min_voxels)
+            self._t[key] = t
+        self._t.move_to_end(key)
+        while len(self._t) > self.max:
+            self._t.popitem(last=False)
+        return t
+
+
+def tracker_key(req: SearchRequest, background: list[str]) -> tuple:
+    """Target-set identity of a request (its tracker)."""
+    emb = None if req.embeddings is None else hash(np.ascontiguousarray(req.embeddings).tobytes())
+    return (tuple(req.targets), emb, tuple(background), round(req.threshold, 6))
+
+
+def embed_phrases(fs, req: SearchRequest, background: list[str], device, model_dir: str,
+                  templates: str) -> torch.Tensor:
+    """(T + B, lang_dim) embeddings of the targets (or the request's embeddings) and background."""
+    from mapper.query_answer import embed_text
+
+    rows = ([torch.as_tensor(req.embeddings, dtype=torch.float32)] if req.embeddings is not None
+            else [embed_text(fs, t, device, model_dir, templates) for t in req.targets])
+    rows += [embed_text(fs, b, device, model_dir, templates) for b in background]
+    q = torch.cat([r.reshape(-1, r.shape[-1]) for r in rows]).to(torch.float32)
+    if q.shape[1] != fs.lang_dim:
+        from common.messages import MessageError
+
+        raise MessageError(f"embeddings have {q.shape[1]} dims, the map's language space has {fs.lang_dim}")
+    return q
+
+
+def _probabilities(prep, q: torch.Tensor, n_targets: int, temperature: float) -> np.ndarray:
+    """(T, N) softmax probabilities of the targets over targets + background."""
+    if len(prep) == 0:
+        return np.zeros((n_targets, 0), np.float32)
+    p = score_rows(prep, q, None, softmax=True, temperature=temperature)
+    return p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False)
+
+
+def _in_area(xyz: np.ndarray, poly, z_band) -> np.ndarray:
+    ok = np.ones(len(xyz), bool)
+    if poly is not None and len(xyz):
+        ok &= points_in_polygon(xyz[:, :2], poly)
+    if z_band is not None and len(xyz):
+        ok &= (xyz[:, 2] >= z_band[0]) & (xyz[:, 2] <= z_band[1])
+    return ok
+
+
+def _found(tracker: InstanceTracker, req: SearchRequest) -> list[dict]:
+    poly, zb = req.polygon(), req.z_band
+    out = []
+    for i in tracker.current():
+        if poly is not None and not points_in_polygon(i.centroid[None, :2], poly)[0]:
+            continue
+        if zb is not None and (i.box_max[2] < zb[0] or i.box_min[2] > zb[1]):
+            continue
+        out.append(i)
+    out.sort(key=lambda i: (-round(i.confidence, 3), -i.voxels, i.id))
+    return [i.as_dict() for i in out[:req.max_instances]]
+
+
+def _beyond(snap, rs: np.ndarray, targets: list[str], scfg, qcfg, angle_err: float, keep: np.ndarray) -> dict:
+    """Best rays per target, triangulated estimates, search volume of the best rays' cones."""
+    o, d = snap.ray_origins.astype(np.float64), snap.ray_dirs.astype(np.float64)
+    rays, ests, best_all = [], [], []
+    idx = np.flatnonzero(keep)
+    for t, name in enumerate(targets):
+        if not len(idx):
+            break
+        top = idx[np.argsort(-rs[t, idx], kind="stable")[:scfg.beyond_rays]]
+        best_all.extend((float(rs[t, i]), int(i)) for i in top)
+        rays += [dict(origin=[float(v) for v in o[i]], direction=[float(v) for v in d[i]], score=float(rs[t, i]),
+                      target=name) for i in top]
+        for e in triangulate(o[top], d[top], rs[t, top], max_gap_m=scfg.max_gap_m, angle_err_deg=angle_err,
+                             max_range_m=qcfg.search_range_m):
+            e.target = name
+            ests.append(e.as_dict())
+    rays.sort(key=lambda r: -r["score"])
+    ests.sort(key=lambda e: -e["score"])
+    best_all.sort(key=lambda x: -x[0])
+    sel = np.array(list(dict.fromkeys(i for _, i in best_all))[:qcfg.search_rays], np.int64)
+    vol = 0.0
+    if len(sel):
+        vol = float(cone_union_volume(o[sel], d[sel], snap.half_angle, qcfg.search_range_m, qcfg.search_cell_m,
+                                      max_cells=qcfg.search_samples))
+    return dict(rays=rays[:max(10, 2 * len(targets))], estimates=ests[:10], search_volume_m3=vol)
+
+
+def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
+                  read_map: Callable[[Callable], object] | None, map_version: int = 0) -> SearchReply:
+    """Answer ``req`` from query snapshot ``snap`` (module docstring). ``cfg`` the mapper
+    config (``search``, ``query``, ``map``, ``device``, ``text_model_dir``); ``read_map(fn)``
+    runs ``fn(map)`` under the map lock and returns its result (None: no look-next)."""
+    scfg, qcfg = cfg.search, cfg.query
+    tm: dict[str, float] = {}
+    t0 = t = time.perf_counter()
+    background = [b for b in (req.background if req.background is not None else scfg.background)
+                  if b not in req.targets]
+    q = embed_phrases(fs, req, background, cfg.device, cfg.text_model_dir, getattr(qcfg, "templates", "auto"))
+    tm["encode"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
+    vprep, rprep = snap.prepared(fs, cfg.device)
+    T = len(req.targets)
+    vs = _probabilities(vprep, q, T, scfg.temperature)
+    rs = _probabilities(rprep, q, T, scfg.temperature)
+    tm["similarity"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
+    tracker = trackers.get(tracker_key(req, background), snap.vox, scfg.min_instance_voxels)
+    events = []
+    for ti, name in enumerate(req.targets):
+        rows = np.flatnonzero(vs[ti] > req.threshold)
+        ijk = voxel_index(snap.voxel_xyz(rows).astype(np.float64), snap.vox) if len(rows) else np.zeros((0, 3))
+        events += [e.as_dict() for e in tracker.update(name, ijk, vs[ti, rows], snap.frames_mapped)]
+    found = _found(tracker, req)
+    tm["instances"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
+    rkeep = _in_area(snap.ray_origins.astype(np.float64), req.polygon(), req.z_band)
+    goals: list[dict] = []
+    if read_map is not None and req.max_goals > 0:
+        def run(m) -> list:
+            f = m.frontiers().centres.detach().cpu().numpy().astype(np.float64).reshape(-1, 3)
+            f = f[_in_area(f, req.polygon(), req.z_band)]
+            radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.fronts.beta)
+            return look_next(m.occupancy, float(m.cfg.vox_size), f, snap.ray_origins[rkeep], snap.ray_dirs[rkeep],
+                             rs[:, rkeep].T, list(req.targets), req.from_xyz, ray_radius_m=radius,
+                             standoff_m=scfg.standoff_m, sensing_radius_m=scfg.sensing_radius_m,
+                             max_goals=req.max_goals)
+        got = read_map(run)
+        if got is None:
+            tm["stale"] = 1.0
+        else:
+            goals = [g.as_dict() for g in got]
+    tm["look_next"] = (time.perf_counter() - t) * 1e3
+    t = time.perf_counter()
+    angle_err = scfg.angle_err_deg if scfg.angle_err_deg > 0 else float(cfg.map.angle_bin_size) / 2
+    beyond = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
+    tm["beyond"] = (time.perf_counter() - t) * 1e3
+    tm["total"] = (time.perf_counter() - t0) * 1e3
+    return SearchReply(id=req.id, found=found, look_next=goals, beyond=beyond, events=events,
+                       frames_mapped=int(snap.frames_mapped), map_version=int(map_version), timings_ms=tm)

@@ -1,0 +1,32 @@
+"""Config section ``search.*`` of ``rayfronts mapper``: the planners' search service
+(:mod:`mapper.search_server`). Lengths in metres, angles in degrees."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from common.config import field_
+
+DEFAULT_BACKGROUND = ["building", "road", "ground", "tree", "sky"]
+
+
+@dataclass
+class SearchSection:
+    background: list[str] = field_(list(DEFAULT_BACKGROUND),
+                                    "phrases a search's targets are softmaxed against when the request names none "
+                                    "(the paper's querying: probabilities over targets + background)")
+    temperature: float = field_(100.0, "softmax temperature of search scores (the paper's 100)")
+    min_instance_voxels: int = field_(3, "voxel groups smaller than this are not reported as instances")
+    max_trackers: int = field_(32, "instance trackers kept (one per target set); the least recently used is dropped")
+    ray_radius_m: float = field_(0.0, "rays attached within this distance of a frontier support it; 0 = the "
+                                      "frontier cell size")
+    standoff_m: float = field_(1.0, "a look-next viewpoint lies within this distance of its frontier")
+    sensing_radius_m: float = field_(3.0, "unknown volume within this radius of a viewpoint is its gain")
+    beyond_rays: int = field_(20, "best rays per target considered for triangulation")
+    max_gap_m: float = field_(2.0, "two rays triangulate when they pass within this distance")
+    angle_err_deg: float = field_(0.0, "direction uncertainty of a ray (estimate radius); 0 = half the map's "
+                                       "angle bin")
+    lock_timeout_s: float = field_(2.0, "a search waits at most this long for the map lock to read occupancy and "
+                                        "frontiers; after that it answers without look_next (timings_ms.stale=1)")
+    max_occupancy_cells: int = field_(4_000_000, "cells an occupancy request may return")
+    warm_up: bool = field_(True, "load the text model and embed the background phrases in the background as soon "
+                                 "as the map's feature space is known, so the first search is as fast as the next")

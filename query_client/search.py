@@ -1,0 +1,153 @@
+"""Planner calls of ``query_client.Client`` (mixed into it): :meth:`PlannerCalls.search`,
+:meth:`PlannerCalls.watch_search` and the occupancy read-outs.
+
+World frame, metres, z up; yaw in radians counter-clockwise from +x. Occupancy states:
+0 free, 1 occupied, -1 unknown. Errors from the mapper raise ``QueryError``; no mapper
+answering raises ``MapperUnavailable``. No torch: this runs on a client-only install.
+"""
+from __future__ import annotations
+
+import logging
+import uuid
+from typing import Callable, Sequence
+
+import numpy as np
+
+from common.messages import MessageError
+from common.search_messages import (
+    OccupancyReply,
+    OccupancyRequest,
+    SearchReply,
+    SearchRequest,
+    decode_occupancy_reply,
+    decode_search_reply,
+    encode_occupancy_request,
+    encode_search_request,
+)
+from common.zenoh_session import undeclare_all
+
+log = logging.getLogger("rayfronts.query_client")
+
+
+def _area(area) -> tuple[list | None, list | None]:
+    """``(polygon, box)`` of an ``area``: a polygon [[x, y], ...] or a box [x0, y0, x1, y1]."""
+    if area is None:
+        return None, None
+    a = list(area)
+    if len(a) == 4 and all(isinstance(v, (int, float, np.floating, np.integer)) for v in a):
+        return None, [float(v) for v in a]
+    return [[float(p[0]), float(p[1])] for p in a], None
+
+
+class SearchHandle:
+    """A standing search; ``cancel()`` (or leaving the ``with`` block) stops it."""
+
+    def __init__(self, client, sid: str, sub):
+        self.client, self.id, self._sub, self.active = client, sid, sub, True
+
+    def cancel(self) -> None:
+        if not self.active:
+            return
+        self.active = False
+        undeclare_all((self._sub,))
+        try:
+            self.client._get_one(self.client.keys.mapper_search,
+                                 encode_search_request(SearchRequest(cancel=True, id=self.id)), 2.0)
+        except Exception as e:
+            log.debug("cancel standing search %s: %s", self.id, e)
+
+    def __enter__(self) -> "SearchHandle":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.cancel()
+
+
+class PlannerCalls:
+    """Search and occupancy calls (a mixin of ``query_client.Client``: uses its ``keys`` and
+    ``_get_one``)."""
+
+    _query_error: type[Exception] = RuntimeError     # Client sets its QueryError
+
+    def _ask(self, key: str, payload: bytes, timeout: float | None, decode):
+        data = self._get_one(key, payload, timeout)
+        try:
+            return decode(data)
+        except MessageError as e:
+            raise self._query_error(str(e).removeprefix("remote error: ")) from None
+
+    @staticmethod
+    def search_request(targets: str | Sequence[str], background: Sequence[str] | None = None, area=None,
+                       z_band: Sequence[float] | None = None, threshold: float = 0.5, max_instances: int = 10,
+                       from_xyz: Sequence[float] | None = None, *, max_goals: int = 5,
+                       embeddings: np.ndarray | None = None, standing: bool = False, sid: str = "") -> SearchRequest:
+        """The validated request of :meth:`search` (raises ``MessageError`` for bad input)."""
+        poly, box = _area(area)
+        return SearchRequest(targets=[targets] if isinstance(targets, str) else list(targets),
+                             embeddings=embeddings, background=None if background is None else list(background),
+                             area=poly, box=box, z_band=None if z_band is None else list(z_band),
+                             threshold=threshold, max_instances=max_instances, max_goals=max_goals,
+                             from_xyz=None if from_xyz is None else list(from_xyz), standing=standing,
+                             id=sid).validate()
+
+    def search(self, targets: str | Sequence[str], background: Sequence[str] | None = None, area=None,
+               z_band: Sequence[float] | None = None, threshold: float = 0.5, max_instances: int = 10,
+               from_xyz: Sequence[float] | None = None, *, max_goals: int = 5, embeddings: np.ndarray | None = None,
+               timeout: float | None = None) -> SearchReply:
+        """Search the map for ``targets`` (softmax probability over targets + ``background``,
+        default the mapper's ``search.background``): found instances (stable ids), look-next
+        goals, rays and triangulated estimates beyond the map. ``area``: polygon [[x, y], ...]
+        or box [x0, y0, x1, y1]; ``z_band`` [z0, z1]; ``threshold`` in (0, 1); ``from_xyz`` the
+        robot's position (goal distances)."""
+        try:
+            req = self.search_request(targets, background, area, z_band, threshold, max_instances, from_xyz,
+                                      max_goals=max_goals, embeddings=embeddings)
+        except MessageError as e:
+            raise self._query_error(str(e)) from None
+        return self._ask(self.keys.mapper_search, encode_search_request(req), timeout, decode_search_reply)
+
+    def watch_search(self, targets: str | Sequence[str], callback: Callable[[SearchReply], None], *,
+                     timeout: float | None = None, **kw) -> SearchHandle:
+        """Standing search: ``callback(SearchReply)`` now and after map changes (on a Zenoh
+        thread); ``kw`` as :meth:`search`."""
+        sid = "s" + uuid.uuid4().hex[:12]
+        req = self.search_request(targets, standing=True, sid=sid, **kw)
+
+        def on_sample(sample) -> None:
+            try:
+                callback(decode_search_reply(sample.payload.to_bytes()))
+            except Exception as e:  # never raise out of a zenoh callback
+                log.warning("standing search %s: %s", sid, e)
+
+        sub = self.session.declare_subscriber(self.keys.mapper_searches(sid), on_sample)
+        handle = SearchHandle(self, sid, sub)
+        try:
+            first = self._ask(self.keys.mapper_search, encode_search_request(req), timeout, decode_search_reply)
+        except Exception:
+            handle.cancel()
+            raise
+        callback(first)
+        return handle
+
+    def _occupancy(self, req: OccupancyRequest, timeout: float | None) -> OccupancyReply:
+        try:
+            payload = encode_occupancy_request(req)
+        except MessageError as e:
+            raise self._query_error(str(e)) from None
+        return self._ask(self.keys.mapper_occupancy, payload, timeout, decode_occupancy_reply)
+
+    def occupancy_box(self, box_min: Sequence[float], box_max: Sequence[float], stride: int = 1,
+                      timeout: float | None = None) -> OccupancyReply:
+        """Dense states (nx, ny, nz) of a box at ``stride`` map voxels per cell."""
+        return self._occupancy(OccupancyRequest("box", list(box_min), list(box_max), stride=stride), timeout)
+
+    def occupancy_slice(self, xy_min: Sequence[float], xy_max: Sequence[float], z_band: Sequence[float],
+                        stride: int = 1, timeout: float | None = None) -> OccupancyReply:
+        """2D costmap (nx, ny) of the z band: occupied if any, free if all free, else unknown."""
+        return self._occupancy(OccupancyRequest("slice", list(xy_min), list(xy_max), list(z_band), stride=stride),
+                               timeout)
+
+    def occupancy_points(self, points, radius: float = 1.0, timeout: float | None = None) -> OccupancyReply:
+        """State of each point (N,) and ``dist`` to the nearest occupied voxel within ``radius``."""
+        return self._occupancy(OccupancyRequest("points", points=np.asarray(points, np.float64).reshape(-1, 3),
+                                                radius=float(radius)), timeout)

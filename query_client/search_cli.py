@@ -1,0 +1,133 @@
+"""``rayfronts search car``: search for planners (found instances, where to look next, what
+lies beyond the map). World frame, metres, z up; headings in radians from +x."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+HELP = "search for planners: found instances, look-next goals, rays beyond the map"
+DESCRIPTION = """Ask the mapper where TARGETs are: instances found in the map (stable ids,
+centroid, box, confidence), exploration goals where the semantic rays point toward them
+(position, heading, score, unknown volume gained), and rays / triangulated estimates
+beyond the mapped range. Scores are softmax probabilities over targets + background.
+
+  rayfronts search car --json
+  rayfronts search car bench --area 0,0,40,40 --z-band 0,3 --from 1,2,1.5
+  rayfronts search "street lamp" --background road building --threshold 0.6 --watch"""
+
+
+def _floats(text: str, n: int | None, what: str) -> list[float]:
+    from common.config import ConfigError
+
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ConfigError(f"{what} must be comma-separated numbers, got {text!r}") from None
+    if n is not None and len(v) != n:
+        raise ConfigError(f"{what} needs {n} comma-separated numbers, got {text!r}")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from common.zenoh_session import add_zenoh_arguments
+
+    parser.add_argument("targets", nargs="+", metavar="TARGET", help="what to look for (one or more phrases)")
+    parser.add_argument("--background", nargs="+", default=None, metavar="PHRASE",
+                        help="phrases the targets compete with (default: the mapper's search.background)")
+    parser.add_argument("--area", default=None, metavar="x0,y0,x1,y1",
+                        help="search box, or a polygon x0,y0,x1,y1,x2,y2,... (>= 3 vertices)")
+    parser.add_argument("--z-band", default=None, metavar="z0,z1", help="height band (m)")
+    parser.add_argument("--threshold", type=float, default=0.5, help="probability a voxel needs, in (0, 1)")
+    parser.add_argument("--max-instances", type=int, default=10, help="instances reported (default 10)")
+    parser.add_argument("--max-goals", type=int, default=5, help="look-next goals reported (default 5)")
+    parser.add_argument("--from", dest="from_xyz", default=None, metavar="x,y,z", help="the robot's position")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--watch", action="store_true", help="standing search: print each refresh until Ctrl-C")
+    parser.add_argument("--timeout", type=float, default=20.0, help="seconds to wait for the mapper (default 20)")
+    parser.add_argument("--prefix", default=None, help="key-space prefix (default rayfronts)")
+    add_zenoh_arguments(parser, mode_default_help="client")
+
+
+def search_kwargs(args) -> dict:
+    """Client.search keyword arguments from the command line (ConfigError for bad input)."""
+    from common.config import ConfigError
+    from common.messages import MessageError
+    from query_client.search import PlannerCalls
+
+    kw: dict = dict(background=args.background, threshold=args.threshold, max_instances=args.max_instances,
+                    max_goals=args.max_goals)
+    if args.area is not None:
+        a = _floats(args.area, None, "--area")
+        if len(a) == 4:
+            kw["area"] = a
+        elif len(a) >= 6 and len(a) % 2 == 0:
+            kw["area"] = [a[i:i + 2] for i in range(0, len(a), 2)]
+        else:
+            raise ConfigError(f"--area needs x0,y0,x1,y1 (a box) or >= 3 x,y vertices, got {args.area!r}")
+    if args.z_band is not None:
+        kw["z_band"] = _floats(args.z_band, 2, "--z-band")
+    if args.from_xyz is not None:
+        kw["from_xyz"] = _floats(args.from_xyz, 3, "--from")
+    if args.timeout <= 0:
+        raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
+    try:
+        PlannerCalls.search_request(args.targets, **kw)
+    except MessageError as e:
+        raise ConfigError(str(e)) from None
+    return kw
+
+
+def format_reply(r) -> str:
+    """Human-readable summary of a :class:`common.search_messages.SearchReply`."""
+    lines = [f"search ({r.frames_mapped} frames mapped, map version {r.map_version}, "
+             f"{r.timings_ms.get('total', 0.0):.0f} ms)"]
+    lines.append(f"  found: {len(r.found)}")
+    for i in r.found:
+        c = i["centroid"]
+        lines.append(f"    #{i['id']:<4d} {i['target']:<16s} p={i['confidence']:.3f} ({c[0]:7.2f}, {c[1]:7.2f}, "
+                     f"{c[2]:5.2f})  {i['voxels']} voxels, seen {i['observations']}x")
+    lines.append(f"  look next: {len(r.look_next)}")
+    for g in r.look_next:
+        p = g["position"]
+        lines.append(f"    ({p[0]:7.2f}, {p[1]:7.2f}, {p[2]:5.2f}) heading {g['heading_rad']:+.2f} rad  "
+                     f"score {g['score']:.3f}  gain {g['gain_m3']:.1f} m³  {g['distance_m']:.1f} m  "
+                     f"{g['target'] or '-'}")
+    b = r.beyond
+    lines.append(f"  beyond: {len(b.get('rays', []))} rays, {len(b.get('estimates', []))} estimates, "
+                 f"search volume {b.get('search_volume_m3', 0.0):,.0f} m³")
+    for e in b.get("estimates", [])[:5]:
+        p = e["position"]
+        lines.append(f"    estimate {e['target']}: ({p[0]:7.2f}, {p[1]:7.2f}, {p[2]:5.2f}) ± {e['radius_m']:.1f} m "
+                     f"score {e['score']:.3f}")
+    return "\n".join(lines)
+
+
+def _as_json(r) -> str:
+    d = r.to_dict()
+    return json.dumps({k: d[k] for k in ("found", "look_next", "beyond", "frames_mapped", "map_version",
+                                         "timings_ms")})
+
+
+def run(args: argparse.Namespace) -> int:
+    from query_client.cli import connect_client, watch_until_signal
+    from query_client.client import QueryError
+
+    kw = search_kwargs(args)
+    client = connect_client(args, "search")
+    if client is None:
+        return 1
+    with client:
+        try:
+            if args.watch:
+                def show(r) -> None:
+                    print(_as_json(r) if args.json else format_reply(r) + "\n", flush=True)
+
+                watch_until_signal(lambda: client.watch_search(args.targets, show, timeout=args.timeout, **kw))
+                return 0
+            r = client.search(args.targets, timeout=args.timeout, **kw)
+        except QueryError as e:
+            print(f"rayfronts search: error: {' '.join(str(e).split())}", file=sys.stderr)
+            return 1
+    print(_as_json(r) if args.json else format_reply(r))
+    return 0

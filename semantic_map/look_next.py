@@ -1,0 +1,205 @@
+"""Where to look next: ranked exploration goals at frontiers, scored by the semantic ray
+frontiers that point toward the targets (pure computation).
+
+World frame, metres, z up; headings are yaw angles in radians in the xy plane,
+counter-clockwise from +x (``atan2(dy, dx)``).
+
+For each frontier (coarse cell centre from the map's frontier table):
+
+* ``score`` / ``target``: the best target score of the rays whose origin lies within
+  ``ray_radius_m`` of the frontier centre (rays are attached to frontier centres), and the
+  target it belongs to (score 0 and target ``None`` without such rays);
+* ``position``: a viewpoint — the centre of a map voxel within ``standoff_m`` of the
+  frontier centre that is **free** in the map and has no occupied voxel among its 26
+  neighbours, the closest such voxel to the frontier centre (frontiers without one give no
+  goal);
+* ``heading_rad``: yaw of the score-weighted mean direction of the supporting rays of the
+  target (if it has a horizontal component), else yaw toward the frontier centre;
+* ``gain_m3``: unknown volume within ``sensing_radius_m`` of the viewpoint, counted on the
+  occupancy grid (on a lattice of every ``step``-th voxel when the sphere is large, each
+  sample standing for ``(step·vox)^3``);
+* ``distance_m``: straight-line distance from ``from_xyz`` (0 without it).
+
+Goals are ranked by score (descending), then by ``gain_m3 / (1 + distance_m)`` (descending);
+at most one goal per viewpoint voxel. Only the ``max_candidates`` best frontiers (by score,
+then distance) are examined.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+#: per-viewpoint samples for the gain count (the lattice is coarsened above this)
+GAIN_SAMPLES_PER_AXIS = 25
+
+
+@dataclass
+class Goal:
+    """One exploration goal (see the module docstring for each field's meaning)."""
+
+    position: np.ndarray
+    heading_rad: float
+    score: float
+    gain_m3: float
+    distance_m: float
+    target: str | None
+    frontier: np.ndarray
+    rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+
+    def as_dict(self) -> dict:
+        """Plain-Python fields (``rays``: list of unit directions [dx, dy, dz])."""
+        return dict(position=[float(v) for v in self.position], heading_rad=float(self.heading_rad),
+                    score=float(self.score), gain_m3=float(self.gain_m3), distance_m=float(self.distance_m),
+                    target=self.target, frontier=[float(v) for v in self.frontier],
+                    rays=[[float(v) for v in d] for d in self.rays])
+
+
+def points_in_polygon(xy: np.ndarray, polygon) -> np.ndarray:
+    """(N,) bool: points (N, 2) inside the simple polygon [[x, y], ...] (even-odd rule;
+    points on an edge may fall either side)."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    poly = np.asarray(polygon, np.float64).reshape(-1, 2)
+    inside = np.zeros(len(xy), bool)
+    x, y = xy[:, 0], xy[:, 1]
+    for a, b in zip(poly, np.roll(poly, -1, 0), strict=True):
+        crosses = (a[1] > y) != (b[1] > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xc = a[0] + (y - a[1]) * (b[0] - a[0]) / (b[1] - a[1])
+        inside ^= crosses & (x < xc)
+    return inside
+
+
+def _values(grid, ijk: np.ndarray) -> np.ndarray:
+    v = grid.query(torch.as_tensor(np.ascontiguousarray(ijk, np.int64)))
+    return np.asarray(v.cpu() if isinstance(v, torch.Tensor) else v, np.int8)
+
+
+def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.ndarray,
+                radius: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Per frontier (F, 3): ``(best score per target (F, T), indices of rays within radius)``."""
+    f = np.asarray(frontiers, np.float64).reshape(-1, 3)
+    o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
+    s = np.asarray(ray_scores, np.float64)
+    s = s.reshape(len(o), s.shape[-1] if s.ndim == 2 else 1)
+    best = np.zeros((len(f), s.shape[1]))
+    if len(f) == 0 or len(o) == 0:
+        return best, [np.zeros((0,), np.int64) for _ in range(len(f))]
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(o).query_ball_point(f, r=radius)
+    idx = [np.asarray(n, np.int64) for n in near]
+    for i, n in enumerate(idx):
+        if len(n):
+            best[i] = s[n].max(0)
+    return best, idx
+
+
+def _viewpoints(grid, vox: float, centres: np.ndarray, standoff: float) -> list[np.ndarray | None]:
+    """Per frontier centre (K, 3): the centre of the free voxel nearest it within
+    ``standoff`` whose 26 neighbours are not occupied; None if there is none. One grid read
+    for all centres."""
+    r = max(1, int(math.ceil(standoff / vox)))
+    c = np.floor(np.asarray(centres, np.float64).reshape(-1, 3) / vox).astype(np.int64)
+    ax = np.arange(-r - 1, r + 2)
+    n = len(ax)
+    off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    vals = _values(grid, (c[:, None, :] + off[None]).reshape(-1, 3)).reshape(len(c), n, n, n)
+    occ = vals > 0
+    near = np.zeros_like(occ)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                near |= np.roll(occ, (dx, dy, dz), (1, 2, 3))
+    ok = (vals < 0) & ~near
+    ok[:, [0, -1]] = False                     # neighbours outside the read (and roll wrap-around)
+    ok[:, :, [0, -1]] = False
+    ok[:, :, :, [0, -1]] = False
+    out: list[np.ndarray | None] = []
+    for k in range(len(c)):
+        idx = np.argwhere(ok[k])
+        if not len(idx):
+            out.append(None)
+            continue
+        cand = (c[k] + idx - (r + 1) + 0.5) * vox
+        d = np.linalg.norm(cand - centres[k], axis=1)
+        keep = np.flatnonzero(d <= standoff + 1e-9)
+        out.append(cand[keep[np.argmin(d[keep])]] if len(keep) else None)
+    return out
+
+
+def unknown_volume(grid, vox: float, centres: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) unknown volume (m³) within ``radius`` of each point (N, 3), counted on the map's
+    voxels (a lattice of every ``step``-th voxel for large radii, see the module docstring)."""
+    c = np.asarray(centres, np.float64).reshape(-1, 3)
+    r_vox = max(0, int(math.ceil(radius / vox)))
+    step = max(1, int(math.ceil((2 * r_vox + 1) / GAIN_SAMPLES_PER_AXIS)))
+    ax = np.arange(-(r_vox // step), r_vox // step + 1) * step
+    off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    off = off[np.linalg.norm(off * vox, axis=1) <= radius + 1e-9]
+    out = np.zeros(len(c))
+    per = max(1, (1 << 20) // max(1, len(off)))
+    for s in range(0, len(c), per):
+        base = np.floor(c[s:s + per] / vox).astype(np.int64)
+        vals = _values(grid, (base[:, None, :] + off[None]).reshape(-1, 3)).reshape(len(base), len(off))
+        out[s:s + per] = (vals == 0).sum(1) * (step * vox) ** 3
+    return out
+
+
+def _heading(view: np.ndarray, frontier: np.ndarray, dirs: np.ndarray, w: np.ndarray) -> float:
+    if len(dirs):
+        m = (dirs * np.maximum(w, 1e-12)[:, None]).sum(0)
+        if math.hypot(m[0], m[1]) > 1e-6:
+            return math.atan2(m[1], m[0])
+    d = frontier - view
+    return math.atan2(d[1], d[0]) if math.hypot(d[0], d[1]) > 1e-9 else 0.0
+
+
+def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
+              ray_scores: np.ndarray, targets: list[str], from_xyz=None, *, ray_radius_m: float = 1.0,
+              standoff_m: float = 1.0, sensing_radius_m: float = 3.0, max_goals: int = 10,
+              max_candidates: int = 64, max_rays: int = 5) -> list[Goal]:
+    """Ranked exploration goals (module docstring). ``frontiers`` (F, 3) frontier centres
+    (already filtered to the area of interest), rays ``(R, 3)`` origins and unit directions,
+    ``ray_scores`` (R, T) per target in [0, 1], ``targets`` the T names."""
+    f = np.asarray(frontiers, np.float64).reshape(-1, 3)
+    dirs = np.asarray(ray_dirs, np.float64).reshape(-1, 3)
+    scores = np.asarray(ray_scores, np.float64)
+    if scores.size != len(dirs) * len(targets):
+        raise ValueError(f"ray_scores has shape {scores.shape}, expected ({len(dirs)}, {len(targets)})")
+    scores = scores.reshape(len(dirs), len(targets))
+    if len(f) == 0 or max_goals <= 0:
+        return []
+    best, near = ray_support(f, ray_origins, scores, ray_radius_m)
+    fscore = best.max(1) if best.shape[1] else np.zeros(len(f))
+    start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
+    fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
+    order = np.lexsort((fdist, -fscore))[:max(max_candidates, max_goals)]
+    goals: list[Goal] = []
+    seen: set = set()
+    views = _viewpoints(grid, vox, f[order], standoff_m)
+    for i, v in zip(order, views, strict=True):
+        if v is None:
+            continue
+        key = tuple(np.floor(v / vox).astype(np.int64))
+        if key in seen:
+            continue
+        seen.add(key)
+        t = int(np.argmax(best[i])) if best.shape[1] and fscore[i] > 0 else -1
+        sup = near[i]
+        if t >= 0 and len(sup):
+            sup = sup[np.argsort(-scores[sup, t], kind="stable")][:max_rays]
+            sd, sw = dirs[sup], scores[sup, t]
+        else:
+            sd, sw = np.zeros((0, 3)), np.zeros((0,))
+        goals.append(Goal(v, _heading(v, f[i], sd, sw), float(fscore[i]), 0.0,
+                          0.0 if start is None else float(np.linalg.norm(v - start)),
+                          targets[t] if t >= 0 else None, f[i], sd.astype(np.float32)))
+    if goals:
+        gains = unknown_volume(grid, vox, np.stack([g.position for g in goals]), sensing_radius_m)
+        for g, gain in zip(goals, gains, strict=True):
+            g.gain_m3 = float(gain)
+    goals.sort(key=lambda g: (-g.score, -g.gain_m3 / (1.0 + g.distance_m)))
+    return goals[:max_goals]

@@ -1,0 +1,169 @@
+"""Occupancy read-outs for planners (pure computation): dense state grids, 2D costmap
+slices, point checks.
+
+States (int8): :data:`FREE` = 0, :data:`OCCUPIED` = 1, :data:`UNKNOWN` = -1. A map voxel is
+occupied when its log-odds value is > 0, free when < 0, unknown when 0 or never observed
+(:mod:`semantic_map.occupancy.base`). A coarse cell (``stride`` map voxels per axis) is
+occupied if any of its voxels is occupied, free if all of them are observed free, else
+unknown (conservative for planning).
+
+Geometry: world frame, metres, z up; map voxel ``ijk`` covers ``[ijk·vox, (ijk+1)·vox)``
+(:func:`common.conventions.voxel_index`). A box request ``[lo, hi]`` is snapped outward to
+whole coarse cells aligned to the map's voxel lattice: cell ``c`` covers voxels
+``[i0 + c·stride, i0 + (c+1)·stride)`` with ``i0 = floor(lo / vox)``, and the grid's
+``origin`` (the min corner of cell 0) is ``i0·vox``. Arrays are indexed ``[x, y, z]``.
+
+Sizes are bounded: at most ``max_cells`` (default :data:`MAX_CELLS`) output cells, and at
+most ``max_cells · 8`` map voxels read per request; beyond that a ``ValueError`` names the
+limit (ask for a coarser ``stride`` or a smaller box).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+FREE, OCCUPIED, UNKNOWN = 0, 1, -1
+#: default bound on output cells of one request
+MAX_CELLS = 4_000_000
+#: map voxels read per request, relative to ``max_cells``
+READ_FACTOR = 8
+#: map voxels queried per backend call
+CHUNK = 1 << 20
+#: at most this many points per :func:`point_states` request
+MAX_POINTS = 100_000
+
+
+def _values(grid, ijk: np.ndarray) -> np.ndarray:
+    """(N,) int8 log-odds of map voxels ``ijk`` (N, 3), queried in chunks."""
+    out = np.empty(len(ijk), np.int8)
+    for s in range(0, len(ijk), CHUNK):
+        v = grid.query(torch.as_tensor(ijk[s:s + CHUNK]))
+        out[s:s + CHUNK] = np.asarray(v.cpu() if isinstance(v, torch.Tensor) else v, np.int8)
+    return out
+
+
+def _state_of(values: np.ndarray) -> np.ndarray:
+    return np.where(values > 0, OCCUPIED, np.where(values < 0, FREE, UNKNOWN)).astype(np.int8)
+
+
+def _reduce(states: np.ndarray, axes: tuple[int, ...]) -> np.ndarray:
+    """Coarse state over ``axes``: occupied if any occupied, free if all free, else unknown."""
+    occ = (states == OCCUPIED).any(axis=axes)
+    free = (states == FREE).all(axis=axes)
+    return np.where(occ, OCCUPIED, np.where(free, FREE, UNKNOWN)).astype(np.int8)
+
+
+def _cell_range(lo: float, hi: float, vox: float, stride: int) -> tuple[int, int]:
+    """(first map voxel, number of coarse cells) covering ``[lo, hi]`` along one axis."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi < lo:
+        raise ValueError(f"bad range [{lo}, {hi}]: need finite lo <= hi")
+    i0 = math.floor(lo / vox)
+    i1 = math.floor(hi / vox)               # last voxel touched (inclusive)
+    return i0, (i1 - i0) // stride + 1
+
+
+def _check_stride(stride: int) -> int:
+    s = int(stride)
+    if s < 1 or s != stride:
+        raise ValueError(f"stride must be a positive integer, got {stride!r}")
+    return s
+
+
+def _check_size(cells: int, read: int, max_cells: int) -> None:
+    if cells > max_cells:
+        raise ValueError(f"request of {cells} cells exceeds the limit of {max_cells} cells; "
+                         "use a coarser stride or a smaller area")
+    if read > max_cells * READ_FACTOR:
+        raise ValueError(f"request reads {read} map voxels, over the limit of {max_cells * READ_FACTOR}; "
+                         "use a smaller area")
+
+
+def _block_states(grid, i0: tuple[int, int, int], n: tuple[int, int, int]) -> np.ndarray:
+    """(nx, ny, nz) states of the map voxels of the box starting at ``i0``, read in x slabs."""
+    nx, ny, nz = n
+    out = np.empty((nx, ny, nz), np.int8)
+    yy, zz = np.meshgrid(np.arange(ny) + i0[1], np.arange(nz) + i0[2], indexing="ij")
+    plane = np.stack([np.zeros(ny * nz, np.int64), yy.ravel(), zz.ravel()], 1)
+    per = max(1, CHUNK // max(1, ny * nz))
+    for s in range(0, nx, per):
+        e = min(nx, s + per)
+        ijk = np.repeat(plane[None], e - s, 0)
+        ijk[:, :, 0] = (np.arange(s, e) + i0[0])[:, None]
+        out[s:e] = _state_of(_values(grid, ijk.reshape(-1, 3))).reshape(e - s, ny, nz)
+    return out
+
+
+def state_grid(grid, vox: float, box_min, box_max, stride: int = 1,
+               max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray, float]:
+    """Dense states of the box ``[box_min, box_max]`` (m) at ``stride·vox`` resolution.
+
+    Returns ``(states (nx, ny, nz) int8, origin (3,) float64 min corner of cell 0 in metres,
+    cell size in metres)``; see the module docstring for the states and the snapping."""
+    s = _check_stride(stride)
+    lo, hi = np.asarray(box_min, np.float64).reshape(3), np.asarray(box_max, np.float64).reshape(3)
+    rng = [_cell_range(lo[a], hi[a], vox, s) for a in range(3)]
+    n = (rng[0][1], rng[1][1], rng[2][1])
+    cells = n[0] * n[1] * n[2]
+    _check_size(cells, cells * s ** 3, max_cells)
+    i0 = (rng[0][0], rng[1][0], rng[2][0])
+    fine = _block_states(grid, i0, (n[0] * s, n[1] * s, n[2] * s))
+    if s > 1:
+        fine = _reduce(fine.reshape(n[0], s, n[1], s, n[2], s), (1, 3, 5))
+    return fine, np.asarray(i0, np.float64) * vox, float(vox * s)
+
+
+def costmap_slice(grid, vox: float, xy_min, xy_max, z_band, stride: int = 1,
+                  max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray, float]:
+    """2D costmap of the z band ``[z0, z1]`` (m) over ``[xy_min, xy_max]`` at ``stride·vox``.
+
+    A column cell is occupied if any map voxel of the band in it is occupied, free if all
+    are observed free, else unknown. Returns ``(states (nx, ny) int8, origin (2,) min corner
+    of cell 0 in metres, cell size in metres)``."""
+    s = _check_stride(stride)
+    z0, z1 = float(z_band[0]), float(z_band[1])
+    lo, hi = np.asarray(xy_min, np.float64).reshape(2), np.asarray(xy_max, np.float64).reshape(2)
+    rx, ry = _cell_range(lo[0], hi[0], vox, s), _cell_range(lo[1], hi[1], vox, s)
+    k0, nz = _cell_range(z0, z1, vox, 1)
+    cells = rx[1] * ry[1]
+    _check_size(cells, cells * s * s * nz, max_cells)
+    fine = _block_states(grid, (rx[0], ry[0], k0), (rx[1] * s, ry[1] * s, nz))
+    out = _reduce(fine.reshape(rx[1], s, ry[1], s, nz), (1, 3, 4))
+    return out, np.array([rx[0], ry[0]], np.float64) * vox, float(vox * s)
+
+
+def point_states(grid, vox: float, points, radius: float,
+                 max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray]:
+    """State of the map voxel holding each point (N, 3) (m) and the distance (m) from the
+    point to the nearest occupied voxel (its cube, so 0 inside one) within ``radius``;
+    ``inf`` when there is none within ``radius``. Returns ``(states (N,) int8, dist (N,)
+    float64)``."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(p) > MAX_POINTS:
+        raise ValueError(f"{len(p)} points exceed the limit of {MAX_POINTS} points")
+    if not np.isfinite(p).all():
+        raise ValueError("points must be finite")
+    if not (radius >= 0 and math.isfinite(radius)):
+        raise ValueError(f"radius must be finite and >= 0, got {radius}")
+    r = int(math.ceil(radius / vox))
+    w = 2 * r + 1
+    _check_size(len(p) * w ** 3, len(p) * w ** 3, max_cells)
+    ijk = np.floor(p / vox).astype(np.int64)
+    states = _state_of(_values(grid, ijk))
+    dist = np.full(len(p), np.inf)
+    if len(p) == 0:
+        return states, dist
+    off = np.stack(np.meshgrid(*(np.arange(-r, r + 1),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    per = max(1, CHUNK // len(off))
+    for s in range(0, len(p), per):
+        e = min(len(p), s + per)
+        cells = (ijk[s:e, None, :] + off[None]).reshape(-1, 3)
+        occ = (_values(grid, cells) > 0).reshape(e - s, len(off))
+        if not occ.any():
+            continue
+        lo = cells.reshape(e - s, len(off), 3) * vox
+        d = np.maximum(np.maximum(lo - p[s:e, None, :], p[s:e, None, :] - (lo + vox)), 0.0)
+        dd = np.where(occ, np.sqrt((d * d).sum(-1)), np.inf).min(1)
+        dist[s:e] = np.where(dd <= radius, dd, np.inf)
+    return states, dist

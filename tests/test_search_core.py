@@ -1,0 +1,322 @@
+"""Search-for-planners computation (semantic_map.instances / look_next / beyond /
+occupancy_queries) against the synthetic world's ground truth and brute force.
+
+The map is built from rendered frames of ``World.generate(3)`` whose features are the
+one-hot ground-truth labels, so a voxel's confidence for a class is its label share.
+"""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from common.conventions import voxel_center
+from semantic_map.beyond import best_rays, closest_approach, triangulate
+from semantic_map.config import map_config
+from semantic_map.instances import InstanceTracker, connected_26
+from semantic_map.look_next import look_next, points_in_polygon, unknown_volume
+from semantic_map.map import RayFrontsMap
+from semantic_map.occupancy_queries import FREE, OCCUPIED, UNKNOWN, costmap_slice, point_states, state_grid
+from synthetic_world import World
+from tests.support.data import bfs_components
+
+HW = (48, 64)
+VOX = 0.3
+STAGES = (24, 32, 40)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+def _confidence(feat: torch.Tensor, cls: int) -> np.ndarray:
+    f = feat.float()
+    return (f[:, cls] / f.sum(1).clamp_min(1e-9)).numpy()
+
+
+@pytest.fixture(scope="module")
+def built():
+    """Map after each stage of frames, with the car tracker's instances at each stage."""
+    w = World.generate(3)
+    poses = w.trajectory("ground", 240, seed=3)
+    K = w.camera(HW, 90.0)
+    cfg = map_config("default", dict(vox_size=VOX, depth_limit=15.0, vox_accum_period=2, ray_accum_period=3,
+                                     ray_accum_phase=1))
+    n_cls = len(w.classes)
+    m = RayFrontsMap(cfg, n_cls, "labels", occupancy_backend="torch")
+    car = w.class_id("car")
+    tr = InstanceTracker(VOX, min_voxels=3)
+    stages = []
+    done = 0
+    for stop in STAGES:
+        for p in poses[done:stop]:
+            r = w.render(p, K, HW)
+            oh = torch.nn.functional.one_hot(torch.as_tensor(r.labels.astype(np.int64)), n_cls)
+            m.integrate(p, K, r.depth.astype(np.float32), r.rgb, oh.permute(2, 0, 1).float())
+        done = stop
+        m.flush()
+        conf = _confidence(m.sem.feat, car)
+        sel = conf > 0.5
+        events = tr.update("car", m.sem.ijk()[torch.as_tensor(sel)].numpy(), conf[sel], m.counters["frames"])
+        stages.append(dict(instances=tr.current("car"), events=events, frames=m.counters["frames"]))
+    return dict(world=w, map=m, tracker=tr, stages=stages, car=car, poses=poses)
+
+
+def _box_distance(p, lo, hi) -> float:
+    return float(np.linalg.norm(np.maximum(np.maximum(lo - p, p - hi), 0.0)))
+
+
+# ----------------------------------------------------------------------------- instances
+def test_found_instances_are_true_cars(built):
+    w, m, car = built["world"], built["map"], built["car"]
+    inst = built["stages"][-1]["instances"]
+    assert len(inst) >= 2
+    true = w.instances_of(car)
+    xyz = m.sem.xyz().numpy().astype(np.float64)
+    truth = w.voxel_labels(m.sem.ijk().numpy(), VOX)
+    for i in inst:
+        # the centroid lies within 2 voxels of a true car's box ...
+        d = [_box_distance(i.centroid, t.aabb_min, t.aabb_max) for t in true]
+        t = true[int(np.argmin(d))]
+        assert min(d) <= 2 * VOX, (i, min(d))
+        # ... and within 2 voxels of the centroid of the mapped voxels truly of that car
+        pad = VOX
+        inside = (truth == car) & np.all((xyz >= t.aabb_min - pad) & (xyz <= t.aabb_max + pad), axis=1)
+        assert inside.sum() > 0
+        assert np.linalg.norm(xyz[inside].mean(0) - i.centroid) <= 2 * VOX, i
+        assert np.all(i.box_min <= i.centroid) and np.all(i.centroid <= i.box_max)
+        assert 0.5 < i.confidence <= 1.0 and i.voxels >= 3
+        assert i.first_seen <= i.last_seen == built["stages"][-1]["frames"]
+
+
+def _true_car(built, inst) -> str:
+    true = built["world"].instances_of(built["car"])
+    d = [_box_distance(inst.centroid, t.aabb_min, t.aabb_max) for t in true]
+    return true[int(np.argmin(d))].name
+
+
+def test_ids_stable_while_objects_grow(built):
+    stages = built["stages"]
+    grew = 0
+    for a, b in zip(stages[:-1], stages[1:], strict=True):
+        for ib in b["instances"]:
+            # previous instances sharing voxels with it: it carries the oldest of their ids,
+            # and they were all parts of the same true car (merges join fragments of one object)
+            prev = [ia for ia in a["instances"] if np.intersect1d(ia.keys, ib.keys).size]
+            if prev:
+                oldest = min(prev, key=lambda x: (x.first_seen, x.id))
+                assert ib.id == oldest.id and ib.first_seen == oldest.first_seen
+                assert ib.observations == oldest.observations + 1
+                assert {_true_car(built, x) for x in prev} == {_true_car(built, ib)}
+                grew += ib.voxels > oldest.voxels
+        for e in b["events"]:
+            assert e.kind in ("new", "merge"), e
+    assert grew >= 1
+    # per true car found from the first stage on: its oldest id is its id at the end
+    first = {}
+    for i in stages[0]["instances"]:
+        first.setdefault(_true_car(built, i), i.id)
+    last = {_true_car(built, i): i.id for i in stages[-1]["instances"]}
+    assert first and all(last.get(name) == i for name, i in first.items())
+    all_ids = [i.id for s in stages for i in s["instances"]]
+    assert len(set(all_ids)) == len({(i.id, i.first_seen) for s in stages for i in s["instances"]})
+
+
+def test_split_and_merge_events():
+    tr = InstanceTracker(0.5)
+    bar = np.array([[x, 0, 0] for x in range(10)])
+    ev = tr.update("x", bar, np.full(10, 0.9), 1)
+    assert [e.kind for e in ev] == ["new"] and tr.current()[0].voxels == 10
+    bar_id = tr.current()[0].id
+    # cut the bar: 6 + 3 voxels -> the id stays on the 6-voxel part, the other is a split
+    cut = np.delete(bar, 6, axis=0)
+    ev = tr.update("x", cut, np.full(9, 0.8), 2)
+    now = {i.id: i for i in tr.current()}
+    assert len(now) == 2 and now[bar_id].voxels == 6
+    (split,) = [e for e in ev if e.kind == "split"]
+    assert split.parent == bar_id and split.id in now and now[split.id].voxels == 3
+    assert split.id > bar_id
+    # a new blob far away, then join everything: the oldest id (bar_id) survives
+    blob = np.array([[20, 0, 0], [21, 0, 0]])
+    tr.update("x", np.concatenate([cut, blob]), np.full(11, 0.8), 3)
+    blob_id = max(i.id for i in tr.current())
+    joined = np.concatenate([bar, [[x, 0, 0] for x in range(10, 22)]])
+    ev = tr.update("x", joined, np.full(len(joined), 0.7), 4)
+    (only,) = tr.current()
+    assert only.id == bar_id and only.voxels == 22 and only.observations == 4
+    (merge,) = [e for e in ev if e.kind == "merge"]
+    assert merge.id == bar_id and sorted(merge.merged) == sorted([split.id, blob_id])
+    # ids never reused: a fresh object after everything vanished gets a new id
+    assert [e.kind for e in tr.update("x", np.zeros((0, 3)), np.zeros(0), 5)] == ["lost"]
+    tr.update("x", bar, np.full(10, 0.9), 6)
+    assert tr.current()[0].id > blob_id
+
+
+def test_connected_26_matches_brute_force():
+    rng = np.random.default_rng(1)
+    ijk = np.unique(rng.integers(-6, 6, (250, 3)), axis=0)
+    lab = connected_26(ijk)
+    ref = bfs_components(ijk)  # brute force: flood fill over the 26-neighbourhood
+    c = ref.max() + 1
+    assert lab.max() + 1 == c
+    assert np.array_equal(lab[:, None] == lab[None], ref[:, None] == ref[None])
+
+
+# ----------------------------------------------------------------------------- look next
+def test_look_next_goals_free_in_map_and_world(built):
+    w, m, car = built["world"], built["map"], built["car"]
+    rl = m.rays()
+    rscore = _confidence(rl.features, car)[:, None]
+    start = built["poses"][STAGES[-1] - 1][:3, 3]
+    goals = look_next(m.occupancy, VOX, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
+                      rscore, ["car"], from_xyz=start, max_goals=8, sensing_radius_m=2.0)
+    assert len(goals) >= 3
+    pos = np.stack([g.position for g in goals])
+    st, _ = point_states(m.occupancy, VOX, pos, 0.0)
+    assert np.all(st == FREE)
+    assert np.all(w.labels_at(pos) == 0)                     # free in the true world as well
+    scores = [g.score for g in goals]
+    assert scores == sorted(scores, reverse=True)
+    for g in goals:
+        assert np.linalg.norm(g.position - g.frontier) <= 1.0 + 1e-6
+        assert -math.pi <= g.heading_rad <= math.pi
+        assert g.distance_m == pytest.approx(float(np.linalg.norm(g.position - start)))
+        # score = best car score of the rays attached within 1 m (brute force)
+        near = np.linalg.norm(rl.origins.numpy() - g.frontier, axis=1) <= 1.0
+        assert g.score == pytest.approx(float(rscore[near, 0].max()) if near.any() else 0.0)
+        assert (g.target == "car") == (g.score > 0)
+    gains = unknown_volume(m.occupancy, VOX, pos[:2], 2.0)
+    assert [g.gain_m3 for g in goals[:2]] == pytest.approx(list(gains))
+    assert any(g.gain_m3 > 0 for g in goals)
+
+
+def test_unknown_volume_brute_force(built):
+    m = built["map"]
+    p = np.array([[1.0, 2.0, 1.2], [5.0, -3.0, 0.5]])
+    got = unknown_volume(m.occupancy, VOX, p, 1.0)
+    r = 4
+    ax = np.arange(-r, r + 1)
+    off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    off = off[np.linalg.norm(off * VOX, axis=1) <= 1.0 + 1e-9]
+    for q, g in zip(p, got, strict=True):
+        vals = m.occupancy.query(torch.as_tensor(np.floor(q / VOX).astype(np.int64) + off)).numpy()
+        assert g == pytest.approx((vals == 0).sum() * VOX ** 3)
+
+
+def test_points_in_polygon():
+    sq = [[0, 0], [2, 0], [2, 2], [0, 2]]
+    got = points_in_polygon(np.array([[1, 1], [3, 1], [-0.1, 1], [1.9, 1.9]]), sq)
+    assert got.tolist() == [True, False, False, True]
+
+
+# ----------------------------------------------------------------------------- beyond
+def test_triangulation_contains_the_crossing_point():
+    rng = np.random.default_rng(0)
+    target = np.array([30.0, 12.0, 2.0])
+    origins = np.array([[0.0, 0.0, 1.0], [5.0, -8.0, 1.0], [-3.0, 9.0, 1.5]])
+    err = 3.0
+    dirs = []
+    for o in origins:
+        d = target - o
+        d /= np.linalg.norm(d)
+        # perturb by up to err degrees
+        axis = np.cross(d, rng.normal(size=3))
+        axis /= np.linalg.norm(axis)
+        a = math.radians(err) * 0.9
+        dirs.append(d * math.cos(a) + np.cross(axis, d) * math.sin(a))
+    dirs = np.array(dirs)
+    est = triangulate(origins, dirs, np.array([0.9, 0.8, 0.7]), max_gap_m=10.0, angle_err_deg=err)
+    assert est
+    assert np.linalg.norm(est[0].position - target) <= est[0].radius_m
+    assert est[0].score == pytest.approx(0.8)
+    # exact rays: the estimate is the point itself
+    exact = (target - origins[:2]) / np.linalg.norm(target - origins[:2], axis=1, keepdims=True)
+    (e,) = triangulate(origins[:2], exact, np.ones(2), angle_err_deg=0.0)
+    assert np.allclose(e.position, target, atol=1e-9) and e.radius_m < 1e-9
+    # rays pointing away from the crossing (behind an origin) or parallel give nothing
+    assert triangulate(origins[:2], -exact, np.ones(2)) == []
+    assert triangulate(origins[:2], np.array([[1.0, 0, 0], [1.0, 0, 0]]), np.ones(2)) == []
+    t1, t2, gap = closest_approach(origins[0], exact[0], origins[1], exact[1])
+    assert gap < 1e-9 and t1 == pytest.approx(np.linalg.norm(target - origins[0]))
+    assert best_rays(np.array([0.1, 0.5, 0.5, 0.9]), 3).tolist() == [3, 1, 2]
+
+
+# ----------------------------------------------------------------------------- occupancy
+def _cam(built) -> np.ndarray:
+    """Camera position (m) at the last mapped frame."""
+    return built["poses"][STAGES[-1] - 1][:3, 3].astype(np.float64)
+
+
+def _brute_states(m, ijk: np.ndarray) -> np.ndarray:
+    v = m.occupancy.query(torch.as_tensor(ijk)).numpy()
+    return np.where(v > 0, OCCUPIED, np.where(v < 0, FREE, UNKNOWN))
+
+
+def test_state_grid_equals_map_occupancy(built):
+    m = built["map"]
+    c = _cam(built)
+    lo, hi = c + np.array([-4.0, -3.1, -2.0]), c + np.array([3.0, 2.0, 1.1])
+    g, origin, cell = state_grid(m.occupancy, VOX, lo, hi)
+    assert cell == VOX and np.allclose(origin, np.floor(lo / VOX) * VOX)
+    i0 = np.floor(lo / VOX).astype(np.int64)
+    idx = np.argwhere(np.ones(g.shape, bool))
+    assert np.array_equal(g.reshape(-1), _brute_states(m, idx + i0))
+    assert {FREE, OCCUPIED, UNKNOWN} <= set(np.unique(g).tolist())
+    assert np.all(origin + np.array(g.shape) * cell >= hi)
+    # stride 2: occupied if any, free if all free, else unknown
+    g2, o2, c2 = state_grid(m.occupancy, VOX, lo, hi, stride=2)
+    assert c2 == 2 * VOX and np.allclose(o2, origin)
+    for c in np.argwhere(np.ones(g2.shape, bool))[::7]:
+        sub = _brute_states(m, np.argwhere(np.ones((2, 2, 2), bool)) + i0 + 2 * c)
+        want = OCCUPIED if (sub == OCCUPIED).any() else FREE if (sub == FREE).all() else UNKNOWN
+        assert g2[tuple(c)] == want
+
+
+def test_costmap_slice_brute_force(built):
+    m = built["map"]
+    c = _cam(built)[:2]
+    cm, origin, cell = costmap_slice(m.occupancy, VOX, c - 4.0, c + 4.0, (0.7, 1.6), stride=2)
+    assert {FREE, OCCUPIED, UNKNOWN} <= set(np.unique(cm).tolist())
+    k0, k1 = math.floor(0.7 / VOX), math.floor(1.6 / VOX)
+    i0 = np.floor((c - 4.0) / VOX).astype(np.int64)
+    for c in np.argwhere(np.ones(cm.shape, bool))[::3]:
+        cells = np.array([[i0[0] + 2 * c[0] + a, i0[1] + 2 * c[1] + b, k] for a in (0, 1) for b in (0, 1)
+                          for k in range(k0, k1 + 1)])
+        sub = _brute_states(m, cells)
+        want = OCCUPIED if (sub == OCCUPIED).any() else FREE if (sub == FREE).all() else UNKNOWN
+        assert cm[tuple(c)] == want
+    assert cell == 2 * VOX and np.allclose(origin, i0 * VOX)
+
+
+def test_point_states_brute_force(built):
+    m = built["map"]
+    rng = np.random.default_rng(2)
+    pts = _cam(built) + rng.uniform([-6, -6, -1.5], [6, 6, 1.5], (40, 3))
+    st, dist = point_states(m.occupancy, VOX, pts, 1.0)
+    assert np.array_equal(st, _brute_states(m, np.floor(pts / VOX).astype(np.int64)))
+    ijk, val = m.occupancy.active()
+    occ = ijk.numpy()[val.numpy() > 0]
+    lo = occ * VOX
+    for p, s, d in zip(pts, st, dist, strict=True):
+        dd = np.linalg.norm(np.maximum(np.maximum(lo - p, p - (lo + VOX)), 0), axis=1).min()
+        assert (d == pytest.approx(dd)) if dd <= 1.0 else d == np.inf
+        if s == OCCUPIED:
+            assert d == 0.0
+    assert np.isfinite(dist).any()
+
+
+def test_occupancy_requests_over_the_limit_raise(built):
+    m = built["map"]
+    with pytest.raises(ValueError, match="limit of 4000000 cells"):
+        state_grid(m.occupancy, VOX, [-500, -500, 0], [500, 500, 10])
+    with pytest.raises(ValueError, match="limit of 1000 cells"):
+        costmap_slice(m.occupancy, VOX, [0, 0], [30, 30], (0, 1), max_cells=1000)
+    with pytest.raises(ValueError, match="stride"):
+        state_grid(m.occupancy, VOX, [0, 0, 0], [1, 1, 1], stride=0)
+    with pytest.raises(ValueError, match="limit"):
+        point_states(m.occupancy, VOX, np.zeros((10, 3)), 50.0)
+    assert voxel_center(np.zeros((1, 3), np.int64), VOX).shape == (1, 3)
