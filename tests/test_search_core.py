@@ -22,7 +22,7 @@ from tests.support.data import bfs_components
 
 HW = (48, 64)
 VOX = 0.3
-STAGES = (24, 32, 40)
+STAGES = tuple(range(22, 42, 2))     # ten map updates
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -320,3 +320,59 @@ def test_occupancy_requests_over_the_limit_raise(built):
     with pytest.raises(ValueError, match="limit"):
         point_states(m.occupancy, VOX, np.zeros((10, 3)), 50.0)
     assert voxel_center(np.zeros((1, 3), np.int64), VOX).shape == (1, 3)
+
+
+def test_car_count_is_the_true_cars_seen(built):
+    """"How many cars have we seen" from instances: one instance per true car of which the map
+    holds at least ``min_voxels`` voxels truly of that car."""
+    w, m, car = built["world"], built["map"], built["car"]
+    truth = w.voxel_labels(m.sem.ijk().numpy(), VOX)
+    xyz = m.sem.xyz().numpy().astype(np.float64)
+    seen = set()
+    for t in w.instances_of(car):
+        inside = (truth == car) & np.all((xyz >= t.aabb_min - VOX) & (xyz <= t.aabb_max + VOX), axis=1)
+        if inside.sum() >= 3:
+            seen.add(t.name)
+    inst = built["stages"][-1]["instances"]
+    assert seen and len(inst) == len(seen), (len(inst), sorted(seen))
+    assert {_true_car(built, i) for i in inst} == seen
+
+
+def test_look_next_goals_reachable_through_known_free_space(built):
+    """Every goal can be reached from the robot's last position moving through cells the map
+    knows to be free (6-connected breadth-first search on the map's occupancy)."""
+    from collections import deque
+
+    m, w = built["map"], built["world"]
+    rl = m.rays()
+    start = built["poses"][STAGES[-1] - 1][:3, 3].astype(np.float64)
+    goals = look_next(m.occupancy, VOX, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
+                      _confidence(rl.features, built["car"])[:, None], ["car"], from_xyz=start, max_goals=8)
+    assert goals
+    pts = np.vstack([start] + [g.position for g in goals])
+    lo, hi = pts.min(0) - 6.0, pts.max(0) + 6.0
+    lo[2], hi[2] = 0.0, max(hi[2], 4.0)
+    states, origin, cell = state_grid(m.occupancy, VOX, lo, hi)
+    free = states == FREE
+
+    def cell_of(p):
+        return tuple(np.floor((np.asarray(p) - origin) / cell).astype(int))
+
+    s = cell_of(start)
+    assert free[s], "the robot's own cell is free"
+    seen = np.zeros_like(free)
+    seen[s] = True
+    todo = deque([s])
+    while todo:
+        c = todo.popleft()
+        for a in range(3):
+            for d in (-1, 1):
+                n = list(c)
+                n[a] += d
+                n = tuple(n)
+                if all(0 <= n[k] < free.shape[k] for k in range(3)) and free[n] and not seen[n]:
+                    seen[n] = True
+                    todo.append(n)
+    for g in goals:
+        assert seen[cell_of(g.position)], g
+    assert np.all(w.labels_at(np.stack([g.position for g in goals])) == 0)
