@@ -432,11 +432,12 @@ def undeclare_all(entities: Iterable[Any]) -> None:
             log.debug("undeclare %r: %s", ent, e)
 
 
-def close_quietly(session: Any) -> None:
-    """Close a Zenoh session if there is one; a failure is a warning line, not an exception."""
-    if session is None:
+def close_quietly(obj: Any, what: str = "the zenoh session") -> None:
+    """``obj.close()`` if there is an ``obj`` (a Zenoh session, a recording, a rerun logger);
+    a failure is one warning line naming ``what``, not an exception (used at shutdown)."""
+    if obj is None:
         return
     try:
-        session.close()
+        obj.close()
     except Exception as e:
-        log.warning("closing the zenoh session: %s", e)
+        log.warning("closing %s failed: %s", what, e)

@@ -761,12 +761,8 @@ class EdgeRuntime:
         self.slot.close()
         for t in self._threads:
             t.join(timeout=5.0)
-        if self._recorder is not None:
-            try:
-                self._recorder.close()
-            except Exception as e:
-                log.error("closing the recording failed: %s", e)
-            self._recorder = None
+        close_quietly(self._recorder, "the recording")
+        self._recorder = None
         self._close_session()
 
     def _close_session(self) -> None:

@@ -211,12 +211,8 @@ class MapperService:
                 self.save_snapshot()
             except Exception as e:
                 log.error("snapshot on exit failed: %s", e)
-        if self.rerun is not None:
-            try:
-                self.rerun.close()
-            except Exception as e:
-                log.error("closing rerun failed: %s", e)
-            self.rerun = None
+        close_quietly(self.rerun, "the rerun output")
+        self.rerun = None
         log.info("mapper closed: %s", json.dumps(self.stats()["frames"]))
 
     # ============================================ the jobs' entry points, as before

@@ -43,14 +43,19 @@ def _count(s: str) -> int:
     return int(float(s[:-1] if mult > 1 else s) * mult)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def map_size_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--voxels``, ``--dim``, ``--rays``, ``--threads``: the benchmark map and its query threads."""
     parser.add_argument("--voxels", default="100k,1M,5M", help="map sizes, comma separated (k / M suffixes)")
     parser.add_argument("--dim", type=int, default=100, help="feature dimension (PCA output) of the map")
     parser.add_argument("--rays", type=int, default=5000, help="semantic rays in the map")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads for queries (0 = the mapper's auto)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    map_size_arguments(parser)
     parser.add_argument("--queries", type=int, default=20, help="queries per measurement")
     parser.add_argument("--changes", type=int, default=10, help="map changes for the first-query-after-change figure")
     parser.add_argument("--no-client", dest="client", action="store_false", help="skip the Zenoh round trip")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads for queries (0 = the mapper's auto)")
 
 
 def _space(dim: int):

@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from apps.bench.query import _count, _pct, _space, build_map
+from apps.bench.query import _count, _pct, _space, build_map, map_size_arguments
 
 HELP = "search (found / look-next / beyond) and occupancy-query latency on 100k..5M-voxel maps, in process"
 
@@ -34,12 +34,9 @@ TARGETS = ("car", "tree", "bench", "person", "window")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--voxels", default="100k,1M,5M", help="map sizes, comma separated (k / M suffixes)")
-    parser.add_argument("--dim", type=int, default=100, help="feature dimension (PCA output) of the map")
-    parser.add_argument("--rays", type=int, default=5000, help="random semantic rays added to the map")
+    map_size_arguments(parser)
     parser.add_argument("--frames", type=int, default=12, help="synthetic-world frames for occupancy and frontiers")
     parser.add_argument("--queries", type=int, default=10, help="searches per map size")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0 = the mapper's query auto)")
 
 
 def _add_frames(m, dim: int, n_frames: int) -> None:
