@@ -376,3 +376,47 @@ def test_look_next_goals_reachable_through_known_free_space(built):
     for g in goals:
         assert seen[cell_of(g.position)], g
     assert np.all(w.labels_at(np.stack([g.position for g in goals])) == 0)
+
+
+def test_far_target_seen_only_beyond_range():
+    """A constructed scene: a target 40 m away seen from three places only beyond the 10 m
+    depth range (every depth +inf, so the map holds no voxel of it). The goals whose rays
+    point at it rank first and face it, and the rays from different places triangulate to an
+    estimate that contains the true position within its stated radius."""
+    H, W = 48, 64
+    f = W / 2 / math.tan(math.radians(45))
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    target = np.array([40.0, 0.0, 2.0])
+    R = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)      # camera looks along +x (RDF)
+    cfg = map_config("default", dict(vox_size=0.5, depth_limit=10.0, angle_bin_size=10.0))
+    m = RayFrontsMap(cfg, 2, "toy", occupancy_backend="torch")
+    cams = [np.array([0.0, -6.0, 1.5]), np.array([0.0, 6.0, 1.5]), np.array([-4.0, 0.0, 1.5])]
+    for c in cams:
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = R, c
+        pc = R.T @ (target - c)
+        u, v = int(K[0, 0] * pc[0] / pc[2] + K[0, 2]), int(K[1, 1] * pc[1] / pc[2] + K[1, 2])
+        depth = np.full((H, W), np.inf, np.float32)
+        depth[H // 2 + 6:] = np.nan                                  # nothing measured below
+        feat = np.zeros((2, H, W), np.float32)
+        feat[0] = 1.0                                                # class 0: background
+        feat[:, v - 5:v + 6, u - 5:u + 6] = np.array([0.0, 1.0], np.float32)[:, None, None]
+        for _ in range(3):
+            m.integrate(pose, K, depth, np.zeros((H, W, 3), np.uint8), torch.as_tensor(feat))
+    m.flush()
+    assert len(m.sem) == 0                                           # nothing of it in range
+    rl = m.rays()
+    rf = rl.features.float()
+    conf = (rf[:, 1] / rf.sum(1).clamp_min(1e-9)).numpy()
+    goals = look_next(m.occupancy, 0.5, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
+                      conf[:, None], ["tower"], from_xyz=cams[0], max_goals=5)
+    assert goals[0].score > 0.5 and goals[0].score == max(g.score for g in goals)
+    for g in goals:
+        if g.score > 0.5:                                            # the goals toward it face it
+            d = target[:2] - g.position[:2]
+            err = abs((g.heading_rad - math.atan2(d[1], d[0]) + math.pi) % (2 * math.pi) - math.pi)
+            assert err < math.radians(20), (g, err)
+    idx = best_rays(conf, 20)
+    est = triangulate(rl.origins.numpy()[idx], rl.directions.numpy()[idx], conf[idx], max_gap_m=2.0,
+                      angle_err_deg=cfg.angle_bin_size / 2)
+    assert est and np.linalg.norm(est[0].position - target) <= est[0].radius_m < 25.0, est[:1]
