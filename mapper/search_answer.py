@@ -18,6 +18,7 @@ World frame, metres, z up; timings in milliseconds.
 """
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 from typing import Callable
@@ -35,17 +36,28 @@ from semantic_map.query import score_rows
 
 
 class TrackerStore:
-    """Instance trackers by target set (LRU, at most ``max_trackers``)."""
+    """Instance trackers by target set (LRU, at most ``max_trackers``). Their ids come from one
+    counter starting at ``first_id``: ids are unique over all target sets and, with the counter
+    saved in the snapshot, never reused after a restart."""
 
-    def __init__(self, max_trackers: int = 32):
+    def __init__(self, max_trackers: int = 32, first_id: int = 1):
         self.max = max(1, int(max_trackers))
         self._t: OrderedDict = OrderedDict()
+        self.next_id = max(1, int(first_id))
+        self._lock = threading.Lock()
+
+    def new_id(self) -> int:
+        """The next instance id (thread-safe)."""
+        with self._lock:
+            i = self.next_id
+            self.next_id += 1
+            return i
 
     def get(self, key: tuple, vox: float, min_voxels: int) -> InstanceTracker:
         """The tracker of ``key`` (created on first use; a map with another voxel size resets it)."""
         t = self._t.get(key)
         if t is None or t.vox != float(vox):
-            t = InstanceTracker(vox, min_voxels)
+            t = InstanceTracker(vox, min_voxels, id_source=self.new_id)
             self._t[key] = t
         self._t.move_to_end(key)
         while len(self._t) > self.max:

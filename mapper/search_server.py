@@ -64,8 +64,9 @@ class SearchServer:
     def __init__(self, state, queries):
         self.state = state
         self.queries = queries
-        self.trackers = TrackerStore(state.cfg.search.max_trackers)
-        self.standing: dict[str, SearchRequest] = {}
+        self.trackers = TrackerStore(state.cfg.search.max_trackers, first_id=state.instance_ids_from)
+        state.search_trackers = self.trackers           # its id counter goes into snapshots
+        self.standing: dict[str, SearchRequest] = state.standing_searches
         self._last_gen: dict[str, int] = {}
 
     def _read_map(self, fn):

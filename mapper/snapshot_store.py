@@ -41,6 +41,7 @@ from common.messages import (
     encode_query_request,
     encode_snapshot_reply,
 )
+from common.search_messages import decode_search_request, encode_search_request
 from mapper.snapshot import capture_map, fsync_dir, write_bytes_durably, write_capture
 from mapper.state import MapperState, jsonable
 
@@ -71,7 +72,11 @@ class SnapshotStore:
                         "flushed_version": state.flushed_version,
                         "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in state.robots.items()},
                         "standing": [base64.b64encode(encode_query_request(r)).decode()
-                                     for r in list(state.standing.values())]}
+                                     for r in list(state.standing.values())],
+                        "standing_searches": [base64.b64encode(encode_search_request(r)).decode()
+                                              for r in list(state.standing_searches.values())],
+                        "instance_next_id": (state.search_trackers.next_id if state.search_trackers is not None
+                                             else state.instance_ids_from)}
             capture = capture_map(state.map)     # copies, under the lock; written after it
         path = write_snapshot(root, capture, state.space_reply, meta, state.cfg.snapshots.keep)
         state.snap_version = version
@@ -126,6 +131,7 @@ class SnapshotStore:
             st = state.robot(name)
             st.mapped, st.last_seq = int(r.get("mapped", 0)), int(r.get("last_seq", -1))
         self._restore_standing(meta.get("standing", []))
+        self._restore_searches(meta.get("standing_searches", []), int(meta.get("instance_next_id", 1)))
         state.last_snapshot = {"path": str(path), "frames_mapped": state.mapped, "stamp": meta.get("stamp", 0.0),
                            "restored": True}
         if broken:
@@ -150,6 +156,25 @@ class SnapshotStore:
         if saved:
             log.info("restored %d standing quer%s: %s", len(state.standing), "y" if len(state.standing) == 1 else "ies",
                      ", ".join(sorted(state.standing)))
+
+    def _restore_searches(self, saved: list, next_id: int) -> None:
+        """Standing searches saved with the snapshot resume under their ids (the search server
+        re-runs them on the restored map and publishes on ``mapper/searches/<id>``); instance
+        ids continue from the saved counter, so none is reused."""
+        state = self.state
+        state.instance_ids_from = max(1, next_id)
+        if state.search_trackers is not None:
+            state.search_trackers.next_id = max(state.search_trackers.next_id, state.instance_ids_from)
+        for item in saved:
+            try:
+                req = decode_search_request(base64.b64decode(item))
+            except (MessageError, ValueError, TypeError) as e:
+                log.error("snapshot: a saved standing search is unreadable (%s); skipped", e)
+                continue
+            state.standing_searches[req.id] = req
+        if saved:
+            log.info("restored %d standing search(es): %s", len(state.standing_searches),
+                     ", ".join(sorted(state.standing_searches)))
 
     def _keep_after_config_check(self, path: Path) -> bool:
         """Whether the restored generation at ``path`` is kept, given ``snapshots.map_config``

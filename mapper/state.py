@@ -167,6 +167,9 @@ class MapperState:
         self.last_mapped_at: float | None = None
         self.cpu_mapped: list[float] = []      # process CPU s at the first and the last integration
         self.standing: dict = {}               # standing query id -> QueryRequest
+        self.standing_searches: dict = {}      # standing search id -> SearchRequest (mapper.search_server)
+        self.search_trackers = None            # the search's TrackerStore (its id counter is snapshotted)
+        self.instance_ids_from = 1             # first instance id after a restore (ids are never reused)
         self.last_snapshot: dict = {}          # what the last save / restore wrote or read
         self.text_warm_up_s: float | None = None  # seconds the text model's warm-up took (None: not done)
         self.timings = {"integrate_ms": Percentiles(), "integrate_cpu_ms": Percentiles(),

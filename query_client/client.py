@@ -247,31 +247,33 @@ class Client(PlannerCalls):
             callback(first)
         except Exception as e:
             log.warning("standing query %s callback: %s", qid, e)
-        handle._alive_sub = self._follow_mapper(handle, req, timeout)
+        handle._alive_sub = self._follow_mapper(handle, self.keys.mapper_query, encode_query_request(req),
+                                                f"standing query {qid}", timeout)
         return handle
 
-    def _follow_mapper(self, handle: WatchHandle, req: QueryRequest, timeout: float | None):
-        """Register ``req`` again whenever a mapper's liveliness token appears (a mapper that
-        restarted without the standing query in its snapshot would otherwise never refresh it);
-        a mapper that restored it answers the same id, so registering twice is harmless."""
+    def _follow_mapper(self, handle, key: str, payload: bytes, what: str, timeout: float | None):
+        """Send the standing request ``payload`` on ``key`` again whenever a mapper's liveliness
+        token appears (a mapper that restarted without it in its snapshot would otherwise never
+        refresh it); a mapper that restored it answers the same id, so registering twice is
+        harmless. ``handle``: has ``active`` and counts ``reregistered``."""
         import threading
 
         def register() -> None:
             try:
-                self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
+                self._get_all(key, payload, timeout)
                 handle.reregistered += 1
-                log.info("standing query %s registered again with a returning mapper", req.id)
+                log.info("%s registered again with a returning mapper", what)
             except Exception as e:
-                log.warning("standing query %s: registering again failed: %s", req.id, e)
+                log.warning("%s: registering again failed: %s", what, e)
 
         def on_token(sample) -> None:
             if handle.active and str(sample.kind).endswith("PUT"):
-                threading.Thread(target=register, name=f"rereg-{req.id}", daemon=True).start()
+                threading.Thread(target=register, name="rereg", daemon=True).start()
 
         try:
             return self.session.liveliness().declare_subscriber(self.keys.mapper_alive, on_token)
         except Exception as e:  # the watch still works; it just will not follow restarts
-            log.warning("standing query %s: cannot follow the mapper's liveliness: %s", req.id, e)
+            log.warning("%s: cannot follow the mapper's liveliness: %s", what, e)
             return None
 
     # ------------------------------------------------------------------ map state

@@ -44,12 +44,14 @@ class SearchHandle:
 
     def __init__(self, client, sid: str, sub):
         self.client, self.id, self._sub, self.active = client, sid, sub, True
+        self.reregistered = 0          # times the search was registered again after a mapper came back
+        self._alive_sub = None
 
     def cancel(self) -> None:
         if not self.active:
             return
         self.active = False
-        undeclare_all((self._sub,))
+        undeclare_all((self._sub, self._alive_sub))
         try:
             self.client._get_one(self.client.keys.mapper_search,
                                  encode_search_request(SearchRequest(cancel=True, id=self.id)), 2.0)
@@ -127,6 +129,8 @@ class PlannerCalls:
             handle.cancel()
             raise
         callback(first)
+        handle._alive_sub = self._follow_mapper(handle, self.keys.mapper_search, encode_search_request(req),
+                                                f"standing search {sid}", timeout)
         return handle
 
     def _occupancy(self, req: OccupancyRequest, timeout: float | None) -> OccupancyReply:

@@ -24,6 +24,7 @@ instance was seen; an update at the same frame as the previous one does not coun
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -156,16 +157,21 @@ class InstanceTracker:
     ``vox``: voxel size (m). ``min_voxels``: groups smaller than this are ignored (noise).
     """
 
-    def __init__(self, vox: float, min_voxels: int = 1):
+    def __init__(self, vox: float, min_voxels: int = 1, id_source: Callable[[], int] | None = None):
+        """``id_source``: where new ids come from (one counter shared by several trackers, kept
+        across restarts), default this tracker's own counter from 1."""
         if vox <= 0:
             raise ValueError(f"vox must be > 0, got {vox}")
         self.vox = float(vox)
         self.min_voxels = max(1, int(min_voxels))
         self.next_id = 1
+        self._id_source = id_source
         self.instances: dict[str, list[Instance]] = {}
         self.updates = 0
 
     def _new_id(self) -> int:
+        if self._id_source is not None:
+            return self._id_source()
         i = self.next_id
         self.next_id += 1
         return i

@@ -219,6 +219,9 @@ def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, p
     seen: list[int] = []
     wait_for(lambda: watcher.stats(), 60, what="mapper up")
     watcher.watch("car", lambda r: seen.append(int(r.frames_mapped)), top_k=3, timeout=60.0)
+    found: list = []                     # and a standing search
+    watcher.watch_search("car", lambda r: found.append((int(r.frames_mapped), [i["id"] for i in r.found])),
+                         timeout=60.0)
     with client(ep) as c:
         wait_for(lambda: c.snapshot().get("frames_mapped", 0) >= 4, 150, what="a periodic snapshot of >= 4 frames")
         m1.p.kill()   # no clean shutdown: only the periodic snapshot survives
@@ -229,11 +232,17 @@ def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, p
     meta = _json.loads((snaps / latest / "meta.json").read_text())
     saved = meta["frames_mapped"]
     assert saved >= 4 and len(meta["standing"]) == 1      # the standing query is in the snapshot
-    before = len(seen)
+    assert len(meta["standing_searches"]) == 1              # and the standing search, with the id counter
+    ids_before = {i for _, ids in found for i in ids}
+    assert meta["instance_next_id"] > max(ids_before, default=0)
+    before, before_found = len(seen), len(found)
     m2 = Proc("mapper2", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0"]), tmp_path)
     procs.append(m2)
     # the watch keeps delivering from the restarted mapper, answers of a map that grows past the snapshot
     wait_for(lambda: any(f > saved for f in seen[before:]), 120, what="standing query answers after the restart")
+    wait_for(lambda: any(f > saved for f, _ in found[before_found:]), 120, what="standing search after the restart")
+    after_ids = {i for f, ids in found[before_found:] if f > saved for i in ids}
+    assert not after_ids & ids_before or ids_before == set(), (ids_before, after_ids)   # ids never reused
     watcher.close()
     with client(ep) as c:
         st = wait_for(lambda: c.stats(), 60, what="restarted mapper")
