@@ -78,23 +78,28 @@ def _values(grid, ijk: np.ndarray) -> np.ndarray:
 
 
 def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.ndarray,
-                radius: float) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Per frontier (F, 3): ``(best score per target (F, T), indices of rays within radius)``."""
+                radius: float) -> np.ndarray:
+    """(F, T) best score per target of the rays whose origin lies within ``radius`` (m) of each
+    frontier centre (F, 3); 0 where none. One sparse neighbour search, no per-frontier loop."""
     f = np.asarray(frontiers, np.float64).reshape(-1, 3)
     o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
     s = np.asarray(ray_scores, np.float64)
     s = s.reshape(len(o), s.shape[-1] if s.ndim == 2 else 1)
     best = np.zeros((len(f), s.shape[1]))
     if len(f) == 0 or len(o) == 0:
-        return best, [np.zeros((0,), np.int64) for _ in range(len(f))]
+        return best
     from scipy.spatial import cKDTree
 
-    near = cKDTree(o).query_ball_point(f, r=radius)
-    idx = [np.asarray(n, np.int64) for n in near]
-    for i, n in enumerate(idx):
-        if len(n):
-            best[i] = s[n].max(0)
-    return best, idx
+    pairs = cKDTree(f).sparse_distance_matrix(cKDTree(o), radius, output_type="ndarray")
+    if len(pairs):
+        fi, ri = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        for t in range(s.shape[1]):
+            np.maximum.at(best[:, t], fi, s[ri, t])
+    return best
+
+
+def _rays_near(point: np.ndarray, tree, radius: float) -> np.ndarray:
+    return np.asarray(tree.query_ball_point(point, r=radius), np.int64) if tree is not None else np.zeros(0, np.int64)
 
 
 def _viewpoints(grid, vox: float, centres: np.ndarray, standoff: float) -> list[np.ndarray | None]:
@@ -172,7 +177,11 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
     scores = scores.reshape(len(dirs), len(targets))
     if len(f) == 0 or max_goals <= 0:
         return []
-    best, near = ray_support(f, ray_origins, scores, ray_radius_m)
+    best = ray_support(f, ray_origins, scores, ray_radius_m)
+    o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
+    from scipy.spatial import cKDTree
+
+    rays_tree = cKDTree(o) if len(o) else None
     fscore = best.max(1) if best.shape[1] else np.zeros(len(f))
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
     fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
@@ -188,7 +197,7 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
             continue
         seen.add(key)
         t = int(np.argmax(best[i])) if best.shape[1] and fscore[i] > 0 else -1
-        sup = near[i]
+        sup = _rays_near(f[i], rays_tree, ray_radius_m)
         if t >= 0 and len(sup):
             sup = sup[np.argsort(-scores[sup, t], kind="stable")][:max_rays]
             sd, sw = dirs[sup], scores[sup, t]
