@@ -168,14 +168,21 @@ def merge(cfg: _T, data: dict | None, prefix: str = "") -> _T:
     return dataclasses.replace(cfg, **changes)
 
 
-def parse_override(item: str) -> dict:
-    """``"a.b=1.5"`` → ``{"a": {"b": 1.5}}`` (value parsed as YAML)."""
+def split_key_value(item: str, what: str = "override", form: str = "key=value") -> tuple[str, str]:
+    """``"key=raw"`` → ``(key stripped, raw)``; a one-line :class:`ConfigError` naming ``what``
+    without ``=`` or with an empty key."""
     if "=" not in item:
-        raise ConfigError(f"override {item!r} is not of the form key=value")
+        raise ConfigError(f"{what} {item!r} is not of the form {form}")
     key, raw = item.split("=", 1)
     key = key.strip()
     if not key:
-        raise ConfigError(f"override {item!r} has an empty key")
+        raise ConfigError(f"{what} {item!r} has an empty key")
+    return key, raw
+
+
+def parse_override(item: str) -> dict:
+    """``"a.b=1.5"`` → ``{"a": {"b": 1.5}}`` (value parsed as YAML)."""
+    key, raw = split_key_value(item)
     try:
         value = yaml.safe_load(raw) if raw.strip() != "" else ""
     except yaml.YAMLError:

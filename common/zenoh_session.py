@@ -43,7 +43,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, TypeVar
 
-from common.config import ConfigError, field_
+from common.config import ConfigError, field_, split_key_value
 from common.keys import DEFAULT_PREFIX
 
 if TYPE_CHECKING:
@@ -385,12 +385,7 @@ def parse_zenoh_set(items: list[str] | None) -> dict[str, Any]:
     """``["a/b=1", "c=\"x\""]`` → ``{"a/b": 1, "c": "x"}`` (values are JSON; bare words are strings)."""
     out: dict[str, Any] = {}
     for item in items or ():
-        if "=" not in item:
-            raise ConfigError(f"--zenoh-set {item!r} is not of the form key=json")
-        k, raw = item.split("=", 1)
-        k = k.strip()
-        if not k:
-            raise ConfigError(f"--zenoh-set {item!r} has an empty key")
+        k, raw = split_key_value(item, "--zenoh-set", "key=json")
         try:
             out[k] = json.loads(raw)
         except json.JSONDecodeError:
