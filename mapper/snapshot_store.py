@@ -144,12 +144,7 @@ class SnapshotStore:
         """Standing queries saved with the snapshot resume under their ids (watchers keep
         receiving on ``mapper/queries/<id>``); an unreadable one is logged and skipped."""
         state = self.state
-        for item in saved:
-            try:
-                req = decode_query_request(base64.b64decode(item))
-            except (MessageError, ValueError, TypeError) as e:
-                log.error("snapshot: a saved standing query is unreadable (%s); skipped", e)
-                continue
+        for req in _decode_saved(saved, decode_query_request, "standing query"):
             state.standing[req.id] = req
         if state.standing:
             state.standing_due.set()         # answer them once on the restored map
@@ -165,12 +160,7 @@ class SnapshotStore:
         state.instance_ids_from = max(1, next_id)
         if state.search_trackers is not None:
             state.search_trackers.next_id = max(state.search_trackers.next_id, state.instance_ids_from)
-        for item in saved:
-            try:
-                req = decode_search_request(base64.b64decode(item))
-            except (MessageError, ValueError, TypeError) as e:
-                log.error("snapshot: a saved standing search is unreadable (%s); skipped", e)
-                continue
+        for req in _decode_saved(saved, decode_search_request, "standing search"):
             state.standing_searches[req.id] = req
         if saved:
             log.info("restored %d standing search(es): %s", len(state.standing_searches),
@@ -249,3 +239,15 @@ def write_snapshot(root: Path, capture: tuple[dict, dict], space_envelope: bytes
     for old in snaps[:-max(1, keep)]:
         shutil.rmtree(old, ignore_errors=True)
     return root / name
+
+
+def _decode_saved(saved: list, decode, what: str) -> list:
+    """The requests saved in ``meta.json`` (base64 messages); an unreadable one is one error
+    line and skipped."""
+    out = []
+    for item in saved:
+        try:
+            out.append(decode(base64.b64decode(item)))
+        except (MessageError, ValueError, TypeError) as e:
+            log.error("snapshot: a saved %s is unreadable (%s); skipped", what, e)
+    return out

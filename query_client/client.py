@@ -31,8 +31,8 @@ from common.messages import (
     encode_query_request,
     encode_snapshot_request,
 )
-from common.zenoh_session import undeclare_all
 from query_client.search import PlannerCalls
+from query_client.standing import StandingHandle
 
 log = logging.getLogger("rayfronts.query_client")
 
@@ -89,32 +89,12 @@ def read_query_image(image: bytes | str | os.PathLike) -> bytes:
     return data
 
 
-class WatchHandle:
+class WatchHandle(StandingHandle):
     """A standing query; ``cancel()`` (or leaving the ``with`` block) stops it."""
 
     def __init__(self, client: "Client", qid: str, sub):
-        self.client, self.id, self._sub = client, qid, sub
-        self.active = True
-        self.reregistered = 0          # times the query was registered again after a mapper came back
-        self._alive_sub = None
-
-    def cancel(self) -> None:
-        if not self.active:
-            return
-        self.active = False
-        undeclare_all((self._sub, self._alive_sub))
-        try:
-            self.client._get_one(self.client.keys.mapper_query,
-                                 encode_query_request(QueryRequest(cancel=True, id=self.id)), 2.0)
-        except Exception as e:
-            log.debug("cancel standing query %s: %s", self.id, e)
-        self.client._watches.discard(self)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.cancel()
+        super().__init__(client, qid, sub, client.keys.mapper_query,
+                         encode_query_request(QueryRequest(cancel=True, id=qid)), "standing query")
 
 
 class Client(PlannerCalls):

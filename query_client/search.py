@@ -24,7 +24,7 @@ from common.search_messages import (
     encode_occupancy_request,
     encode_search_request,
 )
-from common.zenoh_session import undeclare_all
+from query_client.standing import StandingHandle
 
 log = logging.getLogger("rayfronts.query_client")
 
@@ -39,30 +39,12 @@ def _area(area) -> tuple[list | None, list | None]:
     return [[float(p[0]), float(p[1])] for p in a], None
 
 
-class SearchHandle:
+class SearchHandle(StandingHandle):
     """A standing search; ``cancel()`` (or leaving the ``with`` block) stops it."""
 
     def __init__(self, client, sid: str, sub):
-        self.client, self.id, self._sub, self.active = client, sid, sub, True
-        self.reregistered = 0          # times the search was registered again after a mapper came back
-        self._alive_sub = None
-
-    def cancel(self) -> None:
-        if not self.active:
-            return
-        self.active = False
-        undeclare_all((self._sub, self._alive_sub))
-        try:
-            self.client._get_one(self.client.keys.mapper_search,
-                                 encode_search_request(SearchRequest(cancel=True, id=self.id)), 2.0)
-        except Exception as e:
-            log.debug("cancel standing search %s: %s", self.id, e)
-
-    def __enter__(self) -> "SearchHandle":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.cancel()
+        super().__init__(client, sid, sub, client.keys.mapper_search,
+                         encode_search_request(SearchRequest(cancel=True, id=sid)), "standing search")
 
 
 class PlannerCalls:
