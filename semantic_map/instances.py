@@ -52,6 +52,10 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
     if n == 0:
         return np.zeros((0,), np.int64)
     keys = pack_ijk(ijk)
+    lo = ijk.min(0)
+    shape = ijk.max(0) - lo + 1
+    if int(np.prod(shape)) <= max(DENSE_MIN_CELLS, DENSE_CELLS_PER_VOXEL * n):
+        return _relabel(_dense_labels(ijk - lo, (int(shape[0]), int(shape[1]), int(shape[2]))), keys)
     order = np.argsort(keys, kind="stable")
     sk = keys[order]
     parent = np.arange(n, dtype=np.int64)
@@ -76,14 +80,33 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
             parent = nxt
         if np.array_equal(parent[a], parent[b]):
             break
-    # relabel 0..C-1 in order of each component's lowest key
-    first_key = np.full(n, np.iinfo(np.int64).max, np.int64)
-    np.minimum.at(first_key, parent, keys)
-    roots = np.unique(parent)
-    rank = np.argsort(first_key[roots], kind="stable")
-    lab_of_root = np.empty(n, np.int64)
-    lab_of_root[roots[rank]] = np.arange(len(roots))
-    return lab_of_root[parent]
+    return _relabel(parent, keys)
+
+
+#: a group's bounding box up to this many cells (or DENSE_CELLS_PER_VOXEL per voxel) is
+#: labelled on a dense grid (scipy.ndimage), larger sparse sets by union-find on keys
+DENSE_MIN_CELLS = 1 << 18
+DENSE_CELLS_PER_VOXEL = 16
+
+
+def _dense_labels(ijk0: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """Component id per voxel (any numbering) of voxels ``ijk0`` (N, 3) >= 0 in a box ``shape``."""
+    from scipy import ndimage
+
+    grid = np.zeros(shape, bool)
+    grid[ijk0[:, 0], ijk0[:, 1], ijk0[:, 2]] = True
+    lab, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), bool))
+    return lab[ijk0[:, 0], ijk0[:, 1], ijk0[:, 2]].astype(np.int64)
+
+
+def _relabel(comp: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Component ids ``comp`` (N,) renumbered 0..C-1 in order of each component's lowest key."""
+    _, inv = np.unique(comp, return_inverse=True)
+    first_key = np.full(int(inv.max()) + 1, np.iinfo(np.int64).max, np.int64)
+    np.minimum.at(first_key, inv, keys)
+    rank = np.empty(len(first_key), np.int64)
+    rank[np.argsort(first_key, kind="stable")] = np.arange(len(first_key))
+    return rank[inv]
 
 
 @dataclass
@@ -204,14 +227,16 @@ class InstanceTracker:
                 goes_to[i] = js[np.argmax(sizes[js])]
         events: list[InstanceEvent] = []
         out: list[Instance] = []
+        by_group = np.argsort(labels, kind="stable")
+        bounds = np.searchsorted(labels[by_group], np.arange(len(sizes) + 1))
         for j in range(len(sizes)):
-            m = labels == j
+            m = by_group[bounds[j]:bounds[j + 1]]          # this group's rows (ascending)
             heirs = [prev[i] for i in np.flatnonzero(goes_to == j)]
             heirs.sort(key=lambda p: (p.first_seen, p.id))
             gk = np.sort(keys[m])
             centres = voxel_center(ijk[m], self.vox).astype(np.float64)
             inst = Instance(0, target, centres.mean(0), centres.min(0), centres.max(0), float(conf[m].max()),
-                            int(m.sum()), 1, frame, frame, gk)
+                            len(m), 1, frame, frame, gk)
             if heirs:
                 old = heirs[0]
                 inst.id, inst.first_seen = old.id, old.first_seen

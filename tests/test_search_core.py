@@ -164,6 +164,19 @@ def test_connected_26_matches_brute_force():
     c = ref.max() + 1
     assert lab.max() + 1 == c
     assert np.array_equal(lab[:, None] == lab[None], ref[:, None] == ref[None])
+    # a sparse set spread over a large box takes the union-find path: the same labels
+    far = np.unique(np.concatenate([ijk, ijk + [5000, 0, 0], rng.integers(-9000, 9000, (300, 3))]), axis=0)
+    ref_far = bfs_components(far)
+    lab_far = connected_26(far)
+    assert np.array_equal(lab_far[:, None] == lab_far[None], ref_far[:, None] == ref_far[None])
+    # both paths number components by their lowest voxel key
+    from semantic_map.instances import pack_ijk
+
+    keys = pack_ijk(far)
+    firsts = [keys[lab_far == k].min() for k in range(lab_far.max() + 1)]
+    assert firsts == sorted(firsts)
+    dense_first = [pack_ijk(ijk)[lab == k].min() for k in range(lab.max() + 1)]
+    assert dense_first == sorted(dense_first)
 
 
 # ----------------------------------------------------------------------------- look next
