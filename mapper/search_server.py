@@ -92,6 +92,9 @@ class SearchServer:
             rep = answer_search(snap, s.space, req, s.cfg, self.trackers, self._read_map, map_version=s.version)
         rep.timings_ms.update({k: float(v) for k, v in timings.items()})
         rep.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+        rerun = getattr(self.queries, "rerun", None)  # the mapper's rerun output, if any
+        if rerun is not None:
+            rerun.search_answered(rep, req)
         return rep
 
     def search_payload(self, data: bytes) -> bytes:

@@ -163,7 +163,7 @@ class MapperService:
             from mapper.outputs.ros import RosOutput
 
             try:
-                self.ros = RosOutput(self.state).start()
+                self.ros = RosOutput(self.state, search=self.search).start()
             except Exception:
                 self.close()
                 raise

@@ -140,3 +140,16 @@ def parse_liveliness(key: str) -> dict | None:
         out["type_hash"] = parts[11]
         out["qos"] = "/".join(parts[12:])
     return out
+
+
+def entity_gid(liveliness_key: str) -> bytes:
+    """The 16-byte gid rmw_zenoh gives an entity: the 128-bit XXH3 hash (seed 0) of its
+    liveliness key (:func:`liveliness_token`), low 64 bits then high 64 bits, each little
+    endian. Subscribers tell publishers apart by it (the attachment's gid; docs/key_space.md, ROS 2)."""
+    try:
+        import xxhash
+    except ImportError as e:
+        raise RosKeyError(f"rmw_zenoh gids need the 'xxhash' package (pip install 'rayfronts-zenoh[ros]'): {e}") \
+            from None
+    h = xxhash.xxh3_128(str(liveliness_key).encode()).intdigest()
+    return (h & 0xFFFF_FFFF_FFFF_FFFF).to_bytes(8, "little") + (h >> 64).to_bytes(8, "little")

@@ -20,6 +20,9 @@ Entity layout (world frame, z up, metres)::
     world/queries/<q>/clusters         Boxes3D of the voxel clusters (best ones labelled, apart)
     world/queries/<q>/rays             Arrows3D of the best rays (the best one labelled)
     world/queries/<q>/search_volume    LineStrips3D outlining the best rays' cones
+    world/searches/<s>/instances       Boxes3D of a search's found instances (class id = instance id,
+                                       labelled "<target> #<id> <confidence>")
+    world/searches/<s>/goals           Points3D of its look-next goals (labelled with their scores)
     scale/<q>/legend                   TextDocument: query, score range, counts, search volume
     scale/<q>/colour_scale             Image of the heat colour scale with its range
 
@@ -37,11 +40,22 @@ if TYPE_CHECKING:
     from common.feature_space import FeatureSpace
     from common.frame import Frame
     from common.messages import QueryRequest, QueryResult
+    from common.search_messages import SearchReply, SearchRequest
     from mapper.service_config import MapperConfig
     from mapper.state import MapperState
     from semantic_map.map import RayFrontsMap
 
 log = logging.getLogger("rayfronts.mapper.rerun")
+
+
+def search_boxes(rep: SearchReply) -> dict:
+    """A search reply's instances as boxes: ``centers`` / ``half_sizes`` (N, 3) m (world, z
+    up), ``ids`` (N,) the instances' stable ids, ``labels`` ``"<target> #<id> <confidence>"``."""
+    lo = np.array([f["box_min"] for f in rep.found], np.float64).reshape(-1, 3)
+    hi = np.array([f["box_max"] for f in rep.found], np.float64).reshape(-1, 3)
+    return {"centers": (lo + hi) / 2, "half_sizes": np.maximum(hi - lo, 1e-3) / 2,
+            "ids": np.array([int(f["id"]) for f in rep.found], np.int64),
+            "labels": [f"{f.get('target', '')} #{f['id']} {float(f.get('confidence', 0.0)):.2f}" for f in rep.found]}
 
 
 class RerunLogger:
@@ -214,6 +228,27 @@ class RerunLogger:
             self._selected = name
             self._send_blueprint()
 
+    def log_search(self, targets: list[str], rep: SearchReply, frame_no: int) -> None:
+        """A search answer (:class:`common.search_messages.SearchReply`): its instances as
+        labelled boxes whose class ids are the instances' stable ids, and its look-next goals."""
+        from mapper.outputs.rerun_view import query_entity
+
+        rr = self.rr
+        self._t(frame_no)
+        base = f"world/searches/{query_entity(','.join(targets))}"
+        b = search_boxes(rep)
+        if len(b["centers"]):
+            self.rec.log(f"{base}/instances", rr.Boxes3D(centers=b["centers"], half_sizes=b["half_sizes"],
+                                                         class_ids=b["ids"], labels=b["labels"], show_labels=True))
+        else:
+            self.rec.log(f"{base}/instances", rr.Clear(recursive=False))
+        goals = np.array([g["position"] for g in rep.look_next], np.float64).reshape(-1, 3)
+        if len(goals):
+            self.rec.log(f"{base}/goals", rr.Points3D(goals, colors=[80, 220, 80], radii=0.3,
+                                                      labels=[f"goal {g['score']:.2f}" for g in rep.look_next]))
+        else:
+            self.rec.log(f"{base}/goals", rr.Clear(recursive=False))
+
     def close(self) -> None:
         try:
             self.rec.flush()
@@ -275,6 +310,13 @@ class RerunOutput:
                 self.logger.log_query(res, state.map, state.space, req, state.mapped)
         except Exception as e:
             state.warn("rerun", "rerun query logging failed: %s", e)
+
+    def search_answered(self, rep: SearchReply, req: SearchRequest) -> None:
+        """Log a search answer (no map access: the reply carries everything)."""
+        try:
+            self.logger.log_search(list(req.targets), rep, self.state.mapped)
+        except Exception as e:
+            self.state.warn("rerun", "rerun search logging failed: %s", e)
 
     def close(self) -> None:
         """Log the final map and close the recording."""

@@ -13,7 +13,9 @@ Topics (under ``ros.topic_prefix``, default ``/rayfronts``), in the world frame
 * ``/rayfronts/query/<id>`` — PointCloud2 x, y, z, score (float32) of each standing query's
   top voxels, each time the query server refreshes it (``mapper/queries/<id>``);
 * ``/rayfronts/query_text`` (subscribed) — std_msgs/String: adds a standing text query with
-  id ``ros_<text, non-alphanumerics as _>`` and ``ros.query_top_k`` voxels.
+  id ``ros_<text, non-alphanumerics as _>`` and ``ros.query_top_k`` voxels;
+* the planners' search and costmap (``<prefix>/search_text`` in; ``/search/*`` and
+  ``/costmap`` out): :mod:`mapper.outputs.ros_search`, when the mapper's search service is given.
 
 Layers go out at ``ros.rate_hz`` from their own thread (``mapper-ros``) when the map changed
 (integrated or flushed),
@@ -21,13 +23,13 @@ limited by ``layers.max_voxels`` / ``ros.max_rays`` (seeded subsample, as the la
 Keys (``ros.keys``): rmw_zenoh (``<ros.domain>/<topic>/<dds type>/<type hash>``, the hash of
 ``ros.distro``: Jazzy ``RIHS01_...`` or Humble ``TypeHashNotSupported``; plus the node /
 publisher / subscription liveliness tokens ``@ros2_lv/...`` that ``ros2 topic list`` reads,
-and the per-sample attachment) or bridge (``<topic>``, no tokens). Messages are built with
+and the per-sample attachment: each publisher's own sequence number from 1 and its gid, the
+hash of its token key; docs/key_space.md) or bridge (``<topic>``, no tokens). Messages are built with
 rosbags' typestore of ``ros.distro`` (Jazzy's Marker has fields Humble's lacks). The
 session is the mapper's own unless ``ros.connect`` names the robot's router (client session).
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import re
 import threading
@@ -73,6 +75,14 @@ class RosSection:
     max_rays: int = field_(2000, "at most this many ray arrows per MarkerArray (seeded subsample)")
     query_top_k: int = field_(1000, "voxels per standing query added from /rayfronts/query_text")
     node: str = field_("rayfronts_mapper", "ROS node name in the graph tokens")
+    search_threshold: float = field_(0.5, "probability threshold of the standing search from <prefix>/search_text")
+    search_max_instances: int = field_(10, "found instances published by the ROS search")
+    search_max_goals: int = field_(5, "look-next goals published by the ROS search")
+    costmap_z_band: list[float] = field_([0.2, 1.5], "z band [z0, z1] (m) of the <prefix>/costmap OccupancyGrid "
+                                                      "([] = no costmap)")
+    costmap_box: list[float] = field_([], "xy region [x0, y0, x1, y1] (m) of the costmap; [] = the extent of the "
+                                          "map's observed voxels")
+    costmap_stride: int = field_(1, "costmap cell size in map voxels")
 
 
 # ------------------------------------------------------------------ message builders
@@ -179,13 +189,25 @@ def ray_arrays_weighted(m: RayFrontsMap, max_rays: int) -> tuple[np.ndarray, np.
 
 
 # ------------------------------------------------------------------ the output
+@dataclass
+class _Pub:
+    """One ROS publisher: its Zenoh publisher, liveliness token key, 16-byte gid (the token
+    key's hash, :func:`common.ros2.keys.entity_gid`) and last sequence number (first sample: 1)."""
+
+    zpub: Any
+    token: str
+    gid: bytes
+    seq: int = 0
+
+
 class RosOutput:
     """Publishes the shared map's layers and standing queries as ROS 2 topics; adds standing
     queries from ``<prefix>/query_text``. ``start()`` declares everything, ``close()`` undoes it."""
 
     # state: the mapper.state.MapperState (not imported for the annotation: mapper.service_config,
     # which mapper.state's annotations import, imports this module)
-    def __init__(self, state, cfg: RosSection | None = None) -> None:
+    # search: the mapper.search_server.SearchServer answering the search topics (None: none)
+    def __init__(self, state, cfg: RosSection | None = None, search=None) -> None:
         from common.ros2 import cdr
         from common.ros2.keys import check_domain, check_layout, normalize_topic
 
@@ -195,23 +217,27 @@ class RosOutput:
         self.domain = check_domain(self.cfg.domain)
         self.cdr = cdr
         self.T = cdr.types(self.cfg.distro)
-        p = normalize_topic(self.cfg.topic_prefix)
+        p = self.topic_prefix = normalize_topic(self.cfg.topic_prefix)
         self.topics = {"voxels": (f"{p}/voxels", POINTCLOUD2), "frontiers": (f"{p}/frontiers", POINTCLOUD2),
                        "rays": (f"{p}/rays", MARKER_ARRAY)}
         self.query_topic_prefix = f"{p}/query"
         self.query_text_topic = f"{p}/query_text"
         self.session = None
         self._own_session = None
-        self._pubs: dict[str, object] = {}
+        self._pubs: dict[str, _Pub] = {}
         self._entities: list = []
         self._eid = 0
-        self._seq = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = None
         self._last_version = None
         self.published: dict[str, int] = {}
         self.errors = 0
+        self.search = None
+        if search is not None:
+            from mapper.outputs.ros_search import RosSearch
+
+            self.search = RosSearch(self, search)
 
     # -------------------------------------------------------------- zenoh entities
     def _key(self, topic: str, msgtype: str) -> str:
@@ -219,23 +245,30 @@ class RosOutput:
 
         return publish_key(topic, msgtype, self.cfg.keys, self.domain, self.cdr.type_hash(msgtype, self.cfg.distro))
 
-    def _token(self, kind: str, topic: str | None = None, msgtype: str | None = None) -> None:
+    def _token(self, kind: str, topic: str | None = None, msgtype: str | None = None) -> str:
+        """Declare the rmw_zenoh liveliness token of an entity; its key ("" in the bridge layout)."""
         from common.ros2.keys import RMW_ZENOH, liveliness_token
 
         if self.cfg.keys != RMW_ZENOH:
-            return
+            return ""
         self._eid += 1
         key = liveliness_token(self.domain, str(self.session.zid()), 0, 0 if kind == "NN" else self._eid, kind,
                                self.cfg.node, topic=topic, msgtype=msgtype,
                                type_hash=self.cdr.type_hash(msgtype, self.cfg.distro) if msgtype else "")
         self._entities.append(self.session.liveliness().declare_token(key))
+        return key
 
-    def _publisher(self, topic: str, msgtype: str):
+    def _publisher(self, topic: str, msgtype: str) -> _Pub:
+        """The publisher of ``topic`` (declared with its token on first use): its own gid and
+        sequence counter, as an rmw_zenoh publisher has (docs/key_space.md, ROS 2)."""
+        from common.ros2.keys import entity_gid
+
         pub = self._pubs.get(topic)
         if pub is None:
-            pub = self._pubs[topic] = self.session.declare_publisher(self._key(topic, msgtype))
-            self._entities.append(pub)
-            self._token("MP", topic, msgtype)
+            zpub = self.session.declare_publisher(self._key(topic, msgtype))
+            self._entities.append(zpub)
+            token = self._token("MP", topic, msgtype)
+            pub = self._pubs[topic] = _Pub(zpub, token, entity_gid(token) if token else bytes(16))
         return pub
 
     def start(self) -> "RosOutput":
@@ -255,6 +288,10 @@ class RosOutput:
             subscribe_key(self.query_text_topic, self.cfg.keys, self.domain), self._on_query_text))
         self._token("MS", self.query_text_topic, STRING)
         self._entities.append(self.session.declare_subscriber(state.keys.mapper_queries_all, self._on_standing))
+        if self.search is not None:
+            for topic, msgtype in self.search.topics.values():
+                self._publisher(topic, msgtype)
+            self._entities += self.search.start()
         if self.cfg.rate_hz > 0:
             self._thread = threading.Thread(target=self._loop, name="mapper-ros", daemon=True)
             self._thread.start()
@@ -284,12 +321,11 @@ class RosOutput:
             if self.session is None:
                 return
             pub = self._publisher(topic, msgtype)
-            self._seq += 1
+            pub.seq += 1
             att = None
             if self.cfg.keys == RMW_ZENOH:
-                gid = hashlib.blake2b(f"{self.session.zid()}{topic}".encode(), digest_size=16).digest()
-                att = self.cdr.attachment(self._seq, time.time_ns(), gid)
-            pub.put(data, attachment=att)
+                att = self.cdr.attachment(pub.seq, time.time_ns(), pub.gid)
+            pub.zpub.put(data, attachment=att)
         self.published[topic] = self.published.get(topic, 0) + 1
 
     def layer_messages(self) -> dict:
@@ -314,6 +350,10 @@ class RosOutput:
     def publish_layers(self) -> None:
         for topic, (msgtype, msg) in self.layer_messages().items():
             self._put(topic, msgtype, msg)
+        if self.search is not None and self.cfg.costmap_z_band:
+            cm = self.search.costmap_message()
+            if cm is not None:
+                self._put(cm[0], *cm[1])
 
     def _loop(self) -> None:
         state = self.state
