@@ -4,11 +4,14 @@ All keys live under a configurable prefix (default ``rayfronts``), so several si
 experiments can share one Zenoh network::
 
     <p>/robots/<robot>/frames          edge publishes one frame message per processed frame
+    <p>/robots/<robot>/frames/<i>_<j>  the same, routed by tile (edge publish.tile_m > 0;
+                                       docs/key_space.md#shards)
     <p>/robots/<robot>/alive           edge liveliness token
     <p>/robots/<robot>/feature_space   edge queryable (feature-space id, PCA basis, ...)
     <p>/robots/<robot>/edge_status     edge publishes (and serves) its own state: starting /
                                        running / done / refused / failed, with the reason
     <p>/mapper/alive                   mapper liveliness token
+    <p>/mapper/shards/<name>           mapper shard liveliness token (shard.name set)
     <p>/mapper/query                   mapper queryable: run a query now
     <p>/mapper/queries/<id>            mapper publishes results of a standing query
     <p>/mapper/layers/<layer>          mapper publishes voxels / frontiers / rays / ...
@@ -62,7 +65,8 @@ class KeySpace:
             raise InvalidKey(f"invalid key prefix {prefix!r}: '/'-separated chunks of [A-Za-z0-9_.-], "
                              "no leading/trailing '/', no wildcards")
         self.prefix = prefix
-        self._robot_re = re.compile(rf"^{re.escape(prefix)}/robots/({ID_PATTERN})/[A-Za-z0-9_-]+$")
+        self._robot_re = re.compile(rf"^{re.escape(prefix)}/robots/({ID_PATTERN})/"
+                                    rf"(?:[A-Za-z0-9_-]+|frames/-?[0-9]+_-?[0-9]+)$")
 
     def __repr__(self) -> str:
         return f"KeySpace({self.prefix!r})"
@@ -84,6 +88,19 @@ class KeySpace:
     @property
     def frames_all(self) -> str:
         return f"{self.prefix}/robots/*/frames"
+
+    def frames_tile(self, robot: str, tile: tuple[int, int]) -> str:
+        """``<p>/robots/<robot>/frames/<i>_<j>``: a frame whose camera centre lies in tile (i, j)."""
+        return f"{self.robot_root(robot)}/frames/{int(tile[0])}_{int(tile[1])}"
+
+    def frames_tile_all(self, tile: tuple[int, int]) -> str:
+        """``<p>/robots/*/frames/<i>_<j>``: every robot's frames of one tile (a shard's subscription)."""
+        return f"{self.prefix}/robots/*/frames/{int(tile[0])}_{int(tile[1])}"
+
+    @property
+    def frames_tiled_all(self) -> str:
+        """``<p>/robots/*/frames/*``: every tile-routed frame (an unsharded mapper's second subscription)."""
+        return f"{self.prefix}/robots/*/frames/*"
 
     def alive(self, robot: str) -> str:
         return f"{self.robot_root(robot)}/alive"
@@ -180,6 +197,18 @@ class KeySpace:
             return None
         rest = s[len(root) + 1:]
         return rest if is_valid_id(rest) else None
+
+    def mapper_shard_alive(self, name: str) -> str:
+        """``<p>/mapper/shards/<name>``: liveliness token of the mapper shard ``name``."""
+        return f"{self.prefix}/mapper/shards/{check_id(name, 'shard name')}"
+
+    @property
+    def mapper_shards_all(self) -> str:
+        return f"{self.prefix}/mapper/shards/*"
+
+    def shard_from_key(self, key: object) -> str | None:
+        """Shard name of a ``<p>/mapper/shards/<name>`` key, else ``None``."""
+        return self._last_chunk(key, f"{self.prefix}/mapper/shards")
 
     def qid_from_key(self, key: object) -> str | None:
         """Query id of a ``<p>/mapper/queries/<id>`` key, else ``None``."""

@@ -199,6 +199,8 @@ class QueryResult:
     * rays: ``ray_origin`` (R, 3), ``ray_direction`` (R, 3) unit, ``ray_score`` (R,), best first.
     * ``search_volume_m3``: volume of the cones of the top rays (beyond-range search volume).
     * ``timings``: milliseconds per stage (``encode``, ``similarity``, ``total``, ...).
+    * ``missing_shards``: shards the client saw (liveliness) that did not answer this merged
+      result (set by the client; empty from one mapper).
     """
 
     id: str = ""
@@ -216,6 +218,7 @@ class QueryResult:
     frames_mapped: int = 0
     stamp: float = 0.0
     timings: dict = field(default_factory=dict)
+    missing_shards: list = field(default_factory=list)
 
     _ARRAYS = {
         "cluster_xyz": (np.float32, 2, 3), "cluster_size": (np.int32, 1, None),
@@ -244,6 +247,8 @@ def encode_query_result(res: QueryResult) -> bytes:
     body: dict[str, Any] = {"id": res.id, "query": res.query, "search_volume_m3": float(res.search_volume_m3),
                             "frames_mapped": int(res.frames_mapped), "stamp": float(res.stamp),
                             "timings": {str(k): float(v) for k, v in res.timings.items()}}
+    if res.missing_shards:
+        body["missing_shards"] = [str(v) for v in res.missing_shards]
     for k, (dt, _, _) in QueryResult._ARRAYS.items():
         body[k] = np.ascontiguousarray(getattr(res, k), dtype=dt)
     return encode_message(SCHEMA_QUERY_RESULT, VERSION, body)
@@ -257,10 +262,13 @@ def decode_query_result(data: bytes | bytearray | memoryview, limits: WireLimits
     timings = body.get("timings", {})
     if not isinstance(timings, dict):
         raise MessageError(f"{SCHEMA_QUERY_RESULT}: 'timings' must be a map")
+    missing = body.get("missing_shards", [])
+    if not isinstance(missing, list):
+        raise MessageError(f"{SCHEMA_QUERY_RESULT}: 'missing_shards' must be a list")
     return QueryResult(id=str(body.get("id", "")), query=str(body.get("query", "")),
                        search_volume_m3=float(body.get("search_volume_m3", 0.0)),
                        frames_mapped=int(body.get("frames_mapped", 0)), stamp=float(body.get("stamp", 0.0)),
-                       timings=dict(timings), **kw).validate()
+                       timings=dict(timings), missing_shards=[str(v) for v in missing], **kw).validate()
 
 
 # ------------------------------------------------------------------------- layers

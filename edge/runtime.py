@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -59,6 +60,9 @@ if TYPE_CHECKING:
     from encoders import ImageEncoder
 
 log = logging.getLogger("rayfronts.edge")
+
+#: publish.tile_m > 0: tile publishers kept declared (least recently used undeclared beyond)
+TILE_PUBLISHERS = 16
 
 
 # ------------------------------------------------------------------------- config
@@ -96,6 +100,10 @@ class PublishSection:
                                         "'q8z' (int8 + zlib, ~4 KB, changes up to ~0.006) or 'f16' (float16, 240 KB)")
     status_wait_s: float = field_(3.0, "when the edge refuses to start or fails: how long it waits for the "
                                        "Zenoh session to put the reason on robots/<robot>/edge_status")
+    tile_m: float = field_(0.0, "publish each frame on robots/<robot>/frames/<i>_<j>, (i, j) = floor(x / tile_m), "
+                                "floor(y / tile_m) of the camera centre in the robot's own pose frame, so Zenoh "
+                                "routes it to the shards owning that tile (docs/key_space.md#shards); 0 = plain "
+                                "robots/<robot>/frames")
     lossless: bool = field_(False, "the encoder waits for the sender instead of replacing an unsent frame, so no "
                                    "frame is dropped at the edge: for replays, evaluation and tests (a live camera "
                                    "wants the newest frame: keep false)")
@@ -324,6 +332,7 @@ class EdgeRuntime:
         self.slot = LatestSlot()
         self.session = None
         self._publisher = None
+        self._tile_pubs: dict[tuple[int, int], object] = {}   # publish.tile_m > 0: tile -> publisher (LRU)
         self._token = None
         self._queryable = None
         self._connected = threading.Event()
@@ -447,7 +456,7 @@ class EdgeRuntime:
                     return
             t0 = time.time()
             try:
-                self._publisher.put(data)
+                self._frame_publisher(frame).put(data)
             except Exception as e:
                 self.stats.put_errors += 1
                 log.warning("put failed: %s", e)
@@ -463,6 +472,28 @@ class EdgeRuntime:
                     self._recorder = None
             if self.on_sent is not None:
                 self.on_sent(frame, len(data), t0)
+
+    def _frame_publisher(self, frame: Frame):
+        """The publisher of ``frame``'s key: the plain frames key, or with ``publish.tile_m`` > 0 the
+        key of the tile of its camera centre (robot's pose frame), declared lazily and cached
+        (at most ``TILE_PUBLISHERS`` tiles; the least recently used one is undeclared)."""
+        tile_m = float(self.cfg.publish.tile_m)
+        if tile_m <= 0:
+            return self._publisher
+        import zenoh
+
+        c = np.asarray(frame.pose, np.float64)[:3, 3]
+        tile = (math.floor(c[0] / tile_m), math.floor(c[1] / tile_m))
+        pubs = self._tile_pubs
+        pub = pubs.pop(tile, None)
+        if pub is None:
+            pub = self.session.declare_publisher(
+                self.keys.frames_tile(self.cfg.robot, tile), congestion_control=zenoh.CongestionControl.BLOCK,
+                priority=zenoh.Priority.DATA, express=False)
+            while len(pubs) >= TILE_PUBLISHERS:
+                undeclare_all((pubs.pop(next(iter(pubs))),))
+        pubs[tile] = pub                    # most recently used last
+        return pub
 
     # -------------------------------------------------------------- pipeline side
     def _open_source(self) -> tuple[Iterable[Frame], list[str] | None]:
@@ -769,5 +800,7 @@ class EdgeRuntime:
         s, self.session = self.session, None
         if s is not None:
             undeclare_all((self._mapper_status_sub,
-                           self._token, self._queryable, self._status_q, self._status_pub, self._publisher))
+                           self._token, self._queryable, self._status_q, self._status_pub, self._publisher,
+                           *self._tile_pubs.values()))
+            self._tile_pubs = {}
             close_quietly(s)

@@ -134,7 +134,7 @@ class MapperService:
         keys = self.keys
         try:
             self._entities = [
-                session.declare_subscriber(keys.frames_all, self.ingest.on_frame),
+                *self._frame_subscribers(session),
                 session.liveliness().declare_subscriber(keys.alive_all, self.ingest.on_alive, history=True),
                 session.declare_subscriber(keys.edge_status_all, self.ingest.on_edge_status),
                 session.declare_queryable(keys.mapper_query, self.queries.on_query),
@@ -143,6 +143,8 @@ class MapperService:
                 session.declare_queryable(keys.snapshot, self.snapshots.on_snapshot),
                 session.declare_queryable(keys.layers_all, self.layers.on_layer_get),
                 session.declare_queryable(robot_transform_all(keys), self.fleet.on_transform),
+                *([session.liveliness().declare_token(keys.mapper_shard_alive(self.cfg.shard.name))]
+                  if self.cfg.shard.name else []),
                 session.liveliness().declare_token(keys.mapper_alive),
             ]
             from mapper.search_server import start_search_server
@@ -169,6 +171,23 @@ class MapperService:
                 raise
         log.info("mapper up (zid %s, prefix %r)", session.zid(), self.cfg.zenoh.prefix)
         return self
+
+    def _frame_subscribers(self, session) -> list:
+        """Frame subscribers: one per tile key of a tile-routed shard, else the plain and the
+        tile-routed keys of every robot (docs/key_space.md#shards)."""
+        from mapper.shards import MAX_TILE_SUBSCRIPTIONS, ShardFilter
+
+        shard = self.cfg.shard
+        tiles = ShardFilter(shard).subscription_tiles(shard)
+        if tiles is None:
+            if shard.tile_m > 0:
+                log.warning("shard %s: no bounded tile set (shard.tiles / a finite region, at most %d tiles); "
+                            "subscribing to every frame", shard.name or "(unnamed)", MAX_TILE_SUBSCRIPTIONS)
+            keys = [self.keys.frames_all, self.keys.frames_tiled_all]
+        else:
+            keys = [self.keys.frames_tile_all(t) for t in sorted(tiles)]
+            log.info("shard %s: subscribed to %d frame tiles", shard.name or "(unnamed)", len(keys))
+        return [session.declare_subscriber(k, self.ingest.on_frame) for k in keys]
 
     def _attach_rerun(self, rerun) -> None:
         self.rerun = rerun

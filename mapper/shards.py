@@ -16,6 +16,9 @@ both shards' maps; the client joins their clusters.
 Decisions: the region test is on the camera centre, half-open boxes ``[min, max)``, tiles
 ``(floor(x / tile_m), floor(y / tile_m))`` written ``"i,j"``; every shard serves
 ``mapper/query`` (one get reaches them all) and attaches its shard info to the reply.
+With ``shard.tile_m`` a shard subscribes only to the tile-routed frame keys of its tiles
+plus a halo (:meth:`ShardFilter.subscription_tiles`, docs/key_space.md#shards); edge tiles
+are in the robot's own pose frame, this filter stays in the map's world frame.
 """
 from __future__ import annotations
 
@@ -40,6 +43,13 @@ class ShardSection:
     tiles: list[str] = field_([], "tiles this shard maps, 'i,j' = floor(x / tile_m), floor(y / tile_m) of the "
                                   "camera centre; empty = no tile restriction")
     robots: list[str] = field_([], "robots whose frames this shard maps; empty = every robot")
+    halo_tiles: int = field_(1, "with shard.tile_m > 0: subscribe to the tile-routed frame keys of the shard's "
+                                "tiles (shard.tiles, or the tiles shard.region covers) plus this many tiles "
+                                "around them; edges publish with publish.tile_m = shard.tile_m")
+
+
+#: a shard subscribing to more tile keys than this subscribes to every frame instead
+MAX_TILE_SUBSCRIPTIONS = 1024
 
 
 class ShardFilter:
@@ -75,6 +85,28 @@ class ShardFilter:
     @property
     def active(self) -> bool:
         return bool(self.name) or self.lo is not None or bool(self.tiles) or bool(self.robots)
+
+    def subscription_tiles(self, cfg: ShardSection) -> set[tuple[int, int]] | None:
+        """Tiles whose frame keys this shard subscribes to (``frames_tile_all``), or ``None`` for
+        every frame (no ``tile_m``, no tiles and no finite x/y region, or more than
+        ``MAX_TILE_SUBSCRIPTIONS`` tiles). Tiles: ``shard.tiles``, else those the region's x/y
+        box covers, grown by ``shard.halo_tiles`` on every side. Edges tile in their robot's own
+        pose frame (docs/key_space.md#shards)."""
+        if self.tile_m <= 0:
+            return None
+        t, h = self.tile_m, max(0, int(cfg.halo_tiles))
+        if self.tiles:
+            base = set(self.tiles)
+        elif self.lo is not None and np.all(np.isfinite(self.lo[:2])) and np.all(np.isfinite(self.hi[:2])):
+            i0, j0 = math.floor(self.lo[0] / t), math.floor(self.lo[1] / t)
+            i1, j1 = math.ceil(self.hi[0] / t) - 1, math.ceil(self.hi[1] / t) - 1
+            if (i1 - i0 + 1 + 2 * h) * (j1 - j0 + 1 + 2 * h) > MAX_TILE_SUBSCRIPTIONS:
+                return None
+            base = {(i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1)}
+        else:
+            return None
+        out = {(i + di, j + dj) for i, j in base for di in range(-h, h + 1) for dj in range(-h, h + 1)}
+        return out if len(out) <= MAX_TILE_SUBSCRIPTIONS else None
 
     def tile_of(self, xyz: Sequence[float] | np.ndarray) -> tuple[int, int]:
         return (math.floor(float(xyz[0]) / self.tile_m), math.floor(float(xyz[1]) / self.tile_m))

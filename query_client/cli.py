@@ -164,6 +164,12 @@ def watch_until_signal(start: Callable[[], Any]) -> None:
         restore()
 
 
+def _warn_missing(r) -> None:
+    if r.missing_shards:
+        print(f"rayfronts query: warning: shards that did not answer: {', '.join(r.missing_shards)} "
+              "(their regions are missing from this answer)", file=sys.stderr, flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     from query_client.client import QueryError
 
@@ -173,11 +179,14 @@ def run(args: argparse.Namespace) -> int:
         return 1
     with client:
         try:
-            if args.stats:
-                print(json.dumps(client.stats(), indent=2, default=str))
+            if args.stats:  # shards: every shard's stats by shard name
+                every = client.stats_all()
+                one = list(every.values())[0] if list(every) == [""] else every
+                print(json.dumps(one, indent=2, default=str))
                 return 0
             if args.watch:
                 def show(r):
+                    _warn_missing(r)
                     print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
 
                 watch_until_signal(lambda: client.watch(args.text, show, image=_read(args.image), top_k=args.top_k))
@@ -186,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
         except QueryError as e:
             print(f"rayfronts query: error: {' '.join(str(e).split())}", file=sys.stderr)
             return 1
+        _warn_missing(r)
         if args.json:
             print(json.dumps(r.to_dict(), indent=2))
         else:

@@ -123,6 +123,11 @@ class Client(PlannerCalls):
         self.session = open_session(cfg, default_mode="client")
         self._watches: set[WatchHandle] = set()
         self._lock = threading.Lock()
+        self._shards_seen: set[str] = set()       # mapper shards whose liveliness token was ever seen
+        self._shards_alive: set[str] = set()      # ... and whose token is there now
+        self._shard_listeners: list[Callable[[str, bool], None]] = []
+        self._shard_sub = None
+        self._follow_shards()
 
     # ------------------------------------------------------------------ plumbing
     def _get_one(self, key: str, payload: bytes | None, timeout: float | None) -> bytes:
@@ -158,6 +163,43 @@ class Client(PlannerCalls):
                 errs.append(r.err.payload.to_string() if r.err is not None else "?")
         return oks, errs
 
+    # ------------------------------------------------------------------ shards
+    def _on_shard_token(self, sample) -> None:
+        name = self.keys.shard_from_key(str(sample.key_expr))
+        if not name:
+            return
+        alive = str(sample.kind).endswith("PUT")
+        with self._lock:
+            self._shards_seen.add(name)
+            (self._shards_alive.add if alive else self._shards_alive.discard)(name)
+            listeners = list(self._shard_listeners)
+        for fn in listeners:
+            try:
+                fn(name, alive)
+            except Exception as e:  # never raise out of a zenoh callback
+                log.warning("shard listener: %s", e)
+
+    def _follow_shards(self) -> None:
+        """Learn the mapper shards (``<p>/mapper/shards/<name>`` liveliness tokens,
+        docs/key_space.md#shards): the ones there now, then every arrival and departure."""
+        try:
+            self._shard_sub = self.session.liveliness().declare_subscriber(
+                self.keys.mapper_shards_all, self._on_shard_token, history=True)
+            for r in self.session.liveliness().get(self.keys.mapper_shards_all, timeout=1.0):
+                if r.ok is not None:
+                    self._on_shard_token(r.ok)
+        except Exception as e:  # queries still work; missing_shards stays empty
+            log.warning("cannot follow the mapper shards' liveliness: %s", e)
+
+    def shards(self) -> tuple[list[str], list[str]]:
+        """``(alive, seen)``: mapper shard names alive now and ever seen by this client."""
+        with self._lock:
+            return sorted(self._shards_alive), sorted(self._shards_seen)
+
+    def _missing(self, answered: set[str]) -> list[str]:
+        with self._lock:
+            return sorted(self._shards_seen - answered)
+
     # ------------------------------------------------------------------ queries
     def query(self, text: str | None = None, image: bytes | str | None = None, top_k: int = 10,
               timeout: float | None = None, *, embedding: np.ndarray | None = None,
@@ -173,6 +215,8 @@ class Client(PlannerCalls):
     def _merged(self, oks: list, errs: list[str], top_k: int) -> QueryResult:
         """One result from the replies of one or several mappers (shards: ``query_client.merge``);
         shards answering with an error (e.g. an empty map) are left out while one answers."""
+        import dataclasses
+
         from common.fleet import decode_shard_info
         from query_client.merge import merge_results
 
@@ -183,7 +227,11 @@ class Client(PlannerCalls):
             except MessageError as e:
                 bad.append(str(e))
         if got:
-            return merge_results(got, top_k)
+            res = merge_results(got, top_k)
+            if res is got[0][0] and len(got) == 1:
+                res = dataclasses.replace(res)
+            res.missing_shards = self._missing({str(i.get("shard", "")) for _, i in got})
+            return res
         if bad:
             raise QueryError("; ".join(dict.fromkeys(bad)))
         if errs:
@@ -194,11 +242,22 @@ class Client(PlannerCalls):
               top_k: int = 10, qid: str | None = None, timeout: float | None = None) -> WatchHandle:
         """Register a standing query: ``callback(QueryResult)`` runs now and on each refresh
         (on a Zenoh thread; keep it short)."""
+        import dataclasses
+
         from common.fleet import decode_shard_info
         from query_client.merge import merge_results
 
         qid = qid or "q" + uuid.uuid4().hex[:12]
+        ready = threading.Event()         # set once the first answer is out
         latest: dict[str, tuple] = {}     # shard name -> its last (result, info): shards refresh separately
+
+        def publish() -> None:
+            with self._lock:
+                res = merge_results(list(latest.values()), int(top_k)) if latest else QueryResult(id=qid)
+                if len(latest) == 1:
+                    res = dataclasses.replace(res)
+                res.missing_shards = sorted(self._shards_seen - set(latest))
+            callback(res)
 
         def on_sample(sample):
             try:
@@ -206,20 +265,43 @@ class Client(PlannerCalls):
                 info = decode_shard_info(att.to_bytes() if att is not None else None)
                 with self._lock:
                     latest[str(info.get("shard", ""))] = (decode_query_result(sample.payload.to_bytes()), info)
-                    res = merge_results(list(latest.values()), int(top_k))
-                callback(res)
+                if ready.is_set():     # before the first answer, only collect
+                    publish()
             except Exception as e:  # never raise out of a zenoh callback
                 log.warning("standing query %s: %s", qid, e)
+
+        def on_shard(name: str, alive: bool) -> None:
+            # a shard whose token went away: drop its last result, report it missing
+            if not handle.active:
+                with self._lock:
+                    if on_shard in self._shard_listeners:
+                        self._shard_listeners.remove(on_shard)
+                return
+            if not alive and ready.is_set():
+                with self._lock:
+                    latest.pop(name, None)
+                publish()
 
         if image is not None:
             image = read_query_image(image)
         sub = self.session.declare_subscriber(self.keys.mapper_queries(qid), on_sample)
         handle = WatchHandle(self, qid, sub)
         self._watches.add(handle)
+        with self._lock:
+            self._shard_listeners.append(on_shard)
+        handle._on_shard = on_shard
         try:
             req = QueryRequest(text=text, image=image, top_k=int(top_k), standing=True, id=qid)
             oks, errs = self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
             first = self._merged(oks, errs, int(top_k))
+            with self._lock:  # the first answers too: a shard leaving drops its part
+                for data, att in oks:
+                    try:
+                        info = decode_shard_info(att)
+                        latest.setdefault(str(info.get("shard", "")), (decode_query_result(data), info))
+                    except MessageError:
+                        pass
+            ready.set()
         except Exception:
             handle.cancel()
             raise
@@ -259,6 +341,18 @@ class Client(PlannerCalls):
     # ------------------------------------------------------------------ map state
     def stats(self, timeout: float | None = None) -> dict:
         return decode_stats(self._get_one(self.keys.stats, None, timeout))
+
+    def stats_all(self, timeout: float | None = None) -> dict[str, dict]:
+        """Every mapper's stats by shard name (``stats["fleet"]["shard"]``; ``""`` for an
+        unsharded mapper). Raises :class:`MapperUnavailable` when none answers."""
+        oks, errs = self._get_all(self.keys.stats, None, timeout)
+        out = {}
+        for data, _ in oks:
+            st = decode_stats(data)
+            out[str((st.get("fleet") or {}).get("shard") or "")] = st
+        if not out:
+            raise MapperUnavailable(f"no mapper answered on {self.keys.stats}: {'; '.join(errs) or 'no reply'}")
+        return out
 
     def snapshot(self, save: bool = False, timeout: float | None = None) -> dict:
         """Describe the last snapshot, or (``save=True``) make one now."""

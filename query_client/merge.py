@@ -4,16 +4,19 @@ Each shard owns part of the world (``shard.*`` in the mapper config) and answers
 ``mapper/query`` from its own map; one Zenoh ``get`` reaches all of them and the client
 merges (:func:`merge_results`), as one mapper holding the whole map would answer:
 
-* **top voxels / rays**: all shards' top lists, re-ranked by score (stable: ties keep the
-  order of the replies), cut to ``top_k``;
+* **top voxels**: all shards' top lists, re-ranked by score (stable: ties keep the order of
+  the replies), the same voxel (centre within half a voxel) from two shards kept once with
+  its best score, cut to ``top_k``;
 * **clusters**: a shard keeps the clusters of its voxels scoring at least
   ``lo + rel·(hi − lo)`` of *its* map; merged, the threshold is recomputed over all shards
   (``lo`` = the lowest shard minimum, ``hi`` the best cluster) and clusters of different
   shards whose boxes touch (within one voxel) are one cluster (the same object seen by the
   frames of two shards near a border): size-weighted centroid, box union, best score;
-* **rays**: a shard's map has frontiers where *its* frames stopped, also at its region's
-  border, where the neighbour's frames have explored; so each shard contributes only the
-  rays whose frontier (origin) lies in its own region, then all are re-ranked;
+* **rays**: the rays of every shard (none is lost: a frame near a border may be mapped by a
+  shard whose region does not hold its frontier), de-duplicated by (origin voxel, direction
+  bin of ``RAY_DIR_BIN`` per unit-vector component) keeping the best score, re-ranked, cut
+  to ``top_k``. A shard's frontiers at its region's border (where only the neighbour's frames
+  explored) are kept too: they are still unexplored in that shard's map;
 * **search volume**: the union of the cones of the ``search_rays`` best rays over all
   shards, with the shards' cone half-angle and range (``common.cones``), not a sum.
 
@@ -26,10 +29,6 @@ import numpy as np
 
 from common.cones import cone_union_volume
 from common.messages import QueryResult
-
-
-def _top(scores: np.ndarray, k: int) -> np.ndarray:
-    return np.argsort(-scores, kind="stable")[:max(0, int(k))]
 
 
 def _merge_clusters(xyz, size, extent, score, shard, vox: float):
@@ -63,19 +62,24 @@ def _merge_clusters(xyz, size, extent, score, shard, vox: float):
     return out
 
 
-def _in_region(xyz: np.ndarray, info: dict) -> np.ndarray:
-    """Rows of ``xyz`` inside the shard's region (box and/or tiles; all rows without one)."""
-    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
-    keep = np.ones(len(xyz), bool)
-    reg = info.get("region")
-    if isinstance(reg, list) and len(reg) == 6:
-        lo, hi = np.array(reg[:3], float), np.array(reg[3:], float)
-        keep &= np.all((xyz >= lo) & (xyz < hi), axis=1)
-    tiles, tm = info.get("tiles"), info.get("tile_m")
-    if tiles and tm:
-        ij = np.floor(xyz[:, :2] / float(tm)).astype(np.int64)
-        keep &= np.array([tuple(t) in {tuple(x) for x in tiles} for t in ij.tolist()], bool).reshape(-1)
-    return keep
+#: ray de-duplication: bin of each unit-direction component (0.05 ~ 3 degrees)
+RAY_DIR_BIN = 0.05
+
+
+def _voxel_key(xyz: np.ndarray, vox: float) -> np.ndarray:
+    """Integer key per row of ``xyz`` (m): half-voxel bins, so voxel centres at ``(i + 0.5)·vox``
+    or ``i·vox`` map to one key each despite float32 rounding; ``vox`` 0 = millimetres."""
+    step = vox / 2 if vox > 0 else 1e-3
+    return np.round(np.asarray(xyz, np.float64).reshape(-1, 3) / step).astype(np.int64)
+
+
+def _best_unique(scores: np.ndarray, keys: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` best rows, best first (stable), each distinct key row once."""
+    order = np.argsort(-scores, kind="stable")
+    if not len(order):
+        return order
+    _, first = np.unique(keys[order], axis=0, return_index=True)
+    return order[np.sort(first)][:max(0, int(k))]
 
 
 def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryResult:
@@ -94,7 +98,8 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
     # top voxels
     vs = np.concatenate([r.voxel_score for r in results]).astype(np.float32)
     vx = np.concatenate([r.voxel_xyz for r in results]).astype(np.float32).reshape(-1, 3)
-    t = _top(vs, k)
+    vox = float(next((i["vox_size"] for i in infos if "vox_size" in i), 0.0))
+    t = _best_unique(vs, _voxel_key(vx, vox), k)
     out.voxel_xyz, out.voxel_score = vx[t], vs[t]
     # clusters
     cs = np.concatenate([r.cluster_score for r in results]).astype(np.float32)
@@ -105,7 +110,6 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
         shard = np.concatenate([np.full(len(r.cluster_score), i) for i, r in enumerate(results)])
         mins = [i.get("score_min") for i in infos if i.get("score_min") is not None]
         rel = float(next((i["cluster_rel_score"] for i in infos if "cluster_rel_score" in i), 0.9))
-        vox = float(next((i["vox_size"] for i in infos if "vox_size" in i), 0.0))
         hi = float(cs.max())
         lo = float(min(mins)) if mins else float(cs.min())
         keep = cs >= lo + rel * (hi - lo) if hi > lo else cs >= hi
@@ -116,13 +120,12 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
         out.cluster_size = np.array([c[1] for c in merged], np.int32)
         out.cluster_extent = np.array([c[2] for c in merged], np.float32).reshape(-1, 3)
         out.cluster_score = np.array([c[3] for c in merged], np.float32)
-    # rays and the search volume: each shard's rays whose frontier (origin) lies in its own region
-    own = [_in_region(r.ray_origin, i) for r, i in zip(results, infos, strict=True)]
-    rs = np.concatenate([r.ray_score[k] for r, k in zip(results, own, strict=True)]).astype(np.float32)
-    ro = np.concatenate([r.ray_origin[k] for r, k in zip(results, own, strict=True)]).astype(np.float32).reshape(-1, 3)
-    rd = np.concatenate([r.ray_direction[k] for r, k in zip(results, own, strict=True)]).astype(np.float32)
-    rd = rd.reshape(-1, 3)
-    t = _top(rs, k)
+    # rays and the search volume: every shard's rays, each (origin voxel, direction bin) once
+    rs = np.concatenate([r.ray_score for r in results]).astype(np.float32)
+    ro = np.concatenate([r.ray_origin for r in results]).astype(np.float32).reshape(-1, 3)
+    rd = np.concatenate([r.ray_direction for r in results]).astype(np.float32).reshape(-1, 3)
+    dbin = np.round(rd.astype(np.float64) / RAY_DIR_BIN).astype(np.int64)
+    t = _best_unique(rs, np.concatenate([_voxel_key(ro, vox), dbin], axis=1), k)
     out.ray_origin, out.ray_direction, out.ray_score = ro[t], rd[t], rs[t]
     info = next((i for i in infos if "half_angle_deg" in i and "search_range_m" in i), None)
     if info is None or not len(t):

@@ -68,6 +68,57 @@ def test_merge_without_info_and_empty_shards():
         merge_results([], 3)
 
 
+def test_merge_dedups_border_voxels_and_keeps_every_shards_rays():
+    # the same voxel centre (float32 noise) from both shards: once, with the best score
+    a = _res([], [((0.25, 0.25, 0.25), 0.7), ((3.25, 0.25, 0.25), 0.5)],
+             [((0.25, 0.25, 0.25), (1, 0, 0), 0.6), ((0.25, 0.25, 0.25), (0, 1, 0), 0.4)])
+    b = _res([], [((0.2500001, 0.25, 0.25), 0.8), ((-0.25, 0.25, 0.25), 0.3)],
+             [((0.25, 0.25, 0.25), (0.999, 0.01, 0), 0.65), ((-9.75, 0.25, 0.25), (-1, 0, 0), 0.2)])
+    # regions say a frontier at x = -9.75 is a's, yet b's ray from there is kept (none is lost)
+    ia = dict(INFO, shard="a", vox_size=0.5, region=[-100, -100, -1e9, 0, 100, 1e9])
+    ib = dict(INFO, shard="b", vox_size=0.5, region=[0, -100, -1e9, 100, 100, 1e9])
+    m = merge_results([(a, ia), (b, ib)], top_k=10)
+    np.testing.assert_allclose(m.voxel_score, [0.8, 0.5, 0.3])
+    np.testing.assert_allclose(m.voxel_xyz[:, 0], [0.25, 3.25, -0.25], atol=1e-5)
+    np.testing.assert_allclose(m.ray_score, [0.65, 0.4, 0.2])       # (1,0,0) ~ (0.999,0.01,0): one bin
+    np.testing.assert_allclose(m.ray_origin[2], [-9.75, 0.25, 0.25])
+    assert len(merge_results([(a, ia), (b, ib)], top_k=2).voxel_score) == 2
+
+
+def test_shard_subscription_tiles():
+    from mapper.shards import ShardFilter, ShardSection
+
+    def tiles(**kw):
+        cfg = ShardSection(**kw)
+        return ShardFilter(cfg).subscription_tiles(cfg)
+    assert tiles(region=[0, -10, 20, 10]) is None                               # no tile_m: every frame
+    assert tiles(region=[0, -10, 20, 10], tile_m=10, halo_tiles=0) == {(0, -1), (0, 0), (1, -1), (1, 0)}
+    got = tiles(region=[0, -10, 20, 10], tile_m=10)                              # halo of one tile
+    assert got == {(i, j) for i in range(-1, 3) for j in range(-2, 2)}
+    assert tiles(tile_m=5, tiles=["2,3"], halo_tiles=0) == {(2, 3)}
+    assert len(tiles(tile_m=5, tiles=["2,3"])) == 9
+    assert tiles(region=[-1e6, -1e6, 0, 1e6], tile_m=1) is None                 # too many: every frame
+
+
+def test_tile_and_shard_keys():
+    import zenoh
+
+    from common.keys import KeySpace
+
+    k = KeySpace("site/x")
+    assert k.frames_tile("r1", (-3, 4)) == "site/x/robots/r1/frames/-3_4"
+    assert k.robot_from_key("site/x/robots/r1/frames/-3_4") == "r1"
+    assert k.robot_from_key("site/x/robots/r1/frames") == "r1"
+    for bad in ("site/x/robots/r1/alive/1_2", "site/x/robots/r1/frames/1_x", "site/x/robots/r1/frames/1_2/3"):
+        assert k.robot_from_key(bad) is None, bad
+    tile_sub = zenoh.KeyExpr(k.frames_tile_all((-3, 4)))
+    assert tile_sub.intersects(zenoh.KeyExpr(k.frames_tile("r2", (-3, 4))))
+    assert not tile_sub.intersects(zenoh.KeyExpr(k.frames_tile("r2", (-3, 5))))
+    assert not tile_sub.intersects(zenoh.KeyExpr(k.frames("r2")))
+    assert zenoh.KeyExpr(k.frames_tiled_all).intersects(zenoh.KeyExpr(k.frames_tile("r2", (0, 0))))
+    assert k.shard_from_key(k.mapper_shard_alive("east")) == "east" and k.shard_from_key(k.mapper_alive) is None
+
+
 def test_shard_info_roundtrip_tolerant():
     info = dict(INFO, shard="s1", score_min=0.25, junk=1)
     got = decode_shard_info(encode_shard_info(info))
@@ -76,8 +127,9 @@ def test_shard_info_roundtrip_tolerant():
 
 
 # ------------------------------------------------------------------ real processes
-WEST = "shard.region=[-1000, -1000, 0, 1000]"
-EAST = "shard.region=[0, -1000, 1000, 1000]"
+# tile-routed (docs/key_space.md#shards): 10 m tiles, one tile of halo; the lap spans x in +-41 m
+WEST = ["shard.region=[-60, -60, 0, 60]", "shard.tile_m=10"]
+EAST = ["shard.region=[0, -60, 60, 60]", "shard.tile_m=10"]
 
 
 @pytest.mark.timeout(300)
@@ -98,8 +150,9 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
                   "queues.idle_flush_s=0.5"]
     procs = [Proc("router", ["router", "--listen", ep], tmp_path)]
     try:
-        for name, extra in (("west", [WEST]), ("east", [EAST]), ("all", [])):
-            procs.append(Proc(name, ["mapper", *common_map, f"shard.name={name}", *extra], tmp_path))
+        east_snap = ["shard.name=east", *EAST, f"snapshots.dir={tmp_path / 'east-snaps'}", "snapshots.period_s=1"]
+        for name, extra in (("west", ["shard.name=west", *WEST]), ("east", east_snap), ("all", ["shard.name=all"])):
+            procs.append(Proc(name, ["mapper", *common_map, *extra], tmp_path))
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=30.0) as c:
             def mapped():
                 oks, _ = c._get_all(c.keys.stats, None, 5.0)
@@ -107,7 +160,7 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
             wait_for(mapped, 120, what="three mappers up")
             edge = Proc("edge", ["edge", "--connect", ep, "robot=r1", "source.kind=recording",
                                  f"source.path={rec}", "publish.rate_hz=10", "pca.out_dim=16",
-                                 "pca.fit_frames=3", "publish.linger_s=3"], tmp_path)
+                                 "pca.fit_frames=3", "publish.linger_s=3", "publish.tile_m=10"], tmp_path)
             procs.append(edge)
 
             def done():
@@ -130,6 +183,12 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
             assert n >= 12 and parts["all"]["robots"]["r1"]["outside_shard"] == 0
             assert parts["west"]["frames"]["mapped"] > 0 and parts["east"]["frames"]["mapped"] > 0
             assert parts["west"]["frames"]["mapped"] + parts["east"]["frames"]["mapped"] == n
+            # Zenoh routes each frame to the shards subscribed to its tile: a shard receives its own
+            # frames plus those of the halo, not every frame ('all' subscribes to every key)
+            sent = parts["all"]["frames"]["received"]
+            got = parts["west"]["frames"]["received"] + parts["east"]["frames"]["received"]
+            assert sent == parts["all"]["robots"]["r1"]["received"] >= 12
+            assert n <= got <= 1.3 * sent, (got, sent)
             for q in ("car", "tree", "building", "water tower"):
                 oks, errs = c._get_all(c.keys.mapper_query, encode_query_request(QueryRequest(text=q, top_k=20)),
                                        60.0)
@@ -138,6 +197,9 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
                        for d, att in oks}
                 ref = got["all"][0]
                 m = merge_results([got["west"], got["east"]], 20)
+                # a voxel near the border seen by both shards is in the merge once (0.5 m voxels)
+                keys = np.round(m.voxel_xyz / 0.25).astype(np.int64)
+                assert len(np.unique(keys, axis=0)) == len(keys), q
                 # top voxels: the same best score, the best voxel of the merge among the whole map's top
                 assert abs(float(m.voxel_score[0]) - float(ref.voxel_score[0])) < 0.02, q
                 assert np.min(np.linalg.norm(ref.voxel_xyz - m.voxel_xyz[0], axis=1)) < 1.0, q
@@ -156,6 +218,37 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
                     assert m.search_volume_m3 == pytest.approx(ref.search_volume_m3, rel=0.35), q
             # the Client does the same fan-out and merge (all three replies here: 'all' included)
             r = c.query("car", top_k=5)
-            assert r.timings.get("shards") == 3.0
+            assert r.timings.get("shards") == 3.0 and r.missing_shards == []
+            assert c.shards()[0] == ["all", "east", "west"]
+
+            # a shard dies (SIGKILL: no goodbye): the next merged answer names it (liveliness)
+            east_mapped = parts["east"]["frames"]["mapped"]
+            wait_for(lambda: c.stats_all(5.0)["east"]["snapshot"].get("frames_mapped") == east_mapped, 30,
+                     what="east's periodic snapshot")
+            seen = []
+            watch = c.watch("car", seen.append, top_k=5)
+            assert seen and seen[0].missing_shards == [] and seen[0].timings.get("shards") == 3.0
+            procs[2].p.kill()
+            procs[2].p.wait()
+            # --watch: the dead shard's last result is dropped and it is reported missing
+            wait_for(lambda: any(x.missing_shards == ["east"] for x in seen), 10, what="watch: east missing")
+            last = next(x for x in seen if x.missing_shards == ["east"])
+            assert last.timings.get("shards") == 2.0
+            watch.cancel()
+            r = wait_for(lambda: (lambda x: x if x.missing_shards else None)(c.query("car", top_k=5)), 10,
+                         every=0.3, what="east reported missing")
+            assert r.missing_shards == ["east"] and r.timings.get("shards") == 2.0
+            # restarted with the same name and snapshot store: it answers again with its region
+            procs.append(Proc("east-again", ["mapper", *common_map, *east_snap], tmp_path))
+
+            def east_back():
+                oks, _ = c._get_all(c.keys.mapper_query, encode_query_request(QueryRequest(text="car", top_k=5)),
+                                    30.0)
+                got = {decode_shard_info(att).get("shard"): (decode_query_result(d), decode_shard_info(att))
+                       for d, att in oks}
+                return got.get("east")
+            e, info = wait_for(east_back, 120, every=0.5, what="east answering again")
+            assert e.frames_mapped == east_mapped and info["region"][0] == 0 and info["region"][3] == 60
+            assert c.query("car", top_k=5).missing_shards == []
     finally:
         stop_all(reversed(procs))

@@ -16,6 +16,13 @@ apart, and reports for that window:
   the mapper's advised rate);
 * ``total_vs_single``: total fused rate with N robots / with one.
 
+The ``shards`` row (skip with ``--no-shards``): two shard mappers split at x = 0 (10 m
+tiles, docs/key_space.md#shards) and one robot lapping across the border, its edge
+publishing tile-routed frames; over the window, ``deliveries_per_frame`` = the shards' own
+``frames.received`` summed / the frames the edge sent (counted by a passive subscriber of
+this bench on every frame key), goal <= 1.3 (without routing every shard receives every
+frame: 2.0), and each shard's received / mapped rates.
+
 ``--fake-ids K`` adds the memory probe: K robot ids that send frames but never serve a
 feature space (one Zenoh session publishing on K keys), mapper RSS before, after and once
 the eviction timeout has passed, and how many robots the mapper still tracks.
@@ -48,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="throughput", help="mapper preset (default throughput)")
     parser.add_argument("--warmup", type=float, default=8.0, help="seconds after every robot is mapping (default 8)")
     parser.add_argument("--seconds", type=float, default=20.0, help="measurement window in s (default 20)")
+    parser.add_argument("--no-shards", action="store_true", help="skip the two-shard tile-routing row")
     parser.add_argument("--fake-ids", type=int, default=0, help="memory probe: this many ids without a feature space")
     parser.add_argument("--mapper-set", action="append", default=[], metavar="KEY=VALUE",
                         help="extra mapper config override (repeatable)")
@@ -175,6 +183,64 @@ def run_fleet(n: int, recs: list[Path], args: argparse.Namespace, work: Path) ->
             "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()]}
 
 
+#: the shards row: two shards split at x = 0 (the synthetic lap spans x in +-41 m), 10 m tiles
+SHARD_REGIONS = {"west": "[-100, -100, 0, 100]", "east": "[0, -100, 100, 100]"}
+SHARD_TILE_M = 10.0
+
+
+def run_shards(rec: Path, args: argparse.Namespace, work: Path) -> dict:
+    """Two tile-routed shards and one robot lapping across their border (see module doc)."""
+    from common.zenoh_session import ZenohConfig, free_tcp_port
+    from query_client.client import Client
+
+    procs = _Procs(work)
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    zs = "transport/shared_memory/enabled=false"
+    sent = [0]
+    try:
+        procs.start("router-shards", "router", "--listen", ep, "--zenoh-set", zs)
+        for name, region in SHARD_REGIONS.items():
+            procs.start(f"mapper-{name}", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs,
+                        f"preset={args.preset}", "map.depth_limit=20", "layers.rate_hz=0", "snapshots.on_exit=false",
+                        f"shard.name={name}", f"shard.region={region}", f"shard.tile_m={SHARD_TILE_M}",
+                        *args.mapper_set)
+        with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0) as c:
+            def count(_sample) -> None:
+                sent[0] += 1
+            subs = [c.session.declare_subscriber(k, count) for k in (c.keys.frames_all, c.keys.frames_tiled_all)]
+            procs.start("edge-shards", "edge", "--connect", ep, "--zenoh-set", zs, "robot=r0", "source.kind=recording",
+                        f"source.path={rec}", "publish.loop=true", f"publish.rate_hz={args.rate}",
+                        f"pca.out_dim={args.pca_dim}", "pca.fit_frames=4", f"publish.tile_m={SHARD_TILE_M}",
+                        *args.edge_set)
+            end = time.monotonic() + 180
+            while True:
+                try:
+                    every = c.stats_all(timeout=5.0)
+                    if set(every) == set(SHARD_REGIONS) and all(s["frames"]["mapped"] > 0 for s in every.values()):
+                        break
+                except Exception:
+                    pass
+                if time.monotonic() > end:
+                    raise RuntimeError(f"the two shards did not both map within 180 s; see logs in {work}")
+                time.sleep(0.5)
+            time.sleep(args.warmup)
+            s0, n0, t0 = c.stats_all(timeout=10.0), sent[0], time.monotonic()
+            time.sleep(args.seconds)
+            s1, n1, t1 = c.stats_all(timeout=10.0), sent[0], time.monotonic()
+            for sub in subs:
+                sub.undeclare()
+    finally:
+        procs.stop_all()
+    dt, frames = t1 - t0, n1 - n0
+    got = {k: s1[k]["frames"]["received"] - s0[k]["frames"]["received"] for k in SHARD_REGIONS}
+    mapped = {k: s1[k]["frames"]["mapped"] - s0[k]["frames"]["mapped"] for k in SHARD_REGIONS}
+    return {"shards": len(SHARD_REGIONS), "robots": 1, "tile_m": SHARD_TILE_M, "window_s": round(dt, 2),
+            "frames_sent": frames, "received": got,
+            "deliveries_per_frame": (sum(got.values()) / frames) if frames else None, "goal_max": 1.3,
+            "received_hz": {k: v / dt for k, v in got.items()}, "mapped_hz": {k: v / dt for k, v in mapped.items()},
+            "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()]}
+
+
 def fake_ids_probe(k: int, args: argparse.Namespace, work: Path, evict_s: float = 8.0, legacy: bool = False,
                    reps: int = 3) -> dict:
     """Mapper RSS with ``k`` robot ids that send frames but never serve a feature space."""
@@ -253,6 +319,8 @@ def run(args: argparse.Namespace) -> dict:
     for n in counts:
         runs[str(n)] = run_fleet(n, recs, args, work)
     out["runs"] = runs
+    if not args.no_shards:
+        out["shards"] = run_shards(recs[0], args, work)
     if "1" in runs and runs["1"]["total_fused_hz"] > 0:
         single = runs["1"]["total_fused_hz"]
         out["total_vs_single"] = {n: r["total_fused_hz"] / single for n, r in runs.items()}

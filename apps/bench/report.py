@@ -145,6 +145,10 @@ def _fleet(d: dict) -> tuple[str, str]:
     if fk.get("rss_mb_after_ids") is not None:
         parts.append(f"{fk.get('ids', '?')} ids without a feature space: mapper {_f(fk.get('rss_mb_before'), 0)} → "
                      f"{_f(fk.get('rss_mb_after_ids'), 0)} MB, {fk.get('robots_tracked_after_ids')} tracked")
+    sh = d.get("shards") or {}
+    if sh.get("deliveries_per_frame") is not None:
+        parts.append(f"{sh.get('shards')} shards, tile-routed: {_f(sh['deliveries_per_frame'], 2)} deliveries "
+                     f"per frame (goal ≤ {_f(sh.get('goal_max'), 1)})")
     return "; ".join(parts), "–"
 
 

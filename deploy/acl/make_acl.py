@@ -11,7 +11,7 @@ or the mapper in router mode) applies it to every transport; its own local entit
 not filtered. "ingress" = messages a subject sends to the router, "egress" = messages the
 router forwards to the subject.
 
-* ``robot-<id>`` may: put ``<p>/robots/<id>/frames``; declare the liveliness token
+* ``robot-<id>`` may: put ``<p>/robots/<id>/frames`` (and its tile keys ``frames/*``); declare the liveliness token
   ``<p>/robots/<id>/alive``; declare a queryable on and reply to
   ``<p>/robots/<id>/feature_space``; watch ``<p>/mapper/alive``. It receives the queries for
   its feature space and the subscriptions to its frames. Nothing under another robot's
@@ -92,11 +92,11 @@ def make_acl(robots: list[str], operators: list[str] | None = None, prefix: str 
         ids = [f"robot_{r}_publish", f"robot_{r}_alive", f"robot_{r}_serve", f"robot_{r}_receive_query",
                f"robot_{r}_receive_subscription"]
         rules += [
-            _rule(ids[0], ["put"], ["ingress"], [f"{root}/frames"]),
+            _rule(ids[0], ["put"], ["ingress"], [f"{root}/frames", f"{root}/frames/*"]),
             _rule(ids[1], ["liveliness_token"], ["ingress"], [f"{root}/alive"]),
             _rule(ids[2], ["declare_queryable", "reply"], ["ingress"], [f"{root}/feature_space"]),
             _rule(ids[3], ["query"], ["egress"], [f"{root}/feature_space"]),
-            _rule(ids[4], ["declare_subscriber"], ["egress"], [f"{root}/frames"]),
+            _rule(ids[4], ["declare_subscriber"], ["egress"], [f"{root}/frames", f"{root}/frames/*"]),
         ]
         subs = _subjects(f"robot_{r}", [f"robot-{r}"], auth)
         subjects += subs
