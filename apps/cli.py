@@ -45,6 +45,7 @@ SUBCOMMANDS: dict[str, str] = {
     "bench": "apps.bench",
     "eval": "apps.evaluation.cli",
     "models": "edge.models_cli",
+    "console": "apps.console",
 }
 
 _FALLBACK_HELP = {
@@ -58,6 +59,7 @@ _FALLBACK_HELP = {
     "bench": "throughput / latency / memory benchmarks (JSON output)",
     "eval": "the paper's benchmarks (search volume; 3D semantic segmentation)",
     "models": "prepare model directories (download/convert on a machine with internet)",
+    "console": "operator console in a browser + HTTP/JSON API for planners",
 }
 
 

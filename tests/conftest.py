@@ -48,6 +48,17 @@ def pca_file(tmp_path_factory):
     return fit_pca(tmp_path_factory.mktemp("pca") / "pca.npz")
 
 
+@pytest.fixture(scope="session")
+def console_world(tmp_path_factory, pca_file):
+    """A mapper + edge on the synthetic world and ``rayfronts console`` in front of it
+    (:class:`tests.support.console.ConsoleWorld`), shared by the console tests."""
+    from tests.support.console import ConsoleWorld
+
+    w = ConsoleWorld(tmp_path_factory.mktemp("console"), pca_file)
+    yield w
+    w.close()
+
+
 @pytest.fixture
 def closer():
     """Collects :class:`tests.support.zenoh_agent.Agent` / ``Router`` children and closes them

@@ -3,7 +3,7 @@
 Real processes on loopback: a router, the mapper with ``--serve-web``, an edge playing the
 synthetic world, then one query. The page the mapper serves (rerun's own web viewer, served
 locally: no internet) is loaded in headless chromium driven over the DevTools protocol (a
-stdlib WebSocket client below, no extra package). From the screenshot the test checks that
+stdlib WebSocket client in tests/support/browser.py, no extra package). From the screenshot the test checks that
 the 3D view draws the query's heatmap (pixels of the heat colour scale, several parts of the
 scale) and the map (frontier / ray colours of the map layers), and that the camera view beside
 it shows the robot's image. The screenshot is kept (path printed) as a test artefact under
@@ -15,138 +15,20 @@ and is skipped, saying so, elsewhere.
 
 from __future__ import annotations
 
-import base64
-import json
 import os
-import re
-import shutil
 import signal
-import socket
-import struct
-import subprocess
-import tempfile
-import threading
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.support.browser import Chromium, chromium_exe
 from tests.support.ports import free_port
-from tests.support.processes import ROOT, Proc, stop_all, stop_process, wait_log
-
-
-class WS:
-    def __init__(self, url, timeout=30):
-        m = re.match(r"ws://([^:/]+):(\d+)(/.*)", url)
-        host, port, path = m.group(1), int(m.group(2)), m.group(3)
-        self.s = socket.create_connection((host, port), timeout=timeout)
-        key = base64.b64encode(os.urandom(16)).decode()
-        self.s.sendall((f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
-        buf = b""
-        while b"\r\n\r\n" not in buf:
-            buf += self.s.recv(4096)
-        head, self.rest = buf.split(b"\r\n\r\n", 1)
-        assert b" 101 " in head.split(b"\r\n")[0], head
-
-    def _recv(self, n):
-        while len(self.rest) < n:
-            chunk = self.s.recv(1 << 20)
-            if not chunk:
-                raise ConnectionError("websocket closed")
-            self.rest += chunk
-        out, self.rest = self.rest[:n], self.rest[n:]
-        return out
-
-    def send(self, text):
-        data = text.encode()
-        hdr = bytes([0x81])
-        n = len(data)
-        if n < 126:
-            hdr += bytes([0x80 | n])
-        elif n < 65536:
-            hdr += bytes([0x80 | 126]) + struct.pack(">H", n)
-        else:
-            hdr += bytes([0x80 | 127]) + struct.pack(">Q", n)
-        mask = os.urandom(4)
-        self.s.sendall(hdr + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data)))
-
-    def recv(self):
-        msg = b""
-        while True:
-            b0, b1 = self._recv(2)
-            n = b1 & 0x7F
-            if n == 126:
-                n = struct.unpack(">H", self._recv(2))[0]
-            elif n == 127:
-                n = struct.unpack(">Q", self._recv(8))[0]
-            payload = self._recv(n)
-            op = b0 & 0x0F
-            if op == 0x8:
-                raise ConnectionError("websocket closed by the browser")
-            if op in (0x9, 0xA):
-                continue
-            msg += payload
-            if b0 & 0x80:
-                return msg.decode()
-
-
-class Chromium:
-    FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-
-    def __init__(self, exe, width=1400, height=900):
-        self.ud = tempfile.mkdtemp(prefix="rf-chromium-")
-        self.p = subprocess.Popen([exe, *self.FLAGS, f"--user-data-dir={self.ud}", "--remote-debugging-port=0",
-                                   f"--window-size={width},{height}", "about:blank"],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        port = None
-        end = time.monotonic() + 60
-        while time.monotonic() < end:
-            line = self.p.stderr.readline()
-            m = re.search(r"DevTools listening on ws://127\.0\.0\.1:(\d+)/", line or "")
-            if m:
-                port = int(m.group(1))
-                break
-            if not line and self.p.poll() is not None:
-                raise RuntimeError("chromium exited at start")
-        assert port, "chromium did not print its DevTools address"
-        threading.Thread(target=lambda: [None for _ in self.p.stderr], daemon=True).start()
-        pages = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10).read())
-        page = next(t for t in pages if t.get("type") == "page")
-        self.ws = WS(page["webSocketDebuggerUrl"])
-        self._id = 0
-        self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
-
-    def call(self, method, **params):
-        self._id += 1
-        self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
-        while True:
-            m = json.loads(self.ws.recv())
-            if m.get("id") == self._id:
-                if "error" in m:
-                    raise RuntimeError(f"{method}: {m['error']}")
-                return m.get("result", {})
-
-    def screenshot(self) -> bytes:
-        return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
-
-    def close(self):
-        stop_process(self.p, signal.SIGTERM, 10)
+from tests.support.processes import ROOT, Proc, stop_all, wait_log
 
 
 # ----------------------------------------------------------------------------- the test
-def _chromium_exe() -> str:
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe:
-        return exe
-    if os.environ.get("CI"):
-        pytest.fail("chromium is not installed: deploy/setup_dev.sh installs Debian's chromium with the test extra")
-    pytest.skip("chromium is not installed here (apt-get install chromium); under CI this test fails instead")
-
-
 def _near(img: np.ndarray, colours: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """(mask of pixels within ``tol`` of one of ``colours``, index of the nearest colour)."""
     px = img.reshape(-1, 3).astype(np.float32)
@@ -181,7 +63,7 @@ def good(a: dict) -> bool:
 
 @pytest.mark.timeout(420)
 def test_web_viewer_draws_map_and_heatmap(tmp_path):
-    exe = _chromium_exe()
+    exe = chromium_exe()
     from query_client.client import Client
 
     ep = f"tcp/127.0.0.1:{free_port()}"

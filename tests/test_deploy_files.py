@@ -136,7 +136,8 @@ def _unit(name: str) -> dict[str, dict[str, str]]:
 
 @pytest.mark.parametrize("unit,sub", [("rayfronts-router.service", "router"),
                                       ("rayfronts-mapper.service", "mapper"),
-                                      ("rayfronts-edge.service", "edge")])
+                                      ("rayfronts-edge.service", "edge"),
+                                      ("rayfronts-console.service", "console")])
 def test_systemd_units_run_real_subcommands(unit, sub):
     u = _unit(unit)
     assert set(u) == {"Unit", "Service", "Install"}

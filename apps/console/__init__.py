@@ -1,0 +1,81 @@
+"""``rayfronts console``: the operator's console in a browser and an HTTP API any planner can
+call (docs/commands.md). A Zenoh client of the mapper like ``rayfronts query``."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+HELP = "operator console in a browser + HTTP/JSON API for planners"
+DESCRIPTION = """Serve the operator console (query/search box, found instances, look-next goals,
+robots' state, the mapper's web viewer) and a JSON API (/api/query, /api/search, /api/occupancy/*,
+/api/stats, /api/snapshot, server-sent-event streams; OpenAPI at /openapi.json, docs at /docs).
+
+  rayfronts console --connect tcp/BASE:7447                       # http://127.0.0.1:8080
+  rayfronts console --connect tcp/BASE:7447 --http 0.0.0.0:8443 --token SECRET \\
+      --tls-cert cert.pem --tls-key key.pem
+
+Binds loopback by default; any other address needs --token (or $RAYFRONTS_CONSOLE_TOKEN),
+sent as 'Authorization: Bearer TOKEN' or ?token=TOKEN."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from common.zenoh_session import add_zenoh_arguments
+
+    parser.add_argument("--http", default="127.0.0.1:8080", metavar="HOST:PORT",
+                        help="address the console listens on (default 127.0.0.1:8080, loopback only)")
+    parser.add_argument("--token", default=None, help="access token (default $RAYFRONTS_CONSOLE_TOKEN); "
+                                                      "required when --http is not a loopback address")
+    parser.add_argument("--tls-cert", default=None, metavar="PEM", help="serve HTTPS with this certificate")
+    parser.add_argument("--tls-key", default=None, metavar="PEM", help="the certificate's private key")
+    parser.add_argument("--viewer-url", default=None, metavar="URL",
+                        help="the mapper's rerun web viewer (rayfronts mapper --serve-web) to embed in the page")
+    parser.add_argument("--rate-limit", type=int, default=600, help="requests per minute per client address "
+                                                                    "(default 600; 0 = no limit)")
+    parser.add_argument("--timeout", type=float, default=20.0, help="seconds to wait for the mapper (default 20)")
+    parser.add_argument("--prefix", default=None, help="key-space prefix (default rayfronts)")
+    add_zenoh_arguments(parser, mode_default_help="client")
+
+
+def run(args: argparse.Namespace) -> int:
+    from apps.console.security import ENV_TOKEN, ConsoleConfigError, parse_http, require_token
+
+    token = args.token or os.environ.get(ENV_TOKEN) or None
+    try:
+        host, port = parse_http(args.http)
+        require_token(host, token)
+        if bool(args.tls_cert) != bool(args.tls_key):
+            raise ConsoleConfigError("give both --tls-cert and --tls-key (or neither)")
+        for f in (args.tls_cert, args.tls_key):
+            if f and not os.path.isfile(f):
+                raise ConsoleConfigError(f"no such file: {f}")
+        if args.timeout <= 0:
+            raise ConsoleConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
+    except ConsoleConfigError as e:
+        print(f"rayfronts console: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        import uvicorn
+
+        from apps.console.app import create_app
+    except ImportError as e:
+        print(f"rayfronts console: error: {e.name} is missing: pip install '.[console]'", file=sys.stderr)
+        return 1
+    from query_client.cli import connect_client
+
+    client = connect_client(args, "console")
+    if client is None:
+        return 1
+    with client:
+        app = create_app(client, token=token, viewer_url=args.viewer_url, rate_per_minute=args.rate_limit,
+                         timeout=args.timeout)
+        scheme = "https" if args.tls_cert else "http"
+        shown = f"[{host}]" if ":" in host else host
+        print(f"console at {scheme}://{shown}:{port}/", flush=True)
+        try:
+            uvicorn.run(app, host=host, port=port, log_level="warning", ssl_certfile=args.tls_cert,
+                        ssl_keyfile=args.tls_key, timeout_graceful_shutdown=2)
+        except SystemExit as e:   # uvicorn exits 1 when the port is taken
+            print(f"rayfronts console: error: cannot listen on {host}:{port} (in use?)", file=sys.stderr)
+            return int(e.code or 1)
+    return 0

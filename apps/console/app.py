@@ -1,0 +1,382 @@
+"""The console's HTTP API and page (FastAPI): JSON over the mapper's Zenoh calls through one
+``query_client.Client`` (docs/commands.md, ``rayfronts console``; replies as docs/messages.md).
+
+Errors are one JSON line ``{"error": "..."}`` with a 4xx status (503 when no mapper answers);
+a standing search or query streams as server-sent events until the browser disconnects."""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import threading
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import FastAPI, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from apps.console.security import MAX_BODY_BYTES, RateLimiter, token_ok
+
+log = logging.getLogger("rayfronts.console")
+STATIC = Path(__file__).with_name("static")
+
+
+Targets = Annotated[list[str], Query(description="targets: ?q=vehicle&q=car")]
+Background = Annotated[list[str] | None, Query(description="background phrases")]
+
+
+class SearchBody(BaseModel):
+    """POST /api/search: the fields of ``rayfronts search`` (world frame, metres, z up)."""
+    q: list[str] = Field(..., description="targets (one or more phrases)")
+    background: list[str] | None = None
+    threshold: float = 0.5
+    max_instances: int = 10
+    max_goals: int = 5
+    from_xyz: list[float] | None = Field(None, alias="from", description="robot position x,y,z")
+    area: list[float] | None = Field(None, description="box x0,y0,x1,y1 or polygon x0,y0,x1,y1,x2,y2,...")
+    z_band: list[float] | None = None
+    model_config = {"populate_by_name": True}
+
+
+class QueryBody(BaseModel):
+    """POST /api/query as JSON: a text query."""
+    q: str
+    top_k: int = 5
+    softmax: bool = False
+
+
+class PointsBody(BaseModel):
+    """POST /api/occupancy/points: points (N, 3) in metres and the distance search radius."""
+    points: list[list[float]]
+    radius: float = 1.0
+
+
+class ApiError(Exception):
+    """A request the console refuses (``status``, one-line ``message``)."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+def _one_line(text: Any) -> str:
+    return " ".join(str(text).split())[:500]
+
+
+def _err(status: int, msg: Any) -> JSONResponse:
+    return JSONResponse({"error": _one_line(msg)}, status_code=status)
+
+
+def _csv(text: str | None) -> str | None:
+    return None if text is None or text == "" else text
+
+
+def search_kwargs_from(q: list[str], background: list[str] | None, threshold: float, max_instances: int,
+                       max_goals: int, from_xyz: str | None, area: str | None, z_band: str | None) -> dict:
+    """``Client.search`` keywords from HTTP fields, parsed by the CLI's own ``search_kwargs``
+    (same checks and messages as ``rayfronts search``)."""
+    from query_client.search_cli import search_kwargs
+
+    if not q or not all(t.strip() for t in q):
+        raise ApiError(400, "give at least one non-empty target: ?q=vehicle")
+    ns = argparse.Namespace(targets=q, background=background or None, threshold=threshold,
+                            max_instances=max_instances, max_goals=max_goals, area=_csv(area), z_band=_csv(z_band),
+                            from_xyz=_csv(from_xyz), timeout=20.0)
+    return search_kwargs(ns)
+
+
+def _join(v: list[float] | None) -> str | None:
+    return None if v is None else ",".join(repr(float(x)) for x in v)
+
+
+def search_json(reply) -> dict:
+    """A SearchReply as the object ``rayfronts search --json`` prints (the CLI's own renderer)."""
+    from query_client.search_cli import _as_json
+
+    return json.loads(_as_json(reply))
+
+
+def _occ_json(rep) -> dict:
+    d = {"kind": rep.kind, "shape": list(rep.states.shape), "states": rep.states.tolist(),
+         "origin": list(rep.origin), "cell_m": rep.cell_m, "frames_mapped": rep.frames_mapped,
+         "map_version": rep.map_version}
+    if rep.dist is not None:    # metres; null: no occupied voxel within the radius
+        d["dist"] = [float(v) if np.isfinite(v) else None for v in np.asarray(rep.dist, float).ravel()]
+    return d
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ApiError(400, f"{what} must be comma-separated numbers, got {text!r}") from None
+    if len(v) != n:
+        raise ApiError(400, f"{what} needs {n} comma-separated numbers, got {text!r}")
+    return v
+
+
+def robot_states(stats_by_shard: dict[str, dict], now: float | None = None) -> dict:
+    """Per shard and robot (from the mappers' stats): frames mapped, mapping rate (Hz), drops,
+    edge status, last seen (wall-clock s, and seconds ago); ``raw`` keeps the full stats."""
+    import time
+
+    now = time.time() if now is None else now
+    shards = {}
+    for shard, st in stats_by_shard.items():
+        robots = {}
+        for name, r in (st.get("robots") or {}).items():
+            seen = float(r.get("seen_at") or 0.0)
+            robots[name] = {"mapped": r.get("mapped", 0), "rate_hz": r.get("mapped_hz"),
+                            "dropped": r.get("dropped", 0), "edge_status": r.get("edge_state") or "",
+                            "edge_reason": r.get("edge_reason") or "", "present": bool(r.get("present")),
+                            "last_seen": seen or None, "last_seen_s_ago": round(now - seen, 1) if seen else None}
+        shards[shard] = {"frames": st.get("frames", {}), "map_version": st.get("map_version"), "robots": robots}
+    return {"shards": shards, "raw": stats_by_shard}
+
+
+def _install_errors(app: FastAPI) -> None:
+    from common.config import ConfigError
+    from common.messages import MessageError
+    from query_client.client import MapperUnavailable, QueryError
+
+    @app.exception_handler(ApiError)
+    async def _api(_r: Request, e: ApiError) -> JSONResponse:
+        return _err(e.status, e.message)
+
+    @app.exception_handler(RequestValidationError)
+    async def _val(_r: Request, e: RequestValidationError) -> JSONResponse:
+        parts = [f"{'.'.join(str(p) for p in x.get('loc', ()))}: {x.get('msg', '')}" for x in e.errors()[:3]]
+        return _err(422, "invalid request: " + "; ".join(parts))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_r: Request, e: StarletteHTTPException) -> JSONResponse:
+        return _err(e.status_code, e.detail)
+
+    @app.exception_handler(MapperUnavailable)
+    async def _unavail(_r: Request, e: Exception) -> JSONResponse:
+        return _err(503, e)
+
+    @app.exception_handler(QueryError)
+    async def _query(_r: Request, e: Exception) -> JSONResponse:
+        return _err(400, e)
+
+    @app.exception_handler(MessageError)
+    async def _msg(_r: Request, e: Exception) -> JSONResponse:
+        return _err(400, e)
+
+    @app.exception_handler(ConfigError)
+    async def _cfg(_r: Request, e: Exception) -> JSONResponse:
+        return _err(400, e)
+
+    @app.exception_handler(Exception)
+    async def _bug(_r: Request, e: Exception) -> JSONResponse:
+        log.warning("console: %s: %s", type(e).__name__, e)
+        return _err(500, f"{type(e).__name__}: {e}")
+
+
+def _install_guards(app: FastAPI, token: str | None, limiter: RateLimiter, max_body: int) -> None:
+    @app.middleware("http")
+    async def guard(request: Request, call_next):
+        n = request.headers.get("content-length")
+        if n is not None and (not n.isdigit() or int(n) > max_body):
+            return _err(413, f"request body too large (limit {max_body // (1024 * 1024)} MiB)")
+        if not token_ok(token, request.headers.get("authorization"), request.query_params.get("token")):
+            return _err(401, "missing or wrong token: send 'Authorization: Bearer TOKEN' or ?token=TOKEN")
+        addr = request.client.host if request.client else "?"
+        if not limiter.allow(addr):
+            return _err(429, f"too many requests from {addr} (limit {limiter.per_minute} per minute)")
+        return await call_next(request)
+
+
+_streams_lock = threading.Lock()
+
+
+def _release(handle, open_streams: list[int]) -> None:
+    """Cancel a standing search/query (the mapper drops it), then count the stream closed."""
+    try:
+        handle.cancel()
+    finally:
+        with _streams_lock:
+            open_streams[0] -= 1
+
+
+async def _sse(request: Request, start, open_streams: list[int]) -> StreamingResponse:
+    """Server-sent events of a standing call: ``start(callback)`` returns a handle with
+    ``cancel()``; the handle is cancelled when the client disconnects."""
+    loop = asyncio.get_running_loop()
+    queue: asyncio.Queue = asyncio.Queue(maxsize=64)
+
+    def push(obj: dict) -> None:
+        def put() -> None:
+            if queue.full():
+                queue.get_nowait()
+            queue.put_nowait(obj)
+        loop.call_soon_threadsafe(put)
+
+    handle = await asyncio.to_thread(start, push)
+    with _streams_lock:
+        open_streams[0] += 1
+
+    async def events():
+        try:
+            n = 0
+            while True:
+                if await request.is_disconnected():
+                    break
+                try:
+                    obj = await asyncio.wait_for(queue.get(), timeout=1.0)
+                except asyncio.TimeoutError:
+                    yield ": keep-alive\n\n"
+                    continue
+                n += 1
+                yield f"id: {n}\nevent: update\ndata: {json.dumps(obj)}\n\n"
+        finally:
+            # not awaited: a cancelled task (client gone) cannot await; the cancel runs in a thread
+            threading.Thread(target=_release, args=(handle, open_streams), daemon=True).start()
+
+    return StreamingResponse(events(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+
+def create_app(client, *, token: str | None = None, viewer_url: str | None = None, rate_per_minute: int = 600,
+               max_body: int = MAX_BODY_BYTES, timeout: float = 20.0) -> FastAPI:
+    """The console app over a connected ``query_client.Client`` (not closed by the app)."""
+    app = FastAPI(title="RayFronts console", version="1", docs_url=None, redoc_url=None,
+                  description="Operator console and HTTP API of a RayFronts mapper (docs/messages.md).")
+    _install_errors(app)
+    _install_guards(app, token, RateLimiter(rate_per_minute), max_body)
+    _page_routes(app, viewer_url)
+    streams = [0]      # open server-sent-event streams (each holds one standing search/query)
+    _query_routes(app, client, timeout, max_body, streams)
+    _search_routes(app, client, timeout, streams)
+    _map_routes(app, client, timeout, streams)
+    return app
+
+
+def _page_routes(app: FastAPI, viewer_url: str | None) -> None:
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html")
+
+    @app.get("/static/{name}", include_in_schema=False)
+    def static(name: str) -> FileResponse:
+        p = STATIC / name
+        if "/" in name or name.startswith(".") or not p.is_file():
+            raise ApiError(404, f"no static file {name!r}")
+        return FileResponse(p)
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> HTMLResponse:
+        return HTMLResponse((STATIC / "docs.html").read_text())
+
+    @app.get("/api/config", summary="console settings for the page (viewer URL)")
+    def config() -> dict:
+        return {"viewer_url": viewer_url}
+
+
+def _query_routes(app: FastAPI, client, timeout: float, max_body: int, streams: list[int]) -> None:
+    @app.get("/api/query", summary="one query (text)")
+    def query_get(q: str = Query(..., description="query text"), top_k: int = Query(5, ge=1, le=1000),
+                  softmax: bool = False) -> dict:
+        if not q.strip():
+            raise ApiError(400, "the query text is empty; say what to look for: ?q=water+tower")
+        return client.query(q, top_k=top_k, softmax=softmax, timeout=timeout).to_dict()
+
+    @app.post("/api/query", summary="one query: JSON {q, top_k} or multipart image upload (field 'image')")
+    async def query_post(request: Request) -> dict:
+        ctype = request.headers.get("content-type", "")
+        if ctype.startswith("multipart/form-data"):
+            form = await request.form()
+            up = form.get("image")
+            if up is None or isinstance(up, str):
+                raise ApiError(400, "multipart query needs a file field 'image' (JPEG/PNG)")
+            data = await up.read()
+            if len(data) > max_body:
+                raise ApiError(413, f"image too large (limit {max_body // (1024 * 1024)} MiB)")
+            top_k = int(str(form.get("top_k") or 5))
+            res = await asyncio.to_thread(client.query, None, data, top_k, timeout)
+            return res.to_dict()
+        try:
+            body = QueryBody.model_validate(await request.json())
+        except (ValueError, TypeError) as e:
+            raise ApiError(400, f"POST /api/query needs JSON {{\"q\": TEXT, \"top_k\": N}} or an image upload: {e}") \
+                from None
+        if not body.q.strip() or body.top_k < 1:
+            raise ApiError(400, "the query text is empty or top_k < 1")
+        res = await asyncio.to_thread(client.query, body.q, None, body.top_k, timeout, softmax=body.softmax)
+        return res.to_dict()
+
+    @app.get("/api/query/stream", summary="standing query as server-sent events (event 'update')")
+    async def query_stream(request: Request, q: str = Query(...),
+                           top_k: int = Query(5, ge=1, le=1000)) -> StreamingResponse:
+        if not q.strip():
+            raise ApiError(400, "the query text is empty")
+        return await _sse(request, lambda push: client.watch(q, lambda r: push(r.to_dict()), top_k=top_k,
+                                                             timeout=timeout), streams)
+
+
+def _search_routes(app: FastAPI, client, timeout: float, streams: list[int]) -> None:
+    @app.get("/api/search", summary="search for planners: same object as `rayfronts search --json`")
+    def search_get(q: Targets, background: Background = None,
+                   threshold: float = 0.5, max_instances: int = 10, max_goals: int = 5,
+                   from_: str | None = Query(None, alias="from", description="x,y,z"),
+                   area: str | None = Query(None, description="x0,y0,x1,y1 or polygon"),
+                   z_band: str | None = Query(None, description="z0,z1")) -> dict:
+        kw = search_kwargs_from(q, background, threshold, max_instances, max_goals, from_, area, z_band)
+        return search_json(client.search(q, timeout=timeout, **kw))
+
+    @app.post("/api/search", summary="search for planners (JSON body with the GET fields)")
+    def search_post(body: SearchBody) -> dict:
+        kw = search_kwargs_from(body.q, body.background, body.threshold, body.max_instances, body.max_goals,
+                                _join(body.from_xyz), _join(body.area), _join(body.z_band))
+        return search_json(client.search(body.q, timeout=timeout, **kw))
+
+    @app.get("/api/search/stream", summary="standing search as server-sent events (event 'update')")
+    async def search_stream(request: Request, q: Targets, background: Background = None,
+                            threshold: float = 0.5, max_instances: int = 10, max_goals: int = 5,
+                            from_: str | None = Query(None, alias="from"), area: str | None = None,
+                            z_band: str | None = None) -> StreamingResponse:
+        kw = search_kwargs_from(q, background, threshold, max_instances, max_goals, from_, area, z_band)
+        return await _sse(request, lambda push: client.watch_search(
+            q, lambda r: push(search_json(r)), timeout=timeout, **kw), streams)
+
+
+
+def _map_routes(app: FastAPI, client, timeout: float, streams: list[int]) -> None:
+    @app.get("/api/occupancy/box", summary="dense occupancy of a box: states 0 free, 1 occupied, -1 unknown")
+    def occ_box(min: str = Query(..., description="x,y,z"), max: str = Query(..., description="x,y,z"),  # noqa: A002
+                stride: int = Query(1, ge=1)) -> dict:
+        return _occ_json(client.occupancy_box(_floats(min, 3, "min"), _floats(max, 3, "max"), stride, timeout))
+
+    @app.get("/api/occupancy/slice", summary="2D costmap of a z band")
+    def occ_slice(min: str = Query(..., description="x,y"), max: str = Query(..., description="x,y"),  # noqa: A002
+                  z_band: str = Query(..., description="z0,z1"), stride: int = Query(1, ge=1)) -> dict:
+        return _occ_json(client.occupancy_slice(_floats(min, 2, "min"), _floats(max, 2, "max"),
+                                                _floats(z_band, 2, "z_band"), stride, timeout))
+
+    @app.post("/api/occupancy/points", summary="state and distance to the nearest occupied voxel of points")
+    def occ_points(body: PointsBody) -> dict:
+        if not body.points or any(len(p) != 3 for p in body.points):
+            raise ApiError(400, "points must be a non-empty list of [x, y, z]")
+        return _occ_json(client.occupancy_points(body.points, body.radius, timeout))
+
+    @app.get("/api/stats", summary="per shard and per robot state (frames mapped, rate, drops, edges)")
+    def stats() -> dict:
+        out = robot_states(client.stats_all(timeout=timeout))
+        out["robots_alive"] = client.robots(timeout=1.0)
+        out["console"] = {"open_streams": streams[0]}
+        return out
+
+    @app.get("/api/snapshot", summary="describe the last snapshot")
+    def snapshot_get() -> dict:
+        return client.snapshot(save=False, timeout=timeout)
+
+    @app.post("/api/snapshot", summary="make a snapshot now")
+    def snapshot_post() -> dict:
+        return client.snapshot(save=True, timeout=max(timeout, 60.0))

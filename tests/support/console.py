@@ -1,0 +1,139 @@
+"""``rayfronts console`` as the console tests run it: a mapper (router mode) with an edge on
+the synthetic world (seed 0) and a console process on a free loopback port; a small HTTP
+client (urllib) that returns (status, JSON) and reads server-sent events."""
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from tests.support.ports import free_port
+from tests.support.processes import Proc, stop_all, wait_for, wait_log
+from tests.support.roles import client, edge_args, mapped, mapper_args
+
+FRAMES = 40
+#: what the console embeds as the mapper's web viewer (a real one: tests/test_browser_view.py)
+VIEWER_URL = "http://127.0.0.1:9/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A9%2Fproxy"
+RATE_HZ = 3.0
+
+
+def http(url: str, *, data: bytes | None = None, headers: dict | None = None, method: str | None = None,
+         timeout: float = 60.0) -> tuple[int, dict | str]:
+    """(status, JSON body, or the text when it is not JSON) of one HTTP request."""
+    req = urllib.request.Request(url, data=data, headers=headers or {}, method=method)
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as r:
+            status, body = r.status, r.read()
+    except urllib.error.HTTPError as e:
+        status, body = e.code, e.read()
+    try:
+        return status, json.loads(body)
+    except ValueError:
+        return status, body.decode(errors="replace")
+
+
+def post_json(url: str, obj, **kw) -> tuple[int, dict | str]:
+    return http(url, data=json.dumps(obj).encode(), headers={"Content-Type": "application/json"}, method="POST", **kw)
+
+
+def multipart(fields: dict[str, tuple[str, bytes, str] | str]) -> tuple[bytes, str]:
+    """A multipart/form-data body: ``{name: value}`` or ``{name: (filename, bytes, content type)}``."""
+    b = "rf-console-boundary-7d1f"
+    out = b""
+    for name, v in fields.items():
+        if isinstance(v, tuple):
+            fn, data, ct = v
+            out += (f"--{b}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{fn}\"\r\n"
+                    f"Content-Type: {ct}\r\n\r\n").encode() + data + b"\r\n"
+        else:
+            out += f"--{b}\r\nContent-Disposition: form-data; name=\"{name}\"\r\n\r\n{v}\r\n".encode()
+    return out + f"--{b}--\r\n".encode(), f"multipart/form-data; boundary={b}"
+
+
+class EventStream:
+    """A server-sent-event stream read over a raw socket (HTTP/1.0: no chunked framing; closing it is an
+    immediate disconnect)."""
+
+    def __init__(self, host: str, port: int, path: str, timeout: float = 60.0):
+        self.s = socket.create_connection((host, port), timeout=timeout)
+        self.s.sendall(f"GET {path} HTTP/1.0\r\nHost: {host}:{port}\r\nAccept: text/event-stream\r\n\r\n".encode())
+        self.buf = b""
+
+    def next(self) -> dict:
+        """The next ``update`` event's JSON (keep-alive comments skipped)."""
+        while True:
+            while b"\n\n" in self.buf:
+                block, self.buf = self.buf.split(b"\n\n", 1)
+                lines = block.decode().splitlines()
+                if any(ln.startswith("event: update") for ln in lines):
+                    return json.loads("".join(ln[6:] for ln in lines if ln.startswith("data: ")))
+            chunk = self.s.recv(65536)
+            if not chunk:
+                raise ConnectionError(f"stream closed: {self.buf[:300]!r}")
+            self.buf += chunk
+
+    @staticmethod
+    def _settled(s: dict) -> bool:
+        f = s["frames"]
+        return (f["mapped"] > 0 and f["received"] == f["mapped"] + f["dropped"] + f["rejected_total"]
+                and not any(r["queue"] for r in s["robots"].values()) and s["flushed_version"] == s["map_version"])
+
+    def close(self) -> None:
+        self.s.close()
+
+
+class ConsoleWorld:
+    """mapper + edge (``FRAMES`` frames at ``RATE_HZ``) + console, started in ``logdir``."""
+
+    def __init__(self, logdir: Path, pca: Path):
+        self.logdir = logdir
+        self.ep = f"tcp/127.0.0.1:{free_port()}"
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        self.procs: list[Proc] = []
+        self.mapper = self.start("mapper", mapper_args(self.ep, ["queues.idle_flush_s=0.5",
+                                                                  f"snapshots.dir={logdir / 'snaps'}"]))
+        self.pca = pca
+        self.edge = self.start("edge", edge_args(self.ep, pca, frames=FRAMES, rate=RATE_HZ))
+        self.edges = [self.edge]
+        self.console = self.start("console", ["console", "--connect", self.ep, "--http", f"127.0.0.1:{self.port}",
+                                              "--timeout", "60", "--viewer-url", VIEWER_URL])
+        wait_log(self.console.p, logdir / "console.log", r"console at http://", 120)
+        wait_for(lambda: http(self.base + "/api/config", timeout=5)[0] == 200, 60, what="console serving")
+
+    def start(self, name: str, args: list[str]) -> Proc:
+        p = Proc(name, args, self.logdir)
+        self.procs.append(p)
+        return p
+
+    def more_frames(self, robot: str = "r2", frames: int = 8) -> None:
+        """A second edge playing ``frames`` more frames (the map changes again)."""
+        self.edges.append(self.start(f"edge-{robot}", edge_args(self.ep, self.pca, robot=robot, frames=frames,
+                                                                 rate=RATE_HZ)))
+
+    def url(self, path: str) -> str:
+        return self.base + path
+
+    def wait_mapped(self, n: int, timeout: float = 180.0) -> None:
+        with client(self.ep) as c:
+            wait_for(lambda: mapped(c) >= n, timeout, what=f"{n} frames mapped")
+            wait_for(lambda: c.stats()["text_warm_up_s"], 120, what="text model warm-up")
+
+    def wait_frozen(self, timeout: float = 180.0) -> None:
+        """The edge has sent all its frames and the mapper has integrated and flushed them."""
+        for e in self.edges:
+            assert e.p.wait(timeout=timeout) == 0, (self.logdir / f"{e.name}.log").read_text()[-2000:]
+        with client(self.ep) as c:
+            wait_for(lambda: self._settled(c.stats()), 60, what="every received frame mapped or dropped, flushed")
+
+    @staticmethod
+    def _settled(s: dict) -> bool:
+        f = s["frames"]
+        return (f["mapped"] > 0 and f["received"] == f["mapped"] + f["dropped"] + f["rejected_total"]
+                and not any(r["queue"] for r in s["robots"].values()) and s["flushed_version"] == s["map_version"])
+
+    def close(self) -> None:
+        stop_all(reversed(self.procs), signal.SIGINT, 30)
