@@ -1,0 +1,96 @@
+"""Shortest paths through known free space of an occupancy state grid (2D or 3D).
+
+States follow :mod:`semantic_map.occupancy_queries`: FREE = 0, OCCUPIED = 1, UNKNOWN = -1,
+arrays indexed ``[x, y(, z)]``; cell ``c`` has its centre at ``origin + (c + 0.5)·cell`` (metres,
+world frame z up). The path may only pass through FREE cells; the goal cell alone may be
+UNKNOWN (a frontier being explored), never OCCUPIED. Moves go to the 8 (2D) or 26 (3D)
+neighbours with Euclidean step costs, and a diagonal move is allowed only when every cell it
+cuts across is free, so the polyline between cell centres stays in free cells.
+"""
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+
+import numpy as np
+
+FREE, OCCUPIED, UNKNOWN = 0, 1, -1
+
+
+def _offsets(ndim: int) -> list[tuple[int, ...]]:
+    return [d for d in itertools.product((-1, 0, 1), repeat=ndim) if any(d)]
+
+
+def _corner_cells(cell: tuple[int, ...], d: tuple[int, ...]) -> list[tuple[int, ...]]:
+    """Cells a diagonal move from ``cell`` by ``d`` cuts across (all partial sub-moves)."""
+    nz = [i for i, v in enumerate(d) if v]
+    out = []
+    for r in range(1, len(nz)):
+        for sub in itertools.combinations(nz, r):
+            out.append(tuple(c + (d[i] if i in sub else 0) for i, c in enumerate(cell)))
+    return out
+
+
+def astar(states: np.ndarray, start: tuple[int, ...], goal: tuple[int, ...]) -> list[tuple[int, ...]] | None:
+    """A* cell path ``start .. goal`` (inclusive) through FREE cells, or None if none exists.
+
+    ``start`` must be FREE; ``goal`` FREE or UNKNOWN. Cost: Euclidean length in cells."""
+    states = np.asarray(states)
+    start, goal = tuple(int(v) for v in start), tuple(int(v) for v in goal)
+    shape = states.shape
+
+    def inside(c: tuple[int, ...]) -> bool:
+        return all(0 <= v < n for v, n in zip(c, shape, strict=True))
+
+    if not (inside(start) and inside(goal)) or states[start] != FREE or states[goal] == OCCUPIED:
+        return None
+    offs = [(d, math.sqrt(sum(v * v for v in d))) for d in _offsets(states.ndim)]
+    g_cost = {start: 0.0}
+    parent: dict[tuple[int, ...], tuple[int, ...]] = {}
+    goal_arr = np.asarray(goal, np.float64)
+    heap = [(0.0, 0.0, start)]
+    while heap:
+        _, g, cur = heapq.heappop(heap)
+        if cur == goal:
+            path = [cur]
+            while cur in parent:
+                cur = parent[cur]
+                path.append(cur)
+            return path[::-1]
+        if g > g_cost.get(cur, math.inf):
+            continue
+        for d, w in offs:
+            nxt = tuple(c + v for c, v in zip(cur, d, strict=True))
+            if not inside(nxt):
+                continue
+            s = states[nxt]
+            if not (s == FREE or (nxt == goal and s == UNKNOWN)):
+                continue
+            if w > 1.0 and any(not inside(c) or states[c] != FREE for c in _corner_cells(cur, d)):
+                continue
+            ng = g + w
+            if ng < g_cost.get(nxt, math.inf):
+                g_cost[nxt] = ng
+                parent[nxt] = cur
+                h = float(np.linalg.norm(goal_arr - np.asarray(nxt, np.float64)))
+                heapq.heappush(heap, (ng + h, ng, nxt))
+    return None
+
+
+def path_length(path: list[tuple[int, ...]], cell: float) -> float:
+    """Length in metres of a cell path with cells of size ``cell`` (m)."""
+    p = np.asarray(path, np.float64)
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() * cell) if len(p) > 1 else 0.0
+
+
+def advance(path: list[tuple[int, ...]], origin: np.ndarray, cell: float, step_m: float) -> np.ndarray:
+    """Point (metres, world) reached after moving at most ``step_m`` along the path's cell centres."""
+    pts = (np.asarray(path, np.float64) + 0.5) * cell + np.asarray(origin, np.float64)
+    left = float(step_m)
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
+        seg = float(np.linalg.norm(b - a))
+        if seg >= left:
+            return a + (b - a) * (left / seg) if seg > 0 else a
+        left -= seg
+    return pts[-1]
