@@ -162,17 +162,11 @@ def _install_errors(app: FastAPI) -> None:
     async def _unavail(_r: Request, e: Exception) -> JSONResponse:
         return _err(503, e)
 
-    @app.exception_handler(QueryError)
-    async def _query(_r: Request, e: Exception) -> JSONResponse:
+    async def _bad_request(_r: Request, e: Exception) -> JSONResponse:
         return _err(400, e)
 
-    @app.exception_handler(MessageError)
-    async def _msg(_r: Request, e: Exception) -> JSONResponse:
-        return _err(400, e)
-
-    @app.exception_handler(ConfigError)
-    async def _cfg(_r: Request, e: Exception) -> JSONResponse:
-        return _err(400, e)
+    for user_error in (QueryError, MessageError, ConfigError):   # what the client and the schemas raise
+        app.add_exception_handler(user_error, _bad_request)
 
     @app.exception_handler(Exception)
     async def _bug(_r: Request, e: Exception) -> JSONResponse:

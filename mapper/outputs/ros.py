@@ -95,6 +95,16 @@ def _stamp(types: MsgTypes, t: float) -> Any:
     return types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
 
 
+def marker_extra_fields(types: Any, hdr: Any) -> dict:
+    """The empty texture / mesh fields a ``visualization_msgs/Marker`` has from Jazzy on
+    (nothing for Humble's definition)."""
+    if "texture" not in types["visualization_msgs/msg/Marker"].__dataclass_fields__:
+        return {}
+    return dict(texture_resource="", uv_coordinates=[], mesh_file=types["visualization_msgs/msg/MeshFile"](
+        filename="", data=np.zeros(0, np.uint8)),
+        texture=types["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=np.zeros(0, np.uint8)))
+
+
 def _header(types: MsgTypes, frame_id: str, t: float) -> Any:
     return types["std_msgs/msg/Header"](stamp=_stamp(types, t), frame_id=frame_id)
 
@@ -145,11 +155,7 @@ def ray_markers(types: MsgTypes, frame_id: str, t: float, origin: npt.ArrayLike,
     pose = types["geometry_msgs/msg/Pose"](position=point(x=0.0, y=0.0, z=0.0),
                                            orientation=quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
     zero = types["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)
-    extra = {}
-    if "texture" in marker_t.__dataclass_fields__:  # Jazzy and later
-        extra = dict(texture_resource="", uv_coordinates=[], mesh_file=types["visualization_msgs/msg/MeshFile"](
-            filename="", data=np.zeros(0, np.uint8)),
-            texture=types["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=np.zeros(0, np.uint8)))
+    extra = marker_extra_fields(types, hdr)
 
     def marker(i: int, action: int, points: Sequence[Any] = (),
                colour: Sequence[float] = (0, 0, 0, 0)) -> Any:

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from common.search_messages import OccupancyReply, SearchReply
+from mapper.outputs.ros import marker_extra_fields
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -79,11 +80,7 @@ def found_markers(T: dict, frame_id: str, t: float, found: list[dict]) -> Any:
     marker_t: Any = T["visualization_msgs/msg/Marker"]
     hdr = _header(T, frame_id, t)
     zero = T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)
-    extra = {}
-    if "texture" in marker_t.__dataclass_fields__:  # Jazzy and later
-        extra = dict(texture_resource="", uv_coordinates=[], mesh_file=T["visualization_msgs/msg/MeshFile"](
-            filename="", data=np.zeros(0, np.uint8)),
-            texture=T["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=np.zeros(0, np.uint8)))
+    extra = marker_extra_fields(T, hdr)
 
     def marker(ns: str, i: int, kind: int, action: int, centre=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0),
                rgba=(0.0, 0.0, 0.0, 0.0), text: str = "") -> Any:

@@ -75,12 +75,6 @@ class EventStream:
                 raise ConnectionError(f"stream closed: {self.buf[:300]!r}")
             self.buf += chunk
 
-    @staticmethod
-    def _settled(s: dict) -> bool:
-        f = s["frames"]
-        return (f["mapped"] > 0 and f["received"] == f["mapped"] + f["dropped"] + f["rejected_total"]
-                and not any(r["queue"] for r in s["robots"].values()) and s["flushed_version"] == s["map_version"])
-
     def close(self) -> None:
         self.s.close()
 
