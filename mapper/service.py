@@ -6,7 +6,7 @@ entities, threads, close); each job is its own module over one shared
 
     Zenoh                          job (module)                         thread
     ─────────────────────────────  ───────────────────────────────────  ───────────────
-    frames/*  subscriber           Ingest.on_frame       (ingest)       Zenoh callback (copy only)
+    frames, frames/<tile> subscr.  Ingest.on_frame       (ingest)       Zenoh callback (copy only)
                                    Ingest.decode_loop    (ingest)       mapper-decode
     alive/*   liveliness sub       Ingest.on_alive       (ingest)       Zenoh callback
     robots/<r>/feature_space get   Ingest.space_loop     (ingest)       mapper-space
@@ -14,6 +14,8 @@ entities, threads, close); each job is its own module over one shared
     mapper/query queryable         QueryServer.on_query  (query_server) Zenoh callback
     mapper/queries/<id> put        QueryServer.standing_loop            mapper-standing
     mapper/stats queryable         QueryServer.on_stats  (query_server) Zenoh callback
+    mapper/feature_space queryable QueryServer.on_feature_space         Zenoh callback
+    mapper/shards/<name> token     (a named shard's membership)         —
     mapper/snapshot queryable      SnapshotStore.on_snapshot (snapshot_store)
     mapper/search, occupancy       SearchServer.on_search / on_occupancy (search_server) Zenoh callbacks
     mapper/searches/<id> put       SearchServer.standing_loop           mapper-search
