@@ -198,14 +198,22 @@ def parse_override(item: str) -> dict:
     return out
 
 
+def read_document(path: Path, loads: Callable[[str], Any], error: type[Exception], missing: str,
+                  invalid: str) -> Any:
+    """``loads(text of path)``; a missing file raises ``error(missing)``, a parse error
+    ``error(f"{invalid}: {why}")`` (one line each)."""
+    if not path.is_file():
+        raise error(missing)
+    try:
+        return loads(path.read_text())
+    except (ValueError, yaml.YAMLError) as e:
+        raise error(f"{invalid}: {' '.join(str(e).split())}") from None
+
+
 def load_yaml(path: str | Path) -> dict:
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"config file not found: {p}")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as e:
-        raise ConfigError(f"config file {p} is not valid YAML: {e}") from None
+    data = read_document(p, yaml.safe_load, ConfigError, f"config file not found: {p}",
+                         f"config file {p} is not valid YAML")
     if data is None:
         return {}
     if not isinstance(data, dict):

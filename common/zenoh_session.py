@@ -414,25 +414,24 @@ def zenoh_config_from_args(args: argparse.Namespace, base: ZenohConfig | None = 
     return replace(cfg, **ch)
 
 
+def _quietly(call: Callable[[], Any], failed: str, level: int) -> None:
+    try:
+        call()
+    except Exception as e:  # already undeclared / closed, session gone
+        log.log(level, "%s: %s", failed, e)
+
+
 def undeclare_all(entities: Iterable[Any]) -> None:
     """Undeclare Zenoh entities (subscribers, queryables, publishers, liveliness tokens) in the
     given order; ``None`` entries are skipped, and one already undeclared or whose session is
     gone is logged at DEBUG, not raised."""
     for ent in entities:
-        if ent is None:
-            continue
-        try:
-            ent.undeclare()
-        except Exception as e:
-            log.debug("undeclare %r: %s", ent, e)
+        if ent is not None:
+            _quietly(ent.undeclare, f"undeclare {ent!r}", logging.DEBUG)
 
 
 def close_quietly(obj: Any, what: str = "the zenoh session") -> None:
     """``obj.close()`` if there is an ``obj`` (a Zenoh session, a recording, a rerun logger);
     a failure is one warning line naming ``what``, not an exception (used at shutdown)."""
-    if obj is None:
-        return
-    try:
-        obj.close()
-    except Exception as e:
-        log.warning("closing %s failed: %s", what, e)
+    if obj is not None:
+        _quietly(obj.close, f"closing {what} failed", logging.WARNING)

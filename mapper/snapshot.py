@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from common.config import merge, to_dict
+from common.config import merge, read_document, to_dict
 
 if TYPE_CHECKING:
     from semantic_map.config import MapConfig
@@ -118,12 +118,8 @@ def write_capture(capture: tuple[dict[str, np.ndarray], dict], path: str | Path)
 def read_manifest(path: str | Path) -> dict:
     path = Path(path)
     mf = path / "manifest.json"
-    if not mf.is_file():
-        raise SnapshotError(f"snapshot {path} has no manifest.json")
-    try:
-        man = json.loads(mf.read_text())
-    except json.JSONDecodeError as e:
-        raise SnapshotError(f"snapshot manifest {mf} is not valid JSON: {e}") from None
+    man = read_document(mf, json.loads, SnapshotError, f"snapshot {path} has no manifest.json",
+                        f"snapshot manifest {mf} is not valid JSON")
     if man.get("format") != FORMAT:
         raise SnapshotError(f"{mf} is not a RayFronts map snapshot (format {man.get('format')!r})")
     if man.get("version") != VERSION:

@@ -12,7 +12,6 @@ the package index): its ``serialize_message`` / ``deserialize_message`` are the 
 """
 from __future__ import annotations
 
-import json
 import math
 import signal
 import threading
@@ -25,6 +24,7 @@ import zenoh
 
 from common.ros2 import cdr
 from common.zenoh_session import free_tcp_port
+from tests.support.ports import open_loopback_router
 from tests.support.processes import Proc, stop_all, wait_for
 from tests.support.roles import client, edge_args, mapped, mapper_args, zenoh_client_config
 
@@ -199,11 +199,7 @@ def test_edge_ros2_source_reads_rclpy_messages():
     from edge.sources import SourceConfig, open_source
 
     port = free_tcp_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    pub_s = zenoh.open(conf)
+    pub_s = open_loopback_router(port)
     rng = np.random.default_rng(3)
     H, W, N, T0 = 6, 8, 3, 1000.0
     K = [5.0, 0.0, 4.0, 0.0, 6.0, 3.0, 0.0, 0.0, 1.0]

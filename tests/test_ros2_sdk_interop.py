@@ -8,17 +8,16 @@ messages directory written here from rosbags' definitions (no git download).
 """
 from __future__ import annotations
 
-import json
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 from rosbags.typesys import Stores, get_typestore
 
 from common.zenoh_session import free_tcp_port
+from tests.support.ports import open_loopback_router
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 
@@ -45,11 +44,7 @@ def write_msgs(root: Path, types) -> str:
 def router():
     """One router for the module: the SDK's session singleton stays connected to it."""
     port = free_tcp_port()
-    c = zenoh.Config()
-    c.insert_json5("mode", '"router"')
-    c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    s = zenoh.open(c)
+    s = open_loopback_router(port)
     yield s, port
     s.close()
 

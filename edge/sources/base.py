@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -73,6 +74,14 @@ class FrameSource:
         self._indices: list[int] = []
         self.native_hw: tuple[int, int] | None = None  # depth resolution as stored
         self.native_K: np.ndarray | None = None  # intrinsics at native_hw
+
+    def _input_path(self, what: str, directory: bool = False) -> Path:
+        """``source.path`` as a Path; one-line :class:`SourceError` ("<kind>: <what> not
+        found: <path>") when it does not exist (or, with ``directory``, is not a directory)."""
+        path = Path(self.cfg.path)
+        if not (path.is_dir() if directory else path.exists()):
+            raise SourceError(f"{self.kind}: {what} not found: {path}")
+        return path
 
     # ---- to be provided by subclasses -------------------------------------------------
     def _load(self, index: int) -> Frame:

@@ -15,8 +15,6 @@ conventions: RDF camera-to-world; z-up for the synthetic world and the converted
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from edge.sources.base import FrameSource
@@ -37,9 +35,7 @@ class RecordingSource(FrameSource):
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        path = Path(cfg.path)
-        if not path.is_dir():
-            raise SourceError(f"recording: directory not found: {path}")
+        path = self._input_path("directory", directory=True)
         try:
             from common.recording import RecordingError, RecordingReader
         except ImportError as e:

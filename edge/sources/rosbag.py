@@ -34,7 +34,6 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -81,9 +80,7 @@ class RosbagSource(FrameSource):
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        path = Path(cfg.path)
-        if not path.exists():
-            raise SourceError(f"rosbag: bag not found: {path}")
+        path = self._input_path("bag")
         try:
             from rosbags.highlevel import AnyReader, AnyReaderError
             from rosbags.typesys import Stores, get_typestore
