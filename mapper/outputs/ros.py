@@ -42,6 +42,7 @@ import numpy.typing as npt
 
 from common.config import field_
 from common.zenoh_session import close_quietly, undeclare_all
+from mapper.outputs.ros_markers import marker_extra_fields
 
 if TYPE_CHECKING:
     import zenoh
@@ -93,16 +94,6 @@ MsgTypes = dict[str, type]
 def _stamp(types: MsgTypes, t: float) -> Any:
     sec = int(t)
     return types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
-
-
-def marker_extra_fields(types: Any, hdr: Any) -> dict:
-    """The empty texture / mesh fields a ``visualization_msgs/Marker`` has from Jazzy on
-    (nothing for Humble's definition)."""
-    if "texture" not in types["visualization_msgs/msg/Marker"].__dataclass_fields__:
-        return {}
-    return dict(texture_resource="", uv_coordinates=[], mesh_file=types["visualization_msgs/msg/MeshFile"](
-        filename="", data=np.zeros(0, np.uint8)),
-        texture=types["sensor_msgs/msg/CompressedImage"](header=hdr, format="", data=np.zeros(0, np.uint8)))
 
 
 def _header(types: MsgTypes, frame_id: str, t: float) -> Any:

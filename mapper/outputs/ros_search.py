@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from common.search_messages import OccupancyReply, SearchReply
-from mapper.outputs.ros import marker_extra_fields
+from mapper.outputs.ros_markers import marker_extra_fields
 
 log = logging.getLogger("rayfronts.mapper")
 
