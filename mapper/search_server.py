@@ -98,10 +98,15 @@ class SearchServer:
         return rep
 
     def search_payload(self, data: bytes) -> bytes:
-        """Answer an encoded search request: an encoded reply (a cancel gets an empty one)."""
+        """Answer an encoded search request: an encoded reply (a cancel, or a standing search
+        registered before the map exists, gets an empty one)."""
         req = decode_search_request(data)
         if req.cancel:
             self.standing.pop(req.id, None)
+            return encode_search_reply(SearchReply(id=req.id))
+        if req.standing and self.state.map is None:
+            # registered before any frame: answered (and published) once the map exists
+            self.standing[req.id] = req
             return encode_search_reply(SearchReply(id=req.id))
         rep = self.run_search(req, flush=True)
         if req.standing:
@@ -148,7 +153,7 @@ class SearchServer:
         s = self.state
         while not s.stop.wait(STANDING_PERIOD_S):
             for sid, req in list(self.standing.items()):
-                if self._last_gen.get(sid) == s.map_gen:
+                if s.map is None or self._last_gen.get(sid) == s.map_gen:
                     continue
                 self._last_gen[sid] = s.map_gen
                 try:
