@@ -414,11 +414,13 @@ def zenoh_config_from_args(args: argparse.Namespace, base: ZenohConfig | None = 
     return replace(cfg, **ch)
 
 
-def _quietly(call: Callable[[], Any], failed: str, level: int) -> None:
+def _quietly(call: Callable[[], Any], level: int, failed: str, *args: Any) -> None:
+    """``call()``; an exception is logged at ``level`` as ``failed % args`` (formatted only
+    then: the repr of an undeclared Zenoh entity is not taken on the way)."""
     try:
         call()
     except Exception as e:  # already undeclared / closed, session gone
-        log.log(level, "%s: %s", failed, e)
+        log.log(level, failed + ": %s", *args, e)
 
 
 def undeclare_all(entities: Iterable[Any]) -> None:
@@ -427,11 +429,11 @@ def undeclare_all(entities: Iterable[Any]) -> None:
     gone is logged at DEBUG, not raised."""
     for ent in entities:
         if ent is not None:
-            _quietly(ent.undeclare, f"undeclare {ent!r}", logging.DEBUG)
+            _quietly(ent.undeclare, logging.DEBUG, "undeclare %r", ent)
 
 
 def close_quietly(obj: Any, what: str = "the zenoh session") -> None:
     """``obj.close()`` if there is an ``obj`` (a Zenoh session, a recording, a rerun logger);
     a failure is one warning line naming ``what``, not an exception (used at shutdown)."""
     if obj is not None:
-        _quietly(obj.close, f"closing {what} failed", logging.WARNING)
+        _quietly(obj.close, logging.WARNING, "closing %s failed", what)
