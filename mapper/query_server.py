@@ -46,6 +46,7 @@ from common.messages import (
     encode_query_result,
     encode_stats,
 )
+from mapper.replies import reply_to
 from mapper.service_config import set_torch_threads
 from mapper.state import MapperState, jsonable
 
@@ -132,34 +133,26 @@ class QueryServer:
 
     def on_query(self, query: zenoh.Query) -> None:
         state = self.state
-        res = None
-        try:
-            try:
-                if query.payload is None:
-                    raise MessageError("query without payload")
-                req = decode_query_request(query.payload.to_bytes())
-                if req.cancel:
-                    state.standing.pop(req.id, None)
-                    payload = encode_query_result(QueryResult(id=req.id, query="<cancelled>"))
-                else:
-                    res = self.run_query(req, flush=True)
-                    res.id = req.id
-                    if req.standing:
-                        state.standing[req.id] = req
-                    payload = encode_query_result(res)
-                    if self.rerun is not None:
-                        self.rerun.query_answered(res, req)
-            except (MessageError, ValueError) as e:
-                payload = encode_error(str(e))
-            except Exception as e:
-                log.exception("query failed")
-                payload = encode_error(f"internal error: {e!r}")
-            if state.fleet is not None:   # shard info for the client-side merge (common.fleet)
-                query.reply(query.key_expr, payload, attachment=state.fleet.shard_info(res))
-            else:
-                query.reply(query.key_expr, payload)
-        except Exception as e:
-            log.warning("query callback: %s", e)
+        answered: list = []                   # the result, for the shard info
+
+        def answer(data: bytes) -> bytes:
+            req = decode_query_request(data)
+            if req.cancel:
+                state.standing.pop(req.id, None)
+                return encode_query_result(QueryResult(id=req.id, query="<cancelled>"))
+            res = self.run_query(req, flush=True)
+            res.id = req.id
+            answered.append(res)
+            if req.standing:
+                state.standing[req.id] = req
+            payload = encode_query_result(res)
+            if self.rerun is not None:
+                self.rerun.query_answered(res, req)
+            return payload
+
+        fleet = state.fleet                   # shard info for the client-side merge (common.fleet)
+        reply_to(query, "query", answer,
+                 None if fleet is None else lambda: fleet.shard_info(answered[0] if answered else None))
 
     def standing_loop(self) -> None:
         """Re-runs standing queries when the map worker says the map changed."""

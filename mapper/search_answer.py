@@ -37,13 +37,13 @@ from semantic_map.query import score_rows
 
 class TrackerStore:
     """Instance trackers by target set (LRU, at most ``max_trackers``). Their ids come from one
-    counter starting at ``first_id``: ids are unique over all target sets and, with the counter
-    saved in the snapshot, never reused after a restart."""
+    counter (``next_id``): ids are unique over all target sets and, with the counter saved in
+    the snapshot, never reused after a restart."""
 
-    def __init__(self, max_trackers: int = 32, first_id: int = 1):
+    def __init__(self, max_trackers: int = 32):
         self.max = max(1, int(max_trackers))
         self._t: OrderedDict = OrderedDict()
-        self.next_id = max(1, int(first_id))
+        self.next_id = 1
         self._lock = threading.Lock()
 
     def new_id(self) -> int:

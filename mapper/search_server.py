@@ -17,9 +17,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable
 
-from common.messages import MessageError, encode_error
+from common.messages import MessageError
 from common.search_messages import (
     OccupancyReply,
     SearchReply,
@@ -29,29 +28,12 @@ from common.search_messages import (
     encode_occupancy_reply,
     encode_search_reply,
 )
-from mapper.search_answer import TrackerStore, answer_search
+from mapper.replies import reply_to
+from mapper.search_answer import answer_search
 from mapper.service_config import set_torch_threads
 
 log = logging.getLogger("rayfronts.mapper")
 
-
-def reply_to(query, what: str, answer: Callable[[bytes], bytes]) -> None:
-    """Reply to a Zenoh query with ``answer(payload)``; a bad request (``MessageError``,
-    ``ValueError``) becomes an encoded one-line error, a bug an "internal error" line. Never
-    raises (it runs on a Zenoh thread)."""
-    try:
-        try:
-            if query.payload is None:
-                raise MessageError(f"{what} without payload")
-            payload = answer(query.payload.to_bytes())
-        except (MessageError, ValueError) as e:
-            payload = encode_error(str(e))
-        except Exception as e:
-            log.exception("%s failed", what)
-            payload = encode_error(f"internal error: {e!r}")
-        query.reply(query.key_expr, payload)
-    except Exception as e:
-        log.warning("%s callback: %s", what, e)
 
 #: standing searches are re-run at most this often (s) when the map changed
 STANDING_PERIOD_S = 1.0
@@ -64,8 +46,7 @@ class SearchServer:
     def __init__(self, state, queries):
         self.state = state
         self.queries = queries
-        self.trackers = TrackerStore(state.cfg.search.max_trackers, first_id=state.instance_ids_from)
-        state.search_trackers = self.trackers           # its id counter goes into snapshots
+        self.trackers = state.trackers
         self.standing: dict[str, SearchRequest] = state.standing_searches
         self._last_gen: dict[str, int] = {}
 

@@ -75,8 +75,7 @@ class SnapshotStore:
                                      for r in list(state.standing.values())],
                         "standing_searches": [base64.b64encode(encode_search_request(r)).decode()
                                               for r in list(state.standing_searches.values())],
-                        "instance_next_id": (state.search_trackers.next_id if state.search_trackers is not None
-                                             else state.instance_ids_from)}
+                        "instance_next_id": state.trackers.next_id}
             capture = capture_map(state.map)     # copies, under the lock; written after it
         path = write_snapshot(root, capture, state.space_reply, meta, state.cfg.snapshots.keep)
         state.snap_version = version
@@ -157,9 +156,7 @@ class SnapshotStore:
         re-runs them on the restored map and publishes on ``mapper/searches/<id>``); instance
         ids continue from the saved counter, so none is reused."""
         state = self.state
-        state.instance_ids_from = max(1, next_id)
-        if state.search_trackers is not None:
-            state.search_trackers.next_id = max(state.search_trackers.next_id, state.instance_ids_from)
+        state.trackers.next_id = max(state.trackers.next_id, next_id)
         for req in _decode_saved(saved, decode_search_request, "standing search"):
             state.standing_searches[req.id] = req
         if saved:

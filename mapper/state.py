@@ -168,8 +168,9 @@ class MapperState:
         self.cpu_mapped: list[float] = []      # process CPU s at the first and the last integration
         self.standing: dict = {}               # standing query id -> QueryRequest
         self.standing_searches: dict = {}      # standing search id -> SearchRequest (mapper.search_server)
-        self.search_trackers = None            # the search's TrackerStore (its id counter is snapshotted)
-        self.instance_ids_from = 1             # first instance id after a restore (ids are never reused)
+        from mapper.search_answer import TrackerStore
+
+        self.trackers = TrackerStore(cfg.search.max_trackers)   # search instances; its id counter is snapshotted
         self.last_snapshot: dict = {}          # what the last save / restore wrote or read
         self.text_warm_up_s: float | None = None  # seconds the text model's warm-up took (None: not done)
         self.timings = {"integrate_ms": Percentiles(), "integrate_cpu_ms": Percentiles(),

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -78,9 +79,10 @@ def _values(grid, ijk: np.ndarray) -> np.ndarray:
 
 
 def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.ndarray,
-                radius: float) -> np.ndarray:
+                radius: float, rays_tree: Any = None) -> np.ndarray:
     """(F, T) best score per target of the rays whose origin lies within ``radius`` (m) of each
-    frontier centre (F, 3); 0 where none. One sparse neighbour search, no per-frontier loop."""
+    frontier centre (F, 3); 0 where none. One sparse neighbour search, no per-frontier loop.
+    ``rays_tree``: a ``scipy.spatial.cKDTree`` of ``ray_origins`` when the caller has one."""
     f = np.asarray(frontiers, np.float64).reshape(-1, 3)
     o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
     s = np.asarray(ray_scores, np.float64)
@@ -90,7 +92,8 @@ def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.n
         return best
     from scipy.spatial import cKDTree
 
-    pairs = cKDTree(f).sparse_distance_matrix(cKDTree(o), radius, output_type="ndarray")
+    pairs = cKDTree(f).sparse_distance_matrix(rays_tree if rays_tree is not None else cKDTree(o), radius,
+                                               output_type="ndarray")
     if len(pairs):
         fi, ri = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
         for t in range(s.shape[1]):
@@ -177,11 +180,11 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
     scores = scores.reshape(len(dirs), len(targets))
     if len(f) == 0 or max_goals <= 0:
         return []
-    best = ray_support(f, ray_origins, scores, ray_radius_m)
-    o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
     from scipy.spatial import cKDTree
 
+    o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
     rays_tree = cKDTree(o) if len(o) else None
+    best = ray_support(f, o, scores, ray_radius_m, rays_tree)
     fscore = best.max(1) if best.shape[1] else np.zeros(len(f))
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
     fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
