@@ -344,16 +344,7 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
                      f"source.n_frames={args.frames}", f"source.resolution={args.resolution}",
                      "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}",
                      *args.edge_set)
-        end = time.monotonic() + 600
-        st = None
-        while time.monotonic() < end:
-            time.sleep(0.5)
-            try:
-                st = c.stats(timeout=5.0)
-            except Exception:
-                continue
-            if edge.poll() is not None and sum(st["queues"].values()) == 0 and st["frames"]["mapped"] > 0:
-                break
+        st = _wait_drained(c, edge, args.frames, deadline_s=600)
         router_cpu1 = _cpu_s(router)
         sub.undeclare()
     fr = st["frames"]
@@ -368,6 +359,9 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
     out["integrate_cpu_ms"] = {k: st["timings"].get("integrate_cpu_ms", {}).get(k) for k in ("p50", "p95", "mean")}
     out["decode_ms"] = {k: st["timings"].get("decode_ms", {}).get(k) for k in ("p50", "mean")}
     robot = st["robots"].get("bench", {})
+    # frames the edge numbered but the mapper never received (replaced at the edge or lost on the wire)
+    out["e2e_lost_before_mapper"] = (robot["last_seq"] + 1 - robot["received"]
+                                     if robot.get("last_seq", -1) >= 0 else None)
     cpu_ms["edge"] = robot.get("edge_cpu_ms_per_frame")
     mapping = st.get("cpu_s", {}).get("mapping")
     cpu_ms["mapper"] = 1e3 * mapping / (fr["mapped"] - 1) if mapping and fr["mapped"] > 1 else None
@@ -387,6 +381,32 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
                               "max": int(np.max(sizes)) if sizes else None, "n": len(sizes),
                               "target_max": 100_000}
     stop_all()
+
+
+def _wait_drained(c, edge, n_frames: int, deadline_s: float, settle_s: float = 3.0) -> dict | None:
+    """Poll the mapper's stats until the edge has exited and every frame it sent is accounted
+    for (mapped + dropped = n_frames), or, short of that, until the counts and queues have not
+    moved for ``settle_s`` seconds after the edge exited (a frame still on the wire when the
+    edge exits arrives after its queue read empty, so "edge gone and queue empty" alone is early)."""
+    end = time.monotonic() + deadline_s
+    st, last, still_since = None, None, None
+    while time.monotonic() < end:
+        time.sleep(0.5)
+        try:
+            st = c.stats(timeout=5.0)
+        except Exception:
+            continue
+        if edge.poll() is None or sum(st["queues"].values()):
+            continue
+        fr = st["frames"]
+        seen = (fr["mapped"], fr["dropped"])
+        if fr["mapped"] + fr["dropped"] >= n_frames:
+            break
+        if seen != last:
+            last, still_since = seen, time.monotonic()
+        elif fr["mapped"] > 0 and time.monotonic() - still_since >= settle_s:
+            break
+    return st
 
 
 def _cpu_s(p) -> float | None:
