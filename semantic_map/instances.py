@@ -18,6 +18,8 @@ that target by voxel overlap:
   overlapping nothing ends (event ``lost``).
 
 Ids are positive integers, unique across the tracker's targets and never reused.
+The tracker keeps the components of each target's last voxel set: an update with the same
+voxels (the same map version searched again) skips the labelling.
 Frame counters are the map's (``observations`` counts distinct update frames in which the
 instance was seen; an update at the same frame as the previous one does not count twice).
 """
@@ -54,33 +56,40 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
     keys = pack_ijk(ijk)
     lo = ijk.min(0)
     shape = ijk.max(0) - lo + 1
-    if int(np.prod(shape)) <= max(DENSE_MIN_CELLS, DENSE_CELLS_PER_VOXEL * n):
+    if float(np.prod(shape.astype(np.float64))) <= max(DENSE_MIN_CELLS, DENSE_CELLS_PER_VOXEL * n):
         return _relabel(_dense_labels(ijk - lo, (int(shape[0]), int(shape[1]), int(shape[2]))), keys)
+    # sparse: edges between key-sorted voxels by one sorted search per half-offset (packing is
+    # linear: ``key + delta`` is the neighbour's key unless an axis leaves the packable range,
+    # checked below), components by scipy's graph traversal
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     order = np.argsort(keys, kind="stable")
     sk = keys[order]
-    parent = np.arange(n, dtype=np.int64)
+    biased = ijk[order] + (1 << 20)
+    at_edge = bool(((biased == 0) | (biased == (1 << 21) - 1)).any())
     ra, rb = [], []
     for off in _HALF_26:
-        nk = pack_ijk(ijk + off)
-        pos = np.clip(np.searchsorted(sk, nk), 0, n - 1)
-        hit = sk[pos] == nk
-        ra.append(np.flatnonzero(hit))
-        rb.append(order[pos[hit]])
-    a, b = np.concatenate(ra), np.concatenate(rb)
-    # min-label propagation with pointer jumping (vectorised union-find)
-    while True:
-        pa, pb = parent[a], parent[b]
-        lo = np.minimum(pa, pb)
-        np.minimum.at(parent, pa, lo)
-        np.minimum.at(parent, pb, lo)
-        while True:
-            nxt = parent[parent]
-            if np.array_equal(nxt, parent):
-                break
-            parent = nxt
-        if np.array_equal(parent[a], parent[b]):
-            break
-    return _relabel(parent, keys)
+        nk = sk + ((int(off[0]) << 42) + (int(off[1]) << 21) + int(off[2]))
+        pos = np.minimum(np.searchsorted(sk, nk), n - 1)
+        hit = np.flatnonzero(sk[pos] == nk)
+        if at_edge:                              # a carry / borrow between axes is no neighbour
+            hit = hit[(biased[pos[hit]] - biased[hit] == off).all(1)]
+        ra.append(hit)
+        rb.append(pos[hit])
+    ea, eb = np.concatenate(ra), np.concatenate(rb)
+    graph = coo_matrix((np.ones(len(ea), np.int8), (ea, eb)), shape=(n, n)).tocsr()
+    _, lab_sorted = connected_components(graph, directed=False)
+    lab_sorted = lab_sorted.astype(np.int64)
+    run_max = np.maximum.accumulate(lab_sorted)
+    if run_max[0] == 0 and bool((np.diff(run_max) <= 1).all()):
+        # components already numbered in order of first (lowest-key) voxel: no renumbering
+        lab = np.empty(n, np.int64)
+        lab[order] = lab_sorted
+        return lab
+    lab = np.empty(n, np.int64)
+    lab[order] = lab_sorted
+    return _relabel(lab, keys)
 
 
 #: a group's bounding box up to this many cells (or DENSE_CELLS_PER_VOXEL per voxel) is
@@ -158,20 +167,20 @@ class InstanceEvent:
         return d
 
 
-def _overlaps(prev: list[Instance], keys: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """(P, C) voxel overlap counts between previous instances and new groups."""
-    n_groups = int(labels.max()) + 1 if len(labels) else 0
-    out = np.zeros((len(prev), n_groups), np.int64)
-    if not prev or not len(keys):
-        return out
-    order = np.argsort(keys, kind="stable")
-    sk, sl = keys[order], labels[order]
-    for i, p in enumerate(prev):
-        pos = np.clip(np.searchsorted(sk, p.keys), 0, len(sk) - 1)
-        hit = sk[pos] == p.keys
-        if hit.any():
-            out[i] = np.bincount(sl[pos[hit]], minlength=n_groups)
-    return out
+def _overlap_pairs(prev: list[Instance], sorted_keys: np.ndarray, sorted_labels: np.ndarray,
+                   n_groups: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sparse voxel overlaps between previous instances and new groups: ``(i, j, count)``
+    arrays, one entry per overlapping (previous instance i, group j) pair, sorted by (i, j).
+    ``sorted_keys`` the new voxels' keys ascending, ``sorted_labels`` their groups."""
+    empty = np.zeros((0,), np.int64)
+    if not prev or not len(sorted_keys):
+        return empty, empty, empty
+    pk = np.concatenate([p.keys for p in prev])
+    owner = np.repeat(np.arange(len(prev), dtype=np.int64), [len(p.keys) for p in prev])
+    pos = np.minimum(np.searchsorted(sorted_keys, pk), len(sorted_keys) - 1)
+    hit = sorted_keys[pos] == pk
+    code, cnt = np.unique(owner[hit] * n_groups + sorted_labels[pos[hit]], return_counts=True)
+    return code // n_groups, code % n_groups, cnt.astype(np.int64)
 
 
 class InstanceTracker:
@@ -191,6 +200,7 @@ class InstanceTracker:
         self._id_source = id_source
         self.instances: dict[str, list[Instance]] = {}
         self.updates = 0
+        self._components: dict[str, tuple[np.ndarray, np.ndarray]] = {}   # target -> (keys, labels) last seen
 
     def _new_id(self) -> int:
         if self._id_source is not None:
@@ -209,7 +219,12 @@ class InstanceTracker:
         frame = int(frame)
         self.updates += 1
         keys = pack_ijk(ijk)
-        labels = connected_26(ijk)
+        last = self._components.get(target)
+        if last is not None and np.array_equal(last[0], keys):
+            labels = last[1]                       # same voxels as the last update (same map version)
+        else:
+            labels = connected_26(ijk)
+            self._components[target] = (keys, labels)
         sizes = np.bincount(labels) if len(labels) else np.zeros((0,), np.int64)
         keep = np.flatnonzero(sizes >= self.min_voxels)
         remap = np.full(len(sizes), -1, np.int64)
@@ -218,26 +233,44 @@ class InstanceTracker:
         ijk, conf, keys, labels = ijk[sel], conf[sel], keys[sel], remap[labels[sel]]
         sizes = sizes[keep]
         prev = self.instances.get(target, [])
-        ov = _overlaps(prev, keys, labels)
+        n_groups = len(sizes)
+        by_group = np.lexsort((keys, labels))           # grouped, keys ascending within a group
+        bounds = np.searchsorted(labels[by_group], np.arange(n_groups + 1))
+        by_key = np.argsort(keys, kind="stable")
+        pi, pj, pc = _overlap_pairs(prev, keys[by_key], labels[by_key], n_groups)
         # each previous instance goes to its largest overlapping group (ties: lowest group label)
         goes_to = np.full(len(prev), -1, np.int64)
-        for i in range(len(prev)):
-            js = np.flatnonzero(ov[i])
-            if len(js):
-                goes_to[i] = js[np.argmax(sizes[js])]
+        if len(pi):
+            o = np.lexsort((pj, -sizes[pj], pi))
+            first = np.flatnonzero(np.r_[True, pi[o][1:] != pi[o][:-1]])
+            goes_to[pi[o][first]] = pj[o][first]
+        # a group without heirs splits from the previous instance overlapping it most (ties: lowest i)
+        parent_of = np.full(n_groups, -1, np.int64)
+        if len(pi):
+            o = np.lexsort((pi, -pc, pj))
+            first = np.flatnonzero(np.r_[True, pj[o][1:] != pj[o][:-1]])
+            parent_of[pj[o][first]] = pi[o][first]
+        heirs_of: dict[int, list[Instance]] = {}
+        for i in np.flatnonzero(goes_to >= 0):
+            heirs_of.setdefault(int(goes_to[i]), []).append(prev[i])
+        gkeys = keys[by_group]
+        gijk = ijk[by_group]
+        counts = np.diff(bounds)
+        starts = bounds[:-1]
+        if n_groups:
+            isum = np.add.reduceat(gijk, starts, axis=0).astype(np.float64)
+            centroid = (isum / counts[:, None] + 0.5) * self.vox
+            bmin = voxel_center(np.minimum.reduceat(gijk, starts, axis=0), self.vox)
+            bmax = voxel_center(np.maximum.reduceat(gijk, starts, axis=0), self.vox)
+            cmax = np.maximum.reduceat(conf[by_group], starts)
         events: list[InstanceEvent] = []
         out: list[Instance] = []
-        by_group = np.argsort(labels, kind="stable")
-        bounds = np.searchsorted(labels[by_group], np.arange(len(sizes) + 1))
-        for j in range(len(sizes)):
-            m = by_group[bounds[j]:bounds[j + 1]]          # this group's rows (ascending)
-            heirs = [prev[i] for i in np.flatnonzero(goes_to == j)]
-            heirs.sort(key=lambda p: (p.first_seen, p.id))
-            gk = np.sort(keys[m])
-            centres = voxel_center(ijk[m], self.vox).astype(np.float64)
-            inst = Instance(0, target, centres.mean(0), centres.min(0), centres.max(0), float(conf[m].max()),
-                            len(m), 1, frame, frame, gk)
+        for j in range(n_groups):
+            inst = Instance(0, target, centroid[j], bmin[j], bmax[j], float(cmax[j]), int(counts[j]), 1, frame,
+                            frame, gkeys[bounds[j]:bounds[j + 1]])
+            heirs = heirs_of.get(j)
             if heirs:
+                heirs.sort(key=lambda p: (p.first_seen, p.id))
                 old = heirs[0]
                 inst.id, inst.first_seen = old.id, old.first_seen
                 inst.observations = old.observations + (1 if frame != old.last_seen else 0)
@@ -245,16 +278,15 @@ class InstanceTracker:
                     events.append(InstanceEvent("merge", old.id, target, frame, merged=[h.id for h in heirs[1:]]))
             else:
                 inst.id = self._new_id()
-                parents = np.flatnonzero(ov[:, j]) if len(prev) else np.zeros((0,), np.int64)
-                if len(parents):
-                    par = prev[parents[np.argmax(ov[parents, j])]]
-                    events.append(InstanceEvent("split", inst.id, target, frame, parent=par.id))
+                if parent_of[j] >= 0:
+                    events.append(InstanceEvent("split", inst.id, target, frame, parent=prev[parent_of[j]].id))
                 else:
                     events.append(InstanceEvent("new", inst.id, target, frame))
             out.append(inst)
-        for i, p in enumerate(prev):
-            if not ov[i].any():
-                events.append(InstanceEvent("lost", p.id, target, frame))
+        seen = np.zeros(len(prev), bool)
+        seen[pi] = True
+        for i in np.flatnonzero(~seen):
+            events.append(InstanceEvent("lost", prev[i].id, target, frame))
         out.sort(key=lambda x: x.id)
         self.instances[target] = out
         return events

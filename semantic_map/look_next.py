@@ -78,6 +78,42 @@ def _values(grid, ijk: np.ndarray) -> np.ndarray:
     return np.asarray(v.cpu() if isinstance(v, torch.Tensor) else v, np.int8)
 
 
+def _near_cells(points: np.ndarray, origins: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) bool: whether a cell of side ``radius`` holding an origin is among the 27 cells
+    around each point's cell (necessary for an origin within ``radius``; superset, exact test
+    left to the caller)."""
+    if radius <= 0 or not np.isfinite(radius):
+        return np.ones(len(points), bool)
+    cell = radius * (1.0 + 1e-6)                 # a little larger: rounding cannot split a pair by 2 cells
+    cp = np.floor(points / cell).astype(np.int64)
+    co = np.floor(origins / cell).astype(np.int64)
+    lo = np.minimum(cp.min(0), co.min(0)) - 1
+    span = np.maximum(cp.max(0), co.max(0)) - lo + 2
+    cp -= lo
+    co -= lo
+    ax = np.array([-1, 0, 1])
+    off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    if float(span[0]) * float(span[1]) * float(span[2]) <= NEAR_DENSE_CELLS:
+        grid = np.zeros((int(span[0]), int(span[1]), int(span[2])), bool)
+        for d in off:
+            grid[co[:, 0] + d[0], co[:, 1] + d[1], co[:, 2] + d[2]] = True
+        return grid[cp[:, 0], cp[:, 1], cp[:, 2]]
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0 ** 62:
+        return np.ones(len(points), bool)
+
+    def key(c: np.ndarray) -> np.ndarray:
+        return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+
+    dil = np.unique(key((np.unique(co, axis=0)[:, None, :] + off[None]).reshape(-1, 3)))
+    kp = key(cp)
+    pos = np.minimum(np.searchsorted(dil, kp), len(dil) - 1)
+    return dil[pos] == kp
+
+
+#: cells (bytes) up to which :func:`_near_cells` marks the rays' cells on a dense grid
+NEAR_DENSE_CELLS = 1 << 25
+
+
 def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.ndarray,
                 radius: float, rays_tree: Any = None) -> np.ndarray:
     """(F, T) best score per target of the rays whose origin lies within ``radius`` (m) of each
@@ -92,10 +128,15 @@ def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.n
         return best
     from scipy.spatial import cKDTree
 
-    pairs = cKDTree(f).sparse_distance_matrix(rays_tree if rays_tree is not None else cKDTree(o), radius,
-                                               output_type="ndarray")
+    # exact pre-filter: a frontier can have a ray within ``radius`` only if one lies in the 27
+    # cells (side ``radius``) around its own cell; only those frontiers go to the tree search
+    sub = np.flatnonzero(_near_cells(f, o, radius))
+    if not len(sub):
+        return best
+    pairs = cKDTree(f[sub]).sparse_distance_matrix(rays_tree if rays_tree is not None else cKDTree(o), radius,
+                                                    output_type="ndarray")
     if len(pairs):
-        fi, ri = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+        fi, ri = sub[pairs["i"].astype(np.int64)], pairs["j"].astype(np.int64)
         for t in range(s.shape[1]):
             np.maximum.at(best[:, t], fi, s[ri, t])
     return best
@@ -165,6 +206,27 @@ def _heading(view: np.ndarray, frontier: np.ndarray, dirs: np.ndarray, w: np.nda
     return math.atan2(d[1], d[0]) if math.hypot(d[0], d[1]) > 1e-9 else 0.0
 
 
+def _best_first(score: np.ndarray, dist: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` best entries by score (descending), then distance (ascending), then
+    index: ``np.lexsort((dist, -score))[:k]`` without sorting everything (partitions first)."""
+    n = len(score)
+    if k >= n:
+        return np.lexsort((dist, -score))
+    if k <= 0:
+        return np.zeros((0,), np.int64)
+    neg = -score
+    kth = np.partition(neg, k - 1)[k - 1]
+    better = np.flatnonzero(neg < kth)
+    tie = np.flatnonzero(neg == kth)
+    need = k - len(better)
+    if len(tie) > need:
+        dthr = np.partition(dist[tie], need - 1)[need - 1]
+        closer = tie[dist[tie] < dthr]
+        tie = np.concatenate([closer, tie[dist[tie] == dthr][:need - len(closer)]])
+    cand = np.sort(np.concatenate([better, tie]))
+    return cand[np.lexsort((dist[cand], neg[cand]))]
+
+
 def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
               ray_scores: np.ndarray, targets: list[str], from_xyz=None, *, ray_radius_m: float = 1.0,
               standoff_m: float = 1.0, sensing_radius_m: float = 3.0, max_goals: int = 10,
@@ -188,7 +250,7 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
     fscore = best.max(1) if best.shape[1] else np.zeros(len(f))
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
     fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
-    order = np.lexsort((fdist, -fscore))[:max(max_candidates, max_goals)]
+    order = _best_first(fscore, fdist, max(max_candidates, max_goals))
     goals: list[Goal] = []
     seen: set = set()
     views = _viewpoints(grid, vox, f[order], standoff_m)

@@ -1,0 +1,158 @@
+"""The search's fast paths against brute force on random inputs: 26-connected components
+(sparse graph path, including the packable range's edges), instance tracking (sparse overlaps,
+per-group reductions), ray support (cell pre-filter) and the candidate pre-ranking."""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+import semantic_map.instances as inst
+import semantic_map.look_next as ln
+from common.conventions import voxel_center
+
+
+def _bfs_components(ijk: np.ndarray) -> np.ndarray:
+    """Brute-force 26-connected labels numbered by each component's lowest (i, j, k)."""
+    pts = [tuple(map(int, p)) for p in ijk]
+    where = {p: n for n, p in enumerate(pts)}
+    comp = [-1] * len(pts)
+    offs = [o for o in itertools.product((-1, 0, 1), repeat=3) if o != (0, 0, 0)]
+    groups = []
+    for n, p in enumerate(pts):
+        if comp[n] >= 0:
+            continue
+        comp[n] = len(groups)
+        stack, members = [p], [p]
+        while stack:
+            q = stack.pop()
+            for o in offs:
+                r = (q[0] + o[0], q[1] + o[1], q[2] + o[2])
+                m = where.get(r)
+                if m is not None and comp[m] < 0:
+                    comp[m] = comp[n]
+                    stack.append(r)
+                    members.append(r)
+        groups.append(min(members))
+    rank = {g: r for r, g in enumerate(sorted(range(len(groups)), key=lambda g: groups[g]))}
+    return np.array([rank[c] for c in comp], np.int64)
+
+
+def _random_voxels(rng, n: int, side: int, spread: int = 0) -> np.ndarray:
+    """Distinct voxels: a dense random block, plus (``spread``) a few far away (sparse path)."""
+    ijk = rng.integers(0, side, (n, 3))
+    if spread:
+        far = rng.integers(-spread, spread, (n // 4, 3))
+        ijk = np.concatenate([ijk, far, far[: len(far) // 2] + rng.integers(-1, 2, (len(far) // 2, 3))])
+    return np.unique(ijk, axis=0)[rng.permutation(len(np.unique(ijk, axis=0)))]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_connected_26_matches_bfs(seed: int):
+    rng = np.random.default_rng(seed)
+    ijk = _random_voxels(rng, 600, 12, spread=0 if seed % 2 else 5000)
+    assert np.array_equal(inst.connected_26(ijk), _bfs_components(ijk))
+
+
+def test_connected_26_no_edge_across_the_packable_range():
+    """Voxels at the range's ends: ``key + delta`` would carry into the next axis there."""
+    lo, hi = -(1 << 20), (1 << 20) - 1
+    ijk = np.array([[0, 0, hi], [0, 1, lo], [0, 0, lo], [0, -1, hi], [5, hi, 0], [6, lo, 0], [hi, 3, 3],
+                    [hi, 4, 4], [lo, 3, 3], [7, 7, 7], [7, 8, 8]], np.int64)
+    assert np.array_equal(inst.connected_26(ijk), _bfs_components(ijk))
+
+
+class _ReferenceTracker:
+    """The tracking rules (module docstring of semantic_map.instances) with dense (P, C)
+    overlaps, per-group loops and brute-force components."""
+
+    def __init__(self, vox: float, min_voxels: int):
+        self.vox, self.min_voxels, self.next_id, self.instances = vox, min_voxels, 1, {}
+
+    def update(self, target, ijk, conf, frame):
+        lab = _bfs_components(ijk)
+        groups = [np.flatnonzero(lab == c) for c in range(int(lab.max()) + 1 if len(lab) else 0)]
+        groups = [g for g in groups if len(g) >= self.min_voxels]
+        keys = inst.pack_ijk(ijk)
+        gsets = [set(keys[g].tolist()) for g in groups]
+        prev = self.instances.get(target, [])
+        ov = np.array([[len(set(p["keys"]) & s) for s in gsets] for p in prev], np.int64).reshape(len(prev),
+                                                                                                  len(groups))
+        sizes = np.array([len(g) for g in groups])
+        goes_to = [int(np.flatnonzero(r)[np.argmax(sizes[np.flatnonzero(r)])]) if r.any() else -1 for r in ov]
+        events, out = [], []
+        for j, g in enumerate(groups):
+            c = voxel_center(ijk[g], self.vox)
+            d = dict(target=target, centroid=c.mean(0), box_min=c.min(0), box_max=c.max(0),
+                     confidence=float(conf[g].max()), voxels=len(g), observations=1, first_seen=frame,
+                     last_seen=frame, keys=sorted(keys[g].tolist()))
+            heirs = sorted((prev[i] for i in range(len(prev)) if goes_to[i] == j),
+                           key=lambda p: (p["first_seen"], p["id"]))
+            if heirs:
+                d.update(id=heirs[0]["id"], first_seen=heirs[0]["first_seen"],
+                         observations=heirs[0]["observations"] + (frame != heirs[0]["last_seen"]))
+                if len(heirs) > 1:
+                    events.append(dict(kind="merge", id=d["id"], target=target, frame=frame,
+                                       merged=[h["id"] for h in heirs[1:]]))
+            else:
+                d["id"] = self.next_id
+                self.next_id += 1
+                par = np.flatnonzero(ov[:, j]) if len(prev) else []
+                if len(par):
+                    events.append(dict(kind="split", id=d["id"], target=target, frame=frame,
+                                       parent=prev[par[np.argmax(ov[par, j])]]["id"]))
+                else:
+                    events.append(dict(kind="new", id=d["id"], target=target, frame=frame))
+            out.append(d)
+        events += [dict(kind="lost", id=p["id"], target=target, frame=frame) for i, p in enumerate(prev)
+                   if not ov[i].any()]
+        self.instances[target] = sorted(out, key=lambda d: d["id"])
+        return events
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_tracker_matches_reference(seed: int):
+    rng = np.random.default_rng(100 + seed)
+    fast, ref = inst.InstanceTracker(0.2, 2), _ReferenceTracker(0.2, 2)
+    base = _random_voxels(rng, 500, 11, spread=0 if seed % 2 else 300)
+    for frame in range(7):
+        if frame != 3:                                         # frame 3: the same voxels again (cached components)
+            keep = rng.random(len(base)) < rng.uniform(0.5, 0.95)    # grows, shrinks, splits, merges
+        ijk = base[keep]
+        conf = rng.random(len(ijk))
+        ev = [e.as_dict() for e in fast.update("t", ijk, conf, frame // 2)]
+        assert ev == ref.update("t", ijk, conf, frame // 2)
+        got, want = fast.current("t"), ref.instances["t"]
+        assert len(got) == len(want)
+        for g, w in zip(got, want, strict=True):
+            assert np.allclose(g.centroid, w["centroid"], rtol=0, atol=1e-9)
+            assert np.array_equal(g.box_min, w["box_min"]) and np.array_equal(g.box_max, w["box_max"])
+            assert (g.id, g.confidence, g.voxels, g.observations, g.first_seen, g.last_seen) == (
+                w["id"], w["confidence"], w["voxels"], w["observations"], w["first_seen"], w["last_seen"])
+            assert g.keys.tolist() == w["keys"]
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_ray_support_matches_brute_force(dense: bool, monkeypatch):
+    if not dense:
+        monkeypatch.setattr(ln, "NEAR_DENSE_CELLS", 0)
+    rng = np.random.default_rng(7)
+    for _ in range(15):
+        f = rng.uniform(-40, 40, (int(rng.integers(1, 800)), 3))
+        o = rng.uniform(-25, 25, (int(rng.integers(1, 200)), 3))
+        o[:5] = f[rng.integers(0, len(f), 5)] + rng.normal(0, 0.7, (5, 3))
+        s = rng.random((len(o), 2))
+        r = float(rng.uniform(0.3, 4.0))
+        d = np.linalg.norm(f[:, None] - o[None], axis=2) <= r
+        want = np.stack([np.where(d, s[None, :, t], 0).max(1) for t in range(2)], 1)
+        assert np.array_equal(ln.ray_support(f, o, s, r), want)
+
+
+def test_best_first_is_the_lexsort_prefix():
+    rng = np.random.default_rng(3)
+    for t in range(200):
+        n, k = int(rng.integers(1, 300)), int(rng.integers(0, 350))
+        sc = rng.integers(0, 4, n) / 4.0 if t % 2 else rng.random(n)        # many score ties
+        d = rng.integers(0, 5, n).astype(float) if t % 3 else rng.random(n)  # distance ties too
+        assert np.array_equal(ln._best_first(sc, d, k), np.lexsort((d, -sc))[:k])
