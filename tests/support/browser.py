@@ -1,5 +1,7 @@
 """Headless Debian chromium driven over the DevTools protocol with a stdlib WebSocket client
-(no extra package): the browser tests (tests/test_browser_view.py, tests/test_console_browser.py)."""
+(no extra package): the browser tests (tests/test_browser_view.py, tests/test_console_browser.py,
+tests/test_console_viewer.py), and what a screenshot of the mapper's rerun web viewer shows
+(:func:`analyse`, :func:`good`)."""
 from __future__ import annotations
 
 import base64
@@ -16,6 +18,7 @@ import threading
 import time
 import urllib.request
 
+import numpy as np
 import pytest
 
 from tests.support.processes import stop_process
@@ -139,3 +142,49 @@ def chromium_exe() -> str:
     if os.environ.get("CI"):
         pytest.fail("chromium is not installed: deploy/setup_dev.sh installs Debian's chromium with the test extra")
     pytest.skip("chromium is not installed here (apt-get install chromium); under CI this test fails instead")
+
+
+# ------------------------------------------------------------ what a rerun web viewer screenshot shows
+def decode_png(png: bytes) -> np.ndarray:
+    """An RGB uint8 image (H, W, 3) from PNG bytes."""
+    import cv2
+
+    return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def _near(img: np.ndarray, colours: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """(mask of pixels within ``tol`` of one of ``colours``, index of the nearest colour)."""
+    px = img.reshape(-1, 3).astype(np.float32)
+    d = ((px[:, None, :] - colours[None].astype(np.float32)) ** 2).sum(-1)
+    idx = d.argmin(1)
+    return (d[np.arange(len(px)), idx] <= tol * tol).reshape(img.shape[:2]), idx.reshape(img.shape[:2])
+
+
+def analyse(shot: bytes | np.ndarray) -> dict:
+    """What the viewer shows in ``shot`` (PNG bytes or an RGB array cropped to the viewer; layout:
+    blueprint panel left, 3D view, right column): heat-colour-scale pixels
+    (:data:`mapper.outputs.rerun_view.HEAT_LUT`) in the 3D view and in which quarters of the scale,
+    map-layer pixels, the spread of the camera view's colours."""
+    from mapper.outputs.rerun_view import HEAT_LUT
+
+    img = decode_png(shot) if isinstance(shot, bytes) else shot
+    h, w = img.shape[:2]
+    view = img[int(0.08 * h):int(0.92 * h), int(0.2 * w):int(0.72 * w)]
+    lut = HEAT_LUT[::4]
+    mask, idx = _near(view, lut, tol=30.0)
+    quarters = np.bincount((idx[mask] * 4 // len(lut)).ravel(), minlength=4)
+    map_cols = np.array([[0, 220, 160], [0, 200, 255]], np.uint8)  # frontiers, rays (mapper/outputs/rerun.py)
+    mmask, _ = _near(view, map_cols, tol=40.0)
+    cam = img[int(0.55 * h):int(0.95 * h), int(0.8 * w):]
+    return {"heat_px": int(mask.sum()), "heat_quarters": [int(q) for q in quarters], "map_px": int(mmask.sum()),
+            "view_px": int(view.shape[0] * view.shape[1]), "camera_std": float(cam.reshape(-1, 3).std(0).mean())}
+
+
+def heat_shown(a: dict) -> bool:
+    """The query's heatmap is drawn: >= 1 % of the 3D view in the heat scale, >= 2 quarters of it."""
+    return a["heat_px"] >= 0.01 * a["view_px"] and sum(q >= 30 for q in a["heat_quarters"]) >= 2
+
+
+def good(a: dict) -> bool:
+    """Heatmap, map layers and the camera image all shown."""
+    return heat_shown(a) and a["map_px"] >= 20 and a["camera_std"] > 8.0
