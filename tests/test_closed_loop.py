@@ -1,7 +1,10 @@
-"""Closed-loop search planner: A* paths against an independent brute-force shortest path."""
+"""Closed-loop search: planner paths against an independent brute-force shortest path, the
+robot against the true world, every policy, the eval command's outputs."""
+import argparse
 import math
 
 import numpy as np
+import pytest
 from scipy.sparse import lil_matrix
 from scipy.sparse.csgraph import dijkstra
 
@@ -91,17 +94,106 @@ def test_oracle_path_on_true_world_is_collision_free_and_spl_one():
     assert spl(True, length, length) == 1.0 and spl(False, length, length) == 0.0
 
 
-def test_frontier_episode_moves_without_touching_the_true_world():
-    from apps.closed_loop.episode import frontier_episode
+# ----------------------------------------------------------------- the closed loop itself
+@pytest.fixture(scope="module")
+def loop():
+    """World 3, its edge chain at 96 px, one car mission (shared by the episode tests)."""
+    from apps.closed_loop.missions import make_mission
     from apps.closed_loop.robot import Platform
+    from apps.closed_loop.sensing import EdgeChain, SensorConfig
     from synthetic_world import World
 
     w = World.generate(3)
-    start = w.trajectory("ground", 2, seed=3)[0][:3, 3]
-    r = frontier_episode(w, start[:2], steps=10)
-    assert not r["collided"] and r["path_m"] > 0.5
+    chain = EdgeChain(w, SensorConfig(resolution=96, label_stride=4))
+    mission = make_mission(w, Platform.make("ground"), "object", "car", np.random.default_rng(3), budget_steps=8)
+    return w, chain, mission
+
+
+def test_navfield_paths_stay_in_traversable_known_free_cells():
+    """Paths only cross cells that are FREE with no occupied/unknown cell within the body's
+    clearance (checked cell by cell here, against the states directly), and lengths equal an
+    independent Dijkstra."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.planner import path_to
+
+    rng = np.random.default_rng(5)
+    states = np.where(rng.random((40, 40)) < 0.04, OCCUPIED, FREE).astype(np.int8)
+    states[:, 30:] = UNKNOWN
+    states[18:22, 18:22] = FREE
+    nav = NavField(states, np.zeros(2), 0.5, np.array([10.0, 10.0, 1.5]), 0.4)
+    reach = np.argwhere(np.isfinite(nav.dist_m))
+    assert len(reach) > 100
+    for c in reach[rng.choice(len(reach), 30, replace=False)]:
+        for cell in path_to(nav.pred, tuple(c))[1:]:
+            i, j = cell
+            near = states[max(0, i - 1):i + 2, max(0, j - 1):j + 2]      # clearance 0.9 m = the 3x3 block
+            assert states[cell] == FREE and (near == FREE).all(), cell
+        assert math.isclose(nav.dist_m[tuple(c)], _brute(np.where(nav.ok, FREE, OCCUPIED).astype(np.int8),
+                                                          nav.start, tuple(c)) * 0.5, rel_tol=1e-9)
+    cell, _, _ = nav.nearest_reachable(np.array([17.0, 10.0]))            # into the unknown: stops before it
+    assert states[tuple(cell)] == FREE and cell[1] < 30
+
+
+def test_oracle_drives_the_true_shortest_path(loop):
+    import dataclasses
+
+    from apps.closed_loop.episode import LoopSettings, run_episode
+
+    w, chain, mission = loop
+    mission = dataclasses.replace(mission, budget_steps=200)
+    r = run_episode(w, mission, "oracle", LoopSettings())
+    assert r["success"] and not r["collided"] and r["spl"] == pytest.approx(1.0, abs=1e-9)
+    assert r["path_m"] <= mission.shortest_m + 1e-6 and mission.shortest_m > 10.0
+
+
+def test_every_policy_runs_without_collision_and_deterministically(loop):
+    """Each policy over a short budget: no collision (re-checked against the exact geometry
+    with a finer sweep), the row's fields, and the same path when run again."""
+    from apps.closed_loop.episode import LoopSettings, Trace, run_episode
+    from apps.closed_loop.policies import POLICIES
+    from apps.closed_loop.robot import Platform
+
+    w, chain, mission = loop
     robot = Platform.make("ground")
-    # independent re-check of every move against the exact geometry, with a finer sweep
-    assert not any(robot.collides(w, a, b, spacing=0.03) for a, b in r["moves"])
-    r2 = frontier_episode(w, start[:2], steps=10)
-    assert np.array_equal(r["path"], r2["path"])            # deterministic
+    for p in POLICIES:
+        tr = Trace()
+        r = run_episode(w, mission, p, LoopSettings(), chain=chain, trace=tr)
+        assert not r["collided"] and 1 <= r["steps"] <= mission.budget_steps, (p, r)
+        assert set(r) >= {"success", "spl", "path_m", "false_finds", "steps", "cpu_ms_per_step"}
+        pos = np.asarray(tr.positions)
+        assert not any(robot.collides(w, a, b, spacing=0.03) for a, b in zip(pos[:-1], pos[1:], strict=True)), p
+        if p == "rayfronts":
+            again = Trace()
+            run_episode(w, mission, p, LoopSettings(), chain=chain, trace=again)
+            assert np.array_equal(pos, np.asarray(again.positions))
+            assert r["path_m"] > 1.0
+
+
+def test_eval_search_outputs(tmp_path):
+    """``rayfronts eval search`` on one tiny run: the JSON's exact top-level shape, the table,
+    the CSV rows (one per episode) and the plots."""
+    import csv
+    import json
+
+    from apps.evaluation import cli
+
+    p = argparse.ArgumentParser()
+    cli.add_arguments(p)
+    out = tmp_path / "es.json"
+    args = p.parse_args(["search", "--seeds", "3", "--missions", "object", "--policies", "oracle,frontier",
+                         "--budget-scale", "0.1", "--resolution", "64", "--json", str(out)])
+    assert cli.run(args) == 0
+    doc = json.loads(out.read_text())
+    assert set(doc["policies"]) == {"oracle", "frontier"}
+    for s in doc["policies"].values():
+        assert {"success", "spl", "path_m", "false_finds", "episodes"} <= set(s) and s["episodes"] == 1
+        assert isinstance(s["false_finds"], int)
+    assert doc["settings"]["platform"] == "ground" and len(doc["episodes"]) == 2
+    assert doc["policies"]["oracle"]["spl"] == pytest.approx(
+        doc["episodes"][[r["policy"] for r in doc["episodes"]].index("oracle")]["spl"])
+    rows = list(csv.DictReader(out.with_suffix(".csv").open()))
+    assert [r["policy"] for r in rows] == [r["policy"] for r in doc["episodes"]]
+    assert "| oracle |" in out.with_suffix(".md").read_text()
+    assert (tmp_path / "es_spl.png").stat().st_size > 1000
+    bad = p.parse_args(["search", "--depth-limit", "0", "--json", str(out)])
+    assert cli.run(bad) == 2

@@ -1,71 +1,189 @@
-"""One geometric closed-loop exploration episode (in process, the ``frontier`` policy only so far).
+"""One closed-loop search episode: sense → map → search → decide → plan → move.
 
-Per step: render a few yaw views (level and tilted down) at the robot's camera centre, integrate them into a
-:class:`semantic_map.map.RayFrontsMap` with one-hot ground-truth label features, take the map's
-2D costmap of the body band (:mod:`semantic_map.occupancy_queries`), go toward the nearest
-reachable frontier through KNOWN FREE cells (:mod:`apps.closed_loop.planner`), move at most
-``step_m`` and check the move against the TRUE world. World frame z up, metres.
+Per step the robot's views are rendered and sent through the edge chain
+(:class:`apps.closed_loop.sensing.EdgeChain`), fused by the policy's map
+(:class:`apps.closed_loop.world_model.LocalMapper`, or a real mapper over Zenoh), searched for
+the mission's target; the policy (:mod:`apps.closed_loop.policies`) picks a goal or declares
+a found instance; the robot moves at most ``step_m`` along the shortest path through the
+map's traversable known-free cells (:class:`apps.closed_loop.navigation.NavField`) and the
+move is checked against the TRUE world (a collision ends the episode as failed). A
+declaration counts when the declared instance's centroid lies within ``declare_m`` of an
+uncounted true instance of the target and the robot is within ``reach_m`` (+ one voxel) of
+it; otherwise it is a false find. World frame z up, metres; CPU times from
+``time.process_time`` (this process: edge chain, map and planner together).
 """
 from __future__ import annotations
 
-import math
+import time
+from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
-from apps.closed_loop.planner import FREE, advance, astar, path_length
-from apps.closed_loop.robot import Platform, camera_pose
-from semantic_map.config import map_config
-from semantic_map.map import RayFrontsMap
-from semantic_map.occupancy_queries import costmap_slice
+from apps.closed_loop.metrics import spl
+from apps.closed_loop.missions import Mission, box_distance, xy_box_distance
+from apps.closed_loop.navigation import NavField, follow
+from apps.closed_loop.policies import POLICIES, PolicyState, decide
+from apps.closed_loop.robot import Platform
+from apps.closed_loop.sensing import EdgeChain
 from synthetic_world import World
 
 
-def frontier_episode(world: World, start_xy: np.ndarray, steps: int = 10, step_m: float = 2.0,
-                     vox: float = 0.5, depth_limit: float = 20.0, hw: tuple[int, int] = (48, 64),
-                     views: int = 4, reach: float = 15.0) -> dict:
-    """Run ``steps`` frontier-exploration steps from ``start_xy`` (m); returns ``{"path":
-    (N, 3) camera centres, "path_m", "collided", "moves": [(a, b)]}``."""
-    robot = Platform.make("ground")
-    K = world.camera(hw, 90.0)
-    n_cls = len(world.classes)
-    m = RayFrontsMap(map_config("default", dict(vox_size=vox, depth_limit=depth_limit)), n_cls, "labels",
-                     occupancy_backend="torch")
-    pos = np.array([start_xy[0], start_xy[1], robot.z_band[0]], np.float64)
-    path, moves, collided = [pos.copy()], [], False
-    for _ in range(steps):
-        for k in range(2 * views):       # level views, then views tilted down to see the robot's surroundings
-            pose = camera_pose(pos, 2 * math.pi * (k % views) / views, 0.0 if k < views else math.pi / 4)
-            r = world.render(pose, K, hw)
-            oh = torch.nn.functional.one_hot(torch.as_tensor(r.labels.astype(np.int64)), n_cls)
-            m.integrate(pose, K, r.depth.astype(np.float32), r.rgb, oh.permute(2, 0, 1).float())
-        m.flush()
-        states, origin, cell = costmap_slice(m.occupancy, vox, pos[:2] - reach, pos[:2] + reach,
-                                              (max(0.3, vox) + 1e-3, robot.z_band[0]))  # above the ground voxels
-        fr = m.frontiers().centres.cpu().numpy().astype(np.float64)
-        start = tuple(np.floor((pos[:2] - origin) / cell).astype(int))
-        if len(fr) == 0 or not (0 <= start[0] < states.shape[0] and 0 <= start[1] < states.shape[1]) \
-                or states[start] != FREE:
-            break
-        order = np.argsort(np.linalg.norm(fr[:, :2] - pos[:2], axis=1))
-        best = None
-        for f in fr[order[:20]]:
-            g = tuple(np.floor((f[:2] - origin) / cell).astype(int))
-            if not (0 <= g[0] < states.shape[0] and 0 <= g[1] < states.shape[1]) or g == start:
-                continue
-            p = astar(states, start, g)
-            if p is not None and (best is None or path_length(p, cell) < path_length(best, cell)):
-                best = p
-        if best is None:
-            break
-        nxt = advance(best[:-1] if len(best) > 2 else best[:1], origin, cell, step_m)
-        nxt = np.r_[nxt, pos[2]]
-        if robot.collides(world, pos, nxt):
-            collided = True
-            break
-        moves.append((pos.copy(), nxt.copy()))
-        pos = nxt
-        path.append(pos.copy())
-    pts = np.asarray(path)
-    return {"path": pts, "path_m": float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()),
-            "collided": collided, "moves": moves}
+@dataclass
+class LoopSettings:
+    """Settings shared by all episodes of a run (lengths in metres)."""
+
+    platform: str = "ground"
+    depth_limit_m: float = 20.0
+    vox_m: float = 0.5
+    step_m: float = 2.0
+    window_m: float = 30.0
+    preset: str = "online"
+    min_score: float = 0.3
+
+
+@dataclass
+class Trace:
+    """What happened, step by step (for recordings): robot positions, goals, found boxes."""
+
+    positions: list = field(default_factory=list)
+    goals: list = field(default_factory=list)
+    found: list = field(default_factory=list)
+    why: list = field(default_factory=list)
+    voxels: list = field(default_factory=list)      # (N, 3) map voxel centres, subsampled, per step
+
+
+def _check_declaration(inst: dict, mission: Mission, at: np.ndarray, counted: set, vox: float) -> str:
+    """'find' (a new true instance), 'again' (one already counted) or 'false'."""
+    c = np.asarray(inst["centroid"], np.float64)
+    for t in mission.instances:
+        if box_distance(c, t.aabb_min, t.aabb_max) <= mission.declare_m \
+                and xy_box_distance(at, t.aabb_min, t.aabb_max) <= mission.reach_m + vox:
+            if t.id in counted:
+                return "again"
+            counted.add(t.id)
+            return "find"
+    return "false"
+
+
+@dataclass
+class _Run:
+    """An episode's running totals."""
+
+    pos: np.ndarray
+    path_m: float = 0.0
+    steps: int = 0
+    false_finds: int = 0
+    collided: bool = False
+    finds: list = field(default_factory=list)
+    counted: set = field(default_factory=set)
+    cpu: list = field(default_factory=list)
+    search_ms: list = field(default_factory=list)
+
+    def move(self, robot: Platform, world: World, nxt: np.ndarray) -> bool:
+        """Drive to ``nxt`` unless the body would touch the true world (then: collided)."""
+        if robot.collides(world, self.pos, nxt):
+            self.collided = True
+            return False
+        self.path_m += float(np.linalg.norm(nxt - self.pos))
+        self.pos = nxt
+        return True
+
+
+def _oracle(world: World, mission: Mission, robot: Platform, settings: LoopSettings, run: _Run,
+            trace: Trace | None) -> None:
+    """Drive the mission's true tour; all its instances are declared on arrival."""
+    total = float(np.linalg.norm(np.diff(mission.oracle_path[:, :2], axis=0), axis=1).sum())
+    done = 0.0
+    for step in range(mission.budget_steps):
+        run.steps = step + 1
+        c0 = time.process_time()
+        if trace is not None:
+            trace.positions.append(run.pos.copy())
+        xy, done = follow(mission.oracle_path[:, :2], done, settings.step_m)
+        if not run.move(robot, world, np.r_[xy, run.pos[2]]):
+            return
+        run.cpu.append((time.process_time() - c0) * 1e3)
+        if done >= total - 1e-9:
+            run.finds = [(run.steps, run.path_m)] * mission.k
+            run.counted = {i.id for i in mission.instances[:mission.k]}
+            return
+
+
+def _record(trace: Trace | None, obs, d, mapper, step: int) -> None:
+    if trace is None:
+        return
+    trace.found.append(list(obs.found))
+    trace.goals.append(None if d.goal_xy is None else np.asarray(d.goal_xy, np.float64))
+    trace.why.append(d.why)
+    m = getattr(mapper, "map", None)
+    if m is not None:
+        xyz = m.sem.xyz().cpu().numpy()
+        trace.voxels.append(xyz[np.random.default_rng(step).permutation(len(xyz))[:20000]])
+
+
+def _searching(world: World, mission: Mission, policy: str, robot: Platform, settings: LoopSettings,
+               chain: EdgeChain, mapper, run: _Run, trace: Trace | None) -> None:
+    """The map-based loop: sense, map, search, decide, move (module docstring)."""
+    semantic = POLICIES[policy][1]
+    state = PolicyState()
+    stuck = 0
+    for step in range(mission.budget_steps):
+        run.steps = step + 1
+        c0 = time.process_time()
+        if trace is not None:
+            trace.positions.append(run.pos.copy())
+        mapper.integrate([chain.frame(p) for p in chain.view_poses(robot, run.pos)])
+        obs = mapper.observe([mission.target], run.pos, semantic=semantic, z_band=robot.goal_band)
+        run.search_ms.append(obs.search_ms)
+        nav = NavField(obs.states, obs.origin, obs.cell, run.pos, robot.radius)
+        d = decide(policy, obs, nav, run.pos, state, mission.reach_m)
+        _record(trace, obs, d, mapper, step)
+        if d.declare is not None:
+            state.declared.add(d.declare["id"])
+            verdict = _check_declaration(d.declare, mission, run.pos, run.counted, settings.vox_m)
+            if verdict == "find":
+                run.finds.append((run.steps, run.path_m))
+            run.false_finds += verdict == "false"
+        elif d.goal_cell is None:
+            stuck += 1
+        else:
+            stuck = 0
+            if not run.move(robot, world, np.r_[nav.step_toward(d.goal_cell, settings.step_m, run.pos), run.pos[2]]):
+                return
+        run.cpu.append((time.process_time() - c0) * 1e3)
+        if len(run.counted) >= mission.k or stuck >= 3:
+            return
+
+
+def run_episode(world: World, mission: Mission, policy: str, settings: LoopSettings,
+                chain: EdgeChain | None = None, mapper=None, trace: Trace | None = None) -> dict:
+    """Run ``policy`` on ``mission``; returns the episode row (``success``, ``spl``, ``path_m``,
+    ``steps``, ``false_finds``, ``finds`` [(step, path_m)], ``collided``, ``cpu_ms_per_step``,
+    ``search_ms_p50``, ...). ``mapper``: an object with ``integrate(frames)`` and
+    ``observe(targets, at, semantic=..., z_band=...)`` (default: a new LocalMapper for the policy)."""
+    if policy not in POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; one of {', '.join(POLICIES)}")
+    robot = Platform.make(settings.platform)
+    method, _, poses = POLICIES[policy]
+    run = _Run(np.asarray(mission.start, np.float64).copy())
+    if method is None:
+        _oracle(world, mission, robot, settings, run, trace)
+    else:
+        if chain is None:
+            raise ValueError(f"policy {policy!r} maps what the robot sees: pass the edge chain")
+        if mapper is None:
+            from apps.closed_loop.world_model import LocalMapper, mapper_config
+
+            cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset)
+            mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m,
+                                 score_poses=poses)
+        _searching(world, mission, policy, robot, settings, chain, mapper, run, trace)
+    if trace is not None:
+        trace.positions.append(run.pos.copy())
+    success = (len(run.counted) >= mission.k) and not run.collided
+    return {"policy": policy, "success": bool(success), "spl": spl(success, mission.shortest_m, run.path_m),
+            "path_m": run.path_m, "shortest_m": mission.shortest_m, "steps": run.steps,
+            "false_finds": int(run.false_finds), "finds": run.finds, "found": len(run.counted),
+            "collided": run.collided, "cpu_ms_per_step": float(np.mean(run.cpu)) if run.cpu else 0.0,
+            "search_ms_p50": float(np.median(run.search_ms)) if run.search_ms else 0.0,
+            "end": [float(v) for v in run.pos], **mission.describe()}

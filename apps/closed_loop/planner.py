@@ -94,3 +94,71 @@ def advance(path: list[tuple[int, ...]], origin: np.ndarray, cell: float, step_m
             return a + (b - a) * (left / seg) if seg > 0 else a
         left -= seg
     return pts[-1]
+
+
+# ----------------------------------------------------------------- grid planning with scipy
+def traversable(states: np.ndarray, cell: float, radius_m: float) -> np.ndarray:
+    """(nx, ny) bool: cells where the robot may stand — FREE, and no OCCUPIED or UNKNOWN cell
+    whose centre lies within ``radius_m + cell`` (m) of this cell's centre (unknown space may
+    hide an obstacle, so it keeps the same clearance as occupied space)."""
+    from scipy.ndimage import binary_dilation
+
+    states = np.asarray(states)
+    r = (float(radius_m) + float(cell)) / float(cell)
+    k = int(math.floor(r))
+    off = np.arange(-k, k + 1)
+    disk = (off[:, None] ** 2 + off[None, :] ** 2) <= r * r
+    blocked = binary_dilation(states != FREE, structure=disk) if k > 0 else states != FREE
+    return (states == FREE) & ~blocked
+
+
+def _grid_graph(ok: np.ndarray):
+    """Sparse graph over the cells of ``ok`` (2D bool): 8-neighbour moves between ok cells with
+    Euclidean costs (in cells); a diagonal move only when both cells it cuts across are ok."""
+    from scipy.sparse import coo_matrix
+
+    nx, ny = ok.shape
+    pad = np.pad(np.asarray(ok, bool), 1)
+    idx = np.arange(nx * ny).reshape(nx, ny)
+
+    def shifted(di: int, dj: int) -> np.ndarray:
+        return pad[1 + di:1 + di + nx, 1 + dj:1 + dj + ny]
+
+    rows, cols, w = [], [], []
+    for di, dj in ((1, 0), (0, 1), (1, 1), (1, -1)):
+        m = ok & shifted(di, dj)
+        if di and dj:     # both side cells of the diagonal
+            m &= shifted(di, 0) & shifted(0, dj)
+        a = idx[m]
+        b = a + di * ny + dj
+        rows += [a, b]
+        cols += [b, a]
+        w.append(np.full(2 * len(a), math.hypot(di, dj)))
+    return coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(nx * ny, nx * ny)).tocsr()
+
+
+def distance_field(ok: np.ndarray, start: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Shortest path lengths (in cells; inf = unreachable) from ``start`` to every cell through
+    ``ok`` cells (scipy's Dijkstra), and the predecessor of each cell (-9999 = none). The start
+    cell counts as ok (the robot stands there)."""
+    from scipy.sparse.csgraph import dijkstra
+
+    ok = np.asarray(ok, bool).copy()
+    ok[tuple(start)] = True
+    g = _grid_graph(ok)
+    i0 = int(np.ravel_multi_index(tuple(int(v) for v in start), ok.shape))
+    d, pred = dijkstra(g, directed=True, indices=i0, return_predecessors=True)
+    return d.reshape(ok.shape), pred.reshape(ok.shape)
+
+
+def path_to(pred: np.ndarray, goal: tuple[int, int]) -> list[tuple[int, int]]:
+    """Cell path start .. goal from a :func:`distance_field` predecessor array."""
+    shape = pred.shape
+    flat = pred.ravel()
+    cur = int(np.ravel_multi_index(tuple(int(v) for v in goal), shape))
+    out = [cur]
+    while flat[cur] >= 0:
+        cur = int(flat[cur])
+        out.append(cur)
+    return [tuple(int(v) for v in np.unravel_index(c, shape)) for c in out[::-1]]  # type: ignore[misc]

@@ -3,8 +3,10 @@ synthetic world (docs/synthetic_world.md).
 
 World frame z up, metres; poses camera-to-world with RDF camera axes (x right, y down,
 z forward). ``ground``: camera 1.5 m above the ground plane, body a vertical cylinder of
-``radius`` from 0.2 m to the camera height. ``drone``: a sphere of ``radius`` around the camera,
-altitude kept in ``z_band``.
+``radius`` from its ground clearance (:data:`GROUND_CLEARANCE_M`: it drives over anything
+lower, as the map's 0.5 m voxels cannot tell such things from the ground) to the camera
+height. ``drone``: a sphere of ``radius`` around the camera, cruising at ``cruise_z`` (the
+middle of its altitude band).
 """
 from __future__ import annotations
 
@@ -14,6 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from synthetic_world import World
+
+#: the ground robot's body starts this high (m): lower things pass under it
+GROUND_CLEARANCE_M = 0.55
 
 
 @dataclass(frozen=True)
@@ -33,6 +38,23 @@ class Platform:
             return cls("drone", 0.4, (3.0, 8.0))
         raise ValueError(f"unknown platform {name!r} (ground, drone)")
 
+    @property
+    def cruise_z(self) -> float:
+        """Camera height (m) the platform keeps: 1.5 m (ground) or the middle of the band (drone)."""
+        return self.z_band[0] if self.name == "ground" else 0.5 * (self.z_band[0] + self.z_band[1])
+
+    @property
+    def goal_band(self) -> tuple[float, float]:
+        """z band (m) of the frontiers worth driving to: what the camera can see from its height."""
+        return (-1.0, 4.0) if self.name == "ground" else (self.z_band[0] - 4.0, self.z_band[1] + 4.0)
+
+    def costmap_band(self, vox: float) -> tuple[float, float]:
+        """z band (m) of the map a 2D costmap for this body reads: ground from the first voxel
+        layer above the ground's up to the camera; drone the body's height ± one voxel."""
+        if self.name == "ground":
+            return (max(GROUND_CLEARANCE_M - 0.05, vox) + 1e-3, self.z_band[0] + 0.2)
+        return (self.cruise_z - self.radius - vox, self.cruise_z + self.radius + vox)
+
     def body_points(self, centre: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """(N, 3) sample points of the body (a disk of radius ``radius + margin`` m per level)
         with the camera at ``centre`` (3,) metres."""
@@ -42,7 +64,7 @@ class Platform:
         r = self.radius + margin
         ring = np.concatenate([np.zeros((1, 3))] + [unit * f * r for f in np.linspace(0.25, 1.0, 4)], 0)
         if self.name == "ground":
-            zs = np.linspace(0.2, c[2], 4) - c[2]
+            zs = np.linspace(GROUND_CLEARANCE_M, c[2], 4) - c[2]
         else:
             zs = np.array([-self.radius, 0.0, self.radius])
         pts = [c + ring + [0.0, 0.0, dz] for dz in zs] + [c[None]]
@@ -71,16 +93,16 @@ def camera_pose(centre: np.ndarray, yaw: float, pitch: float = 0.0) -> np.ndarra
 
 def true_free_grid(world: World, platform: Platform, xy_min: np.ndarray, xy_max: np.ndarray,
                    cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """(states (nx, ny) int8 FREE=0/OCCUPIED=1, origin (2,) m) of the TRUE world for the ground
-    robot: a cell is free when the body, inflated by the cell's half-diagonal, standing at the
+    """(states (nx, ny) int8 FREE=0/OCCUPIED=1, origin (2,) m) of the TRUE world for the
+    platform at its cruise height: a cell is free when the body, inflated by the cell's half-diagonal, standing at the
     cell centre touches no solid (so moves between free neighbours are collision free)."""
     lo = np.asarray(xy_min, np.float64)
     n = np.maximum(1, np.ceil((np.asarray(xy_max, np.float64) - lo) / cell).astype(int))
     ii, jj = np.meshgrid(np.arange(n[0]), np.arange(n[1]), indexing="ij")
     centres = np.stack([lo[0] + (ii.ravel() + 0.5) * cell, lo[1] + (jj.ravel() + 0.5) * cell,
-                        np.full(ii.size, platform.z_band[0])], 1)
-    body = platform.body_points(np.array([0.0, 0.0, platform.z_band[0]]), cell * 0.75)
-    body[:, 2] -= platform.z_band[0]
+                        np.full(ii.size, platform.cruise_z)], 1)
+    body = platform.body_points(np.array([0.0, 0.0, platform.cruise_z]), cell * 0.75)
+    body[:, 2] -= platform.cruise_z
     pts = (centres[:, None, :] + body[None]).reshape(-1, 3)
     hit = (world.labels_at(pts) != 0).reshape(len(centres), len(body)).any(1)
     return hit.reshape(n[0], n[1]).astype(np.int8), lo

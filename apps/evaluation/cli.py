@@ -25,6 +25,9 @@ DESCRIPTION = """Benchmarks of the paper, run on this machine:
   semseg   offline zero-shot 3D semantic segmentation (Tables II/III): mIoU, f-mIoU, Acc with and
            without background classes; writes summary.json.
   report   collect run directories into one Markdown page.
+  search   closed-loop search: a simulated robot finds targets guided by each policy
+           (rayfronts, frontier, unidirectional, spherical, sem-poses, oracle); success,
+           SPL, path, false finds; writes --json FILE plus .md, .csv and plots beside it.
 
 srchvol/semseg take --config FILE and trailing key=value overrides of their config (keys
 listed with 'rayfronts eval srchvol --help')."""
@@ -79,11 +82,62 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common(ss)
     ss.add_argument("--k", type=int, default=None, help="kNN alignment k (0 = exact grid; default 5)")
 
+    _search_parser(sub)
+
     rp = sub.add_parser("report", help="collect run directories into one Markdown page")
     rp.add_argument("runs", nargs="+", metavar="RUN_DIR", help="srchvol / semseg output directories")
     rp.add_argument("--out", required=True, metavar="FILE.md",
                     help="Markdown file to write (plots are linked relatively)")
     rp.add_argument("--title", default="RayFronts benchmark results", help="page title")
+
+
+def _search_parser(sub) -> None:
+    from apps.closed_loop.evaluate import MISSIONS
+    from apps.closed_loop.policies import POLICIES
+
+    se = sub.add_parser("search", help="closed-loop search episodes per policy (success, SPL)",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description=__import__("apps.closed_loop.evaluate", fromlist=["x"]).__doc__)
+    se.add_argument("--platform", choices=["ground", "drone"], default="ground", help="robot (default ground)")
+    se.add_argument("--depth-limit", action="append", default=None, metavar="D",
+                    help="depth limit(s) in metres, repeatable or comma list (default 20)")
+    se.add_argument("--seeds", default="0", help="world seeds, comma list or A-B range (default 0)")
+    se.add_argument("--episodes", type=int, default=1, help="missions per seed and mission kind (default 1)")
+    se.add_argument("--policies", default=",".join(POLICIES), help=f"comma list (default all: {','.join(POLICIES)})")
+    se.add_argument("--missions", default="object,landmark",
+                    help=f"comma list of mission kinds: {', '.join(MISSIONS)} (default object,landmark)")
+    se.add_argument("--budget-scale", type=float, default=1.0, help="scale the step budgets (default 1)")
+    se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
+    se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
+    se.add_argument("--json", required=True, metavar="FILE", help="summary + episode rows (.md/.csv/.png beside)")
+    se.add_argument("--rerun", default=None, metavar="FILE.rrd", help="record the first rayfronts episode")
+
+
+def _seeds(text: str) -> list[int]:
+    out: list[int] = []
+    for part in text.split(","):
+        part = part.strip()
+        if "-" in part[1:]:
+            a, b = part.split("-", 1)
+            out += list(range(int(a), int(b) + 1))
+        elif part:
+            out.append(int(part))
+    return out
+
+
+def _run_search(args: argparse.Namespace) -> int:
+    from apps.closed_loop.evaluate import SearchEvalConfig, run_search_eval, table_markdown, write_outputs
+
+    depths = [float(x) for a in (args.depth_limit or ["20"]) for x in a.split(",") if x.strip()]
+    cfg = SearchEvalConfig(platform=args.platform, depth_limits=depths, seeds=_seeds(args.seeds),
+                           episodes=args.episodes, policies=[p.strip() for p in args.policies.split(",") if p.strip()],
+                           missions=[m.strip() for m in args.missions.split(",") if m.strip()],
+                           budget_scale=args.budget_scale, resolution=args.resolution, step_m=args.step).validate()
+    doc = run_search_eval(cfg, args.rerun)
+    paths = write_outputs(doc, args.json)
+    print(table_markdown(doc))
+    print("wrote " + ", ".join(str(p) for p in paths) + (f", {args.rerun}" if args.rerun else ""))
+    return 0
 
 
 #: command-line option -> SourceConfig key
@@ -149,6 +203,8 @@ def run(args: argparse.Namespace) -> int:
             path = write_report(args.runs, args.out, title=args.title)
             print(f"wrote {path}")
             return 0
+        if args.action == "search":
+            return _run_search(args)
         cfg = build_config(args)
         if args.action == "srchvol":
             from apps.evaluation.srchvol import run_srchvol

@@ -1,0 +1,59 @@
+"""Where the robot can go this step: the traversable cells of the map's costmap and the
+shortest paths to them from the robot (:mod:`apps.closed_loop.planner`). Metres, world frame."""
+from __future__ import annotations
+
+import numpy as np
+
+from apps.closed_loop.planner import distance_field, path_to, traversable
+
+
+class NavField:
+    """Shortest paths from the robot at ``at`` (m) through the traversable cells of a costmap
+    (``states`` [x, y], ``origin`` (2,) m, ``cell`` m) for a body of ``radius_m``."""
+
+    def __init__(self, states: np.ndarray, origin: np.ndarray, cell: float, at: np.ndarray, radius_m: float):
+        self.origin, self.cell = np.asarray(origin, np.float64), float(cell)
+        self.ok = traversable(states, cell, radius_m)
+        c = np.floor((np.asarray(at[:2], np.float64) - self.origin) / cell).astype(int)
+        self.start = (int(np.clip(c[0], 0, states.shape[0] - 1)), int(np.clip(c[1], 0, states.shape[1] - 1)))
+        dist, self.pred = distance_field(self.ok, self.start)
+        self.dist_m = dist * self.cell
+        cells = np.argwhere(np.isfinite(self.dist_m))
+        self._cells = cells
+        self._xy = self.origin + (cells + 0.5) * self.cell
+
+    def nearest_reachable(self, xy: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """(cell (2,), path length m, xy distance m from the cell centre to ``xy``) of the
+        reachable cell closest to ``xy`` (ties: the shorter path)."""
+        d = np.linalg.norm(self._xy - np.asarray(xy[:2], np.float64), axis=1)
+        pl = self.dist_m[self._cells[:, 0], self._cells[:, 1]]
+        i = int(np.lexsort((pl, np.round(d, 3)))[0])
+        return self._cells[i], float(pl[i]), float(d[i])
+
+    def step_toward(self, cell: np.ndarray, step_m: float, at: np.ndarray) -> np.ndarray:
+        """The xy point reached moving at most ``step_m`` from ``at`` along the path to ``cell``
+        (the first leg goes from ``at`` to the centre of the first cell after the start's)."""
+        path = path_to(self.pred, tuple(int(v) for v in cell))
+        pts = [np.asarray(at[:2], np.float64)] + [self.origin + (np.asarray(c) + 0.5) * self.cell for c in path[1:]]
+        left = float(step_m)
+        for a, b in zip(pts[:-1], pts[1:], strict=True):
+            seg = float(np.linalg.norm(b - a))
+            if seg >= left:
+                return a + (b - a) * (left / seg) if seg > 0 else a
+            left -= seg
+        return pts[-1]
+
+
+def follow(points: np.ndarray, done_m: float, step_m: float) -> tuple[np.ndarray, float]:
+    """Point after driving ``step_m`` more along polyline ``points`` (N, 2) having driven
+    ``done_m`` already, and the new driven length (clipped at the polyline's end)."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    total = float(seg.sum())
+    target = min(total, done_m + step_m)
+    if len(seg) == 0 or total == 0.0:
+        return points[-1].copy(), 0.0
+    cum = np.r_[0.0, np.cumsum(seg)]
+    i = int(min(np.searchsorted(cum, target, side="right") - 1, len(seg) - 1))
+    t = (target - cum[i]) / seg[i] if seg[i] > 0 else 0.0
+    return points[i] + (points[i + 1] - points[i]) * t, target
+

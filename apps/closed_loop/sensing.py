@@ -1,0 +1,101 @@
+"""What the robot's edge sends each step: views rendered by the synthetic world at the robot's
+pose, encoded, PCA-compressed and put through the wire format (encode → decode), exactly the
+frames a mapper receives from ``rayfronts edge``.
+
+Views: ``views`` yaw directions evenly spaced (the first along +x), tilted down by
+``tilt_deg`` (ground) or ``drone_tilt_deg`` (drone): with a 90° field of view a ground camera
+tilted 25° sees the ground from 0.55 m around the robot (it must know the space around its
+body is free) up to 20° above the horizon (far towers stay in view). Camera: square images of
+``resolution`` pixels.
+
+Depth sensor model (``sky_no_return``, default on): surfaces at any distance return their
+depth (the map's depth limit turns those beyond it into rays), the sky returns nothing (NaN,
+ignored by the map). The world renders the sky at +inf ("beyond range"), which would fill
+every upward ray bin with sky and drown a far tower's few pixels in the bin's mean feature;
+a range sensor or a metric depth network has no surface to report there.
+
+World frame z up, metres; poses camera-to-world, RDF camera axes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from apps.closed_loop.robot import Platform, camera_pose
+from common.frame import Frame
+from synthetic_world import World
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Camera and edge settings of the closed loop (``resolution`` in pixels, angles in degrees)."""
+
+    resolution: int = 224
+    views: int = 4
+    tilt_deg: float = 25.0
+    drone_tilt_deg: float = 35.0
+    encoder: str = "label"
+    label_stride: int = 8
+    pca_dim: int = 32
+    feature_codec: str = "q16z"
+    sky_no_return: bool = True
+
+
+class EdgeChain:
+    """The edge's per-frame work in process: encoder → PCA → wire encode → decode.
+
+    The PCA basis is fitted once per world on ``fit_views`` renders around the world centre
+    (as an operator fits a basis offline before a mission), so every policy and every episode
+    of a world see the same feature space."""
+
+    def __init__(self, world: World, cfg: SensorConfig, fit_views: int = 8):
+        from common.feature_space import FeatureSpace
+        from common.pca import OnlinePCAFitter
+        from edge.runtime import EdgeConfig
+        from encoders import make_encoder
+
+        ecfg = EdgeConfig()
+        ecfg = dataclasses.replace(ecfg, encoder=dataclasses.replace(ecfg.encoder, kind=cfg.encoder,
+                                                                     label_stride=cfg.label_stride))
+        self.world, self.cfg = world, cfg
+        self.encoder = make_encoder(ecfg.encoder, class_names=world.classes)
+        hw = (cfg.resolution, cfg.resolution)
+        self.hw = hw
+        self.K = world.camera(hw, 90.0)
+        fit = OnlinePCAFitter(cfg.pca_dim, max_frames=fit_views)
+        for k in range(fit_views):
+            pose = camera_pose(np.array([0.0, 0.0, 1.5]), 2 * math.pi * k / fit_views, 0.3 * (k % 2))
+            r = world.render(pose, self.K, hw)
+            with torch.inference_mode():
+                fit.add(self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")[0])
+        self.pca = fit.fit()
+        self.space = FeatureSpace.for_encoder(self.encoder, self.pca)
+        self.seq = 0
+
+    def view_poses(self, platform: Platform, centre: np.ndarray) -> list[np.ndarray]:
+        """Camera poses of one step's views at camera centre ``centre`` (m)."""
+        n = self.cfg.views
+        tilt = math.radians(self.cfg.drone_tilt_deg if platform.name == "drone" else self.cfg.tilt_deg)
+        return [camera_pose(centre, 2 * math.pi * k / n, tilt) for k in range(n)]
+
+    def frame(self, pose: np.ndarray, robot: str = "sim") -> Frame:
+        """One rendered view as the mapper receives it (decoded from the wire; the mapper's map
+        applies its depth limit)."""
+        from common.wire import decode_frame, encode_frame
+        from edge.runtime import compress_features
+
+        r = self.world.render(pose, self.K, self.hw)
+        with torch.inference_mode():
+            x, g = self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")
+        depth = r.depth.astype(np.float32)
+        if self.cfg.sky_no_return:      # no surface, no return: the map ignores these pixels
+            depth[np.isinf(depth)] = np.nan
+        f = Frame(robot=robot, seq=self.seq, stamp=float(self.seq), pose=pose, intrinsics=self.K, depth=depth,
+                  rgb=r.rgb, features=compress_features(self.pca, x), feature_space=self.space.id,
+                  global_feature=compress_features(self.pca, g.reshape(-1, 1, 1)).reshape(-1))
+        self.seq += 1
+        return decode_frame(encode_frame(f, feature_codec=self.cfg.feature_codec))
