@@ -146,9 +146,14 @@ def test_oracle_drives_the_true_shortest_path(loop):
     assert r["path_m"] <= mission.shortest_m + 1e-6 and mission.shortest_m > 10.0
 
 
-def test_every_policy_runs_without_collision_and_deterministically(loop):
+def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_path):
     """Each policy over a short budget: no collision (re-checked against the exact geometry
-    with a finer sweep), the row's fields, and the same path when run again."""
+    with a finer sweep), the row's fields, and the same path when run again; the rayfronts
+    episode's rerun recording read back by rerun's own CLI."""
+    import subprocess
+
+    from apps.closed_loop.recording import record_episode
+    from mapper.outputs.rerun_view import rerun_binary
     from apps.closed_loop.episode import LoopSettings, Trace, run_episode
     from apps.closed_loop.policies import POLICIES
     from apps.closed_loop.robot import Platform
@@ -166,7 +171,14 @@ def test_every_policy_runs_without_collision_and_deterministically(loop):
             again = Trace()
             run_episode(w, mission, p, LoopSettings(), chain=chain, trace=again)
             assert np.array_equal(pos, np.asarray(again.positions))
-            assert r["path_m"] > 1.0
+            assert r["path_m"] > 1.0 and r["step_ms_p50"]["step"] > 0
+            rrd = tmp_path / "ep.rrd"
+            record_episode(str(rrd), w, mission, tr, r)
+            out = subprocess.run([rerun_binary(), "rrd", "stats", str(rrd)], capture_output=True, text=True,
+                                 timeout=60)
+            assert out.returncode == 0, out.stderr
+            for ent in ("/robot/path", "/robot/position", "/map/voxels", "/truth/targets"):
+                assert ent in out.stdout, f"{ent} not in the recording:\n{out.stdout[:2000]}"
 
 
 def test_eval_search_outputs(tmp_path):

@@ -10,7 +10,8 @@ move is checked against the TRUE world (a collision ends the episode as failed).
 declaration counts when the declared instance's centroid lies within ``declare_m`` of an
 uncounted true instance of the target and the robot is within ``reach_m`` (+ one voxel) of
 it; otherwise it is a false find. World frame z up, metres; CPU times from
-``time.process_time`` (this process: edge chain, map and planner together).
+``time.process_time`` (this process: edge chain, map and planner together); wall times per
+stage (``step_ms_p50``: sense = render + encode + wire, map, search, plan, and the whole step).
 """
 from __future__ import annotations
 
@@ -78,6 +79,7 @@ class _Run:
     counted: set = field(default_factory=set)
     cpu: list = field(default_factory=list)
     search_ms: list = field(default_factory=list)
+    stage_ms: dict = field(default_factory=lambda: {"sense": [], "map": [], "search": [], "plan": [], "step": []})
 
     def move(self, robot: Platform, world: World, nxt: np.ndarray) -> bool:
         """Drive to ``nxt`` unless the body would touch the true world (then: collided)."""
@@ -132,11 +134,20 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         c0 = time.process_time()
         if trace is not None:
             trace.positions.append(run.pos.copy())
-        mapper.integrate([chain.frame(p) for p in chain.view_poses(robot, run.pos)])
+        t = [time.perf_counter()]
+        frames = [chain.frame(p) for p in chain.view_poses(robot, run.pos)]
+        t.append(time.perf_counter())
+        mapper.integrate(frames)
+        t.append(time.perf_counter())
         obs = mapper.observe([mission.target], run.pos, semantic=semantic, z_band=robot.goal_band)
+        t.append(time.perf_counter())
         run.search_ms.append(obs.search_ms)
         nav = NavField(obs.states, obs.origin, obs.cell, run.pos, robot.radius)
         d = decide(policy, obs, nav, run.pos, state, mission.reach_m)
+        t.append(time.perf_counter())
+        for k, a, b in zip(("sense", "map", "search", "plan"), t[:-1], t[1:], strict=True):
+            run.stage_ms[k].append((b - a) * 1e3)
+        run.stage_ms["step"].append((t[-1] - t[0]) * 1e3)
         _record(trace, obs, d, mapper, step)
         if d.declare is not None:
             state.declared.add(d.declare["id"])
@@ -186,4 +197,5 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
             "false_finds": int(run.false_finds), "finds": run.finds, "found": len(run.counted),
             "collided": run.collided, "cpu_ms_per_step": float(np.mean(run.cpu)) if run.cpu else 0.0,
             "search_ms_p50": float(np.median(run.search_ms)) if run.search_ms else 0.0,
+            "step_ms_p50": {k: float(np.median(v)) if v else 0.0 for k, v in run.stage_ms.items()},
             "end": [float(v) for v in run.pos], **mission.describe()}

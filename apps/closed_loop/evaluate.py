@@ -72,6 +72,9 @@ def _summary(rows: list[dict]) -> dict:
     s["steps"] = float(np.mean([r["steps"] for r in rows])) if rows else 0.0
     s["cpu_ms_per_step"] = float(np.mean([r["cpu_ms_per_step"] for r in rows])) if rows else 0.0
     s["collisions"] = int(sum(bool(r["collided"]) for r in rows))
+    stages = [r["step_ms_p50"] for r in rows if r.get("step_ms_p50", {}).get("step")]
+    if stages:
+        s["step_ms_p50"] = {k: float(np.median([x[k] for x in stages])) for k in stages[0]}
     return s
 
 
