@@ -1,11 +1,24 @@
 """The text-encoder interface shared by the label encoder (edge) and the query side (mapper)."""
 from __future__ import annotations
 
+import threading
 from typing import Protocol, Sequence
 
 import torch
 
 from encoders.text.templates import IMAGENET_TEMPLATES, SINGLE_TEMPLATE, fill
+
+#: one import of transformers at a time: its lazy module is not thread-safe (a mapper's first
+#: search and its text warm-up thread importing at once saw "cannot import name 'AutoModel'")
+TRANSFORMERS_LOCK = threading.RLock()
+
+
+def transformers_names(*names: str) -> tuple:
+    """``names`` from the transformers package, imported under :data:`TRANSFORMERS_LOCK`."""
+    with TRANSFORMERS_LOCK:
+        import transformers
+
+        return tuple(getattr(transformers, n) for n in names)
 
 
 class TextEncoder(Protocol):

@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from common.model_files import ModelFileError
-from encoders.text.base import CachedTextEncoder
+from encoders.text.base import TRANSFORMERS_LOCK, CachedTextEncoder, transformers_names
 
 
 def minilm_model_dir() -> Path:
@@ -81,12 +81,15 @@ class MiniLMText(CachedTextEncoder):
 
     def _load(self) -> None:
         _quiet_transformers()
-        from transformers import AutoModel, AutoTokenizer
-
-        d = self.model_dir
-        self.tokenizer = AutoTokenizer.from_pretrained(str(d), local_files_only=True)
-        self.model = AutoModel.from_pretrained(str(d), local_files_only=True).to(self.device).eval()
-        self.dim = int(self.model.config.hidden_size)
+        with TRANSFORMERS_LOCK:
+            if self.model is not None:
+                return
+            AutoModel, AutoTokenizer = transformers_names("AutoModel", "AutoTokenizer")
+            d = self.model_dir
+            self.tokenizer = AutoTokenizer.from_pretrained(str(d), local_files_only=True)
+            model = AutoModel.from_pretrained(str(d), local_files_only=True).to(self.device).eval()
+            self.dim = int(model.config.hidden_size)
+            self.model = model
 
     def _embed(self, texts: list[str]) -> torch.Tensor:
         if self.model is None:

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from common.model_files import ModelFileError
-from encoders.text.base import CachedTextEncoder
+from encoders.text.base import CachedTextEncoder, transformers_names
 from encoders.text.minilm import _quiet_transformers
 
 _PUNCT = re.compile("[" + re.escape(string.punctuation) + "]")
@@ -58,7 +58,8 @@ class SiglipText(CachedTextEncoder):
         if probs:
             raise ModelFileError("SigLIP text model: " + "; ".join(probs))
         _quiet_transformers()
-        from transformers import AutoTokenizer, SiglipTextConfig, SiglipTextModel
+        AutoTokenizer, SiglipTextConfig, SiglipTextModel = transformers_names(
+            "AutoTokenizer", "SiglipTextConfig", "SiglipTextModel")
 
         d = Path(model_dir)
         raw = json.loads((d / "config.json").read_text())
