@@ -152,11 +152,11 @@ def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_pat
     episode's rerun recording read back by rerun's own CLI."""
     import subprocess
 
-    from apps.closed_loop.recording import record_episode
-    from mapper.outputs.rerun_view import rerun_binary
     from apps.closed_loop.episode import LoopSettings, Trace, run_episode
     from apps.closed_loop.policies import POLICIES
+    from apps.closed_loop.recording import record_episode
     from apps.closed_loop.robot import Platform
+    from mapper.outputs.rerun_view import rerun_binary
 
     w, chain, mission = loop
     robot = Platform.make("ground")
