@@ -22,7 +22,8 @@ import numpy as np
 
 from apps.closed_loop.metrics import spl
 from apps.closed_loop.missions import Mission, box_distance, xy_box_distance
-from apps.closed_loop.navigation import NavField, follow
+from apps.closed_loop.navigation import NavField
+from apps.closed_loop.planner import follow
 from apps.closed_loop.policies import POLICIES, PolicyState, decide
 from apps.closed_loop.robot import Platform
 from apps.closed_loop.sensing import EdgeChain

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from apps.closed_loop.planner import distance_field, path_to, traversable
+from apps.closed_loop.planner import distance_field, follow, path_to, traversable
 
 
 class NavField:
@@ -35,25 +35,5 @@ class NavField:
         (the first leg goes from ``at`` to the centre of the first cell after the start's)."""
         path = path_to(self.pred, tuple(int(v) for v in cell))
         pts = [np.asarray(at[:2], np.float64)] + [self.origin + (np.asarray(c) + 0.5) * self.cell for c in path[1:]]
-        left = float(step_m)
-        for a, b in zip(pts[:-1], pts[1:], strict=True):
-            seg = float(np.linalg.norm(b - a))
-            if seg >= left:
-                return a + (b - a) * (left / seg) if seg > 0 else a
-            left -= seg
-        return pts[-1]
-
-
-def follow(points: np.ndarray, done_m: float, step_m: float) -> tuple[np.ndarray, float]:
-    """Point after driving ``step_m`` more along polyline ``points`` (N, 2) having driven
-    ``done_m`` already, and the new driven length (clipped at the polyline's end)."""
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    total = float(seg.sum())
-    target = min(total, done_m + step_m)
-    if len(seg) == 0 or total == 0.0:
-        return points[-1].copy(), 0.0
-    cum = np.r_[0.0, np.cumsum(seg)]
-    i = int(min(np.searchsorted(cum, target, side="right") - 1, len(seg) - 1))
-    t = (target - cum[i]) / seg[i] if seg[i] > 0 else 0.0
-    return points[i] + (points[i + 1] - points[i]) * t, target
+        return follow(np.asarray(pts), 0.0, step_m)[0]
 

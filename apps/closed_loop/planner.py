@@ -84,16 +84,25 @@ def path_length(path: list[tuple[int, ...]], cell: float) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() * cell) if len(p) > 1 else 0.0
 
 
+def follow(points: np.ndarray, done_m: float, step_m: float) -> tuple[np.ndarray, float]:
+    """Point after driving ``step_m`` more along polyline ``points`` (N, D) having driven
+    ``done_m`` already, and the new driven length (clipped at the polyline's end)."""
+    points = np.asarray(points, np.float64)
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    total = float(seg.sum())
+    if len(seg) == 0 or total == 0.0:
+        return points[-1].copy(), 0.0
+    target = min(total, done_m + step_m)
+    cum = np.r_[0.0, np.cumsum(seg)]
+    i = int(min(np.searchsorted(cum, target, side="right") - 1, len(seg) - 1))
+    t = (target - cum[i]) / seg[i] if seg[i] > 0 else 0.0
+    return points[i] + (points[i + 1] - points[i]) * t, target
+
+
 def advance(path: list[tuple[int, ...]], origin: np.ndarray, cell: float, step_m: float) -> np.ndarray:
     """Point (metres, world) reached after moving at most ``step_m`` along the path's cell centres."""
     pts = (np.asarray(path, np.float64) + 0.5) * cell + np.asarray(origin, np.float64)
-    left = float(step_m)
-    for a, b in zip(pts[:-1], pts[1:], strict=True):
-        seg = float(np.linalg.norm(b - a))
-        if seg >= left:
-            return a + (b - a) * (left / seg) if seg > 0 else a
-        left -= seg
-    return pts[-1]
+    return follow(pts, 0.0, step_m)[0]
 
 
 # ----------------------------------------------------------------- grid planning with scipy

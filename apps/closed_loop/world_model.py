@@ -102,7 +102,6 @@ class LocalMapper:
                             z_band=None if z_band is None else [float(v) for v in z_band]).validate()
         rep = answer_search(self.snap, self.space, req, self._search_cfg(semantic), self.trackers,
                             lambda fn: fn(self.map), map_version=self.frames)
-        self.last_reply = rep
         ms = (time.perf_counter() - t) * 1e3
         vox = float(self.map.cfg.vox_size)
         lo, hi = np.asarray(at[:2]) - self.window, np.asarray(at[:2]) + self.window
