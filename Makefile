@@ -29,7 +29,7 @@ demo: $(DEMO_STAMP)
 	$(VENV)/bin/rayfronts demo --out $(OUT)
 
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q -rs -p no:cacheprovider $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q -rs -p no:cacheprovider --durations=30 $(PYTEST_ARGS)
 
 # ruff with the rule set in pyproject.toml ([tool.ruff]; ruff comes with the test extra)
 lint: $(STAMP)

@@ -10,6 +10,8 @@ experiments can share one Zenoh network::
     <p>/robots/<robot>/feature_space   edge queryable (feature-space id, PCA basis, ...)
     <p>/robots/<robot>/edge_status     edge publishes (and serves) its own state: starting /
                                        running / done / refused / failed, with the reason
+    <p>/robots/<robot>/sim/views       a simulator puts the camera poses its robot's edge renders
+                                       next (edge source.kind=sim_camera; the closed loop)
     <p>/mapper/alive                   mapper liveliness token
     <p>/mapper/shards/<name>           mapper shard liveliness token (shard.name set)
     <p>/mapper/query                   mapper queryable: run a query now
@@ -124,6 +126,11 @@ class KeySpace:
     @property
     def edge_status_all(self) -> str:
         return f"{self.prefix}/robots/*/edge_status"
+
+    def sim_views(self, robot: str) -> str:
+        """Camera poses a simulator asks robot ``robot``'s edge to render next
+        (``common.messages.encode_sim_views``; edge ``source.kind=sim_camera``)."""
+        return f"{self.robot_root(robot)}/sim/views"
 
     # ------------------------------------------------------------------ mapper
     @property

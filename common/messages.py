@@ -29,6 +29,7 @@ SCHEMA_SNAPSHOT_REQUEST = "rayfronts.snapshot_request"
 SCHEMA_SNAPSHOT_REPLY = "rayfronts.snapshot_reply"
 SCHEMA_ERROR = "rayfronts.error"
 SCHEMA_EDGE_STATUS = "rayfronts.edge_status"
+SCHEMA_SIM_VIEWS = "rayfronts.sim_views"
 VERSION = 1
 
 #: limits on query requests (a request over them is rejected, not truncated)
@@ -376,3 +377,30 @@ def decode_edge_status(data: bytes | bytearray | memoryview, limits: WireLimits 
     if isinstance(stamp, bool) or not isinstance(stamp, (int, float)):
         raise MessageError(f"{SCHEMA_EDGE_STATUS}: stamp must be a number")
     return {"robot": robot, "state": state, "reason": reason, "stamp": float(stamp)}
+
+
+# ------------------------------------------------------------------ simulated camera
+#: most camera poses one sim-views message may ask for
+MAX_SIM_VIEWS = 64
+
+
+def encode_sim_views(step: int, poses: np.ndarray) -> bytes:
+    """Camera poses (N, 4, 4) camera-to-world (RDF camera axes, metres) a simulator asks its
+    robot's edge to render next, as step ``step`` of an episode (``source.kind=sim_camera``)."""
+    p = np.ascontiguousarray(poses, np.float64).reshape(-1, 4, 4)
+    return encode_message(SCHEMA_SIM_VIEWS, VERSION, {"step": int(step), "poses": p})
+
+
+def decode_sim_views(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> tuple[int, np.ndarray]:
+    """→ ``(step, poses (N, 4, 4) float64)``; 1 ≤ N ≤ :data:`MAX_SIM_VIEWS`, every pose finite."""
+    body = _decode(data, SCHEMA_SIM_VIEWS, limits)
+    step = body.get("step")
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise MessageError(f"{SCHEMA_SIM_VIEWS}: step must be an integer >= 0, got {step!r}")
+    poses = _arr(body, "poses", SCHEMA_SIM_VIEWS, np.float64, 3)
+    if poses.shape[1:] != (4, 4) or not 1 <= len(poses) <= MAX_SIM_VIEWS:
+        raise MessageError(f"{SCHEMA_SIM_VIEWS}: poses must be (N, 4, 4) with 1 <= N <= {MAX_SIM_VIEWS}, "
+                           f"got {poses.shape}")
+    if not np.isfinite(poses).all():
+        raise MessageError(f"{SCHEMA_SIM_VIEWS}: poses must be finite")
+    return step, poses

@@ -106,7 +106,7 @@ def check_inputs(cfg: EdgeConfig) -> None:
         from edge.sources import open_source
 
         open_source(src)
-    if src.kind not in ("synthetic", "ros2"):
+    if src.kind not in ("synthetic", "ros2", "sim_camera"):
         if not src.path:
             raise ConfigError(f"source.kind={src.kind} needs source.path (the dataset / recording / bag location)")
         if not Path(src.path).expanduser().exists():

@@ -502,7 +502,7 @@ class EdgeRuntime:
         from edge.sources import open_source
 
         extra = {}
-        if self.cfg.source.kind == "ros2":  # live topics: the edge's Zenoh settings and its stop event
+        if self.cfg.source.kind in ("ros2", "sim_camera"):  # live: the edge's Zenoh settings and its stop event
             extra = {"zenoh": self.cfg.zenoh, "stop": self.stop}
         src = open_source(self.cfg.source, **extra)
         return src, list(getattr(src, "class_names", None) or []) or None

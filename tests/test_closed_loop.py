@@ -181,6 +181,47 @@ def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_pat
                 assert ent in out.stdout, f"{ent} not in the recording:\n{out.stdout[:2000]}"
 
 
+@pytest.mark.timeout(400)
+def test_live_loop_over_zenoh_finds_the_car_on_the_in_process_map(loop, tmp_path):
+    """``--distributed`` in small: real mapper and edge processes over loopback Zenoh, the
+    edge rendering the poses the simulator puts (``source.kind=sim_camera``), the planner on
+    Client.search / occupancy_slice. The robot finds the car within its budget, and the live
+    mapper's map equals the in-process map of the same views (voxel for voxel, scores within
+    the query tolerance). A malformed sim-views message is counted by the edge, which keeps
+    serving."""
+    from apps.closed_loop.distributed import LiveMapper
+    from apps.closed_loop.episode import LoopSettings, Trace, run_episode
+    from apps.closed_loop.missions import make_mission
+    from apps.closed_loop.robot import Platform
+    from apps.closed_loop.world_model import LocalMapper, mapper_config
+    from common.messages import QueryRequest
+    from mapper.query_answer import answer_snapshot
+    from semantic_map.query_snapshot import SCORE_ATOL
+
+    w, chain, _ = loop
+    robot, s = Platform.make("ground"), LoopSettings()
+    mission = make_mission(w, robot, "object", "car", np.random.default_rng(0), budget_steps=12)
+    cfg = mapper_config("rayfronts", s.depth_limit_m, s.vox_m, chain.cfg.resolution, s.preset)
+    with LiveMapper(3, "default", chain, cfg, robot.costmap_band(s.vox_m), s.window_m, tmp_path) as live:
+        live._views.put(b"not a sim-views message")
+        trace = Trace()
+        r = run_episode(w, mission, "rayfronts", s, chain=chain, mapper=live, trace=trace)
+        assert live.mapped() == live.sent == chain.cfg.views * r["steps"]
+        got = live.client.query("car", top_k=100_000, timeout=60.0)
+    assert r["success"] and r["found"] == 1 and not r["collided"], r
+    local = LocalMapper(chain.space, cfg, robot.costmap_band(s.vox_m), s.window_m)
+    for pos in trace.positions[:r["steps"]]:
+        local.integrate([chain.frame(p) for p in chain.view_poses(robot, pos)])
+    local.snap.reserve(local.map)
+    local.snap.sync(local.map, local.frames, local.frames)
+    ref = answer_snapshot(local.snap, chain.space, QueryRequest(text="car", top_k=100_000), cfg.query)
+    mine = dict(zip(map(tuple, np.round(ref.voxel_xyz, 3)), ref.voxel_score, strict=True))
+    theirs = dict(zip(map(tuple, np.round(got.voxel_xyz, 3)), got.voxel_score, strict=True))
+    assert len(theirs) == len(mine) == len(local.map.sem) > 100 and set(theirs) == set(mine)
+    assert max(abs(mine[k] - theirs[k]) for k in mine) <= SCORE_ATOL
+    assert "sim_camera: ignoring a message" in (tmp_path / "edge.log").read_text()
+
+
 def test_eval_search_outputs(tmp_path):
     """``rayfronts eval search`` on one tiny run: the JSON's exact top-level shape, the table,
     the CSV rows (one per episode) and the plots."""

@@ -2,7 +2,8 @@
 
 Per step the robot's views are rendered and sent through the edge chain
 (:class:`apps.closed_loop.sensing.EdgeChain`), fused by the policy's map
-(:class:`apps.closed_loop.world_model.LocalMapper`, or a real mapper over Zenoh), searched for
+(:class:`apps.closed_loop.world_model.LocalMapper`, or real edge and mapper processes over Zenoh:
+:class:`apps.closed_loop.distributed.LiveMapper`, whose edge renders the views), searched for
 the mission's target; the policy (:mod:`apps.closed_loop.policies`) picks a goal or declares
 a found instance; the robot moves at most ``step_m`` along the shortest path through the
 map's traversable known-free cells (:class:`apps.closed_loop.navigation.NavField`) and the
@@ -136,10 +137,16 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         if trace is not None:
             trace.positions.append(run.pos.copy())
         t = [time.perf_counter()]
-        frames = [chain.frame(p) for p in chain.view_poses(robot, run.pos)]
-        t.append(time.perf_counter())
-        mapper.integrate(frames)
-        t.append(time.perf_counter())
+        poses = chain.view_poses(robot, run.pos)
+        if getattr(mapper, "renders_remotely", False):   # a live edge renders and sends; sense = whole trip
+            mapper.sense(poses)
+            t.append(time.perf_counter())
+            t.append(t[-1])
+        else:
+            frames = [chain.frame(p) for p in poses]
+            t.append(time.perf_counter())
+            mapper.integrate(frames)
+            t.append(time.perf_counter())
         obs = mapper.observe([mission.target], run.pos, semantic=semantic, z_band=robot.goal_band)
         t.append(time.perf_counter())
         run.search_ms.append(obs.search_ms)
@@ -171,8 +178,9 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
                 chain: EdgeChain | None = None, mapper=None, trace: Trace | None = None) -> dict:
     """Run ``policy`` on ``mission``; returns the episode row (``success``, ``spl``, ``path_m``,
     ``steps``, ``false_finds``, ``finds`` [(step, path_m)], ``collided``, ``cpu_ms_per_step``,
-    ``search_ms_p50``, ...). ``mapper``: an object with ``integrate(frames)`` and
-    ``observe(targets, at, semantic=..., z_band=...)`` (default: a new LocalMapper for the policy)."""
+    ``search_ms_p50``, ...). ``mapper``: an object with ``integrate(frames)`` (or, with
+    ``renders_remotely``, ``sense(poses)``) and ``observe(targets, at, semantic=..., z_band=...)``
+    (default: a new LocalMapper for the policy)."""
     if policy not in POLICIES:
         raise ValueError(f"unknown policy {policy!r}; one of {', '.join(POLICIES)}")
     robot = Platform.make(settings.platform)

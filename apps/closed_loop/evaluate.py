@@ -50,6 +50,8 @@ class SearchEvalConfig:
     budget_scale: float = 1.0
     resolution: int = 224
     step_m: float = 2.0
+    distributed: bool = False      # real mapper and edge processes over Zenoh per episode (LiveMapper)
+    work_dir: str = ""             # --distributed: the processes' config files and logs ('' = a temp dir)
 
     def validate(self) -> "SearchEvalConfig":
         bad = [p for p in self.policies if p not in POLICIES]
@@ -64,6 +66,9 @@ class SearchEvalConfig:
         Platform.make(self.platform)
         if self.episodes < 1 or self.budget_scale <= 0:
             raise ValueError("--episodes must be >= 1 and the budget scale > 0")
+        if self.distributed and "sem-poses" in self.policies:
+            raise ValueError("--distributed: sem-poses scores the robot's camera poses in process (the mapper serves "
+                             "no pose scores); leave it out with --policies")
         return self
 
 
@@ -89,6 +94,27 @@ def summarize_policies(rows: list[dict], policies: list[str]) -> dict:
         s["by_kind"] = {k: _summary([r for r in mine if r["kind"] == k]) for k in sorted({r["kind"] for r in mine})}
         out[p] = s
     return out
+
+
+def _episode(cfg: SearchEvalConfig, world, seed: int, mission, policy: str, settings: LoopSettings, chain: EdgeChain,
+             trace: Trace | None) -> dict:
+    """One episode, in process or (``cfg.distributed``, map-based policies) with a live mapper
+    and edge started for it (:class:`apps.closed_loop.distributed.LiveMapper`)."""
+    method, semantic, _ = POLICIES[policy]
+    if not cfg.distributed or method is None:
+        return run_episode(world, mission, policy, settings, chain=chain, trace=trace)
+    import tempfile
+
+    from apps.closed_loop.distributed import LiveMapper
+    from apps.closed_loop.world_model import mapper_config
+
+    mcfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset)
+    robot = Platform.make(settings.platform)
+    with tempfile.TemporaryDirectory(dir=cfg.work_dir or None) as work, \
+            LiveMapper(seed, "default", chain, mcfg, robot.costmap_band(settings.vox_m), settings.window_m,
+                       Path(work), semantic=semantic) as live:
+        return run_episode(world, mission, policy, settings, chain=chain, mapper=live, trace=trace) | {
+            "distributed": True}
 
 
 def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None) -> dict:
@@ -119,7 +145,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None) -> dic
                     settings = dataclasses.replace(settings0, depth_limit_m=float(depth))
                     for p in cfg.policies:
                         trace = Trace() if rerun_path and not recorded and p == "rayfronts" else None
-                        r = run_episode(world, mission, p, settings, chain=chain, trace=trace)
+                        r = _episode(cfg, world, seed, mission, p, settings, chain, trace)
                         r.update(seed=seed, episode=e, depth_limit_m=float(depth), platform=cfg.platform)
                         rows.append(r)
                         log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",

@@ -103,7 +103,8 @@ def _search_parser(sub) -> None:
                     help="depth limit(s) in metres, repeatable or comma list (default 20)")
     se.add_argument("--seeds", default="0", help="world seeds, comma list or A-B range (default 0)")
     se.add_argument("--episodes", type=int, default=1, help="missions per seed and mission kind (default 1)")
-    se.add_argument("--policies", default=",".join(POLICIES), help=f"comma list (default all: {','.join(POLICIES)})")
+    se.add_argument("--policies", default=None,
+                    help=f"comma list (default all: {','.join(POLICIES)}; with --distributed all but sem-poses)")
     se.add_argument("--missions", default="object,landmark",
                     help=f"comma list of mission kinds: {', '.join(MISSIONS)} (default object,landmark)")
     se.add_argument("--budget-scale", type=float, default=1.0, help="scale the step budgets (default 1)")
@@ -111,6 +112,12 @@ def _search_parser(sub) -> None:
     se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
     se.add_argument("--json", required=True, metavar="FILE", help="summary + episode rows (.md/.csv/.png beside)")
     se.add_argument("--rerun", default=None, metavar="FILE.rrd", help="record the first rayfronts episode")
+    se.add_argument("--distributed", action="store_true",
+                    help="run each map-based episode with real mapper and edge processes over loopback Zenoh (the "
+                         "edge renders the robot's views; this process plans through Client.search and the "
+                         "occupancy queries); slower, same maps")
+    se.add_argument("--work-dir", default="", metavar="DIR",
+                    help="--distributed: where the processes' configs and logs go (default: a temp dir, removed)")
 
 
 def _seeds(text: str) -> list[int]:
@@ -127,12 +134,18 @@ def _seeds(text: str) -> list[int]:
 
 def _run_search(args: argparse.Namespace) -> int:
     from apps.closed_loop.evaluate import SearchEvalConfig, run_search_eval, table_markdown, write_outputs
+    from apps.closed_loop.policies import POLICIES
 
     depths = [float(x) for a in (args.depth_limit or ["20"]) for x in a.split(",") if x.strip()]
+    if args.policies is None:
+        policies = [p for p in POLICIES if not (args.distributed and p == "sem-poses")]
+    else:
+        policies = [p.strip() for p in args.policies.split(",") if p.strip()]
     cfg = SearchEvalConfig(platform=args.platform, depth_limits=depths, seeds=_seeds(args.seeds),
-                           episodes=args.episodes, policies=[p.strip() for p in args.policies.split(",") if p.strip()],
+                           episodes=args.episodes, policies=policies,
                            missions=[m.strip() for m in args.missions.split(",") if m.strip()],
-                           budget_scale=args.budget_scale, resolution=args.resolution, step_m=args.step).validate()
+                           budget_scale=args.budget_scale, resolution=args.resolution, step_m=args.step,
+                           distributed=args.distributed, work_dir=args.work_dir).validate()
     doc = run_search_eval(cfg, args.rerun)
     paths = write_outputs(doc, args.json)
     print(table_markdown(doc))

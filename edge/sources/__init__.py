@@ -39,6 +39,7 @@ KINDS = {
     "recording": "edge.sources.recording:RecordingSource",
     "rosbag": "edge.sources.rosbag:RosbagSource",
     "ros2": "edge.sources.ros2:Ros2Source",
+    "sim_camera": "edge.sources.sim_camera:SimCameraSource",
 }
 
 
