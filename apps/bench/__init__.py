@@ -39,6 +39,7 @@ TARGETS = {
     "query": "apps.bench.query",
     "search": "apps.bench.search",
     "faults": "apps.bench.faults",
+    "mission": "apps.bench.mission",
 }
 
 #: (name, argv, quick argv) of every figure the README quotes, in table order. A name's
@@ -69,6 +70,8 @@ ALL: list[tuple[str, list[str], list[str]]] = [
     ("fleet", ["fleet", "--robots", "1,2,4", "--fake-ids", "1000"],
      ["fleet", "--robots", "1,2", "--frames", "8", "--warmup", "1", "--seconds", "3"]),
     ("faults", ["faults"], ["faults", "--only", "decode"]),
+    ("mission", ["mission", "--frames", "12000"],
+     ["mission", "--frames", "60", "--resolution", "64x64", "--queries", "1", "--query-source", "random"]),
 ]
 
 

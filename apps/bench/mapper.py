@@ -71,11 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "stay on the CPU, map tensors elsewhere take the torch paths")
 
 
-def _rss_mb() -> float:
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MiB (``ru_maxrss``)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-class _Side:
+class FeedSide:
     """One map fed frame blocks; sums wall and process CPU over its blocks."""
 
     def __init__(self, name: str, m: RayFrontsMap, pipeline: bool, kernels_on: bool, threads: int) -> None:
@@ -187,7 +188,7 @@ def run(args: argparse.Namespace) -> dict:
         over.update(parse_override(item))
     cfg = map_config(args.preset, over)
     frames, K, render_s = _render_frames(args, hw)
-    rss_before = _rss_mb()
+    rss_before = peak_rss_mb()
     n = len(frames)
     use_kernels = kernels.enabled() and not args.no_kernels
 
@@ -211,11 +212,11 @@ def _run_compare(args: argparse.Namespace, res: dict, new_map: Callable[[], RayF
 
     n = len(frames)
     if args.compare == "kernels":
-        sides = [_Side("kernels", new_map(), not args.no_pipeline, True, args.threads),
-                 _Side("torch", new_map(), not args.no_pipeline, False, args.threads)]
+        sides = [FeedSide("kernels", new_map(), not args.no_pipeline, True, args.threads),
+                 FeedSide("torch", new_map(), not args.no_pipeline, False, args.threads)]
     else:
-        sides = [_Side("pipeline", new_map(), True, use_kernels, args.threads),
-                 _Side("sequential", new_map(), False, use_kernels, args.threads)]
+        sides = [FeedSide("pipeline", new_map(), True, use_kernels, args.threads),
+                 FeedSide("sequential", new_map(), False, use_kernels, args.threads)]
     with meta.timed("interleaved", frames=2 * n):
         for s in range(0, n, args.block):
             for side in sides:
@@ -230,7 +231,7 @@ def _run_compare(args: argparse.Namespace, res: dict, new_map: Callable[[], RayF
     fps_b = res["sides"][b.name]["frames_per_s"]
     res[f"{a.name}_vs_{b.name}_fps"] = round(res["sides"][a.name]["frames_per_s"] / fps_b, 3) if fps_b else None
     res[f"{a.name}_vs_{b.name}_cpu"] = round(a.cpu / b.cpu, 3) if b.cpu else None
-    res["peak_rss_mb"] = round(_rss_mb(), 1)
+    res["peak_rss_mb"] = round(peak_rss_mb(), 1)
     res["main_section"] = None
     return res
 
@@ -245,7 +246,7 @@ def _run_main(args: argparse.Namespace, res: dict, m: RayFrontsMap, frames: list
     from apps.bench import meta
 
     n = len(frames)
-    side = _Side("main", m, not args.no_pipeline, use_kernels, args.threads)
+    side = FeedSide("main", m, not args.no_pipeline, use_kernels, args.threads)
     windows = []
     step = args.window if args.growing else n
     with meta.timed("integrate", frames=n):
@@ -254,7 +255,7 @@ def _run_main(args: argparse.Namespace, res: dict, m: RayFrontsMap, frames: list
             load0 = meta.loadavg()
             side.feed(frames[s:s + step], K)
             if args.growing:
-                windows.append(_window_record(side, s, min(step, n - s), c0, w0, st0, load0))
+                windows.append(window_record(side, s, min(step, n - s), c0, w0, st0, load0))
     side.close()
     t1 = time.perf_counter()
     m.flush()
@@ -271,7 +272,7 @@ def _run_main(args: argparse.Namespace, res: dict, m: RayFrontsMap, frames: list
         "cpu_ms_per_frame": summ["cpu_ms_per_frame"],
         "flush_ms": round(1e3 * (t2 - t1), 2), "query_ms_4q": round(1e3 * (t3 - t2), 2),
         "stage_ms_per_frame": summ["stage_ms_per_frame"],
-        "peak_rss_mb": round(_rss_mb(), 1),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
         "n_voxels": st["n_voxels"], "n_frontiers": st["n_frontiers"], "n_rays": st["n_rays"],
         "n_occupancy_active": st["n_occupancy_active"], "map_memory_mb": round(st["memory_bytes"] / 2**20, 2),
     })
@@ -284,7 +285,7 @@ def _run_main(args: argparse.Namespace, res: dict, m: RayFrontsMap, frames: list
     return res
 
 
-def _window_record(side: _Side, s: int, k: int, c0: float, w0: float, st0: dict[str, float],
+def window_record(side: FeedSide, s: int, k: int, c0: float, w0: float, st0: dict[str, float],
                    load0: list[float]) -> dict:
     """``--growing``: one window of ``k`` frames from frame ``s`` (side totals before it: CPU
     ``c0``, wall ``w0``, stages ``st0``; load average ``load0``)."""
