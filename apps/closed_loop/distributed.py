@@ -32,6 +32,15 @@ START_S = 120.0
 STEP_S = 60.0
 
 
+def _listening(port: int) -> bool:
+    """Whether something accepts TCP connections on loopback ``port``."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.settimeout(0.5)
+        return sock.connect_ex(("127.0.0.1", port)) == 0
+
+
 class LiveMapper:
     """A mapper process and the robot's edge process, driven step by step (a context manager).
 
@@ -90,6 +99,9 @@ class LiveMapper:
         from common.zenoh_session import ZenohConfig
         from query_client.client import Client
 
+        port = int(self.endpoint.rsplit(":", 1)[1])
+        wait_for(lambda: self._alive() and _listening(port), START_S, what="the mapper's Zenoh router",
+                 error=RuntimeError)
         self.client = Client(ZenohConfig(mode="client", connect=[self.endpoint]))
         self._views = self.client.session.declare_publisher(KeySpace(self.client.keys.prefix).sim_views(self.robot))
         wait_for(lambda: self._alive() and self._views.matching_status.matching, START_S,
