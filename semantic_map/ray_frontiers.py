@@ -252,6 +252,29 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, base, cost)
 
 
+def frontiers_near(keys: torch.Tensor, origins: torch.Tensor, reach: float, beta: float) -> torch.Tensor:
+    """Ascending indices into the ascending packed coarse ``keys`` (cell size ``beta``) of every
+    frontier whose cell lies in the axis-aligned box of ``origins`` (world metres) grown by
+    ``reach`` metres and one more cell: a superset of the frontiers whose centre is within
+    ``reach`` of some origin. Reads only the keys of the box (per i-plane of the box, the run
+    of its j-rows, found by binary search), so the cost follows the box, not the table."""
+    e = torch.empty(0, dtype=torch.int64, device=keys.device)
+    if keys.numel() == 0 or origins.shape[0] == 0:
+        return e
+    o = origins.to(torch.float64)
+    lo = torch.floor((o.min(0).values - reach) / beta).to(torch.int64) - 1
+    hi = torch.floor((o.max(0).values + reach) / beta).to(torch.int64) + 1
+    lo = lo.clamp(-cell_keys.OFFSET, cell_keys.OFFSET - 1).to(keys.device) + cell_keys.OFFSET
+    hi = hi.clamp(-cell_keys.OFFSET, cell_keys.OFFSET - 1).to(keys.device) + cell_keys.OFFSET
+    b = cell_keys.BITS
+    planes = torch.arange(int(lo[0]), int(hi[0]) + 1, dtype=torch.int64, device=keys.device) << (2 * b)
+    first = torch.searchsorted(keys, planes | (lo[1] << b))
+    last = torch.searchsorted(keys, planes | (hi[1] << b) | cell_keys.MASK, right=True)
+    _, pos = _expand(first, last - first)
+    k = keys[pos] & cell_keys.MASK
+    return pos[(k >= lo[2]) & (k <= hi[2])]
+
+
 def _nearest(o: torch.Tensor, p: torch.Tensor) -> Association:
     """Zero-depth association: nearest frontier per ray (computed per unique origin)."""
     uo, inv = torch.unique(o, dim=0, return_inverse=True)
@@ -284,17 +307,76 @@ def associate_bruteforce(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk
 
 
 # --------------------------------------------------------------------------- store
+#: per-field dtype of a store row (``feat`` in the store's ``feature_dtype``)
+_ROW_DTYPES = {"fkey": torch.int64, "tbin": torch.int64, "pbin": torch.int64, "weight": torch.float32,
+               "dsum": torch.float32}
+
+
+def _lexsort(k: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Permutation that sorts pairs ``(k, b)`` lexicographically (stable)."""
+    o = torch.argsort(b, stable=True)
+    return o[torch.argsort(k[o], stable=True)]
+
+
+def _expand(lo: torch.Tensor, cnt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(query id, position) of every position in the ranges ``[lo[q], lo[q] + cnt[q])``."""
+    q = torch.repeat_interleave(torch.arange(cnt.numel(), device=cnt.device), cnt)
+    start = torch.cumsum(cnt, 0) - cnt
+    return q, lo[q] + (torch.arange(q.numel(), device=cnt.device) - start[q])
+
+
+class _Run:
+    """One sorted run of the store's index: frontier key ``k``, bin ``b`` (``tbin * n_phi +
+    pbin``) and row ``r`` per entry, sorted by ``(k, b)``; ``r = -1`` is a tombstone."""
+
+    __slots__ = ("k", "b", "r")
+
+    def __init__(self, k: torch.Tensor, b: torch.Tensor, r: torch.Tensor) -> None:
+        self.k, self.b, self.r = k, b, r
+
+    def __len__(self) -> int:
+        return self.k.numel()
+
+    def ranges(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(query id, entry position) of every entry whose key is in ``keys``."""
+        lo = torch.searchsorted(self.k, keys)
+        return _expand(lo, torch.searchsorted(self.k, keys, right=True) - lo)
+
+    def find(self, keys: torch.Tensor, bins: torch.Tensor) -> torch.Tensor:
+        """Entry position of each pair ``(keys[i], bins[i])`` (tombstones included), -1 if absent."""
+        q, pos = self.ranges(keys)
+        hit = self.b[pos] == bins[q]
+        out = torch.full((keys.numel(),), -1, dtype=torch.int64, device=keys.device)
+        out[q[hit]] = pos[hit]
+        return out
+
+
 class RayStore:
-    """Binned semantic rays, sorted by (frontier key, bin id).
+    """Binned semantic rays: one row per (frontier key, angle bin).
 
     Per bin: frontier key (packed coarse ijk), theta/phi bin, feature = weighted mean
     (stored in ``feature_dtype``), accumulated weight, weighted sum of unit directions.
 
-    Incremental: :meth:`merge` finds each new (frontier, bin) by binary search on the sorted
-    frontier keys and scans only that frontier's bins; new bins are placed by one ordered
-    scatter (no sort of the store); :meth:`prune_keys` drops the bins of given vanished
-    frontiers the same way. Results (values and order) equal the full-scan :meth:`prune`
-    and the sort-based merge they replace (``tests/test_mapper_incremental.py``)."""
+    Storage (a ray block costs O(changed bins · log store) amortised, never a rewrite of the store):
+
+    * rows are append-only (capacity doubling); a pruned bin's row is a tombstone (``live``
+      false) until a compaction drops the dead rows, once they are half of the rows;
+    * an index from ``(frontier key, bin)`` to row, kept across ray blocks as a few sorted
+      runs (a log-structured merge: a block's new bins form a new run, runs of similar size
+      are merged, so every entry is merged O(log) times); pruning a frontier marks its
+      entries as tombstones (a bin that comes back reuses its entry), dropped when runs merge
+      or when they are half of the index.
+
+    The observable store is the *canonical view*: the live bins sorted by ``(frontier key,
+    theta bin, phi bin)``, the order the previous sorted-array store kept. The attributes
+    ``fkey``, ``tbin``, ``pbin``, ``feat``, ``weight``, ``dsum``, :meth:`state`, :meth:`origins`,
+    :meth:`directions` and the rays :meth:`prune` / :meth:`prune_keys` return all follow it (built
+    on first read after a change, O(store), and cached), so values, order and snapshots equal
+    the sorted store's (``tests/test_ray_store.py`` checks against that algorithm)."""
+
+    _FIELDS = ("fkey", "tbin", "pbin", "feat", "weight", "dsum")
+    _RUN_RATIO = 4        # a run is merged into the previous one while that one is at most this many times larger
+    _MIN_COMPACT = 4096   # below this many dead rows / index tombstones nothing is compacted
 
     def __init__(self, beta: float, psi: float, feature_dim: int, feature_dtype: torch.dtype = torch.float32,
                  device: str | torch.device = "cpu") -> None:
@@ -304,72 +386,240 @@ class RayStore:
         self.dtype = feature_dtype
         self.device = torch.device(device)
         self.nt, self.np_ = bin_counts(psi)
+        self._reset(0)
+
+    # -- storage -------------------------------------------------------------------------
+    def _reset(self, cap: int) -> None:
         dev = self.device
-        self.fkey = torch.empty(0, dtype=torch.int64, device=dev)
-        self.tbin = torch.empty(0, dtype=torch.int64, device=dev)
-        self.pbin = torch.empty(0, dtype=torch.int64, device=dev)
-        self.feat = torch.empty((0, self.dim), dtype=self.dtype, device=dev)
-        self.weight = torch.empty(0, dtype=torch.float32, device=dev)
-        self.dsum = torch.empty((0, 3), dtype=torch.float32, device=dev)
+        self._n = 0                 # rows in use (live + dead)
+        self._n_dead = 0            # dead rows among them
+        self._n_tomb = 0            # tombstones in the index
+        self._rk = torch.zeros(cap, dtype=torch.int64, device=dev)           # frontier key
+        self._rb = torch.zeros(cap, dtype=torch.int64, device=dev)           # bin = tbin * n_phi + pbin
+        self._rf = torch.zeros((cap, self.dim), dtype=self.dtype, device=dev)  # feature
+        self._rw = torch.zeros(cap, dtype=torch.float32, device=dev)         # weight
+        self._rd = torch.zeros((cap, 3), dtype=torch.float32, device=dev)    # direction sum
+        self._live = torch.zeros(cap, dtype=torch.bool, device=dev)
+        self._runs: list[_Run] = []
+        self._view: dict[str, torch.Tensor] = {}
 
+    def _grow(self, need: int) -> None:
+        cap = self._rk.shape[0]
+        if need <= cap:
+            return
+        cap = max(need, 2 * cap, 64)
+        for name in ("_rk", "_rb", "_rf", "_rw", "_rd", "_live"):
+            old = getattr(self, name)
+            new = torch.zeros((cap,) + tuple(old.shape[1:]), dtype=old.dtype, device=self.device)
+            new[: self._n] = old[: self._n]
+            setattr(self, name, new)
+
+    def _changed(self) -> None:
+        self._view = {}
+
+    def _add_run(self, run: _Run) -> None:
+        """Append a sorted run; merge runs of similar size (the log-structured merge)."""
+        self._runs.append(run)
+        while len(self._runs) >= 2 and len(self._runs[-2]) <= self._RUN_RATIO * len(self._runs[-1]):
+            b = self._runs.pop()
+            a = self._runs.pop()
+            self._n_tomb -= int((a.r < 0).sum()) + int((b.r < 0).sum())
+            self._runs.append(self._merge_runs([a, b]))
+
+    def _merge_runs(self, runs: list[_Run]) -> _Run:
+        """One run of the live entries of ``runs`` (tombstones dropped)."""
+        k = torch.cat([r.k for r in runs])
+        b = torch.cat([r.b for r in runs])
+        r = torch.cat([x.r for x in runs])
+        tomb = r < 0
+        if bool(tomb.any()):
+            k, b, r = k[~tomb], b[~tomb], r[~tomb]
+        o = _lexsort(k, b)
+        return _Run(k[o], b[o], r[o])
+
+    def _compact_index(self) -> None:
+        """Merge all runs into one without tombstones."""
+        if len(self._runs) > 1 or self._n_tomb:
+            self._runs = [self._merge_runs(self._runs)] if self._runs else []
+            self._n_tomb = 0
+
+    def _compact_rows(self) -> None:
+        """Drop the dead rows (row numbers in the index are renumbered)."""
+        n = self._n
+        live = self._live[:n]
+        new_row = torch.cumsum(live, 0) - 1
+        for run in self._runs:
+            ok = run.r >= 0
+            run.r = torch.where(ok, new_row[run.r.clamp_min(0)], run.r)
+        keep = torch.nonzero(live).squeeze(1)
+        m = keep.numel()
+        for name in ("_rk", "_rb", "_rf", "_rw", "_rd"):
+            t = getattr(self, name)
+            t[:m] = t[keep]
+        self._live[:m] = True
+        self._live[m:n] = False
+        self._n, self._n_dead = m, 0
+
+    def _maybe_compact(self) -> None:
+        live = self._n - self._n_dead
+        if self._n_tomb > max(self._MIN_COMPACT, live):
+            self._compact_index()
+        if self._n_dead > max(self._MIN_COMPACT, live):
+            self._compact_rows()
+
+    def _find(self, keys: torch.Tensor, bins: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Per pair: (run number or -1, entry position in that run, row: -1 when absent or a tombstone)."""
+        m = keys.numel()
+        run_of = torch.full((m,), -1, dtype=torch.int64, device=self.device)
+        pos = torch.full((m,), -1, dtype=torch.int64, device=self.device)
+        for i, run in enumerate(self._runs):
+            p = run.find(keys, bins)
+            hit = p >= 0
+            run_of[hit] = i
+            pos[hit] = p[hit]
+        row = torch.full((m,), -1, dtype=torch.int64, device=self.device)
+        for i, run in enumerate(self._runs):
+            sel = run_of == i
+            row[sel] = run.r[pos[sel]]
+        return run_of, pos, row
+
+    def _rows_of(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+        """(query id, row) of every live bin of the frontiers ``keys``, and per run the
+        positions of those bins' index entries."""
+        qs, rows, hits = [], [], []
+        for run in self._runs:
+            q, pos = run.ranges(keys)
+            r = run.r[pos]
+            ok = r >= 0
+            qs.append(q[ok])
+            rows.append(r[ok])
+            hits.append(pos[ok])
+        if not qs:
+            e = torch.empty(0, dtype=torch.int64, device=self.device)
+            return e, e.clone(), []
+        return torch.cat(qs), torch.cat(rows), hits
+
+    # -- canonical view --------------------------------------------------------------------
     def __len__(self) -> int:
-        return self.fkey.numel()
+        return self._n - self._n_dead
 
-    def _fields(self):
-        return ("fkey", "tbin", "pbin", "feat", "weight", "dsum")
+    def _fields(self) -> tuple[str, ...]:
+        return self._FIELDS
 
-    def _take(self, idx) -> None:
-        for f in self._fields():
-            setattr(self, f, getattr(self, f)[idx])
+    def _view_rows(self) -> torch.Tensor:
+        """Rows of the live bins in canonical (frontier key, bin) order (cached)."""
+        rows = self._view.get("rows")
+        if rows is None:
+            self._compact_index()
+            rows = self._runs[0].r if self._runs else torch.empty(0, dtype=torch.int64, device=self.device)
+            self._view["rows"] = rows
+        return rows
 
+    def _field(self, f: str) -> torch.Tensor:
+        t = self._view.get(f)
+        if t is None:
+            rows = self._view_rows()
+            if f == "tbin":
+                t = torch.div(self._rb[rows], self.np_, rounding_mode="floor")
+            elif f == "pbin":
+                t = self._rb[rows] % self.np_
+            else:
+                t = {"fkey": self._rk, "feat": self._rf, "weight": self._rw, "dsum": self._rd}[f][rows]
+            self._view[f] = t
+        return t
+
+    @property
+    def fkey(self) -> torch.Tensor:
+        """(R,) int64 frontier key per bin (canonical order; read-only view)."""
+        return self._field("fkey")
+
+    @property
+    def tbin(self) -> torch.Tensor:
+        """(R,) int64 theta bin."""
+        return self._field("tbin")
+
+    @property
+    def pbin(self) -> torch.Tensor:
+        """(R,) int64 phi bin."""
+        return self._field("pbin")
+
+    @property
+    def feat(self) -> torch.Tensor:
+        """(R, C) weighted mean feature (``feature_dtype``)."""
+        return self._field("feat")
+
+    @property
+    def weight(self) -> torch.Tensor:
+        """(R,) float32 accumulated weight."""
+        return self._field("weight")
+
+    @property
+    def dsum(self) -> torch.Tensor:
+        """(R, 3) float32 weighted sum of unit directions."""
+        return self._field("dsum")
+
+    # -- updates ---------------------------------------------------------------------------
     def prune(self, frontier_keys: torch.Tensor, requeue: bool) -> RayBatch | None:
         """Drop bins whose frontier is gone; return (origins, dirs, feats) of the dropped
         bins for re-casting when ``requeue`` (origin = old frontier centre, direction = the
         bin's stored weighted mean direction (:meth:`directions`; the bin centre only for a
         zero direction sum), feature = bin mean), else None. The mean, not the bin centre:
-        with one 360° bin the centre is always +x (docs/method.md#recast-direction)."""
+        with one 360° bin the centre is always +x (docs/method.md#recast-direction).
+        Full scan (O(store)): for a store whose frontier history is unknown."""
+        if len(self) == 0:
+            return None
         alive = torch.isin(self.fkey, frontier_keys)
-        out = None
-        if requeue and not bool(alive.all()):
-            out = self._dead_out(~alive)
-        self._take(alive)
+        if bool(alive.all()):
+            return None
+        rows = self._view_rows()
+        out = self._dead_out(rows[~alive]) if requeue else None
+        self._kill(rows[~alive])
+        for run in self._runs:
+            if run.r.numel():
+                run.r = torch.where((run.r >= 0) & self._live[run.r.clamp_min(0)], run.r, -1)
+        self._n_tomb = sum(int((run.r < 0).sum()) for run in self._runs)
+        self._changed()
+        self._maybe_compact()
         return out
 
-    def _ranges(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """For sorted query frontier ``keys``: (lo (m,), count (m,), query id per row, row) of
-        every stored bin of those frontiers."""
-        lo = torch.searchsorted(self.fkey, keys)
-        cnt = torch.searchsorted(self.fkey, keys, right=True) - lo
-        q = torch.repeat_interleave(torch.arange(keys.numel(), device=self.device), cnt)
-        start = torch.cumsum(cnt, 0) - cnt
-        rows = lo[q] + (torch.arange(q.numel(), device=self.device) - start[q])
-        return lo, cnt, q, rows
+    def _kill(self, rows: torch.Tensor) -> None:
+        self._live[rows] = False
+        self._n_dead += int(rows.numel())
 
-    def _dead_out(self, dead: torch.Tensor) -> RayBatch:
-        o = voxel_center(cell_keys.unpack(self.fkey[dead]), self.beta)
-        n = self.dsum[dead].norm(dim=1, keepdim=True)
-        bc = bin_centre_dirs(self.tbin[dead], self.pbin[dead], self.psi)
-        dd = torch.where(n > 1e-12, self.dsum[dead] / n.clamp_min(1e-12), bc)
-        return (o, dd, self.feat[dead].to(torch.float32))
+    def _dead_out(self, rows: torch.Tensor) -> RayBatch:
+        """Re-cast rays of ``rows`` (in canonical order), see :meth:`prune`."""
+        fk, bn = self._rk[rows], self._rb[rows]
+        o = voxel_center(cell_keys.unpack(fk), self.beta)
+        ds = self._rd[rows]
+        n = ds.norm(dim=1, keepdim=True)
+        bc = bin_centre_dirs(torch.div(bn, self.np_, rounding_mode="floor"), bn % self.np_, self.psi)
+        dd = torch.where(n > 1e-12, ds / n.clamp_min(1e-12), bc)
+        return (o, dd, self._rf[rows].to(torch.float32))
 
     def prune_keys(self, gone_keys: torch.Tensor, requeue: bool) -> RayBatch | None:
         """:meth:`prune` for a store whose only frontiers missing from the table are among
-        ``gone_keys`` (sorted unique): drops the bins of those frontiers, touching only them."""
-        if gone_keys.numel() == 0 or self.fkey.numel() == 0:
+        ``gone_keys`` (sorted unique): drops the bins of those frontiers, touching only them
+        (O(dropped + len(gone_keys) · log store))."""
+        if gone_keys.numel() == 0 or len(self) == 0:
             return None
-        _, _, _, rows = self._ranges(gone_keys)
+        _, rows, hits = self._rows_of(gone_keys)
         if rows.numel() == 0:
             return None
-        dead = torch.zeros(self.fkey.numel(), dtype=torch.bool, device=self.device)
-        dead[rows] = True
-        out = self._dead_out(dead) if requeue else None
-        self._take(~dead)
+        rows = rows[_lexsort(self._rk[rows], self._rb[rows])]   # canonical order of the re-cast rays
+        out = self._dead_out(rows) if requeue else None
+        for run, pos in zip(self._runs, hits, strict=True):
+            run.r[pos] = -1
+            self._n_tomb += int(pos.numel())
+        self._kill(rows)
+        self._changed()
+        self._maybe_compact()
         return out
 
     def merge(self, fkeys: torch.Tensor, frontier_keys_sorted: torch.Tensor, dirs: torch.Tensor,
               feats: torch.Tensor, w: torch.Tensor) -> None:
         """Bin new rays (frontier key, unit dir, feature, weight) and fuse by weighted mean.
-        Every ray's and every stored bin's frontier must be in ``frontier_keys_sorted``."""
+        Every ray's and every stored bin's frontier must be in ``frontier_keys_sorted``.
+        O(new rays + touched bins · log store)."""
         if fkeys.numel() == 0:
             return
         tb, pb = angle_bins(dirs, self.psi)
@@ -389,43 +639,41 @@ class RayStore:
         ufi = torch.div(uc, nb, rounding_mode="floor")
         ub = uc - ufi * nb
         ufk = frontier_keys_sorted[ufi]
-        # locate each (frontier, bin) among that frontier's stored bins only
-        lo, _, q, rows = self._ranges(ufk)
-        rb = self.tbin[rows] * self.np_ + self.pbin[rows]
-        hit = rb == ub[q]
-        pos = torch.full((m,), -1, dtype=torch.int64, device=self.device)
-        pos[q[hit]] = rows[hit]
-        ex = pos >= 0
+        run_of, pos, row = self._find(ufk, ub)
+        ex = row >= 0
         if bool(ex.any()):
-            rows_ex = pos[ex]
-            W0 = self.weight[rows_ex]
+            rows_ex = row[ex]
+            W0 = self._rw[rows_ex]
             W1 = W0 + sw[ex]
-            self.feat[rows_ex] = ((self.feat[rows_ex].to(torch.float32) * W0[:, None] + sf[ex])
-                                  / W1[:, None]).to(self.dtype)
-            self.weight[rows_ex] = W1
-            self.dsum[rows_ex] = self.dsum[rows_ex] + sd[ex]
+            self._rf[rows_ex] = ((self._rf[rows_ex].to(torch.float32) * W0[:, None] + sf[ex])
+                                 / W1[:, None]).to(self.dtype)
+            self._rw[rows_ex] = W1
+            self._rd[rows_ex] = self._rd[rows_ex] + sd[ex]
         nw = ~ex
-        if bool(nw.any()):
-            # insertion point of each new bin: after its frontier's smaller bins
-            below = torch.bincount(q[rb < ub[q]], minlength=m)
-            ins = (lo + below)[nw]                      # non-decreasing (keys sorted)
-            k = int(nw.sum())
-            R = self.fkey.numel()
-            new_rows = ins + torch.arange(k, device=self.device)
-            old_rows = torch.arange(R, device=self.device) + torch.searchsorted(
-                ins, torch.arange(R, device=self.device), right=True)
-            c = uc[nw]
-            fidx = torch.div(c, nb, rounding_mode="floor")
-            rem = c - fidx * nb
-            vals = {"fkey": frontier_keys_sorted[fidx], "tbin": torch.div(rem, self.np_, rounding_mode="floor"),
-                    "pbin": rem % self.np_, "feat": (sf[nw] / sw[nw][:, None]).to(self.dtype),
-                    "weight": sw[nw], "dsum": sd[nw]}
-            for f in self._fields():
-                old = getattr(self, f)
-                out = torch.empty((R + k,) + tuple(old.shape[1:]), dtype=old.dtype, device=self.device)
-                out[old_rows] = old
-                out[new_rows] = vals[f].to(old.dtype)
-                setattr(self, f, out)
+        k = int(nw.sum())
+        if k:
+            n0 = self._n
+            self._grow(n0 + k)
+            new_rows = torch.arange(n0, n0 + k, device=self.device)
+            self._rk[n0:n0 + k] = ufk[nw]
+            self._rb[n0:n0 + k] = ub[nw]
+            self._rf[n0:n0 + k] = (sf[nw] / sw[nw][:, None]).to(self.dtype)
+            self._rw[n0:n0 + k] = sw[nw]
+            self._rd[n0:n0 + k] = sd[nw]
+            self._live[n0:n0 + k] = True
+            self._n = n0 + k
+            # a bin that comes back takes its tombstoned index entry, the others form a new run
+            ro, po = run_of[nw], pos[nw]
+            back = ro >= 0
+            for i, run in enumerate(self._runs):
+                sel = ro == i
+                if bool(sel.any()):
+                    run.r[po[sel]] = new_rows[sel]
+            self._n_tomb -= int(back.sum())
+            fresh = ~back
+            if bool(fresh.any()):   # ufk, ub are in (key, bin) order: already a sorted run
+                self._add_run(_Run(ufk[nw][fresh], ub[nw][fresh], new_rows[fresh]))
+        self._changed()
 
     # -- views -------------------------------------------------------------------------
     def origins(self) -> torch.Tensor:
@@ -437,23 +685,42 @@ class RayStore:
         return torch.where(n > 1e-12, self.dsum / n.clamp_min(1e-12), bc)
 
     def set_frontier_directions(self, fkeys: torch.Tensor, dirs: torch.Tensor) -> None:
-        """Overwrite the direction of every bin of frontier ``fkeys[i]`` with ``dirs[i]``."""
-        pos = cell_keys.lookup(fkeys, self.fkey) if fkeys.numel() else torch.full_like(self.fkey, -1)
-        hit = pos >= 0
-        self.dsum[hit] = dirs[pos[hit]].to(torch.float32) * self.weight[hit, None]
+        """Overwrite the direction of every bin of frontier ``fkeys[i]`` with ``dirs[i]``
+        (``fkeys`` unique)."""
+        if fkeys.numel() == 0 or len(self) == 0:
+            return
+        q, rows, _ = self._rows_of(fkeys)
+        self._rd[rows] = dirs[q].to(torch.float32) * self._rw[rows, None]
+        self._changed()
 
     def memory_bytes(self) -> int:
-        return sum(getattr(self, f).numel() * getattr(self, f).element_size() for f in self._fields())
+        """Bytes held: row storage (capacity) and index."""
+        rows = sum(t.numel() * t.element_size() for t in (self._rk, self._rb, self._rf, self._rw, self._rd, self._live))
+        return int(rows + sum(3 * 8 * len(r) for r in self._runs))
 
     def state(self) -> dict:
-        return {f: getattr(self, f).clone() for f in self._fields()}
+        """Copies of the canonical view's fields (``_fields()``)."""
+        return {f: self._field(f).clone() for f in self._FIELDS}
 
     def load_state(self, st: dict) -> None:
-        for f in self._fields():
-            t = st[f].to(self.device)
-            if f == "feat":
-                t = t.to(self.dtype)
-            setattr(self, f, t)
+        """Replace the content by ``st`` (as :meth:`state` gives; any row order, unique (key, bin))."""
+        fk = st["fkey"].to(self.device, torch.int64)
+        n = fk.numel()
+        bn = st["tbin"].to(self.device, torch.int64) * self.np_ + st["pbin"].to(self.device, torch.int64)
+        o = _lexsort(fk, bn)
+        ks, bs = fk[o], bn[o]
+        if n > 1 and bool(((ks[1:] == ks[:-1]) & (bs[1:] == bs[:-1])).any()):
+            raise ValueError("ray store state holds a (frontier key, bin) pair twice")
+        self._reset(n)
+        self._rk[:] = fk
+        self._rb[:] = bn
+        self._rf[:] = st["feat"].to(self.device, self.dtype).reshape(n, self.dim)
+        self._rw[:] = st["weight"].to(self.device, torch.float32)
+        self._rd[:] = st["dsum"].to(self.device, torch.float32).reshape(n, 3)
+        self._live[:] = True
+        self._n = n
+        if n:
+            self._runs = [_Run(ks, bs, o)]
 
 
 def infer_directions(grid: OccupancyGrid, frontier_keys: torch.Tensor, beta: float, vox: float,

@@ -17,6 +17,7 @@ from semantic_map.frontiers import FrontierTable
 from semantic_map.map import RayFrontsMap
 from semantic_map.ray_frontiers import RayStore, angle_bins
 from synthetic_world import World
+from tests.support.ray_store_ref import SortedRayStore
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -67,7 +68,7 @@ def test_replace_region_matches_full_scan_and_logs_removals():
     assert t.take_removed() is None and t.take_removed().numel() == 0
 
 
-class _RefStore(RayStore):
+class _RefStore(SortedRayStore):
     """The previous full-scan prune / sort-based merge."""
 
     def merge(self, fkeys, frontier_keys_sorted, dirs, feats, w):
