@@ -32,7 +32,8 @@ from common.search_messages import SearchReply, SearchRequest
 from semantic_map.beyond import triangulate
 from semantic_map.instances import InstanceTracker
 from semantic_map.look_next import look_next, points_in_polygon
-from semantic_map.query import score_rows
+from semantic_map.query import score_rows, softmax_share
+from semantic_map.query_snapshot import one_thread
 
 
 class TrackerStore:
@@ -93,6 +94,34 @@ def _probabilities(prep, q: torch.Tensor, n_targets: int, temperature: float) ->
         return np.zeros((n_targets, 0), np.float32)
     p = score_rows(prep, q, None, softmax=True, temperature=temperature)
     return p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False)
+
+
+def _voxel_probabilities(snap, fs, prep, q: torch.Tensor, n_targets: int, temperature: float,
+                         device) -> np.ndarray:
+    """:func:`_probabilities` of the voxels, with the background's per-voxel log-sum-exp taken
+    from the snapshot's cache (:meth:`QuerySnapshot.phrase_logsumexp`, kept per map version
+    and updated for changed rows): only the targets are scored per search. Equal to the full
+    softmax up to float32 rounding (``semantic_map.query.softmax_share``)."""
+    lse_of = getattr(snap, "phrase_logsumexp", None)
+    if len(prep) == 0 or n_targets >= q.shape[0] or lse_of is None:
+        return _probabilities(prep, q, n_targets, temperature)
+    lse = lse_of(fs, q[n_targets:], temperature, device)
+    if lse is None:
+        return _probabilities(prep, q, n_targets, temperature)
+    s = score_rows(prep, q[:n_targets])
+    with one_thread():
+        p = softmax_share(s, lse, temperature)
+    return p.detach().cpu().numpy().astype(np.float32, copy=False)
+
+
+def _voxel_ijk(snap, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 3) int64 voxel indices of snapshot rows (from the keys when the snapshot
+    gives them, else ``floor(centre / vox)``)."""
+    if not len(rows):
+        return np.zeros((0, 3), np.int64)
+    if hasattr(snap, "voxel_ijk"):
+        return snap.voxel_ijk(rows)
+    return voxel_index(snap.voxel_xyz(rows).astype(np.float64), snap.vox)
 
 
 def _in_area(xyz: np.ndarray, poly, z_band) -> np.ndarray:
@@ -159,16 +188,17 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     t = time.perf_counter()
     vprep, rprep = snap.prepared(fs, cfg.device)
     T = len(req.targets)
-    vs = _probabilities(vprep, q, T, scfg.temperature)
-    rs = _probabilities(rprep, q, T, scfg.temperature)
+    vs = _voxel_probabilities(snap, fs, vprep, q, T, scfg.temperature, cfg.device)
+    with one_thread():                          # a few thousand rays: no parallel region
+        rs = _probabilities(rprep, q, T, scfg.temperature)
     tm["similarity"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     tracker = trackers.get(tracker_key(req, background), snap.vox, scfg.min_instance_voxels)
     events = []
     for ti, name in enumerate(req.targets):
         rows = np.flatnonzero(vs[ti] > req.threshold)
-        ijk = voxel_index(snap.voxel_xyz(rows).astype(np.float64), snap.vox) if len(rows) else np.zeros((0, 3))
-        events += [e.as_dict() for e in tracker.update(name, ijk, vs[ti, rows], snap.frames_mapped)]
+        events += [e.as_dict() for e in tracker.update(name, _voxel_ijk(snap, rows), vs[ti, rows],
+                                                       snap.frames_mapped)]
     found = _found(tracker, req)
     tm["instances"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
@@ -176,13 +206,15 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     goals: list[dict] = []
     if read_map is not None and req.max_goals > 0:
         def run(m) -> list:
-            f = m.frontiers().centres.detach().cpu().numpy().astype(np.float64).reshape(-1, 3)
-            f = f[_in_area(f, req.polygon(), req.z_band)]
-            radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.fronts.beta)
-            return look_next(m.occupancy, float(m.cfg.vox_size), f, snap.ray_origins[rkeep], snap.ray_dirs[rkeep],
-                             rs[:, rkeep].T, list(req.targets), req.from_xyz, ray_radius_m=radius,
-                             standoff_m=scfg.standoff_m, sensing_radius_m=scfg.sensing_radius_m,
-                             max_goals=req.max_goals)
+            with one_thread():                  # many small torch ops (on a loaded machine every
+                # parallel region would wait on a descheduled worker)
+                f = m.frontiers().centres.detach().cpu().numpy().astype(np.float64).reshape(-1, 3)
+                f = f[_in_area(f, req.polygon(), req.z_band)]
+                radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.fronts.beta)
+                return look_next(m.occupancy, float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
+                                 snap.ray_dirs[rkeep], rs[:, rkeep].T, list(req.targets), req.from_xyz,
+                                 ray_radius_m=radius, standoff_m=scfg.standoff_m,
+                                 sensing_radius_m=scfg.sensing_radius_m, max_goals=req.max_goals)
         got = read_map(run)
         if got is None:
             tm["stale"] = 1.0
@@ -191,7 +223,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     tm["look_next"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     angle_err = scfg.angle_err_deg if scfg.angle_err_deg > 0 else float(cfg.map.angle_bin_size) / 2
-    beyond = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
+    with one_thread():
+        beyond = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
     tm["beyond"] = (time.perf_counter() - t) * 1e3
     tm["total"] = (time.perf_counter() - t0) * 1e3
     return SearchReply(id=req.id, found=found, look_next=goals, beyond=beyond, events=events,

@@ -19,7 +19,8 @@ that target by voxel overlap:
 
 Ids are positive integers, unique across the tracker's targets and never reused.
 The tracker keeps the components of each target's last voxel set: an update with the same
-voxels (the same map version searched again) skips the labelling.
+voxels (the same map version searched again) skips the labelling, and one with the same
+voxels, confidences and frame returns at once (it would change nothing).
 Frame counters are the map's (``observations`` counts distinct update frames in which the
 instance was seen; an update at the same frame as the previous one does not count twice).
 """
@@ -201,6 +202,7 @@ class InstanceTracker:
         self.instances: dict[str, list[Instance]] = {}
         self.updates = 0
         self._components: dict[str, tuple[np.ndarray, np.ndarray]] = {}   # target -> (keys, labels) last seen
+        self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
 
     def _new_id(self) -> int:
         if self._id_source is not None:
@@ -219,6 +221,13 @@ class InstanceTracker:
         frame = int(frame)
         self.updates += 1
         keys = pack_ijk(ijk)
+        same = self._last.get(target)
+        if (same is not None and same[2] == frame and target in self.instances and np.array_equal(same[0], keys)
+                and np.array_equal(same[1], conf)):
+            # the same input as the last update (the same map version searched again): it would
+            # rebuild the same instances (each its own heir, same frame) with no events
+            return []
+        self._last[target] = (keys, conf.copy(), frame)
         last = self._components.get(target)
         if last is not None and np.array_equal(last[0], keys):
             labels = last[1]                       # same voxels as the last update (same map version)

@@ -73,6 +73,22 @@ def score_rows(feats: torch.Tensor | PreparedRows, queries: torch.Tensor, simila
     return sim
 
 
+def softmax_share(scores: torch.Tensor, rest_lse: torch.Tensor | None, temperature: float = 100.0) -> torch.Tensor:
+    """``(T, N)`` float32 softmax probabilities of the ``T`` rows of ``scores`` (T, N) over
+    themselves and further rows summarised by their per-column log-sum-exp ``rest_lse``
+    (N,) = ``log Σ_j exp(temperature · s_j)`` (None: no further rows): the first ``T`` rows
+    of ``softmax(temperature · [scores; S_rest], dim=0)`` without the other rows' scores.
+    Equal to that softmax up to float32 rounding (relative ~1e-5 at temperature 100)."""
+    x = scores.to(torch.float32) * float(temperature)
+    if x.numel() == 0:
+        return x
+    if rest_lse is None:
+        return torch.softmax(x, dim=0)
+    total = torch.logaddexp(torch.logsumexp(x, dim=0), rest_lse.to(torch.float32))
+    x -= total
+    return x.exp_()
+
+
 @dataclass
 class TopK:
     index: torch.Tensor   # (k,) rows into the layer

@@ -16,11 +16,21 @@ entry; the product accumulates in float32); the top-k set equals the float64 one
 for voxels whose reference score lies within ``2·SCORE_ATOL`` of the k-th best (near-ties).
 Cosine terms that do not depend on the query (the inverse norms) are float32, from the
 stored row.
+
+Per-version products, kept up to date for the rows each :meth:`QuerySnapshot.sync` changed
+(as the prepared terms): the scores of the last queries (:class:`_ScoreCache`: a repeated
+or standing query costs the changed rows, not a pass over the copy; 4 bytes per voxel per
+query, at most :data:`SCORE_CACHE_ENTRIES` queries and a quarter of the copy's bytes) and
+the per-voxel log-sum-exp of a search's background phrases
+(:meth:`QuerySnapshot.phrase_logsumexp`). Both hold exactly what a fresh computation gives
+(the same per-row product).
 """
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, cast
 
@@ -34,13 +44,15 @@ if TYPE_CHECKING:
 
 #: max |score − float64 cosine| of the half-precision copy (see the module docstring)
 SCORE_ATOL = 2e-3
+#: phrase sets whose per-row log-sum-exp :meth:`QuerySnapshot.phrase_logsumexp` keeps per space
+LSE_SETS = 4
+#: queries whose scores a prepared space keeps (:class:`HalfFeatures`), and the least bytes allowed
+SCORE_CACHE_ENTRIES = 16
+SCORE_CACHE_MIN_BYTES = 64 << 20
 #: below this many feature elements a query's product runs on one thread (the parallel
 #: region's hand-off costs more than it saves; on a loaded machine a descheduled OpenMP
 #: worker stalls it), and the elementwise terms after it always do (one pass over N each)
 PARALLEL_MIN_ELEMENTS = 1 << 25
-#: rows converted to float32 per block when several queries are scored at once on CPU
-#: (float16 matrix products with Q > 1 have no fast CPU kernel; the block stays in cache)
-HALF_BLOCK_ROWS = 16384
 
 
 def _np(x: np.ndarray | torch.Tensor) -> np.ndarray:
@@ -63,6 +75,10 @@ class _one_thread:
             torch.set_num_threads(self.n)
 
 
+#: public name of the single-thread context (elementwise passes over the rows after a product)
+one_thread = _one_thread
+
+
 def to_half_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(float16 rows scaled by 2^-e, float32 2^e)`` of float rows ``x`` (N, dim):
     ``x ≈ h.float() * s[:, None]``; zero rows get ``s = 0``."""
@@ -83,47 +99,83 @@ class HalfFeatures:
     :class:`common.feature_space.PreparedFeatures` (``len``, :meth:`similarity`)."""
 
     def __init__(self, space: FeatureSpace, device: str | torch.device, half: torch.Tensor, a: torch.Tensor,
-                 b: torch.Tensor) -> None:
+                 b: torch.Tensor, cache: _ScoreCache | None = None) -> None:
         self.space, self.device, self.n = space, torch.device(device), int(half.shape[0])
         self._h, self._a, self._b = half, a, b
+        self._cache = cache
 
     def __len__(self) -> int:
         return self.n
 
+    def subset(self, rows: torch.Tensor) -> HalfFeatures:
+        """The prepared features of rows ``rows`` (int64 indices) only: a row scores the same
+        as in the whole (the product of a row does not depend on the others)."""
+        r = rows.to(self.device)
+        return HalfFeatures(self.space, self.device, self._h.index_select(0, r), self._a.index_select(0, r),
+                            self._b.index_select(0, r))
+
+    def _one(self, qn: torch.Tensor, qm: torch.Tensor | None) -> torch.Tensor:
+        """(N,) float32 cosine of one projected query ``qn`` (dim,) (``qm`` its mean term)."""
+        small = self.n * self._h.shape[1] <= PARALLEL_MIN_ELEMENTS
+        with (_one_thread() if small else contextlib.nullcontext()):
+            out = torch.mv(self._h, qn.to(torch.float16))
+        with _one_thread():
+            out = torch.mul(out, self._a)               # float16 · float32 -> float32, one pass
+            if qm is not None:
+                out.add_(self._b, alpha=float(qm))
+        return out
+
     @torch.inference_mode()
-    def similarity(self, queries: np.ndarray | torch.Tensor) -> torch.Tensor:
-        """``(Q, N)`` float32 cosine (within :data:`SCORE_ATOL` of the exact one)."""
-        qn, qm = self.space.project_queries(queries, self.device)
+    def similarity(self, queries: np.ndarray | torch.Tensor, use_cache: bool = True) -> torch.Tensor:
+        """``(Q, N)`` float32 cosine (within :data:`SCORE_ATOL` of the exact one). On CPU each
+        query is one float16 matrix-vector product (the fast float16 kernel: a float16 matrix
+        product with Q > 1 has none, and converting the rows to float32 costs more than Q
+        passes over the float16 copy), so a row's score does not depend on the other queries.
+        With the snapshot's score cache (``use_cache``) a query scored on an earlier version
+        of the copy costs the rows changed since: the result is the same."""
+        with _one_thread():                     # a (Q, lang_dim) · (lang_dim, dim) product
+            qn, qm = self.space.project_queries(queries, self.device)
         nq = qn.shape[0]
         if self.n == 0:
             return torch.zeros((nq, 0), dtype=torch.float32, device=self.device)
-        h = self._h
-        small = self.n * h.shape[1] <= PARALLEL_MIN_ELEMENTS
-        if nq == 1:
-            with (_one_thread() if small else contextlib.nullcontext()):
-                out = torch.mv(h, qn[0].to(torch.float16))
-            with _one_thread():
-                out = out.to(torch.float32)[None]                                    # (1, N)
-                out *= self._a
-                if qm is not None:
-                    out.addcmul_(qm[:, None].expand(nq, self.n), self._b.expand(nq, self.n))
+        if self.device.type != "cpu" and nq > 1:
+            out = (self._h @ qn.to(torch.float16).T).to(torch.float32).T.contiguous()
+            out *= self._a
+            if qm is not None:
+                out.addcmul_(qm[:, None].expand(nq, self.n), self._b.expand(nq, self.n))
             return out
-        elif self.device.type != "cpu":
-            out = (h @ qn.to(torch.float16).T).to(torch.float32).T.contiguous()
-        else:
-            out = torch.empty((self.n, nq), dtype=torch.float32)
-            buf = torch.empty((min(self.n, HALF_BLOCK_ROWS), h.shape[1]), dtype=torch.float32)
-            qt = qn.T.contiguous()
-            for s in range(0, self.n, HALF_BLOCK_ROWS):
-                e = min(self.n, s + HALF_BLOCK_ROWS)
-                b = buf[: e - s]
-                b.copy_(h[s:e])
-                torch.mm(b, qt, out=out[s:e])
-            out = out.T.contiguous()
-        out *= self._a
-        if qm is not None:
-            out.addcmul_(qm[:, None].expand(nq, self.n), self._b.expand(nq, self.n))
+        if nq == 1:
+            return self._cached(qn[0], None if qm is None else qm[0], use_cache)[None]
+        out = torch.empty((nq, self.n), dtype=torch.float32, device=self.device)
+        for i in range(nq):
+            out[i] = self._cached(qn[i], None if qm is None else qm[i], use_cache)
         return out
+
+    def _cached(self, qn: torch.Tensor, qm: torch.Tensor | None, use_cache: bool) -> torch.Tensor:
+        """:meth:`_one` through the score cache: a query scored before is updated for the rows
+        changed since (the same per-row product), else scored in full and kept."""
+        c = self._cache
+        if c is None or not use_cache:
+            return self._one(qn, qm)
+        key = qn.detach().cpu().numpy().tobytes() + (b"" if qm is None else qm.detach().cpu().numpy().tobytes())
+        e = c.entries.get(key)
+        if e is None:
+            out = self._one(qn, qm)
+            c.put(key, out, self.n)
+            return out
+        c.entries.move_to_end(key)
+        if e.rows or e.n != self.n:
+            rows = torch.unique(torch.cat(e.rows)) if e.rows else torch.empty(0, dtype=torch.int64)
+            rows = rows[rows < self.n].to(self.device)
+            e.rows = []
+            if e.values.shape[0] < self.n:
+                grown = torch.zeros(self.n + self.n // 4, dtype=torch.float32, device=self.device)
+                grown[: e.values.shape[0]] = e.values
+                e.values = grown
+            if rows.numel():
+                e.values.index_copy_(0, rows, self.subset(rows)._one(qn, qm))
+            e.n = self.n
+        return e.values[: self.n].clone()
 
 
 @dataclass
@@ -136,6 +188,49 @@ class _PreparedSpace:
     aux2: torch.Tensor | None = None                # "half": b
     rows: list[torch.Tensor] = field(default_factory=list)   # rows the syncs changed since the last query
     rays: PreparedFeatures | None = None            # prepared ray features (None: rebuild)
+    lse: OrderedDict = field(default_factory=OrderedDict)   # phrase set -> _RowValues (kind "half")
+    scores: _ScoreCache | None = None               # recent queries' scores (kind "half")
+
+
+@dataclass
+class _RowValues:
+    """One float32 value per voxel row (a cached query's scores, a phrase set's log-sum-exp),
+    kept up to date for the rows the syncs change."""
+
+    values: torch.Tensor                            # (capacity,) float32, rows < n valid
+    n: int                                          # rows it covers
+    rows: list[torch.Tensor] = field(default_factory=list)   # rows changed since it was brought up to date
+
+
+class _ScoreCache:
+    """The scores of the last queries of one prepared space (:class:`HalfFeatures`), by
+    projected query: at most :data:`SCORE_CACHE_ENTRIES`, and at most a quarter of the
+    float16 copy's bytes (at least :data:`SCORE_CACHE_MIN_BYTES`); least recently used first out."""
+
+    def __init__(self, copy_bytes: int) -> None:
+        self.entries: OrderedDict[bytes, _RowValues] = OrderedDict()
+        self.max_bytes = max(SCORE_CACHE_MIN_BYTES, copy_bytes // 4)
+
+    def changed(self, rows: torch.Tensor) -> None:
+        for c in self.entries.values():
+            c.rows.append(rows)
+
+    def put(self, key: bytes, scores: torch.Tensor, n: int) -> None:
+        """Keep a copy of ``scores`` (n,) for ``key``, evicting the least recently used first
+        (the copy goes into an evicted entry's buffer when one is big enough: no new pages)."""
+        need = scores.numel() * 4
+        if need > self.max_bytes:
+            return
+        buf = None
+        while self.entries and (len(self.entries) >= SCORE_CACHE_ENTRIES
+                                or sum(c.values.numel() * 4 for c in self.entries.values()) + need > self.max_bytes):
+            _, old = self.entries.popitem(last=False)
+            if buf is None and old.values.numel() >= scores.numel() and old.values.device == scores.device:
+                buf = old.values
+        if buf is None:
+            buf = torch.empty_like(scores)
+        buf[: scores.numel()].copy_(scores)
+        self.entries[key] = _RowValues(buf, n)
 
 
 class QuerySnapshot:
@@ -295,6 +390,22 @@ class QuerySnapshot:
         k = self._vkeys[: self.n_voxels][torch.as_tensor(np.asarray(rows, np.int64))]
         return _np(voxel_center(cell_keys.unpack(k), self.vox)).astype(np.float32, copy=False).reshape(-1, 3)
 
+    def voxel_ijk(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), 3) int64 voxel indices of snapshot rows (unpacked from their keys:
+        ``voxel_index(voxel_xyz(rows))`` without the round trip through the centres)."""
+        from semantic_map import cell_keys
+
+        r = torch.as_tensor(np.asarray(rows, np.int64))
+        k = _np(self._vkeys[: self.n_voxels].index_select(0, r.to(self._vkeys.device))).astype(np.int64, copy=False)
+        out = np.empty((len(k), 3), np.int64)
+        b = cell_keys.BITS
+        np.right_shift(k, 2 * b, out=out[:, 0])
+        np.right_shift(k, b, out=out[:, 1])
+        out[:, 2] = k
+        out &= cell_keys.MASK
+        out -= cell_keys.OFFSET
+        return out
+
     # ------------------------------------------------------------ prepared terms
     def _half_terms(self, fs: FeatureSpace, rows: torch.Tensor | None,
                     device: str | torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -343,7 +454,9 @@ class QuerySnapshot:
             aux = torch.zeros(self._capacity(), dtype=torch.float32, device=dev)
             aux2 = torch.zeros(self._capacity(), dtype=torch.float32, device=dev)
             aux[:n], aux2[:n] = a.to(dev), b.to(dev)
-            return _PreparedSpace("half", HalfFeatures(fs, dev, self._vhalf[:n].to(dev), aux[:n], aux2[:n]), aux, aux2)
+            cache = _ScoreCache(self._vhalf.numel() * 2)
+            return _PreparedSpace("half", HalfFeatures(fs, dev, self._vhalf[:n].to(dev), aux[:n], aux2[:n], cache),
+                                  aux, aux2, scores=cache)
         v = fs.prepare(self.voxel_feats, device=device)
         if v._y is None:
             return _PreparedSpace("raw", v)
@@ -381,7 +494,11 @@ class QuerySnapshot:
                 r = rows.to(dev)
                 st.aux.index_copy_(0, r, a.to(dev))
                 st.aux2.index_copy_(0, r, b.to(dev))
-            st.v = HalfFeatures(fs, dev, self._vhalf[:n].to(dev), st.aux[:n], st.aux2[:n])
+                for c in st.lse.values():
+                    c.rows.append(rows)
+                if st.scores is not None:
+                    st.scores.changed(rows)
+            st.v = HalfFeatures(fs, dev, self._vhalf[:n].to(dev), st.aux[:n], st.aux2[:n], st.scores)
             return
         if rows.numel():
             sub = fs.prepare(self.feats_of(rows), device=device)
@@ -389,3 +506,52 @@ class QuerySnapshot:
             # leaves them None, which index_copy_ rejects, as before)
             st.aux.index_copy_(0, rows.to(dev), cast(torch.Tensor, sub._y))
         st.v = PreparedFeatures(fs, dev, n, st.aux[:n], None, None)
+
+    # ------------------------------------------------------------ per-row log-sum-exp
+    @torch.inference_mode()
+    def phrase_logsumexp(self, fs: FeatureSpace, phrases: torch.Tensor, temperature: float,
+                         device: str | torch.device = "cpu") -> torch.Tensor | None:
+        """``(N,)`` float32 ``log Σ_j exp(temperature · score_j)`` per voxel row over the phrase
+        embeddings ``phrases`` (B, lang_dim), ``score_j`` the copy's cosine
+        (:meth:`HalfFeatures.similarity`, one product per phrase); None for a space with a
+        language head (no float16 copy) or an empty set.
+
+        Kept per phrase set (the :data:`LSE_SETS` last used per space) and, like the
+        prepared terms, brought up to date for the rows each :meth:`sync` changed: a search
+        against a standing background costs the products of its targets only. A row's value
+        comes from the same per-row computation in the full pass and in an update."""
+        if phrases.shape[0] == 0:
+            return None
+        v, _ = self.prepared(fs, device)
+        st = self._prep[(fs.id, str(device))]
+        if st.kind != "half" or not isinstance(v, HalfFeatures):
+            return None
+        q = phrases.detach().to(torch.float32).cpu().contiguous()
+        key = (hashlib.sha1(q.numpy().tobytes()).hexdigest(), tuple(q.shape), float(temperature))
+        n = v.n
+        c = st.lse.get(key)
+        if c is None:
+            vals = torch.zeros(self._capacity(), dtype=torch.float32, device=v.device)
+            vals[:n] = self._lse(v, q, temperature)
+            c = st.lse[key] = _RowValues(vals, n)
+            while len(st.lse) > LSE_SETS:
+                st.lse.popitem(last=False)
+        else:
+            st.lse.move_to_end(key)
+            if c.rows or c.n != n:
+                rows = torch.unique(torch.cat(c.rows)) if c.rows else torch.empty(0, dtype=torch.int64)
+                rows = rows[rows < n]
+                c.rows = []
+                if c.values.shape[0] < n:
+                    c.values = self._grown(c.values, self._capacity(), v.device)
+                if rows.numel():
+                    c.values.index_copy_(0, rows.to(v.device), self._lse(v.subset(rows), q, temperature))
+                c.n = n
+        return c.values[:n]
+
+    @staticmethod
+    def _lse(v: HalfFeatures, q: torch.Tensor, temperature: float) -> torch.Tensor:
+        s = v.similarity(q, use_cache=False)
+        with _one_thread():
+            s *= float(temperature)
+            return torch.logsumexp(s, dim=0)

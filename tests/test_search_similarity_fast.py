@@ -1,0 +1,259 @@
+"""The search's similarity fast path against brute force: the targets' softmax share over a
+background summarised by its per-voxel log-sum-exp (semantic_map.query.softmax_share), the
+snapshot's cached, incrementally updated log-sum-exp (QuerySnapshot.phrase_logsumexp) and
+the search's voxel probabilities (mapper.search_answer) against a float64 softmax of the
+same scores."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from apps.bench.query import _change, _space, build_map
+from mapper.search_answer import _probabilities, _voxel_probabilities
+from semantic_map.query import softmax_share
+from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+
+#: |fast − float64 softmax of the same float32 scores| at temperature 100 (float32 rounding of
+#: arguments up to 100: ulp 7.6e-6)
+PROB_ATOL = 3e-5
+
+
+def _softmax64(scores: np.ndarray, temperature: float) -> np.ndarray:
+    x = np.asarray(scores, np.float64) * temperature
+    x = x - x.max(0, keepdims=True)
+    e = np.exp(x)
+    return e / e.sum(0, keepdims=True)
+
+
+def _lse64(scores: np.ndarray, temperature: float) -> np.ndarray:
+    x = np.asarray(scores, np.float64) * temperature
+    mx = x.max(0)
+    return mx + np.log(np.exp(x - mx).sum(0))
+
+
+@pytest.mark.parametrize("n_targets,n_rest", [(1, 5), (2, 4), (3, 1), (1, 0), (2, 0)])
+def test_softmax_share_equals_full_softmax(n_targets: int, n_rest: int):
+    rng = np.random.default_rng(n_targets * 10 + n_rest)
+    s = rng.uniform(-1, 1, (n_targets + n_rest, 4000)).astype(np.float32)
+    s[:, :100] = s[0, :100]                                   # ties: every phrase scores the same
+    s[:, 100:200] = np.round(s[:, 100:200], 1)                # ties between some phrases
+    s[0, 200:300], s[-1, 300:400] = 1.0, 1.0                  # saturated: a target or the last phrase at 1
+    s[:, 400] = -1.0
+    for temperature in (1.0, 100.0, 1000.0):
+        rest = torch.as_tensor(_lse64(s[n_targets:], temperature).astype(np.float32)) if n_rest else None
+        got = softmax_share(torch.as_tensor(s[:n_targets]), rest, temperature).numpy()
+        want = _softmax64(s, temperature)[:n_targets]
+        assert got.shape == want.shape and got.dtype == np.float32
+        assert np.abs(got - want).max() <= PROB_ATOL * max(1.0, temperature / 100), np.abs(got - want).max()
+    if n_targets == 1 and n_rest == 0:
+        assert np.array_equal(got, np.ones_like(got))         # a softmax of one is 1
+    assert softmax_share(torch.zeros((n_targets, 0)), torch.zeros(0)).shape == (n_targets, 0)
+
+
+def _snap_scores(snap: QuerySnapshot, fs, q: torch.Tensor) -> np.ndarray:
+    """(Q, N) scores of a fresh snapshot's float16 copy, one query at a time."""
+    v, _ = snap.prepared(fs)
+    return np.stack([v.similarity(q[i:i + 1])[0].numpy() for i in range(len(q))])
+
+
+def test_multi_query_scores_are_the_single_query_ones():
+    fs = _space(24)
+    _, mp = build_map(8_000, 24, 50, fs, seed=2)
+    v, _ = QuerySnapshot().take(mp, 0).prepared(fs)
+    q = torch.randn((4, fs.lang_dim), generator=torch.Generator().manual_seed(4))
+    many = v.similarity(q).numpy()
+    assert np.array_equal(many, _snap_scores(QuerySnapshot().take(mp, 0), fs, q))
+    rows = torch.tensor([5, 0, 7999, 3, 3], dtype=torch.int64)
+    np.testing.assert_allclose(v.subset(rows).similarity(q).numpy(), many[:, rows.numpy()], rtol=1e-6, atol=1e-7)
+
+
+def test_phrase_logsumexp_follows_incremental_changes():
+    """After fuses, new voxels and a prune the cached log-sum-exp equals the brute-force one of
+    a fresh copy (the rows a sync changed are recomputed, the others kept)."""
+    fs = _space(16)
+    _, mp = build_map(20_000, 16, 100, fs)
+    snap = QuerySnapshot()
+    bg = torch.randn((3, fs.lang_dim), generator=torch.Generator().manual_seed(2))
+    other = torch.randn((2, fs.lang_dim), generator=torch.Generator().manual_seed(3))
+    g = torch.Generator().manual_seed(3)
+    for step in range(4):
+        snap.reserve(mp)
+        snap.sync(mp, step)
+        got = snap.phrase_logsumexp(fs, bg, 100.0)
+        assert got is not None and len(got) == len(mp.sem)
+        want = _lse64(_snap_scores(QuerySnapshot().take(mp, step), fs, bg), 100.0)
+        assert np.abs(got.numpy() - want).max() <= 1e-4 * 100
+        np.testing.assert_allclose(got.numpy(), want, rtol=2e-6, atol=1e-5)
+        if step == 1:                                          # a second phrase set kept alongside
+            o = snap.phrase_logsumexp(fs, other, 50.0)
+            assert o is not None
+            np.testing.assert_allclose(o.numpy(), _lse64(_snap_scores(snap, fs, other), 50.0), rtol=2e-6,
+                                       atol=1e-5)
+        _change(mp, 16, g, 28)                                 # fused rows and a few hundred new voxels
+        mp.sem.remove(mp.sem.keys[:300].clone())               # rows moved
+    assert snap.phrase_logsumexp(fs, bg[:0], 100.0) is None
+
+
+def test_search_voxel_probabilities_match_full_softmax():
+    """The cached-background probabilities equal a float64 softmax over targets + background
+    of the copy's scores, and those scores the float64 cosine within SCORE_ATOL."""
+    fs = _space(32)
+    _, mp = build_map(30_000, 32, 100, fs, seed=7)
+    snap = QuerySnapshot()
+    snap.reserve(mp)
+    snap.sync(mp, 1)
+    v, _ = snap.prepared(fs)
+    q = torch.randn((6, fs.lang_dim), generator=torch.Generator().manual_seed(8))
+    for n_targets in (1, 2, 6):
+        got = _voxel_probabilities(snap, fs, v, q, n_targets, 100.0, "cpu")
+        s = _snap_scores(snap, fs, q)
+        want = _softmax64(s, 100.0)[:n_targets]
+        assert got.shape == want.shape
+        assert np.abs(got - want).max() <= PROB_ATOL
+        plain = _probabilities(v, q, n_targets, 100.0)       # the full softmax path
+        assert np.abs(plain - want).max() <= PROB_ATOL
+        if n_targets == len(q):
+            assert np.array_equal(got, plain)                  # no background: the same path
+    # the copy's scores are the cosine of the map's features within the stated tolerance
+    m, vb = fs.pca.torch_basis("cpu", torch.float32)
+    x = mp.sem.feat.double() @ vb.double().T + m.double()
+    ref = (torch.nn.functional.normalize(q.double(), dim=1) @ torch.nn.functional.normalize(x, dim=1).T).numpy()
+    assert np.abs(s - ref).max() <= SCORE_ATOL
+
+
+def test_voxel_ijk_equals_the_centres_round_trip():
+    """Snapshot rows' voxel indices from their keys equal floor(centre / vox), the search's
+    earlier route, including indices at the ends of the packable range."""
+    from common.conventions import voxel_index
+    from semantic_map import cell_keys
+
+    fs = _space(8)
+    _, mp = build_map(2_000, 8, 10, fs)
+    lim = (1 << 20) - 1
+    ijk = torch.tensor([[lim, -lim - 1, 0], [-lim - 1, lim, lim], [123456, -654321, 7], [-1, -1, -1]])
+    mp.sem.fuse_sums(cell_keys.pack(ijk), torch.rand((4, 3)), torch.randn((4, 8)), torch.ones(4))
+    for vox in (0.05, 0.2, 1.0):
+        mp.cfg.vox_size = vox
+        snap = QuerySnapshot().take(mp, 0)
+        rows = np.r_[np.arange(0, len(mp.sem), 7), len(mp.sem) - 4 + np.arange(4)]
+        got = snap.voxel_ijk(rows)
+        assert got.dtype == np.int64
+        assert np.array_equal(got, voxel_index(snap.voxel_xyz(rows).astype(np.float64), vox))
+    assert {tuple(r) for r in got[-4:].tolist()} == {tuple(r) for r in ijk.tolist()}
+    assert snap.voxel_ijk(np.zeros(0, np.int64)).shape == (0, 3)
+
+
+def test_tracker_repeat_of_the_same_input_matches_reference():
+    """An update with the same voxels, confidences and frame as the last one (answered at
+    once) and its neighbours (another frame, other confidences: the full update) equal the
+    brute-force reference tracker."""
+    import semantic_map.instances as inst
+    from tests.test_search_fast_paths import _random_voxels, _ReferenceTracker
+
+    rng = np.random.default_rng(3)
+    fast, ref = inst.InstanceTracker(0.2, 2), _ReferenceTracker(0.2, 2)
+    base = _random_voxels(rng, 400, 10, spread=200)
+    conf = rng.random(len(base))
+    keep = rng.random(len(base)) < 0.7
+    for frame, change in ((0, None), (0, None), (1, None), (1, None), (1, "conf"), (1, None), (2, "voxels"),
+                          (2, None)):
+        if change == "conf":
+            conf = rng.random(len(base))
+        elif change == "voxels":
+            keep = rng.random(len(base)) < 0.7
+        ev = [e.as_dict() for e in fast.update("t", base[keep], conf[keep], frame)]
+        assert ev == ref.update("t", base[keep], conf[keep], frame)
+        got, want = fast.current("t"), ref.instances["t"]
+        assert [(g.id, g.confidence, g.voxels, g.observations, g.first_seen, g.last_seen) for g in got] == [
+            (w["id"], w["confidence"], w["voxels"], w["observations"], w["first_seen"], w["last_seen"]) for w in want]
+    assert fast.current("t") and fast.updates == 8
+
+
+def test_score_cache_follows_incremental_changes(monkeypatch):
+    """Queries scored on earlier versions of the copy (cached, updated for the changed rows)
+    score exactly like a fresh copy, also when the cache evicts (few entries allowed)."""
+    import semantic_map.query_snapshot as qs
+
+    monkeypatch.setattr(qs, "SCORE_CACHE_ENTRIES", 3)
+    fs = _space(16)
+    _, mp = build_map(20_000, 16, 100, fs, seed=4)
+    snap = QuerySnapshot()
+    q = torch.randn((5, fs.lang_dim), generator=torch.Generator().manual_seed(6))
+    g = torch.Generator().manual_seed(9)
+    for step in range(4):
+        snap.reserve(mp)
+        snap.sync(mp, step)
+        v, _ = snap.prepared(fs)
+        fresh, _ = QuerySnapshot().take(mp, step).prepared(fs)
+        want = fresh.similarity(q, use_cache=False).numpy()
+        for i in ([0, 1], [0], [2, 3, 4], [1, 0]):             # hits, misses and evictions
+            assert np.array_equal(v.similarity(q[i]).numpy(), want[i])
+        assert len(v._cache.entries) == 3
+        got = v.similarity(q[:1])
+        with torch.inference_mode():
+            got += 1.0                                          # a caller's in-place change stays its own
+        assert np.array_equal(v.similarity(q[:1]).numpy(), want[:1])
+        _change(mp, 16, g, 28)
+        mp.sem.remove(mp.sem.keys[:300].clone())
+
+
+def test_answer_search_equals_the_plain_path_across_map_changes(monkeypatch):
+    """answer_search with the snapshot's caches (background log-sum-exp, target scores, keys
+    for voxel indices) gives the same instances (confidences to float32 rounding), events and
+    rays as the plain path (full softmax over every phrase's scores, centres for voxel
+    indices) over map changes."""
+    from apps.bench.search import TARGETS
+    from common.search_messages import SearchRequest
+    from mapper.search_answer import TrackerStore, answer_search
+    from semantic_map.query_snapshot import HalfFeatures
+
+    class Plain:
+        """The snapshot without its caches."""
+
+        def __init__(self, s):
+            self._s = s
+
+        def __getattr__(self, k):
+            if k in ("phrase_logsumexp", "voxel_ijk"):
+                raise AttributeError(k)
+            return getattr(self._s, k)
+
+        def prepared(self, fs, device="cpu"):
+            v, r = self._s.prepared(fs, device)
+            return HalfFeatures(fs, device, v._h, v._a, v._b), r
+
+    import mapper.search_answer as sa
+
+    fs = _space(16)
+    table: dict = {}
+
+    def embed(fs_, req, background, *a):                     # fixed random vectors per phrase (no text model)
+        rows = [torch.as_tensor(req.embeddings, dtype=torch.float32)] if req.embeddings is not None else [
+            table.setdefault(t, torch.randn((1, fs.lang_dim))) for t in req.targets]
+        return torch.cat(rows + [table.setdefault(b, torch.randn((1, fs.lang_dim))) for b in background])
+
+    monkeypatch.setattr(sa, "embed_phrases", embed)
+    torch.manual_seed(14)
+    cfg, mp = build_map(30_000, 16, 300, fs, seed=11)
+    snap = QuerySnapshot()
+    fast, plain = TrackerStore(8), TrackerStore(8)
+    g = torch.Generator().manual_seed(12)
+    bg = torch.randn((4, fs.lang_dim), generator=torch.Generator().manual_seed(13)).numpy()
+    n_found = 0
+    for step in range(3):
+        snap.reserve(mp)
+        snap.sync(mp, step, step)
+        for i, tg in enumerate(TARGETS[:3]):
+            emb = bg[i:i + 1] if i == 2 else None              # a request's own embedding too
+            req = SearchRequest(targets=[tg], embeddings=emb, threshold=0.3).validate()
+            a = answer_search(snap, fs, req, cfg, fast, None, map_version=step)
+            b = answer_search(Plain(snap), fs, req, cfg, plain, None, map_version=step)
+            assert a.events == b.events and a.beyond == b.beyond
+            assert [{**f, "confidence": 0} for f in a.found] == [{**f, "confidence": 0} for f in b.found]
+            assert np.allclose([f["confidence"] for f in a.found], [f["confidence"] for f in b.found], rtol=0,
+                               atol=PROB_ATOL)
+            n_found += len(a.found)
+        _change(mp, 16, g, 31)
+        mp.sem.remove(mp.sem.keys[:200].clone())
+    assert n_found > 0
