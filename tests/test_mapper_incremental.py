@@ -15,7 +15,7 @@ from semantic_map import cell_keys
 from semantic_map.config import map_config
 from semantic_map.frontiers import FrontierTable
 from semantic_map.map import RayFrontsMap
-from semantic_map.ray_frontiers import RayStore, angle_bins
+from semantic_map.ray_frontiers import RayStore
 from synthetic_world import World
 from tests.support.ray_store_ref import SortedRayStore
 
@@ -68,45 +68,8 @@ def test_replace_region_matches_full_scan_and_logs_removals():
     assert t.take_removed() is None and t.take_removed().numel() == 0
 
 
-class _RefStore(SortedRayStore):
-    """The previous full-scan prune / sort-based merge."""
-
-    def merge(self, fkeys, frontier_keys_sorted, dirs, feats, w):
-        if fkeys.numel() == 0:
-            return
-        tb, pb = angle_bins(dirs, self.psi)
-        nb = self.nt * self.np_
-        fi_new = cell_keys.lookup(frontier_keys_sorted, fkeys)
-        comp_new = fi_new * nb + tb * self.np_ + pb
-        uc, inv = torch.unique(comp_new, return_inverse=True)
-        m = uc.numel()
-        w32 = w.to(torch.float32)
-        sw = torch.zeros(m).index_add_(0, inv, w32)
-        sf = torch.zeros((m, self.dim)).index_add_(0, inv, feats.to(torch.float32) * w32[:, None])
-        sd = torch.zeros((m, 3)).index_add_(0, inv, dirs.to(torch.float32) * w32[:, None])
-        fi_old = cell_keys.lookup(frontier_keys_sorted, self.fkey)
-        pos = cell_keys.lookup(fi_old * nb + self.tbin * self.np_ + self.pbin, uc)
-        ex = pos >= 0
-        if bool(ex.any()):
-            rows = pos[ex]
-            W0 = self.weight[rows]
-            W1 = W0 + sw[ex]
-            self.feat[rows] = ((self.feat[rows].to(torch.float32) * W0[:, None] + sf[ex]) / W1[:, None]).to(self.dtype)
-            self.weight[rows] = W1
-            self.dsum[rows] = self.dsum[rows] + sd[ex]
-        nw = ~ex
-        if bool(nw.any()):
-            c = uc[nw]
-            fidx = torch.div(c, nb, rounding_mode="floor")
-            rem = c - fidx * nb
-            self.fkey = torch.cat([self.fkey, frontier_keys_sorted[fidx]])
-            self.tbin = torch.cat([self.tbin, torch.div(rem, self.np_, rounding_mode="floor")])
-            self.pbin = torch.cat([self.pbin, rem % self.np_])
-            self.feat = torch.cat([self.feat, (sf[nw] / sw[nw][:, None]).to(self.dtype)])
-            self.weight = torch.cat([self.weight, sw[nw]])
-            self.dsum = torch.cat([self.dsum, sd[nw]])
-            fi_all = cell_keys.lookup(frontier_keys_sorted, self.fkey)
-            self._take(torch.argsort(fi_all * nb + self.tbin * self.np_ + self.pbin))
+#: the previous full-scan prune / sort-based merge
+_RefStore = SortedRayStore
 
 
 def _same_store(a, b):
