@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import torch
 
+from apps.bench.meta import resolution_arg
+
 if TYPE_CHECKING:
     from edge.runtime import EdgeConfig
     from encoders import ImageEncoder
@@ -43,16 +45,6 @@ LABEL_CLASSES = ["sky", "ground", "road", "building", "tree", "car", "fence", "c
                  "radio tower", "street lamp", "bench"]
 
 
-def _res(s: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in s.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"resolution must be HxW (e.g. 224x224), got {s!r}") from None
-    if h < 1 or w < 1:
-        raise argparse.ArgumentTypeError(f"resolution must be positive, got {s!r}")
-    return h, w
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default="radio_v2.5-b", choices=["radio_v2.5-b", "radio_v2.5-l", "label"],
                         help="encoder to benchmark (RADIO models: random weights of the real size unless "
@@ -61,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                         "encoder.model_dir); default: random weights in a temp dir")
     parser.add_argument("--output", default="radio", choices=["radio", "language"],
                         help="NARADIO output space (encoder.output, default radio as the edge)")
-    parser.add_argument("--resolution", type=_res, default=(224, 224), help="input size HxW in pixels")
+    parser.add_argument("--resolution", type=resolution_arg, default=(224, 224), help="input size HxW in pixels")
     parser.add_argument("--frames", type=int, default=5, help="timed frames")
     parser.add_argument("--warmup", type=int, default=1, help="untimed frames first")
     parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")

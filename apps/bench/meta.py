@@ -21,6 +21,7 @@ same machine load on both sides.
 """
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import resource
@@ -206,3 +207,14 @@ def interleaved(fns: dict[str, Callable[[], object]], reps: int, warmup: int = 1
                 sync()
             out[k].append(time.perf_counter() - t0)
     return out
+
+
+def resolution_arg(s: str) -> tuple[int, int]:
+    """argparse type for an image size ``HxW`` in pixels → ``(H, W)``, both at least 16."""
+    try:
+        h, w = (int(v) for v in s.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"resolution must be HxW (e.g. 224x224), got {s!r}") from None
+    if h < 16 or w < 16:
+        raise argparse.ArgumentTypeError(f"resolution must be at least 16x16, got {s!r}")
+    return h, w

@@ -32,6 +32,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from apps.bench.meta import resolution_arg
+
 if TYPE_CHECKING:
     import numpy as np
     import torch
@@ -42,20 +44,10 @@ if TYPE_CHECKING:
 HELP = "long mission (12,000+ frames, no revisits): per-window CPU-ms/frame, RSS, map size, query latency (JSON, plot)"
 
 
-def _hw(s: str) -> tuple[int, int]:
-    try:
-        h, w = (int(v) for v in s.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW (e.g. 224x224), got {s!r}") from None
-    if h < 16 or w < 16:
-        raise argparse.ArgumentTypeError(f"resolution must be at least 16x16, got {s!r}")
-    return h, w
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=12000, help="frames (default 12000; 36000 = 1 h at 10 Hz)")
     parser.add_argument("--window", type=int, default=0, help="frames per reported window (default 5%% of --frames)")
-    parser.add_argument("--resolution", type=_hw, default=(224, 224), metavar="HxW",
+    parser.add_argument("--resolution", type=resolution_arg, default=(224, 224), metavar="HxW",
                         help="rendered image size (default 224x224, as bench mapper's throughput preset)")
     parser.add_argument("--step", type=float, default=0.15, help="metres travelled per frame (default 0.15)")
     parser.add_argument("--chunk", type=int, default=200, help="frames rendered ahead per chunk (default 200)")
