@@ -22,9 +22,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.browser import Chromium, analyse, chromium_exe, good
+from tests.support.browser import Chromium, analyse, chromium_exe, good, start_viewer_stack
 from tests.support.ports import free_port
-from tests.support.processes import ROOT, Proc, stop_all, wait_log
+from tests.support.processes import ROOT, Proc, stop_all
 
 
 # ----------------------------------------------------------------------------- the test
@@ -48,16 +48,7 @@ def test_web_viewer_draws_map_and_heatmap(tmp_path):
     artefacts.mkdir(parents=True, exist_ok=True)
     shot = artefacts / "browser_view.png"
     try:
-        r, rlog = start("router", ["router", "--listen", ep])
-        wait_log(r, rlog, "listening on", 60)
-        m, mlog = start("mapper", ["mapper", "--mode", "client", "--connect", ep, "--serve-web", "--grpc-port",
-                                   str(grpc), "--web-port", str(web), "map.vox_size=0.5", "map.depth_limit=20",
-                                   "layers.rate_hz=1", "snapshots.on_exit=false"])
-        url = wait_log(m, mlog, r"web viewer at (http://127\.0\.0\.1:\d+/\?url=\S+)", 120).group(1)
-        wait_log(m, mlog, "mapper up", 120)
-        e, elog = start("edge", ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.kind=synthetic",
-                                 "source.n_frames=30", "source.resolution=120x160", "source.depth_limit=20",
-                                 "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4"])
+        url, e, elog = start_viewer_stack(start, ep, grpc, web)
         assert e.wait(240) == 0, elog.read_text()[-3000:]
         with Client(connect=ep, timeout=30.0) as c:
             end = time.monotonic() + 120

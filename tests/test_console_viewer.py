@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.browser import Chromium, analyse, chromium_exe, decode_png, heat_shown
+from tests.support.browser import Chromium, analyse, chromium_exe, decode_png, heat_shown, start_viewer_stack
 from tests.support.console import http
 from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, proc_env, stop_all, wait_for, wait_log
@@ -83,16 +83,7 @@ def test_console_embeds_the_live_viewer(tmp_path):
     img_file.write_bytes(_car_png(World.generate(0)))
     browser = None
     try:
-        r, rlog = start("router", ["router", "--listen", ep])
-        wait_log(r, rlog, "listening on", 60)
-        m, mlog = start("mapper", ["mapper", "--mode", "client", "--connect", ep, "--serve-web", "--grpc-port",
-                                   str(grpc), "--web-port", str(web), "map.vox_size=0.5", "map.depth_limit=20",
-                                   "layers.rate_hz=1", "snapshots.on_exit=false"])
-        viewer = wait_log(m, mlog, r"web viewer at (http://127\.0\.0\.1:\d+/\?url=\S+)", 120).group(1)
-        wait_log(m, mlog, "mapper up", 120)
-        e, elog = start("edge", ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.kind=synthetic",
-                                 "source.n_frames=30", "source.resolution=120x160", "source.depth_limit=20",
-                                 "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4"])
+        viewer, e, elog = start_viewer_stack(start, ep, grpc, web)
         c, clog = start("console", ["console", "--connect", ep, "--http", f"127.0.0.1:{port}", "--timeout", "60",
                                     "--viewer-url", viewer])
         base = wait_log(c, clog, r"console at (http://\S+)", 120).group(1).rstrip("/")

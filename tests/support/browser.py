@@ -21,7 +21,7 @@ import urllib.request
 import numpy as np
 import pytest
 
-from tests.support.processes import stop_process
+from tests.support.processes import stop_process, wait_log
 
 
 class WS:
@@ -188,3 +188,21 @@ def heat_shown(a: dict) -> bool:
 def good(a: dict) -> bool:
     """Heatmap, map layers and the camera image all shown."""
     return heat_shown(a) and a["map_px"] >= 20 and a["camera_std"] > 8.0
+
+
+def start_viewer_stack(start, ep: str, grpc_port: int, web_port: int) -> tuple[str, subprocess.Popen, object]:
+    """Router on ``ep``, a mapper serving rerun's web viewer (``grpc_port``, ``web_port``) and an
+    edge sending 30 label-encoded synthetic frames (started, not awaited). ``start(name, argv)``
+    launches one ``rayfronts`` process and returns ``(Popen, log path)``. Returns the viewer's
+    URL, the edge's Popen and its log path."""
+    r, rlog = start("router", ["router", "--listen", ep])
+    wait_log(r, rlog, "listening on", 60)
+    m, mlog = start("mapper", ["mapper", "--mode", "client", "--connect", ep, "--serve-web", "--grpc-port",
+                               str(grpc_port), "--web-port", str(web_port), "map.vox_size=0.5", "map.depth_limit=20",
+                               "layers.rate_hz=1", "snapshots.on_exit=false"])
+    url = wait_log(m, mlog, r"web viewer at (http://127\.0\.0\.1:\d+/\?url=\S+)", 120).group(1)
+    wait_log(m, mlog, "mapper up", 120)
+    e, elog = start("edge", ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.kind=synthetic",
+                             "source.n_frames=30", "source.resolution=120x160", "source.depth_limit=20",
+                             "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4"])
+    return url, e, elog
