@@ -63,7 +63,6 @@ class LiveMapper:
         self.work, self.robot = Path(work), robot
         self.work.mkdir(parents=True, exist_ok=True)
         self.band, self.window, self.semantic = band_m, float(window_m), semantic
-        self.vox = float(cfg.map.vox_size)
         if not semantic:   # geometry only: no ray may attach to a frontier (as LocalMapper does it)
             cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, ray_radius_m=1e-9))
         (self.work / "mapper.yaml").write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
@@ -95,7 +94,6 @@ class LiveMapper:
         self._procs.append((name, p, log))
 
     def _connect(self) -> None:
-        from common.keys import KeySpace
         from common.zenoh_session import ZenohConfig
         from query_client.client import Client
 
@@ -103,7 +101,7 @@ class LiveMapper:
         wait_for(lambda: self._alive() and _listening(port), START_S, what="the mapper's Zenoh router",
                  error=RuntimeError)
         self.client = Client(ZenohConfig(mode="client", connect=[self.endpoint]))
-        self._views = self.client.session.declare_publisher(KeySpace(self.client.keys.prefix).sim_views(self.robot))
+        self._views = self.client.session.declare_publisher(self.client.keys.sim_views(self.robot))
         wait_for(lambda: self._alive() and self._views.matching_status.matching, START_S,
                  what="the mapper and the edge's sim camera", error=RuntimeError)
 

@@ -16,6 +16,7 @@ A source that cannot be opened at all still raises :class:`SourceError`.
 from __future__ import annotations
 
 import logging
+import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -37,6 +38,28 @@ log = logging.getLogger(__name__)
 
 #: the ``skipped`` reason of frames that failed to read or decode
 CORRUPT = "corrupt frame"
+
+
+
+class RateLimitedLog:
+    """At most one line per key per ``every`` seconds; the next line says how many were held back."""
+
+    def __init__(self, every: float, logger: logging.Logger = log):
+        self.every = float(every)
+        self.log = logger
+        self._last: dict[str, float] = {}
+        self._held: Counter = Counter()
+
+    def warn(self, key: str, msg: str, *args: Any) -> None:
+        """Log ``msg % args`` as a warning unless ``key`` was logged less than ``every`` seconds ago."""
+        now = time.monotonic()
+        last = self._last.get(key)
+        if last is not None and now - last < self.every:
+            self._held[key] += 1
+            return
+        held = self._held.pop(key, 0)
+        self._last[key] = now
+        self.log.warning(msg + (f" (+{held} more since the last report)" if held else ""), *args)
 
 
 def select_indices(candidates: Sequence[int], frame_skip: int, max_frames: int | None) -> list[int]:

@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from common.conventions import convert_pose
-from edge.sources.base import FrameSource, native_frame
+from edge.sources.base import FrameSource, RateLimitedLog, native_frame
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 from edge.sources.ros_msgs import (
@@ -99,27 +99,6 @@ ROLE_TYPES = {
     "tf": (TF,),
     "tf_static": (TF,),
 }
-
-
-class RateLimitedLog:
-    """At most one line per key per ``every`` seconds; the next line says how many were held back."""
-
-    def __init__(self, every: float, logger: logging.Logger = log):
-        self.every = float(every)
-        self.log = logger
-        self._last: dict[str, float] = {}
-        self._held: Counter = Counter()
-
-    def warn(self, key: str, msg: str, *args: Any) -> None:
-        """Log ``msg % args`` as a warning unless ``key`` was logged less than ``every`` seconds ago."""
-        now = time.monotonic()
-        last = self._last.get(key)
-        if last is not None and now - last < self.every:
-            self._held[key] += 1
-            return
-        held = self._held.pop(key, 0)
-        self._last[key] = now
-        self.log.warning(msg + (f" (+{held} more since the last report)" if held else ""), *args)
 
 
 def _ros_session_config(cfg: SourceConfig, zenoh: ZenohConfig | None) -> ZenohConfig:
@@ -195,7 +174,7 @@ class Ros2Source(FrameSource):
         self._last_arrival: dict[str, float] = {}
         self._stalled: set[str] = set()
         self._newest: dict[str, float] = {}
-        self._rlog = RateLimitedLog(cfg.ros_log_every)
+        self._rlog = RateLimitedLog(cfg.ros_log_every, log)
         self._rgb: deque = deque(maxlen=cfg.ros_queue)  # (stamp, ordinal, msg, type)
         self._pending: deque = deque()  # (index, stamp, depth, t_arrival)
         self._info = None

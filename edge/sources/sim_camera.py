@@ -21,13 +21,12 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections import Counter, deque
 from collections.abc import Iterator
 
 import numpy as np
 
-from edge.sources.base import FrameSource, native_frame
+from edge.sources.base import FrameSource, RateLimitedLog, native_frame
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 
@@ -69,7 +68,7 @@ class SimCameraSource(FrameSource):
         self._steps: deque = deque()
         self.counts: Counter = Counter()
         self.frames_out = 0
-        self._last_bad_log = 0.0
+        self._rlog = RateLimitedLog(5.0, log)
 
     def _on_sample(self, sample) -> None:
         from common.messages import MessageError, decode_sim_views
@@ -78,9 +77,8 @@ class SimCameraSource(FrameSource):
             step, poses = decode_sim_views(sample.payload.to_bytes())
         except MessageError as e:
             self.counts["bad"] += 1
-            if time.monotonic() - self._last_bad_log > 5.0:
-                self._last_bad_log = time.monotonic()
-                log.warning("sim_camera: ignoring a message on %s (%d so far): %s", self.key, self.counts["bad"], e)
+            self._rlog.warn("bad", "sim_camera: ignoring a message on %s (%d so far): %s", self.key,
+                            self.counts["bad"], e)
             return
         except Exception as e:  # never raise out of a Zenoh callback
             self.counts["bad"] += 1
