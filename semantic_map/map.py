@@ -499,8 +499,8 @@ class RayFrontsMap:
     def rays(self) -> RayLayer:
         rs = self.ray_store
         dirs = rs.directions()
-        return RayLayer(rs.origins(), dirs, angles_deg(dirs).to(torch.float32), rs.feat.clone(),
-                        rs.weight.clone(), rs.fkey.clone())
+        return RayLayer(rs.origins(), dirs, angles_deg(dirs).to(torch.float32), rs.feat,   # fields are copies
+                        rs.weight, rs.fkey)
 
     def query(self, queries: ArrayOrTensor, *, similarity: Similarity | None = None, softmax: bool = False,
               temperature: float = 100.0, top_k: int = 10, denoise: float | None = None,
@@ -519,14 +519,21 @@ class RayFrontsMap:
 
     # ------------------------------------------------------------------------------------
     def memory_bytes(self) -> int:
-        return int(self.sem.memory_bytes() + self.ray_store.memory_bytes() + self.occupancy.memory_bytes()
-                   + self.fronts.keys.numel() * 16)
+        """Bytes held by the semantic layers: voxels (rows at capacity and key index), ray
+        bins (rows, index) and the frontier table. The occupancy grid is apart
+        (:meth:`occupancy_memory_bytes`): it grows with observed space, not with voxels."""
+        return int(self.sem.memory_bytes() + self.ray_store.memory_bytes() + self.fronts.keys.numel() * 16)
+
+    def occupancy_memory_bytes(self) -> int:
+        """Bytes held by the occupancy grid (OpenVDB ``memUsage``; torch: keys + values)."""
+        return int(self.occupancy.memory_bytes())
 
     def stats(self) -> dict:
         return dict(n_voxels=len(self.sem), n_frontiers=len(self.fronts), n_rays=len(self.ray_store),
                     n_occupancy_active=int(self.occupancy.num_active), frames=self.counters["frames"],
                     voxel_blocks=self.counters["voxel_blocks"], ray_blocks=self.counters["ray_blocks"],
-                    memory_bytes=self.memory_bytes(), feature_dim=self.feature_dim,
+                    memory_bytes=self.memory_bytes(), occupancy_memory_bytes=self.occupancy_memory_bytes(),
+                    feature_dim=self.feature_dim,
                     feature_space=self.feature_space,
                     timings_ms_total={k: round(v, 3) for k, v in self.timings_total.items()})
 

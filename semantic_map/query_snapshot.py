@@ -361,7 +361,7 @@ class QuerySnapshot:
     def _copy_rest(self, m: RayFrontsMap, gen: int, frames_mapped: int) -> None:
         self.vox = float(m.cfg.vox_size)
         rs = m.ray_store
-        self.ray_feats = rs.feat.clone()
+        self.ray_feats = rs.feat   # a fresh copy
         self.ray_origins = _np(rs.origins()).astype(np.float32).reshape(-1, 3)
         self.ray_dirs = _np(rs.directions()).astype(np.float32).reshape(-1, 3)
         self.half_angle = float(m.cone_half_angle())

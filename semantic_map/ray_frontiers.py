@@ -45,6 +45,7 @@ import torch
 
 from common.conventions import voxel_center, voxel_index
 from semantic_map import cell_keys, kernels
+from semantic_map.row_storage import grown_capacity
 from semantic_map.traversal import segment_cells
 
 if TYPE_CHECKING:
@@ -359,8 +360,9 @@ class RayStore:
 
     Storage (a ray block costs O(changed bins · log store) amortised, never a rewrite of the store):
 
-    * rows are append-only (capacity doubling); a pruned bin's row is a tombstone (``live``
-      false) until a compaction drops the dead rows, once they are half of the rows;
+    * rows are append-only (a full table grows by ~1/16, :mod:`semantic_map.row_storage`); a
+      pruned bin's row is a tombstone (``live`` false) until a compaction drops the dead rows,
+      once they are a fifth of the rows;
     * an index from ``(frontier key, bin)`` to row, kept across ray blocks as a few sorted
       runs (a log-structured merge: a block's new bins form a new run, runs of similar size
       are merged, so every entry is merged O(log) times); pruning a frontier marks its
@@ -370,13 +372,15 @@ class RayStore:
     The observable store is the *canonical view*: the live bins sorted by ``(frontier key,
     theta bin, phi bin)``, the order the previous sorted-array store kept. The attributes
     ``fkey``, ``tbin``, ``pbin``, ``feat``, ``weight``, ``dsum``, :meth:`state`, :meth:`origins`,
-    :meth:`directions` and the rays :meth:`prune` / :meth:`prune_keys` return all follow it (built
-    on first read after a change, O(store), and cached), so values, order and snapshots equal
+    :meth:`directions` and the rays :meth:`prune` / :meth:`prune_keys` return all follow it (the
+    order is built on first read after a change, O(store), and cached; each field read gathers a
+    fresh copy, so the store holds no second copy of its features), so values, order and snapshots equal
     the sorted store's (``tests/test_ray_store.py`` checks against that algorithm)."""
 
     _FIELDS = ("fkey", "tbin", "pbin", "feat", "weight", "dsum")
     _RUN_RATIO = 4        # a run is merged into the previous one while that one is at most this many times larger
     _MIN_COMPACT = 4096   # below this many dead rows / index tombstones nothing is compacted
+    _DEAD_ROW_SHARE = 4   # dead rows are compacted once they exceed live rows / this
 
     def __init__(self, beta: float, psi: float, feature_dim: int, feature_dtype: torch.dtype = torch.float32,
                  device: str | torch.device = "cpu") -> None:
@@ -407,7 +411,7 @@ class RayStore:
         cap = self._rk.shape[0]
         if need <= cap:
             return
-        cap = max(need, 2 * cap, 64)
+        cap = grown_capacity(cap, need)
         for name in ("_rk", "_rb", "_rf", "_rw", "_rd", "_live"):
             old = getattr(self, name)
             new = torch.zeros((cap,) + tuple(old.shape[1:]), dtype=old.dtype, device=self.device)
@@ -464,7 +468,7 @@ class RayStore:
         live = self._n - self._n_dead
         if self._n_tomb > max(self._MIN_COMPACT, live):
             self._compact_index()
-        if self._n_dead > max(self._MIN_COMPACT, live):
+        if self._n_dead > max(self._MIN_COMPACT, live // self._DEAD_ROW_SHARE):
             self._compact_rows()
 
     def _find(self, keys: torch.Tensor, bins: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -516,21 +520,17 @@ class RayStore:
         return rows
 
     def _field(self, f: str) -> torch.Tensor:
-        t = self._view.get(f)
-        if t is None:
-            rows = self._view_rows()
-            if f == "tbin":
-                t = torch.div(self._rb[rows], self.np_, rounding_mode="floor")
-            elif f == "pbin":
-                t = self._rb[rows] % self.np_
-            else:
-                t = {"fkey": self._rk, "feat": self._rf, "weight": self._rw, "dsum": self._rd}[f][rows]
-            self._view[f] = t
-        return t
+        """A fresh copy of field ``f`` in canonical order."""
+        rows = self._view_rows()
+        if f == "tbin":
+            return torch.div(self._rb[rows], self.np_, rounding_mode="floor")
+        if f == "pbin":
+            return self._rb[rows] % self.np_
+        return {"fkey": self._rk, "feat": self._rf, "weight": self._rw, "dsum": self._rd}[f][rows]
 
     @property
     def fkey(self) -> torch.Tensor:
-        """(R,) int64 frontier key per bin (canonical order; read-only view)."""
+        """(R,) int64 frontier key per bin (canonical order; a copy)."""
         return self._field("fkey")
 
     @property
@@ -700,7 +700,7 @@ class RayStore:
 
     def state(self) -> dict:
         """Copies of the canonical view's fields (``_fields()``)."""
-        return {f: self._field(f).clone() for f in self._FIELDS}
+        return {f: self._field(f) for f in self._FIELDS}
 
     def load_state(self, st: dict) -> None:
         """Replace the content by ``st`` (as :meth:`state` gives; any row order, unique (key, bin))."""

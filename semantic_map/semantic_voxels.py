@@ -1,15 +1,17 @@
 """Semantic voxels: RGB + feature + hit count per voxel, hit-count weighted running mean.
 
-Storage is row-based with capacity doubling (rows never move except when pruning fills
-holes). A persistent key index maps packed voxel keys (:mod:`semantic_map.cell_keys`) to rows: a large
-sorted ``main`` array plus a small sorted ``delta`` array that absorbs inserts and is merged
-into ``main`` only when it grows past a fraction of it, so an update costs
-O(new points · log) amortised, never a re-sort of the whole map per update.
+Storage is row-based (rows never move except when pruning fills holes); a full table grows
+by ~1/16 (:mod:`semantic_map.row_storage`). A persistent key index maps packed voxel keys
+(:mod:`semantic_map.cell_keys`) to int32 rows: a large sorted ``main`` array plus a small
+sorted ``delta`` array that absorbs inserts and is merged into ``main`` only when it grows
+past a fraction of it, so an update costs O(new points · log) amortised, never a re-sort of
+the whole map per update.
 
 Fusion of points ``(x, rgb, f)`` into voxel ``v`` with count ``n``:
 ``mean' = (n * mean + sum_new) / (n + k)``, ``n' = n + k`` (k new points), accumulated in
-float32 and stored in ``feature_dtype`` (float32 or float16). Equal to the hit-count
-weighted mean over every point ever inserted.
+float32 and stored in ``feature_dtype`` (float32 or float16; colours too, so a float16 map's
+colours are within 2^-11 of the float32 mean: at most ±1 of the uint8 output). Equal to the
+hit-count weighted mean over every point ever inserted.
 
 Change journal (for an incrementally maintained copy, the query's
 :class:`mapper.query_answer.QuerySnapshot`): every row a fuse writes or a prune moves is
@@ -24,15 +26,18 @@ import torch
 
 from common.conventions import voxel_center, voxel_index
 from semantic_map import cell_keys
+from semantic_map.row_storage import grown_capacity
 
 
 class KeyIndex:
-    """int64 key → int64 row, with insert / lookup / delete (two-level sorted arrays)."""
+    """int64 key → row, with insert / lookup / delete (two-level sorted arrays; rows are
+    stored as int32 and returned as int64)."""
 
     def __init__(self, device: str | torch.device = "cpu") -> None:
         self.device = torch.device(device)
-        e = torch.empty(0, dtype=torch.int64, device=self.device)
-        self.main_k, self.main_r, self.delta_k, self.delta_r = e, e.clone(), e.clone(), e.clone()
+        k = torch.empty(0, dtype=torch.int64, device=self.device)
+        r = torch.empty(0, dtype=torch.int32, device=self.device)
+        self.main_k, self.main_r, self.delta_k, self.delta_r = k, r, k.clone(), r.clone()
 
     def __len__(self) -> int:
         return self.main_k.numel() + self.delta_k.numel()
@@ -42,13 +47,13 @@ class KeyIndex:
         for k, r in ((self.main_k, self.main_r), (self.delta_k, self.delta_r)):
             p = cell_keys.lookup(k, q)
             hit = p >= 0
-            out[hit] = r[p[hit]]
+            out[hit] = r[p[hit]].to(torch.int64)
         return out
 
     def insert(self, k: torch.Tensor, r: torch.Tensor) -> None:
         """Insert keys that are not present yet (caller guarantees)."""
         dk = torch.cat([self.delta_k, k])
-        dr = torch.cat([self.delta_r, r])
+        dr = torch.cat([self.delta_r, r.to(torch.int32)])
         o = torch.argsort(dk)
         self.delta_k, self.delta_r = dk[o], dr[o]
         if self.delta_k.numel() > max(4096, self.main_k.numel() // 8):
@@ -75,12 +80,15 @@ class KeyIndex:
         for kk, rr in ((self.main_k, self.main_r), (self.delta_k, self.delta_r)):
             p = cell_keys.lookup(kk, k)
             hit = p >= 0
-            rr[p[hit]] = r[hit]
+            rr[p[hit]] = r[hit].to(torch.int32)
 
     def items(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """All (keys, rows), keys ascending."""
+        """All (keys, int64 rows), keys ascending."""
         self._merge()
-        return self.main_k, self.main_r
+        return self.main_k, self.main_r.to(torch.int64)
+
+    def memory_bytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.main_k, self.main_r, self.delta_k, self.delta_r))
 
 
 class SemanticVoxels:
@@ -88,7 +96,7 @@ class SemanticVoxels:
 
     # row storage, set by _alloc (capacity rows, the first n live)
     _row_keys: torch.Tensor   # (cap,) int64 packed voxel key
-    _rgb: torch.Tensor        # (cap, 3) float32
+    _rgb: torch.Tensor        # (cap, 3) feature dtype, in [0, 1]
     _feat: torch.Tensor       # (cap, C) feature dtype
     _count: torch.Tensor      # (cap,) float32 hit count
 
@@ -110,7 +118,7 @@ class SemanticVoxels:
         dev = self.device
         new = dict(
             row_keys=torch.zeros(cap, dtype=torch.int64, device=dev),
-            rgb=torch.zeros((cap, 3), dtype=torch.float32, device=dev),
+            rgb=torch.zeros((cap, 3), dtype=self.dtype, device=dev),
             feat=torch.zeros((cap, self.dim), dtype=self.dtype, device=dev),
             count=torch.zeros(cap, dtype=torch.float32, device=dev),
         )
@@ -150,10 +158,7 @@ class SemanticVoxels:
         nn = int(new.sum())
         if nn:
             if self.n + nn > self._count.numel():
-                cap = self._count.numel()
-                while cap < self.n + nn:
-                    cap *= 2
-                self._alloc(cap)
+                self._alloc(grown_capacity(self._count.numel(), self.n + nn))
             nr = torch.arange(self.n, self.n + nn, device=self.device)
             rows[new] = nr
             self.index.insert(uk[new], nr)
@@ -165,7 +170,7 @@ class SemanticVoxels:
         c1 = c0 + cnt
         w0 = (c0 / c1)[:, None]
         self._feat[rows] = (self._feat[rows].to(torch.float32) * w0 + sf / c1[:, None]).to(self.dtype)
-        self._rgb[rows] = self._rgb[rows] * w0 + sc / c1[:, None]
+        self._rgb[rows] = (self._rgb[rows].to(torch.float32) * w0 + sc / c1[:, None]).to(self.dtype)
         self._count[rows] = c1
         return uk
 
@@ -246,8 +251,9 @@ class SemanticVoxels:
         return voxel_center(self.ijk(), self.vox)
 
     def memory_bytes(self) -> int:
-        t = (self._row_keys, self._rgb, self._feat, self._count, self.index.main_k, self.index.main_r)
-        return sum(x.numel() * x.element_size() for x in t)
+        """Bytes held: row storage (capacity) and key index."""
+        t = (self._row_keys, self._rgb, self._feat, self._count)
+        return sum(x.numel() * x.element_size() for x in t) + self.index.memory_bytes()
 
     def state(self) -> dict[str, torch.Tensor]:
         return {"keys": self.keys.clone(), "rgb": self.rgb.clone(), "feat": self.feat.clone(),
@@ -259,7 +265,7 @@ class SemanticVoxels:
         self._alloc(max(1024, n))
         self.n = n
         self._row_keys[:n] = st["keys"].to(self.device)
-        self._rgb[:n] = st["rgb"].to(self.device)
+        self._rgb[:n] = st["rgb"].to(self.device, self.dtype)
         self._feat[:n] = st["feat"].to(self.device, self.dtype)
         self._count[:n] = st["count"].to(self.device)
         self.index = KeyIndex(self.device)

@@ -275,6 +275,7 @@ def _run_main(args: argparse.Namespace, res: dict, m: RayFrontsMap, frames: list
         "peak_rss_mb": round(peak_rss_mb(), 1),
         "n_voxels": st["n_voxels"], "n_frontiers": st["n_frontiers"], "n_rays": st["n_rays"],
         "n_occupancy_active": st["n_occupancy_active"], "map_memory_mb": round(st["memory_bytes"] / 2**20, 2),
+        "occupancy_memory_mb": round(st["occupancy_memory_bytes"] / 2**20, 2),
     })
     if args.growing:
         res["windows"] = windows

@@ -13,7 +13,8 @@ Per window (``--window`` frames, default 5 % of ``--frames``): process CPU ms pe
 the mapping alone (``cpu_ms_per_frame``, all threads; rendering and queries excluded),
 wall ms per frame, stage times, current and peak RSS (MiB), semantic voxels, frontiers, ray
 bins, the map's own memory estimate (``map_memory_mb`` = :meth:`RayFrontsMap.memory_bytes`
-/ 2^20, with its parts: semantic voxels, rays, occupancy, frontiers) and, at the window end,
+/ 2^20: the semantic layers, with their parts ``semantic_mb`` (voxels), ``rays_mb``,
+``frontiers_mb``; the occupancy grid apart, ``occupancy_mb``; ``total_memory_mb`` both) and, at the window end,
 the query latency: a persistent :class:`QuerySnapshot` synced to the live map (unflushed, as
 the mapper's query thread sees it; ``query_sync_ms``) and ``--queries`` queries answered by
 :func:`mapper.query_answer.answer_snapshot` (the in-process path of ``bench query``; text
@@ -147,12 +148,14 @@ class _Queries:
 
 
 def map_memory(m) -> dict:
-    """The map's memory estimate (MiB) and its parts."""
-    return {"map_memory_mb": round(m.memory_bytes() / 2**20, 3),
-            "semantic_mb": round(m.sem.memory_bytes() / 2**20, 3),
-            "rays_mb": round(m.ray_store.memory_bytes() / 2**20, 3),
-            "occupancy_mb": round(m.occupancy.memory_bytes() / 2**20, 3),
-            "frontiers_mb": round(m.fronts.keys.numel() * 16 / 2**20, 3)}
+    """The map's memory estimate (MiB): the semantic layers and their parts, the occupancy grid apart."""
+    mb = 1 / 2**20
+    return {"map_memory_mb": round(m.memory_bytes() * mb, 3),
+            "semantic_mb": round(m.sem.memory_bytes() * mb, 3),
+            "rays_mb": round(m.ray_store.memory_bytes() * mb, 3),
+            "frontiers_mb": round(m.fronts.keys.numel() * 16 * mb, 3),
+            "occupancy_mb": round(m.occupancy_memory_bytes() * mb, 3),
+            "total_memory_mb": round((m.memory_bytes() + m.occupancy_memory_bytes()) * mb, 3)}
 
 
 def _boundaries(n: int, window: int, chunk: int) -> list[int]:
