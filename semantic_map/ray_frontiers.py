@@ -362,12 +362,12 @@ class RayStore:
 
     * rows are append-only (a full table grows by ~1/16, :mod:`semantic_map.row_storage`); a
       pruned bin's row is a tombstone (``live`` false) until a compaction drops the dead rows,
-      once they are a fifth of the rows;
+      once they are a ninth of the rows;
     * an index from ``(frontier key, bin)`` to row, kept across ray blocks as a few sorted
       runs (a log-structured merge: a block's new bins form a new run, runs of similar size
       are merged, so every entry is merged O(log) times); pruning a frontier marks its
       entries as tombstones (a bin that comes back reuses its entry), dropped when runs merge
-      or when they are half of the index.
+      or when they are a fifth of the index.
 
     The observable store is the *canonical view*: the live bins sorted by ``(frontier key,
     theta bin, phi bin)``, the order the previous sorted-array store kept. The attributes
@@ -380,7 +380,8 @@ class RayStore:
     _FIELDS = ("fkey", "tbin", "pbin", "feat", "weight", "dsum")
     _RUN_RATIO = 4        # a run is merged into the previous one while that one is at most this many times larger
     _MIN_COMPACT = 4096   # below this many dead rows / index tombstones nothing is compacted
-    _DEAD_ROW_SHARE = 4   # dead rows are compacted once they exceed live rows / this
+    _DEAD_ROW_SHARE = 8   # dead rows are compacted once they exceed live rows / this
+    _TOMB_SHARE = 4       # index tombstones are dropped once they exceed live rows / this
 
     def __init__(self, beta: float, psi: float, feature_dim: int, feature_dtype: torch.dtype = torch.float32,
                  device: str | torch.device = "cpu") -> None:
@@ -466,7 +467,7 @@ class RayStore:
 
     def _maybe_compact(self) -> None:
         live = self._n - self._n_dead
-        if self._n_tomb > max(self._MIN_COMPACT, live):
+        if self._n_tomb > max(self._MIN_COMPACT, live // self._TOMB_SHARE):
             self._compact_index()
         if self._n_dead > max(self._MIN_COMPACT, live // self._DEAD_ROW_SHARE):
             self._compact_rows()

@@ -3,7 +3,8 @@
 * ``SemanticVoxels.memory_bytes`` equals the bytes of its row tensors at capacity plus the key
   index, computed here from the field sizes; capacity never exceeds the growth policy
   (``need + max(need / 16, 1024)``), checked after every insert of a growing map.
-* The ray store keeps at most a fifth of its rows dead (above the compaction floor), and its
+* The ray store keeps at most a ninth of its rows dead and a fifth of its index entries
+  tombstones (above the compaction floor), and its
   field reads are copies: writing into them changes nothing stored.
 * ``RayFrontsMap.memory_bytes`` is the semantic layers' sum; the occupancy grid is reported apart.
 """
@@ -62,7 +63,8 @@ def test_ray_store_dead_rows_bounded_and_fields_are_copies():
         d = torch.nn.functional.normalize(torch.randn((3000, 3), generator=g), dim=1)
         rs.merge(fk, keys, d, torch.randn((3000, 4), generator=g), torch.rand(3000, generator=g) + 0.1)
         live = len(rs)
-        assert rs._n_dead <= max(RayStore._MIN_COMPACT, live // 4), (rs._n_dead, live)
+        assert rs._n_dead <= max(RayStore._MIN_COMPACT, live // 8), (rs._n_dead, live)
+        assert rs._n_tomb <= max(RayStore._MIN_COMPACT, live // 4), (rs._n_tomb, live)
         most_rows = max(most_rows, rs._n)
         assert rs._rk.shape[0] <= grown_capacity(0, most_rows), (rs._rk.shape[0], most_rows)
     assert live > 0 and most_rows > 2 * RayStore._MIN_COMPACT   # compactions happened
