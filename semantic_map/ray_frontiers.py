@@ -307,6 +307,27 @@ def associate_bruteforce(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk
     return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, cost=cost)
 
 
+def bin_rays(fkeys: torch.Tensor, frontier_keys_sorted: torch.Tensor, dirs: torch.Tensor, feats: torch.Tensor,
+             w: torch.Tensor, psi: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Group rays by (frontier, angle bin): ``(codes, sum w, sum w·feat, sum w·dir)`` per group,
+    float32 sums, codes ascending = ``frontier index · n_bins + theta bin · n_phi + phi bin``
+    with the frontier's index in ``frontier_keys_sorted`` (so in (frontier key, bin) order).
+    Raises ``ValueError`` for a ray whose frontier key is not in the table."""
+    nt, npb = bin_counts(psi)
+    tb, pb = angle_bins(dirs, psi)
+    fi = cell_keys.lookup(frontier_keys_sorted, fkeys)
+    if bool((fi < 0).any()):
+        raise ValueError("ray refers to a frontier that is not in the table")
+    uc, inv = torch.unique(fi * (nt * npb) + tb * npb + pb, return_inverse=True)
+    m, dev = uc.numel(), fkeys.device
+    w32 = w.to(torch.float32)
+    sw = torch.zeros(m, dtype=torch.float32, device=dev).index_add_(0, inv, w32)
+    sf = torch.zeros((m, feats.shape[1]), dtype=torch.float32, device=dev).index_add_(
+        0, inv, feats.to(torch.float32) * w32[:, None])
+    sd = torch.zeros((m, 3), dtype=torch.float32, device=dev).index_add_(0, inv, dirs.to(torch.float32) * w32[:, None])
+    return uc, sw, sf, sd
+
+
 # --------------------------------------------------------------------------- store
 #: per-field dtype of a store row (``feat`` in the store's ``feature_dtype``)
 _ROW_DTYPES = {"fkey": torch.int64, "tbin": torch.int64, "pbin": torch.int64, "weight": torch.float32,
@@ -324,6 +345,11 @@ def _expand(lo: torch.Tensor, cnt: torch.Tensor) -> tuple[torch.Tensor, torch.Te
     q = torch.repeat_interleave(torch.arange(cnt.numel(), device=cnt.device), cnt)
     start = torch.cumsum(cnt, 0) - cnt
     return q, lo[q] + (torch.arange(q.numel(), device=cnt.device) - start[q])
+
+
+def _view_field(name: str, doc: str) -> property:
+    """A read-only property: a fresh copy of the store's field ``name`` in canonical order."""
+    return property(lambda self: self._field(name), doc=doc)
 
 
 class _Run:
@@ -529,35 +555,12 @@ class RayStore:
             return self._rb[rows] % self.np_
         return {"fkey": self._rk, "feat": self._rf, "weight": self._rw, "dsum": self._rd}[f][rows]
 
-    @property
-    def fkey(self) -> torch.Tensor:
-        """(R,) int64 frontier key per bin (canonical order; a copy)."""
-        return self._field("fkey")
-
-    @property
-    def tbin(self) -> torch.Tensor:
-        """(R,) int64 theta bin."""
-        return self._field("tbin")
-
-    @property
-    def pbin(self) -> torch.Tensor:
-        """(R,) int64 phi bin."""
-        return self._field("pbin")
-
-    @property
-    def feat(self) -> torch.Tensor:
-        """(R, C) weighted mean feature (``feature_dtype``)."""
-        return self._field("feat")
-
-    @property
-    def weight(self) -> torch.Tensor:
-        """(R,) float32 accumulated weight."""
-        return self._field("weight")
-
-    @property
-    def dsum(self) -> torch.Tensor:
-        """(R, 3) float32 weighted sum of unit directions."""
-        return self._field("dsum")
+    fkey = _view_field("fkey", "(R,) int64 frontier key per bin (canonical order; a copy).")
+    tbin = _view_field("tbin", "(R,) int64 theta bin.")
+    pbin = _view_field("pbin", "(R,) int64 phi bin.")
+    feat = _view_field("feat", "(R, C) weighted mean feature (``feature_dtype``).")
+    weight = _view_field("weight", "(R,) float32 accumulated weight.")
+    dsum = _view_field("dsum", "(R, 3) float32 weighted sum of unit directions.")
 
     # -- updates ---------------------------------------------------------------------------
     def prune(self, frontier_keys: torch.Tensor, requeue: bool) -> RayBatch | None:
@@ -623,20 +626,8 @@ class RayStore:
         O(new rays + touched bins · log store)."""
         if fkeys.numel() == 0:
             return
-        tb, pb = angle_bins(dirs, self.psi)
         nb = self.nt * self.np_
-        fi_new = cell_keys.lookup(frontier_keys_sorted, fkeys)
-        if bool((fi_new < 0).any()):
-            raise ValueError("ray refers to a frontier that is not in the table")
-        comp_new = fi_new * nb + tb * self.np_ + pb
-        uc, inv = torch.unique(comp_new, return_inverse=True)  # sorted = (frontier key, bin) order
-        m = uc.numel()
-        w32 = w.to(torch.float32)
-        sw = torch.zeros(m, dtype=torch.float32, device=self.device).index_add_(0, inv, w32)
-        sf = torch.zeros((m, self.dim), dtype=torch.float32, device=self.device).index_add_(
-            0, inv, feats.to(torch.float32) * w32[:, None])
-        sd = torch.zeros((m, 3), dtype=torch.float32, device=self.device).index_add_(
-            0, inv, dirs.to(torch.float32) * w32[:, None])
+        uc, sw, sf, sd = bin_rays(fkeys, frontier_keys_sorted, dirs, feats, w, self.psi)
         ufi = torch.div(uc, nb, rounding_mode="floor")
         ub = uc - ufi * nb
         ufk = frontier_keys_sorted[ufi]

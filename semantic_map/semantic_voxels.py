@@ -91,6 +91,11 @@ class KeyIndex:
         return sum(t.numel() * t.element_size() for t in (self.main_k, self.main_r, self.delta_k, self.delta_r))
 
 
+def _live_rows(name: str, doc: str) -> property:
+    """A property: the first ``n`` rows (the live voxels) of row table ``name``, a view."""
+    return property(lambda self: getattr(self, name)[: self.n], doc=doc)
+
+
 class SemanticVoxels:
     """Sparse semantic voxel map (see module docstring). ``vox`` in metres."""
 
@@ -228,21 +233,10 @@ class SemanticVoxels:
         return rows
 
     # ------------------------------------------------------------------------------------
-    @property
-    def keys(self) -> torch.Tensor:
-        return self._row_keys[: self.n]
-
-    @property
-    def rgb(self) -> torch.Tensor:
-        return self._rgb[: self.n]
-
-    @property
-    def feat(self) -> torch.Tensor:
-        return self._feat[: self.n]
-
-    @property
-    def count(self) -> torch.Tensor:
-        return self._count[: self.n]
+    keys = _live_rows("_row_keys", "(n,) int64 packed voxel keys (a view of the live rows).")
+    rgb = _live_rows("_rgb", "(n, 3) mean colour in [0, 1] (feature dtype).")
+    feat = _live_rows("_feat", "(n, C) mean feature (feature dtype).")
+    count = _live_rows("_count", "(n,) float32 hit count.")
 
     def ijk(self) -> torch.Tensor:
         return cell_keys.unpack(self.keys)

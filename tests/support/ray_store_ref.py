@@ -12,7 +12,7 @@ import torch
 
 from common.conventions import voxel_center
 from semantic_map import cell_keys
-from semantic_map.ray_frontiers import angle_bins, bin_centre_dirs, bin_counts
+from semantic_map.ray_frontiers import bin_centre_dirs, bin_counts, bin_rays
 
 
 class SortedRayStore:
@@ -64,18 +64,8 @@ class SortedRayStore:
     def merge(self, fkeys, frontier_keys_sorted, dirs, feats, w):
         if fkeys.numel() == 0:
             return
-        tb, pb = angle_bins(dirs, self.psi)
         nb = self.nt * self.np_
-        fi_new = cell_keys.lookup(frontier_keys_sorted, fkeys)
-        if bool((fi_new < 0).any()):
-            raise ValueError("ray refers to a frontier that is not in the table")
-        comp_new = fi_new * nb + tb * self.np_ + pb
-        uc, inv = torch.unique(comp_new, return_inverse=True)
-        m = uc.numel()
-        w32 = w.to(torch.float32)
-        sw = torch.zeros(m).index_add_(0, inv, w32)
-        sf = torch.zeros((m, self.dim)).index_add_(0, inv, feats.to(torch.float32) * w32[:, None])
-        sd = torch.zeros((m, 3)).index_add_(0, inv, dirs.to(torch.float32) * w32[:, None])
+        uc, sw, sf, sd = bin_rays(fkeys, frontier_keys_sorted, dirs, feats, w, self.psi)   # grouping is shared
         fi_old = cell_keys.lookup(frontier_keys_sorted, self.fkey)
         pos = cell_keys.lookup(fi_old * nb + self.tbin * self.np_ + self.pbin, uc)
         ex = pos >= 0
