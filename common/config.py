@@ -281,3 +281,11 @@ def field_(default: Any, help: str, **kw: Any) -> Any:
 def section(schema: type, help: str = "") -> Any:
     """A nested config section field."""
     return dataclasses.field(default_factory=schema, metadata={"help": help})
+
+
+def check_threads(threads: int, key: str) -> int:
+    """``threads``, the value of a thread-count key (``key``; 0 = auto), as an int; a
+    :class:`ConfigError` naming the key when it is negative."""
+    if threads < 0:
+        raise ConfigError(f"{key} must be >= 0 (0 = auto), got {threads}")
+    return int(threads)

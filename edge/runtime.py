@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Literal
 
 import numpy as np
 
-from common.config import field_, section
+from common.config import check_threads, field_, section
 from common.zenoh_session import ZenohConfig, close_quietly, undeclare_all
 from edge.sources.config import SourceConfig
 from encoders.config import EncoderConfig
@@ -141,11 +141,7 @@ def edge_config_schema() -> type[EdgeConfig]:
 def resolve_threads(cfg: EdgeConfig) -> int:
     """The edge's torch thread count for ``cfg.threads`` (see ``EdgeConfig.threads``); 0
     means leave torch's default."""
-    n = int(getattr(cfg, "threads", 0))
-    if n < 0:
-        from common.config import ConfigError
-
-        raise ConfigError(f"threads must be >= 0 (0 = auto), got {n}")
+    n = check_threads(int(getattr(cfg, "threads", 0)), "threads")
     if n > 0:
         return n
     enc = cfg.encoder

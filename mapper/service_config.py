@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Sequence
 
-from common.config import field_, section
+from common.config import check_threads, field_, section
 from common.zenoh_session import ZenohConfig
 from mapper.fleet import FleetSection
 from mapper.outputs.ros import RosSection
@@ -127,28 +127,21 @@ def _cpus() -> int:
         return os.cpu_count() or 1
 
 
-def _check_threads(threads: int, key: str) -> None:
-    if threads < 0:
-        from common.config import ConfigError
-
-        raise ConfigError(f"{key} must be >= 0 (0 = auto), got {threads}")
-
-
 def resolve_threads(threads: int, cpu_count: int | None = None) -> int:
     """Torch threads of the mapping thread for config value ``threads`` (``MapperConfig.threads``;
     ``cpu_count`` defaults to the CPUs this process may use)."""
-    _check_threads(threads, "threads")
+    threads = check_threads(threads, "threads")
     if threads > 0:
-        return int(threads)
+        return threads
     n = cpu_count if cpu_count is not None else _cpus()
     return 1 if n <= 4 else min(8, n // 2)
 
 
 def resolve_query_threads(threads: int, cpu_count: int | None = None) -> int:
     """Torch threads of a query for config value ``query.threads``."""
-    _check_threads(threads, "query.threads")
+    threads = check_threads(threads, "query.threads")
     if threads > 0:
-        return int(threads)
+        return threads
     return max(1, min(16, cpu_count if cpu_count is not None else _cpus()))
 
 

@@ -48,22 +48,16 @@ def test_half_copy_scores_and_top_k_match_float64(n_queries):
 def test_half_copy_follows_incremental_changes():
     """After fuses and a prune the synced float16 copy scores like a fresh one (same rows,
     deterministic per-row scaling) and within tolerance of the map's float32 rows."""
-    from apps.bench.query import _change
+    from tests.support.snapshots import ChangingMap
 
-    fs = _space(16)
-    cfg, mp = build_map(20_000, 16, 100, fs)
-    inc = QuerySnapshot()
+    cm = ChangingMap()
+    fs, mp, inc = cm.fs, cm.map, cm.snap
     q = torch.randn((1, fs.lang_dim), generator=torch.Generator().manual_seed(2))
-    g = torch.Generator().manual_seed(3)
-    for step in range(3):
-        inc.reserve(mp)
-        inc.sync(mp, step)
+    for step in cm.steps(3):
         a = inc.prepared(fs)[0].similarity(q).numpy()
         b = QuerySnapshot().take(mp, step).prepared(fs)[0].similarity(q).numpy()
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
         assert np.abs(a - _reference(fs, mp.sem.feat, q)).max() <= SCORE_ATOL
-        _change(mp, 16, g, 28)
-        mp.sem.remove(mp.sem.keys[:300].clone())
 
 
 def test_top_stable_equals_a_stable_sort():

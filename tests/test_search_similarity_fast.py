@@ -13,6 +13,7 @@ from apps.bench.query import _change, _space, build_map
 from mapper.search_answer import _probabilities, _voxel_probabilities
 from semantic_map.query import softmax_share
 from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+from tests.support.snapshots import ChangingMap
 
 #: |fast − float64 softmax of the same float32 scores| at temperature 100 (float32 rounding of
 #: arguments up to 100: ulp 7.6e-6)
@@ -71,15 +72,11 @@ def test_multi_query_scores_are_the_single_query_ones():
 def test_phrase_logsumexp_follows_incremental_changes():
     """After fuses, new voxels and a prune the cached log-sum-exp equals the brute-force one of
     a fresh copy (the rows a sync changed are recomputed, the others kept)."""
-    fs = _space(16)
-    _, mp = build_map(20_000, 16, 100, fs)
-    snap = QuerySnapshot()
+    cm = ChangingMap()
+    fs, mp, snap = cm.fs, cm.map, cm.snap
     bg = torch.randn((3, fs.lang_dim), generator=torch.Generator().manual_seed(2))
     other = torch.randn((2, fs.lang_dim), generator=torch.Generator().manual_seed(3))
-    g = torch.Generator().manual_seed(3)
-    for step in range(4):
-        snap.reserve(mp)
-        snap.sync(mp, step)
+    for step in cm.steps(4):
         got = snap.phrase_logsumexp(fs, bg, 100.0)
         assert got is not None and len(got) == len(mp.sem)
         want = _lse64(_snap_scores(QuerySnapshot().take(mp, step), fs, bg), 100.0)
@@ -90,8 +87,6 @@ def test_phrase_logsumexp_follows_incremental_changes():
             assert o is not None
             np.testing.assert_allclose(o.numpy(), _lse64(_snap_scores(snap, fs, other), 50.0), rtol=2e-6,
                                        atol=1e-5)
-        _change(mp, 16, g, 28)                                 # fused rows and a few hundred new voxels
-        mp.sem.remove(mp.sem.keys[:300].clone())               # rows moved
     assert snap.phrase_logsumexp(fs, bg[:0], 100.0) is None
 
 
@@ -176,14 +171,10 @@ def test_score_cache_follows_incremental_changes(monkeypatch):
     import semantic_map.query_snapshot as qs
 
     monkeypatch.setattr(qs, "SCORE_CACHE_ENTRIES", 3)
-    fs = _space(16)
-    _, mp = build_map(20_000, 16, 100, fs, seed=4)
-    snap = QuerySnapshot()
+    cm = ChangingMap(seed=4, change_seed=9)
+    fs, mp, snap = cm.fs, cm.map, cm.snap
     q = torch.randn((5, fs.lang_dim), generator=torch.Generator().manual_seed(6))
-    g = torch.Generator().manual_seed(9)
-    for step in range(4):
-        snap.reserve(mp)
-        snap.sync(mp, step)
+    for step in cm.steps(4):
         v, _ = snap.prepared(fs)
         fresh, _ = QuerySnapshot().take(mp, step).prepared(fs)
         want = fresh.similarity(q, use_cache=False).numpy()
@@ -194,8 +185,6 @@ def test_score_cache_follows_incremental_changes(monkeypatch):
         with torch.inference_mode():
             got += 1.0                                          # a caller's in-place change stays its own
         assert np.array_equal(v.similarity(q[:1]).numpy(), want[:1])
-        _change(mp, 16, g, 28)
-        mp.sem.remove(mp.sem.keys[:300].clone())
 
 
 def test_answer_search_equals_the_plain_path_across_map_changes(monkeypatch):

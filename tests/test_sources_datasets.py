@@ -339,6 +339,37 @@ def test_replica_missing(tmp_path, replica_root):
         (replica_root / "room0" / "gone.png").rename(replica_root / "room0" / "results" / "depth000006.png")
 
 
+def test_pose_text_files_and_dataset_dirs_name_the_problem(tmp_path):
+    """Pose text files (Replica traj.txt, TartanAir pose_<cam>.txt): blank lines are skipped, a bad
+    line is named as path:line with the expected layout; a missing dataset or scene directory is
+    named with the source kind."""
+    import re
+
+    from edge.sources.replica import read_traj
+    from edge.sources.tartanair import read_tartanair_poses
+
+    traj = tmp_path / "traj.txt"
+    pose = np.arange(16.0).reshape(4, 4)
+    traj.write_text("\n" + " ".join(str(v) for v in pose.ravel()) + "\n\n" + " ".join(["1"] * 16) + "\n")
+    assert np.array_equal(read_traj(traj), np.stack([pose, np.ones((4, 4))]))
+    traj.write_text(" ".join(["1"] * 16) + "\n1 2 3\n")
+    with pytest.raises(SourceError, match=re.escape(f"{traj}:2: expected 16 numbers (a row-major 4×4), got 3")):
+        read_traj(traj)
+    tq = tmp_path / "pose_lcam_front.txt"
+    tq.write_text("0 0 0 0 0 0 1\n\n0 0 x 0 0 0 1\n")
+    with pytest.raises(SourceError, match=re.escape(f"{tq}:3: not a list of numbers")):
+        read_tartanair_poses(tq)
+    tq.write_text("0 0 0 0 0 1\n")
+    with pytest.raises(SourceError, match=re.escape(f"{tq}:1: expected 7 numbers 'tx ty tz qx qy qz qw', got 6")):
+        read_tartanair_poses(tq)
+    for kind in ("replica", "scannet"):
+        with pytest.raises(SourceError, match=f"^{kind}: scene directory not found: .*nope$"):
+            open_source(SourceConfig(kind=kind, path=str(tmp_path), scene="nope"))
+    for kind in ("replica", "tartanair"):
+        with pytest.raises(SourceError, match=f"^{kind}: directory not found: .*none$"):
+            open_source(SourceConfig(kind=kind, path=str(tmp_path / "none")))
+
+
 def test_bad_config_values(replica_root):
     with pytest.raises(SourceError, match="HxW"):
         open_source(SourceConfig(kind="replica", path=str(replica_root), scene="room0", resolution="big"))

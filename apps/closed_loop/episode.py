@@ -83,6 +83,15 @@ class _Run:
     search_ms: list = field(default_factory=list)
     stage_ms: dict = field(default_factory=lambda: {"sense": [], "map": [], "search": [], "plan": [], "step": []})
 
+    def start_step(self, step: int, trace: Trace | None) -> float:
+        """Count step ``step`` (0-based) and record the position in ``trace``; returns the
+        process CPU time at the step's start (s, ``time.process_time``)."""
+        self.steps = step + 1
+        c0 = time.process_time()
+        if trace is not None:
+            trace.positions.append(self.pos.copy())
+        return c0
+
     def move(self, robot: Platform, world: World, nxt: np.ndarray) -> bool:
         """Drive to ``nxt`` unless the body would touch the true world (then: collided)."""
         if robot.collides(world, self.pos, nxt):
@@ -99,10 +108,7 @@ def _oracle(world: World, mission: Mission, robot: Platform, settings: LoopSetti
     total = float(np.linalg.norm(np.diff(mission.oracle_path[:, :2], axis=0), axis=1).sum())
     done = 0.0
     for step in range(mission.budget_steps):
-        run.steps = step + 1
-        c0 = time.process_time()
-        if trace is not None:
-            trace.positions.append(run.pos.copy())
+        c0 = run.start_step(step, trace)
         xy, done = follow(mission.oracle_path[:, :2], done, settings.step_m)
         if not run.move(robot, world, np.r_[xy, run.pos[2]]):
             return
@@ -132,10 +138,7 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
     state = PolicyState()
     stuck = 0
     for step in range(mission.budget_steps):
-        run.steps = step + 1
-        c0 = time.process_time()
-        if trace is not None:
-            trace.positions.append(run.pos.copy())
+        c0 = run.start_step(step, trace)
         t = [time.perf_counter()]
         poses = chain.view_poses(robot, run.pos)
         if getattr(mapper, "renders_remotely", False):   # a live edge renders and sends; sense = whole trip

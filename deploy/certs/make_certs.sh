@@ -64,19 +64,21 @@ umask 077
 TMP="$(mktemp -d)"
 trap 'rm -rf "$TMP"' EXIT
 
+# new_key FILE: a new EC P-256 private key in FILE (PEM)
+new_key() { openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$1" 2>/dev/null; }
+
+# req_config CN [REQ_LINE]: the head of an openssl req config on stdout: the [req] section
+# (plus REQ_LINE) and the subject CN=CN, O=RayFronts; the caller appends extension sections
+req_config() {
+  printf '%s\n' "[req]" "distinguished_name = dn" "prompt = no" ${2:+"$2"} "[dn]" "CN = $1" "O = RayFronts"
+}
+
 # ----------------------------------------------------------------------------- CA
 CA_DIR="$OUT/ca"
 if [ ! -s "$CA_DIR/ca.pem" ] || [ ! -s "$CA_DIR/ca-key.pem" ]; then
   mkdir -p "$CA_DIR"
-  openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$CA_DIR/ca-key.pem" 2>/dev/null
-  cat > "$TMP/ca.cnf" <<EOF
-[req]
-distinguished_name = dn
-prompt = no
-x509_extensions = v3_ca
-[dn]
-CN = RayFronts site CA
-O = RayFronts
+  new_key "$CA_DIR/ca-key.pem"
+  { req_config "RayFronts site CA" "x509_extensions = v3_ca"; cat <<EOF; } > "$TMP/ca.cnf"
 [v3_ca]
 basicConstraints = critical, CA:TRUE, pathlen:0
 keyUsage = critical, keyCertSign, cRLSign
@@ -100,14 +102,8 @@ issue() {
     return
   fi
   mkdir -p "$dir"
-  openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$dir/key.pem" 2>/dev/null
-  cat > "$TMP/$name.cnf" <<EOF
-[req]
-distinguished_name = dn
-prompt = no
-[dn]
-CN = $name
-O = RayFronts
+  new_key "$dir/key.pem"
+  { req_config "$name"; cat <<EOF; } > "$TMP/$name.cnf"
 [v3_leaf]
 basicConstraints = critical, CA:FALSE
 keyUsage = critical, digitalSignature, keyEncipherment

@@ -106,6 +106,14 @@ class FrameSource:
             raise SourceError(f"{self.kind}: {what} not found: {path}")
         return path
 
+    def _scene_dir(self, root: Path) -> Path:
+        """``root / source.scene`` (``root`` itself when scene is empty); one-line
+        :class:`SourceError` ("<kind>: scene directory not found: <path>") when it is not a directory."""
+        scene = root / self.cfg.scene if self.cfg.scene else root
+        if not scene.is_dir():
+            raise SourceError(f"{self.kind}: scene directory not found: {scene}")
+        return scene
+
     # ---- to be provided by subclasses -------------------------------------------------
     def _load(self, index: int) -> Frame:
         """The native frame at source ``index`` (robot/seq are filled in later)."""
@@ -232,6 +240,22 @@ def native_frame(index: int, stamp: float, pose: ArrayLike, K: ArrayLike, depth:
     return Frame(robot="", seq=0, stamp=float(stamp), pose=np.asarray(pose, dtype=np.float64),
                  intrinsics=np.asarray(K, dtype=np.float64), depth=depth, rgb=rgb, labels=labels,
                  meta={"index": int(index), **meta})
+
+
+def number_rows(path: Path, count: int, layout: str) -> Iterator[list[float]]:
+    """The values of each non-blank line of text file ``path``, a line holding exactly ``count``
+    whitespace-separated numbers; one-line :class:`SourceError` naming ``path:line``
+    otherwise (``layout`` says what the numbers are, e.g. "(a row-major 4×4)")."""
+    for ln, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            vals = [float(v) for v in line.split()]
+        except ValueError:
+            raise SourceError(f"{path}:{ln}: not a list of numbers") from None
+        if len(vals) != count:
+            raise SourceError(f"{path}:{ln}: expected {count} numbers {layout}, got {len(vals)}")
+        yield vals
 
 
 def filter_poses(poses: Sequence[np.ndarray], what: str, source: FrameSource) -> list[int]:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from common.conventions import convert_pose
-from edge.sources.base import FrameSource, filter_poses, native_frame
+from edge.sources.base import FrameSource, filter_poses, native_frame, number_rows
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 from edge.sources.imageops import read_depth_u16, read_rgb
@@ -29,17 +29,7 @@ def read_traj(path: Path) -> np.ndarray:
     """(N, 4, 4) poses from a NICE-SLAM ``traj.txt`` (16 numbers per line)."""
     if not path.is_file():
         raise SourceError(f"missing trajectory file: {path}")
-    rows = []
-    for ln, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            vals = [float(v) for v in line.split()]
-        except ValueError:
-            raise SourceError(f"{path}:{ln}: not a list of numbers") from None
-        if len(vals) != 16:
-            raise SourceError(f"{path}:{ln}: expected 16 numbers (a row-major 4×4), got {len(vals)}")
-        rows.append(np.array(vals).reshape(4, 4))
+    rows = [np.array(vals).reshape(4, 4) for vals in number_rows(path, 16, "(a row-major 4×4)")]
     return np.array(rows).reshape(-1, 4, 4)
 
 
@@ -49,12 +39,8 @@ class ReplicaSource(FrameSource):
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        root = Path(cfg.path)
-        if not root.is_dir():
-            raise SourceError(f"replica: directory not found: {root}")
-        scene = root / cfg.scene if cfg.scene else root
-        if not scene.is_dir():
-            raise SourceError(f"replica: scene directory not found: {scene}")
+        root = self._input_path("directory", directory=True)
+        scene = self._scene_dir(root)
         params = next((p for p in (root / "cam_params.json", scene / "cam_params.json",
                                     scene.parent / "cam_params.json") if p.is_file()), None)
         if params is None:

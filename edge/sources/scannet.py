@@ -64,10 +64,7 @@ class ScanNetSource(FrameSource):
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        root = Path(cfg.path)
-        scene = root / cfg.scene if cfg.scene else root
-        if not scene.is_dir():
-            raise SourceError(f"scannet: scene directory not found: {scene}")
+        scene = self._scene_dir(Path(cfg.path))
         for sub in ("color", "depth", "pose"):
             if not (scene / sub).is_dir():
                 raise SourceError(f"scannet: missing directory: {scene / sub}")

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from common.conventions import convert_pose
-from edge.sources.base import FrameSource, filter_poses, native_frame
+from edge.sources.base import FrameSource, filter_poses, native_frame, number_rows
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 from edge.sources.imageops import decode_rgba_float32, read_png_unchanged, read_rgb
@@ -41,15 +41,7 @@ def read_tartanair_poses(path: Path) -> np.ndarray:
     if not path.is_file():
         raise SourceError(f"tartanair: missing pose file: {path}")
     out = []
-    for ln, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            v = [float(x) for x in line.split()]
-        except ValueError:
-            raise SourceError(f"{path}:{ln}: not a list of numbers") from None
-        if len(v) != 7:
-            raise SourceError(f"{path}:{ln}: expected 7 numbers 'tx ty tz qx qy qz qw', got {len(v)}")
+    for v in number_rows(path, 7, "'tx ty tz qx qy qz qw'"):
         if not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-9:
             out.append(np.full((4, 4), np.nan))
         else:
@@ -71,9 +63,7 @@ class TartanAirSource(FrameSource):
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        root = Path(cfg.path)
-        if not root.is_dir():
-            raise SourceError(f"tartanair: directory not found: {root}")
+        root = self._input_path("directory", directory=True)
         if cfg.scene:
             traj = root / cfg.scene / cfg.difficulty
             traj = traj / cfg.sequence if cfg.sequence else traj

@@ -13,8 +13,9 @@ the shared fixtures (``procs``, ``pca_file``, ``closer``) live in ``tests/confte
 * :mod:`tests.support.rosbag_data`: ROS 2 messages and the hand-written bag of the bag tests.
 * :mod:`tests.support.data`: small generators and oracles (:func:`low_rank_pca`,
   :func:`bfs_components`, :func:`query_map`).
+* :mod:`tests.support.snapshots`: :class:`ChangingMap`, a query copy synced over map changes.
 
-The last three import rosbags / zenoh / torch: import them from their modules.
+The last four import rosbags / zenoh / torch: import them from their modules.
 """
 from tests.support.netns import ip, network_namespaces
 from tests.support.ports import dead_endpoint, free_port, port_is_free
