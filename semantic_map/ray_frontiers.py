@@ -353,13 +353,17 @@ def _view_field(name: str, doc: str) -> property:
 
 
 class _Run:
-    """One sorted run of the store's index: frontier key ``k``, bin ``b`` (``tbin * n_phi +
-    pbin``) and row ``r`` per entry, sorted by ``(k, b)``; ``r = -1`` is a tombstone."""
+    """One sorted run of the store's index: frontier key ``k`` (int64), bin ``b`` (``tbin *
+    n_phi + pbin``) and row ``r`` per entry (both stored as int32), sorted by ``(k, b)``;
+    ``r = -1`` is a tombstone."""
 
     __slots__ = ("k", "b", "r")
 
     def __init__(self, k: torch.Tensor, b: torch.Tensor, r: torch.Tensor) -> None:
-        self.k, self.b, self.r = k, b, r
+        self.k, self.b, self.r = k, b.to(torch.int32), r.to(torch.int32)
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.k, self.b, self.r))
 
     def __len__(self) -> int:
         return self.k.numel()
@@ -386,7 +390,7 @@ class RayStore:
 
     Storage (a ray block costs O(changed bins · log store) amortised, never a rewrite of the store):
 
-    * rows are append-only (a full table grows by ~1/16, :mod:`semantic_map.row_storage`); a
+    * rows are append-only (a full table grows by ~1/32, :mod:`semantic_map.row_storage`); a
       pruned bin's row is a tombstone (``live`` false) until a compaction drops the dead rows,
       once they are a ninth of the rows;
     * an index from ``(frontier key, bin)`` to row, kept across ray blocks as a few sorted
@@ -426,7 +430,7 @@ class RayStore:
         self._n_dead = 0            # dead rows among them
         self._n_tomb = 0            # tombstones in the index
         self._rk = torch.zeros(cap, dtype=torch.int64, device=dev)           # frontier key
-        self._rb = torch.zeros(cap, dtype=torch.int64, device=dev)           # bin = tbin * n_phi + pbin
+        self._rb = torch.zeros(cap, dtype=torch.int32, device=dev)           # bin = tbin * n_phi + pbin
         self._rf = torch.zeros((cap, self.dim), dtype=self.dtype, device=dev)  # feature
         self._rw = torch.zeros(cap, dtype=torch.float32, device=dev)         # weight
         self._rd = torch.zeros((cap, 3), dtype=torch.float32, device=dev)    # direction sum
@@ -481,7 +485,7 @@ class RayStore:
         new_row = torch.cumsum(live, 0) - 1
         for run in self._runs:
             ok = run.r >= 0
-            run.r = torch.where(ok, new_row[run.r.clamp_min(0)], run.r)
+            run.r = torch.where(ok, new_row[run.r.clamp_min(0)], run.r).to(torch.int32)
         keep = torch.nonzero(live).squeeze(1)
         m = keep.numel()
         for name in ("_rk", "_rb", "_rf", "_rw", "_rd"):
@@ -511,7 +515,7 @@ class RayStore:
         row = torch.full((m,), -1, dtype=torch.int64, device=self.device)
         for i, run in enumerate(self._runs):
             sel = run_of == i
-            row[sel] = run.r[pos[sel]]
+            row[sel] = run.r[pos[sel]].to(torch.int64)
         return run_of, pos, row
 
     def _rows_of(self, keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
@@ -528,7 +532,7 @@ class RayStore:
         if not qs:
             e = torch.empty(0, dtype=torch.int64, device=self.device)
             return e, e.clone(), []
-        return torch.cat(qs), torch.cat(rows), hits
+        return torch.cat(qs), torch.cat(rows).to(torch.int64), hits
 
     # -- canonical view --------------------------------------------------------------------
     def __len__(self) -> int:
@@ -542,7 +546,8 @@ class RayStore:
         rows = self._view.get("rows")
         if rows is None:
             self._compact_index()
-            rows = self._runs[0].r if self._runs else torch.empty(0, dtype=torch.int64, device=self.device)
+            rows = (self._runs[0].r.to(torch.int64) if self._runs
+                    else torch.empty(0, dtype=torch.int64, device=self.device))
             self._view["rows"] = rows
         return rows
 
@@ -550,9 +555,9 @@ class RayStore:
         """A fresh copy of field ``f`` in canonical order."""
         rows = self._view_rows()
         if f == "tbin":
-            return torch.div(self._rb[rows], self.np_, rounding_mode="floor")
+            return torch.div(self._rb[rows].to(torch.int64), self.np_, rounding_mode="floor")
         if f == "pbin":
-            return self._rb[rows] % self.np_
+            return self._rb[rows].to(torch.int64) % self.np_
         return {"fkey": self._rk, "feat": self._rf, "weight": self._rw, "dsum": self._rd}[f][rows]
 
     fkey = _view_field("fkey", "(R,) int64 frontier key per bin (canonical order; a copy).")
@@ -592,7 +597,7 @@ class RayStore:
 
     def _dead_out(self, rows: torch.Tensor) -> RayBatch:
         """Re-cast rays of ``rows`` (in canonical order), see :meth:`prune`."""
-        fk, bn = self._rk[rows], self._rb[rows]
+        fk, bn = self._rk[rows], self._rb[rows].to(torch.int64)
         o = voxel_center(cell_keys.unpack(fk), self.beta)
         ds = self._rd[rows]
         n = ds.norm(dim=1, keepdim=True)
@@ -660,7 +665,7 @@ class RayStore:
             for i, run in enumerate(self._runs):
                 sel = ro == i
                 if bool(sel.any()):
-                    run.r[po[sel]] = new_rows[sel]
+                    run.r[po[sel]] = new_rows[sel].to(torch.int32)
             self._n_tomb -= int(back.sum())
             fresh = ~back
             if bool(fresh.any()):   # ufk, ub are in (key, bin) order: already a sorted run
@@ -688,7 +693,7 @@ class RayStore:
     def memory_bytes(self) -> int:
         """Bytes held: row storage (capacity) and index."""
         rows = sum(t.numel() * t.element_size() for t in (self._rk, self._rb, self._rf, self._rw, self._rd, self._live))
-        return int(rows + sum(3 * 8 * len(r) for r in self._runs))
+        return int(rows + sum(r.nbytes() for r in self._runs))
 
     def state(self) -> dict:
         """Copies of the canonical view's fields (``_fields()``)."""

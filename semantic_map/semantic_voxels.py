@@ -1,7 +1,7 @@
 """Semantic voxels: RGB + feature + hit count per voxel, hit-count weighted running mean.
 
 Storage is row-based (rows never move except when pruning fills holes); a full table grows
-by ~1/16 (:mod:`semantic_map.row_storage`). A persistent key index maps packed voxel keys
+by ~1/32 (:mod:`semantic_map.row_storage`). A persistent key index maps packed voxel keys
 (:mod:`semantic_map.cell_keys`) to int32 rows: a large sorted ``main`` array plus a small
 sorted ``delta`` array that absorbs inserts and is merged into ``main`` only when it grows
 past a fraction of it, so an update costs O(new points · log) amortised, never a re-sort of
