@@ -13,21 +13,7 @@ import torch
 
 from common.feature_space import FeatureSpace, compatibility
 from common.pca import PCA
-from mapper.fleet import (
-    DropWarner,
-    FleetSection,
-    RateMeter,
-    Reprojection,
-    RobotTransforms,
-    StatusPublisher,
-    TransformError,
-    advised_rate,
-    evictions,
-    expire_pending,
-    parse_transform,
-    reprojection_score_error,
-    robot_status,
-)
+from mapper import fleet
 
 
 def _features(n, d=384, seed=0, decay=0.97, shift=0.0):
@@ -46,7 +32,7 @@ def test_reprojection_is_decompress_then_compress():
     xa, xb = _features(3000, seed=1), _features(3000, seed=2, shift=0.2)
     fa, fb = _space(xa, 32), _space(xb, 24)
     assert fa.id != fb.id
-    rp = Reprojection(fa, fb)                       # robot b into map a
+    rp = fleet.Reprojection(fa, fb)                       # robot b into map a
     assert rp.A.shape == (32, 24) and rp.b.shape == (32,)
     y = np.random.default_rng(3).standard_normal((24, 5, 7)).astype(np.float32)
     got = rp.features(y)
@@ -57,13 +43,13 @@ def test_reprojection_is_decompress_then_compress():
     with pytest.raises(ValueError):
         rp.features(y[:3])
     # same basis: identity
-    same = Reprojection(fa, fa)
+    same = fleet.Reprojection(fa, fa)
     np.testing.assert_allclose(same.A, np.eye(32), atol=1e-5)
     np.testing.assert_allclose(same.b, 0, atol=1e-5)
     # a raw (no PCA) robot into a PCA map: plain compression
     raw = FeatureSpace("enc", "1", 384)
     x1 = xa[:4]
-    np.testing.assert_allclose(Reprojection(fa, raw).vector(x1[0]), fa.compress(x1)[0], atol=1e-4)
+    np.testing.assert_allclose(fleet.Reprojection(fa, raw).vector(x1[0]), fa.compress(x1)[0], atol=1e-4)
 
 
 def test_reprojection_score_error_is_small_and_measured():
@@ -74,7 +60,7 @@ def test_reprojection_score_error_is_small_and_measured():
     spaces = [_space(x, 100) for x in xs]
     test_x = np.concatenate([_features(1000, seed=10 + s, shift=0.1 * s) for s in range(3)])
     q = torch.as_tensor(_features(64, seed=99))
-    errs = [reprojection_score_error(spaces[0], fs, test_x, q) for fs in spaces[1:]]
+    errs = [fleet.reprojection_score_error(spaces[0], fs, test_x, q) for fs in spaces[1:]]
     for e in errs:
         base = e["map_basis"]
         assert base["max_abs"] > 0.01                      # the map's basis itself loses (noise-like data)
@@ -82,11 +68,11 @@ def test_reprojection_score_error_is_small_and_measured():
         assert e["mean_abs"] < base["mean_abs"] + 0.003, e
         assert e["top1_agree"] >= base["top1_agree"] - 0.1, e
     # same basis: only float16 rounding differs
-    e0 = reprojection_score_error(spaces[0], spaces[0], test_x, q)
+    e0 = fleet.reprojection_score_error(spaces[0], spaces[0], test_x, q)
     assert abs(e0["max_abs"] - e0["map_basis"]["max_abs"]) < 1e-3
     # a basis that throws away the directions the queries use gives a large, visible error
     tiny = _space(xs[1], 2)
-    bad = reprojection_score_error(spaces[0], tiny, test_x, q)
+    bad = fleet.reprojection_score_error(spaces[0], tiny, test_x, q)
     assert bad["mean_abs"] > 2 * errs[0]["mean_abs"] and bad["top1_agree"] < errs[0]["top1_agree"]
 
 
@@ -109,14 +95,14 @@ def test_reprojection_loss_of_bases_on_different_classes_is_reported():
     map_fs = FeatureSpace("label", "1", 384, pca=PCA.fit(torch.as_tensor(mixes(3000, first)), 10))
     robot_fs = FeatureSpace("label", "1", 384, pca=PCA.fit(torch.as_tensor(mixes(3000, second)), 10))
     x = mixes(2000, second)                                   # what the second robot sees
-    e = reprojection_score_error(map_fs, robot_fs, x, torch.as_tensor(emb[second]))
+    e = fleet.reprojection_score_error(map_fs, robot_fs, x, torch.as_tensor(emb[second]))
     assert e["max_abs"] > 0.3 and e["top1_agree"] < 0.8, e
-    own = reprojection_score_error(robot_fs, robot_fs, x, torch.as_tensor(emb[second]))
+    own = fleet.reprojection_score_error(robot_fs, robot_fs, x, torch.as_tensor(emb[second]))
     assert own["max_abs"] < 0.1 and own["top1_agree"] > 0.9, own     # its own basis keeps them
     # what the mapper can report without the raw features: the share of the robot's variance
     # its basis holds and the map's keeps (warned about below fleet.reproject_warn_kept)
-    assert Reprojection(map_fs, robot_fs).kept_of_raw < 0.3
-    assert Reprojection(robot_fs, robot_fs).kept_of_raw > 0.95
+    assert fleet.Reprojection(map_fs, robot_fs).kept_of_raw < 0.3
+    assert fleet.Reprojection(robot_fs, robot_fs).kept_of_raw > 0.95
 
 
 def test_label_encoder_reprojection_error_is_rounding_only():
@@ -139,7 +125,7 @@ def test_label_encoder_reprojection_error_is_rounding_only():
     sa = FeatureSpace("label", "1", 384, pca=PCA.fit(torch.as_tensor(mixes(3000, list(range(c)))), 32))
     sb = FeatureSpace("label", "1", 384, pca=PCA.fit(torch.as_tensor(mixes(3000, list(range(c))[::-1])), 20))
     assert sa.id != sb.id
-    e = reprojection_score_error(sa, sb, mixes(2000, list(range(c))), torch.as_tensor(emb))
+    e = fleet.reprojection_score_error(sa, sb, mixes(2000, list(range(c))), torch.as_tensor(emb))
     assert e["max_abs"] < 5e-3 and e["top1_agree"] == 1.0, e
 
 
@@ -173,27 +159,27 @@ def test_head_difference_is_refused():
 
 
 def test_transforms_parse_apply_and_refuse():
-    T = parse_transform({"xyz": [10, -5, 1], "rpy_deg": [0, 0, 90]})
+    T = fleet.parse_transform({"xyz": [10, -5, 1], "rpy_deg": [0, 0, 90]})
     np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
-    np.testing.assert_allclose(parse_transform(T.reshape(-1).tolist()), T)
-    np.testing.assert_allclose(parse_transform(T.tolist()), T)
+    np.testing.assert_allclose(fleet.parse_transform(T.reshape(-1).tolist()), T)
+    np.testing.assert_allclose(fleet.parse_transform(T.tolist()), T)
     for bad in ([1, 2, 3], np.diag([2, 1, 1, 1]).tolist(), {"xyz": [0, 0, 0], "yaw": 3}, "x",
                 [float("nan")] * 16):
-        with pytest.raises(TransformError):
-            parse_transform(bad)
-    tr = RobotTransforms({"r2": T.reshape(-1).tolist()})
+        with pytest.raises(fleet.TransformError):
+            fleet.parse_transform(bad)
+    tr = fleet.RobotTransforms({"r2": T.reshape(-1).tolist()})
     pose = np.eye(4)
     pose[:3, 3] = [1, 0, 0]
     np.testing.assert_allclose(tr.apply("r2", pose)[:3, 3], [10, -4, 1], atol=1e-12)
     assert tr.apply("r1", pose) is pose
     tr.set("r1", {"xyz": [0, 0, 2]})
     assert tr.apply("r1", pose)[2, 3] == 2 and set(tr.as_dict()) == {"r1", "r2"}
-    with pytest.raises(TransformError):
-        RobotTransforms({"r3": [0] * 16})
+    with pytest.raises(fleet.TransformError):
+        fleet.RobotTransforms({"r3": [0] * 16})
 
 
 def test_rate_meter_and_bounded():
-    m = RateMeter(window=2.0, cap=50)
+    m = fleet.RateMeter(window=2.0, cap=50)
     for i in range(20):
         m.add(now=100 + i * 0.1)               # 10 Hz for 2 s
     assert m.rate(now=102.0) == pytest.approx(10.0, rel=0.1)
@@ -206,7 +192,7 @@ def test_rate_meter_and_bounded():
 def test_drop_warner_rate_limited_with_rate(caplog):
     import logging
 
-    w = DropWarner(period=10.0, logger=logging.getLogger("t.fleet"))
+    w = fleet.DropWarner(period=10.0, logger=logging.getLogger("t.fleet"))
     with caplog.at_level(logging.WARNING, "t.fleet"):
         assert w.dropped("r1", 1, {"dropped_hz": 3.2, "received_hz": 4.0, "mapped_hz": 0.8}, 8, now=0.0)
         assert not any(w.dropped("r1", 1, {}, 8, now=0.1 * i) for i in range(1, 50))
@@ -219,11 +205,11 @@ def test_drop_warner_rate_limited_with_rate(caplog):
 def test_status_and_publish_cadence():
     st = SimpleNamespace(received=10, mapped=7, dropped=2, rejected=collections.Counter(bad=1),
                          queue=collections.deque([1]), feature_space="s1", reprojection=object())
-    s = robot_status("r1", "accepted", "", st, {"mapped_hz": 2.0}, "s0", advised_hz=3.33333)
+    s = fleet.robot_status("r1", "accepted", "", st, {"mapped_hz": 2.0}, "s0", advised_hz=3.33333)
     assert s["rejected_total"] == 1 and s["reprojected"] and s["advised_hz"] == 3.333 and s["queue"] == 1
     with pytest.raises(ValueError):
-        robot_status("r1", "happy", "", st, {}, "s0")
-    p = StatusPublisher(period=1.0)
+        fleet.robot_status("r1", "happy", "", st, {}, "s0")
+    p = fleet.StatusPublisher(period=1.0)
     assert p.due("r1", s, now=0.0)
     assert not p.due("r1", s, now=0.5)                       # nothing changed
     s2 = dict(s, mapped=8)
@@ -233,15 +219,15 @@ def test_status_and_publish_cadence():
 
 
 def test_advised_rate_fair_share_and_probe():
-    assert advised_rate(0.0, 2, {}, 8) is None
+    assert fleet.advised_rate(0.0, 2, {}, 8) is None
     # congested robot: fair share of what the mapper maps, a bit under it
-    r = advised_rate(10.0, 4, {"dropped_hz": 1.0, "mapped_hz": 2.5, "queue": 8}, 8)
+    r = fleet.advised_rate(10.0, 4, {"dropped_hz": 1.0, "mapped_hz": 2.5, "queue": 8}, 8)
     assert r == pytest.approx(0.9 * 2.5)
     # a robot below its share may go up
-    assert advised_rate(10.0, 4, {"mapped_hz": 1.0, "queue": 0}, 8) == pytest.approx(2.5)
-    assert advised_rate(10.0, 1, {"mapped_hz": 10.0, "queue": 0}, 8) == pytest.approx(12.5)
+    assert fleet.advised_rate(10.0, 4, {"mapped_hz": 1.0, "queue": 0}, 8) == pytest.approx(2.5)
+    assert fleet.advised_rate(10.0, 1, {"mapped_hz": 10.0, "queue": 0}, 8) == pytest.approx(12.5)
     # frames waiting in its queue (latency) count as congestion, before anything is dropped
-    assert advised_rate(10.0, 1, {"mapped_hz": 10.0, "queue": 3}, 8) == pytest.approx(9.0)
+    assert fleet.advised_rate(10.0, 1, {"mapped_hz": 10.0, "queue": 3}, 8) == pytest.approx(9.0)
 
 
 def _st(name, **kw):
@@ -252,26 +238,26 @@ def _st(name, **kw):
 
 
 def test_evictions():
-    cfg = FleetSection(no_space_evict_s=60, gone_evict_s=300)
+    cfg = fleet.FleetSection(no_space_evict_s=60, gone_evict_s=300)
     robots = {"ok": _st("ok", present=True, space_ok=True, feature_space="s"),
               "nospace_old": _st("nospace_old", present=True, seen_at=0.0),
               "nospace_new": _st("nospace_new", present=True, seen_at=50.0),
               "gone_old": _st("gone_old", gone_at=10.0, space_ok=True, feature_space="s", last_frame_at=9.0),
               "gone_new": _st("gone_new", gone_at=90.0, space_ok=True, feature_space="s")}
-    out = dict(evictions(robots, 100.0, cfg))
+    out = dict(fleet.evictions(robots, 100.0, cfg))
     assert set(out) == {"nospace_old"}
-    out = dict(evictions(robots, 350.0, cfg))
+    out = dict(fleet.evictions(robots, 350.0, cfg))
     assert set(out) == {"nospace_old", "nospace_new", "gone_old"}
-    assert set(dict(evictions(robots, 400.0, cfg))) == {"nospace_old", "nospace_new", "gone_old", "gone_new"}
+    assert set(dict(fleet.evictions(robots, 400.0, cfg))) == {"nospace_old", "nospace_new", "gone_old", "gone_new"}
     assert "feature space" in out["nospace_old"] and "gone" in out["gone_old"]
 
 
 def test_expire_pending_ttl_and_global_cap():
-    cfg = FleetSection(pending_ttl_s=10.0, pending_max_frames=5)
+    cfg = fleet.FleetSection(pending_ttl_s=10.0, pending_max_frames=5)
     a = _st("a", queue=collections.deque([(None, t) for t in (0.0, 5.0, 12.0, 13.0)]))
     b = _st("b", queue=collections.deque([(None, t) for t in (11.0, 14.0, 15.0, 16.0)]))
     ok = _st("ok", space_ok=True, queue=collections.deque([(None, 0.0)] * 3))
-    out = dict(expire_pending([a, b, ok], 20.0, cfg))
+    out = dict(fleet.expire_pending([a, b, ok], 20.0, cfg))
     # ttl: a's 0.0 and 5.0 (and nothing of b: 11 is 9 s old); cap 5 of the remaining 6: b's 11.0
     assert out == {"a": 2, "b": 1}
     assert [t for _, t in a.queue] == [12.0, 13.0] and [t for _, t in b.queue] == [14.0, 15.0, 16.0]
@@ -279,7 +265,7 @@ def test_expire_pending_ttl_and_global_cap():
     assert math.isclose(sum(len(s.queue) for s in (a, b)), 5)
     # one robot may always fill its own queue (queues.per_robot above the global cap)
     c = _st("c", queue=collections.deque([(None, 19.0)] * 9))
-    assert dict(expire_pending([c], 20.0, cfg, per_robot=8)) == {"c": 1} and len(c.queue) == 8
+    assert dict(fleet.expire_pending([c], 20.0, cfg, per_robot=8)) == {"c": 1} and len(c.queue) == 8
 
 
 def test_synthetic_robots_in_one_town_take_their_own_laps():
@@ -312,12 +298,13 @@ def test_edge_status_watcher_logs_changes_and_auto_rate(caplog):
     w = StatusWatcher("r1", auto, logger=logging.getLogger("t.edge"))
     with caplog.at_level(logging.INFO, "t.edge"):
         for _ in range(3):
-            w.on_payload(encode_robot_status(robot_status("r1", "pending", "waiting", st, {}, "s0")))
+            w.on_payload(encode_robot_status(fleet.robot_status("r1", "pending", "waiting", st, {}, "s0")))
         assert auto.current() == 10.0                              # no advice while pending
         for _ in range(6):
-            w.on_payload(encode_robot_status(robot_status("r1", "accepted", "", st, {}, "s0", advised_hz=2.0)))
-        w.on_payload(encode_robot_status(robot_status("r1", "refused", "different encoder family: x", st, {}, "s0")))
-        w.on_payload(encode_robot_status(robot_status("other", "refused", "not me", st, {}, "s0")))
+            w.on_payload(encode_robot_status(fleet.robot_status("r1", "accepted", "", st, {}, "s0", advised_hz=2.0)))
+        refused = fleet.robot_status("r1", "refused", "different encoder family: x", st, {}, "s0")
+        w.on_payload(encode_robot_status(refused))
+        w.on_payload(encode_robot_status(fleet.robot_status("other", "refused", "not me", st, {}, "s0")))
         assert w.on_payload(b"garbage") is None and w.bad == 1
     states = [r.getMessage() for r in caplog.records if "robot r1" in r.getMessage() or "refused" in r.getMessage()]
     assert len([m for m in states if "pending" in m]) == 1 and len([m for m in states if "accepted" in m]) == 1
