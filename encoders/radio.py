@@ -530,7 +530,9 @@ def build_radio(ckpt: RadioCheckpoint, device: str | torch.device = "cpu", dtype
             raise ModelFileError(f"checkpoint {ckpt.path} is not the configured model: " + "; ".join(diffs))
     with torch.device("meta"):
         model = RadioModel(cfg)
-    model = model.to_empty(device="cpu")
+    # uninitialised CPU storage for every meta tensor, as ``to_empty`` — but ``to_empty``'s
+    # ``empty_like`` on meta tensors imports torch's meta decompositions (sympy): ~2 s per process
+    model = model._apply(lambda t: torch.empty(t.shape, dtype=t.dtype, device="cpu"))
     load_strict(model, ckpt.model_state, what="RADIO checkpoint", source=ckpt.path)
     return model.to(device=device, dtype=dtype).eval()
 

@@ -1,9 +1,23 @@
 """Shared fixtures. Torch thread counts are set here, per module, never at import time (an
 import-time ``torch.set_num_threads`` leaks into every test collected after it)."""
+import os
 import signal
+import sys
+import tempfile
+from pathlib import Path
 
 import pytest
 import torch
+
+# The tests start many ``python -m apps.cli`` children, each importing torch, sympy,
+# transformers, ... The venv is installed with ``pip --no-compile`` (deploy/setup_dev.sh), so
+# with PYTHONDONTWRITEBYTECODE set (as some container images do) every child would compile
+# those sources again: ~3 s of CPU per process start. Children keep their bytecode in one
+# cache under the venv instead (the source tree stays free of __pycache__; a changed source
+# invalidates its entry as usual). This process is unaffected (read at interpreter start).
+if os.environ.pop("PYTHONDONTWRITEBYTECODE", None):
+    _cache = Path(sys.prefix) if os.access(sys.prefix, os.W_OK) else Path(tempfile.gettempdir())
+    os.environ.setdefault("PYTHONPYCACHEPREFIX", str(_cache / "rayfronts-pycache"))
 
 
 def _torch_threads(n: int):

@@ -24,9 +24,8 @@ import cv2
 import numpy as np
 import pytest
 
-from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
-from tests.support.processes import ROOT, cli_cmd, start_cli, stop_all, wait_for
+from tests.support.processes import ROOT, cli_cmd, proc_env, start_cli, stop_all, wait_for
 
 FRAMES = 4
 RES = "48x64"                 # NARADIO: a 3x4 patch grid; label: 6x8 cells
@@ -63,7 +62,7 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
     from query_client import Client
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    env = zenoh_env()
+    env = proc_env()   # the session's text cache: label edges and maps embed names once
     logs = {k: open(logdir / f"{name}.{k}.log", "wb") for k in ("mapper", "edge")}
     mp = start_cli(["mapper", "--mode", "router", "--listen", ep, *MAPPER, f"query.image_model_dir={mdir}"],
                    logs["mapper"], env=env)
@@ -155,7 +154,7 @@ def test_impossible_combinations_are_refused_with_one_line(model_dir, tmp_path):
                         ["4 feature vectors per frame", "pca.fit_frames"]),
     }
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    env = zenoh_env()
+    env = proc_env()   # the session's text cache: label edges and maps embed names once
     mlog = open(tmp_path / "mapper.log", "wb")
     mp = start_cli(["mapper", "--mode", "router", "--listen", ep, *MAPPER], mlog, env=env)
     try:

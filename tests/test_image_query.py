@@ -14,7 +14,7 @@ import pytest
 from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
 from synthetic_world import World
-from tests.support.processes import ROOT, cli_cmd, start_cli, stop_all, wait_for
+from tests.support.processes import ROOT, cli_cmd, proc_env, start_cli, stop_all, wait_for
 
 FRAMES = 40
 RES = (240, 320)
@@ -28,7 +28,7 @@ def mapped_world(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("imgq")
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    env = zenoh_env()
+    env = proc_env()   # + the session's text cache: class names embedded once per session
     logs = [open(d / f"{n}.log", "wb") for n in ("mapper", "edge")]
     mapper = start_cli(["mapper", "--mode", "router", "--listen", ep, "preset=throughput", f"map.vox_size={VOX}",
                         "map.depth_limit=20", "layers.rate_hz=0", "snapshots.on_exit=false",

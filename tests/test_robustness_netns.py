@@ -12,9 +12,8 @@ import uuid
 
 import pytest
 
-from apps.demo import zenoh_env
 from tests.support.netns import network_namespaces
-from tests.support.processes import ROOT, Proc, cli_cmd, stop_all
+from tests.support.processes import ROOT, Proc, cli_cmd, proc_env, stop_all
 
 
 @pytest.fixture
@@ -54,7 +53,7 @@ CLIENT = textwrap.dedent("""
 @pytest.mark.timeout(300)
 def test_three_namespaces_no_shm(netns, tmp_path):
     a, b, c = netns
-    env = zenoh_env()
+    env = proc_env()   # + the session's text cache: class names embedded once per session
     pca = tmp_path / "pca.npz"
     r = subprocess.run(cli_cmd("edge", "fit-pca", "--out", str(pca), "--frames", "3", "source.resolution=96x128",
                                "source.n_frames=20", "pca.out_dim=16"),

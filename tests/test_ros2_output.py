@@ -14,9 +14,8 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from apps.demo import zenoh_env
 from common.zenoh_session import ZenohConfig, free_tcp_port
-from tests.support.processes import start_cli, stop_all, wait_for
+from tests.support.processes import proc_env, start_cli, stop_all, wait_for
 from tests.support.roles import zenoh_client_config
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
@@ -65,7 +64,7 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     logs = [open(tmp_path / n, "wb") for n in ("mapper.log", "edge.log")]
-    env = zenoh_env()
+    env = proc_env()   # + the session's text cache: class names embedded once per session
     procs = [start_cli(["mapper", "--mode", "router", "--listen", ep, *MAP], logs[0], env=env)]
     s = None
     try:
