@@ -115,3 +115,33 @@ def test_bench_search_quick(tmp_path):
     assert row["search_ms"]["n"] == 2 and row["search_ms"]["p50"] > 0
     assert set(row["occupancy_ms"]) == {"box_40x40x6m", "slice_80x80m", "points_1000_r1m"}
     assert d["meta"]["process"]["cpu_s"] > 0 and "search_5k" in [s["name"] for s in d["meta"]["sections"]]
+
+
+def test_bench_mapper_growing_control_is_the_last_frames_on_an_empty_map(tmp_path):
+    """``bench mapper --growing``: windows tile the frames, and ``growth_control`` is the last
+    window's frames fed to an empty map — its voxel count equals a map built here from those
+    frames alone (same renders and features, drawn in frame order), and its ratios are the
+    quotients of the reported CPU figures."""
+    import argparse
+
+    from apps.bench import mapper as bench_mapper
+    from semantic_map.config import map_config
+    from semantic_map.map import RayFrontsMap
+
+    f = tmp_path / "g.json"
+    assert main(["bench", "mapper", "--preset", "throughput", "--frames", "24", "--growing", "--window", "8",
+                 "--json", str(f)]) == 0
+    d = json.loads(f.read_text())
+    w, c = d["windows"], d["growth_control"]
+    assert [x["frames"] for x in w] == [[0, 8], [8, 16], [16, 24]] and c["frames"] == [16, 24]
+    assert c["content_ratio"] == round(c["fresh_map_cpu_ms_per_frame"] / w[0]["cpu_ms_per_frame"], 3)
+    assert c["map_size_ratio"] == round(w[-1]["cpu_ms_per_frame"] / c["fresh_map_cpu_ms_per_frame"], 3)
+    p = argparse.ArgumentParser()
+    bench_mapper.add_arguments(p)
+    args = p.parse_args(["--preset", "throughput", "--frames", "24"])
+    frames, K, _ = bench_mapper._render_frames(args, (224, 224))
+    m = RayFrontsMap(map_config("throughput", {"depth_limit": args.depth_limit}), args.feature_dim, "bench")
+    for pose, depth, rgb, feat in frames[16:24]:
+        m.integrate(pose, K, depth, rgb, feat)
+    m.flush()
+    assert c["n_voxels"] == len(m.sem) > 0 and c["n_voxels"] < w[-1]["n_voxels"]

@@ -19,7 +19,10 @@ busy machine. ``stage_ms_per_frame`` are wall-clock stage times (stretched by lo
   whether the two maps came out identical.
 * ``--growing``: per-window (``--window`` frames, default 200) CPU ms/frame and stage times
   over one long lap (the map grows through the run: new streets every window);
-  ``growth_cpu_ratio`` = last window / first window.
+  ``growth_cpu_ratio`` = last window / first window. The two windows see different streets,
+  so ``growth_control`` feeds the last window's frames again to an empty map afterwards:
+  ``content_ratio`` = that / the first window (what the frames cost by themselves),
+  ``map_size_ratio`` = the grown map's last window / that (what the map's size costs).
 """
 from __future__ import annotations
 
@@ -202,7 +205,26 @@ def run(args: argparse.Namespace) -> dict:
                  "render_s_excluded": round(render_s, 2), "rss_after_render_mb": round(rss_before, 1)}
     if args.compare:
         return _run_compare(args, res, new_map, frames, K, use_kernels)
-    return _run_main(args, res, new_map(), frames, K, use_kernels)
+    res = _run_main(args, res, new_map(), frames, K, use_kernels)
+    if args.growing and len(res.get("windows", [])) >= 2:
+        res["growth_control"] = _fresh_map_control(args, new_map(), frames, K, use_kernels, res["windows"])
+    return res
+
+
+def _fresh_map_control(args: argparse.Namespace, m: RayFrontsMap, frames: list[BenchFrame], K: np.ndarray,
+                       use_kernels: bool, windows: list[dict]) -> dict:
+    """``--growing``: the last window's frames once more, on an empty map. Their CPU-ms/frame
+    there against the first window's (both on an empty map) is what the frames' content costs;
+    the grown map's last window against it is what the map's size costs."""
+    s, e = windows[-1]["frames"]
+    side = FeedSide("control", m, not args.no_pipeline, use_kernels, args.threads)
+    side.feed(frames[s:e], K)
+    side.close()
+    fresh = round(1e3 * side.cpu / (e - s), 2)
+    first, last = windows[0]["cpu_ms_per_frame"], windows[-1]["cpu_ms_per_frame"]
+    return {"frames": [s, e], "fresh_map_cpu_ms_per_frame": fresh, "n_voxels": len(m.sem),
+            "content_ratio": round(fresh / first, 3) if first else None,
+            "map_size_ratio": round(last / fresh, 3) if fresh else None}
 
 
 def _run_compare(args: argparse.Namespace, res: dict, new_map: Callable[[], RayFrontsMap],

@@ -180,7 +180,8 @@ def _mission(d: dict) -> tuple[str, str]:
     return (f"{d.get('frames')} frames, {_f(d.get('route_m'), 0)} m never revisited: CPU-ms/frame first 10 % "
             f"{_f(d.get('cpu_ms_per_frame_first_10pct'))}, last 10 % {_f(d.get('cpu_ms_per_frame_last_10pct'))} "
             f"(×{_f(d.get('flat_cost_ratio'), 3)}); {d.get('n_voxels')} voxels, map {_f(d.get('map_memory_mb'))} MiB "
-            f"= {_f(d.get('bytes_per_voxel'), 0)} B/voxel; {_f(rss / 1024 if rss else None, 2)} GB peak RSS; "
+            f"= {_f(d.get('bytes_per_voxel'), 0)} B/voxel (+ occupancy {_f(d.get('occupancy_mb'))} MiB); "
+            f"{_f(rss / 1024 if rss else None, 2)} GB peak RSS; "
             f"query p50 {_f(q, 0)} ms at the end"), _f(d.get("cpu_ms_per_frame"))
 
 
