@@ -181,6 +181,35 @@ def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_pat
                 assert ent in out.stdout, f"{ent} not in the recording:\n{out.stdout[:2000]}"
 
 
+def test_drone_flies_a_car_mission_without_collision_and_clears_only_its_own_body(loop):
+    """The drone: its costmap marks UNKNOWN cells within its body's reach free (never an
+    OCCUPIED one, never a cell farther away), and a car episode with the rayfronts policy
+    moves every step (not stuck at the start), flies at its cruise height and touches no
+    solid of the exact world (re-checked with a fine sweep)."""
+    from apps.closed_loop.episode import LoopSettings, Trace, run_episode
+    from apps.closed_loop.missions import make_mission
+    from apps.closed_loop.robot import Platform
+
+    drone = Platform.make("drone")
+    states = np.full((20, 20), UNKNOWN, np.int8)
+    states[10, 11] = OCCUPIED
+    out = drone.with_own_body_free(states, np.zeros(2), 0.5, np.array([5.1, 5.1, 5.5]))
+    centres = (np.indices(states.shape).transpose(1, 2, 0) + 0.5) * 0.5
+    near = np.linalg.norm(centres - [5.1, 5.1], axis=2) <= drone.radius + 0.5
+    assert (out[near & (states == UNKNOWN)] == FREE).all() and out[10, 11] == OCCUPIED
+    assert (out[~near] == states[~near]).all() and near.sum() >= 9
+    assert Platform.make("ground").with_own_body_free(states, np.zeros(2), 0.5, np.array([5.1, 5.1, 1.5])) is states
+
+    w, chain, _ = loop
+    mission = make_mission(w, drone, "object", "car", np.random.default_rng(3), budget_steps=6)
+    tr = Trace()
+    r = run_episode(w, mission, "rayfronts", LoopSettings(platform="drone"), chain=chain, trace=tr)
+    pos = np.asarray(tr.positions)
+    assert not r["collided"] and r["path_m"] > 0.5 * 2.0 * min(r["steps"], 3), r
+    assert np.allclose(pos[:, 2], drone.cruise_z)
+    assert not any(drone.collides(w, a, b, spacing=0.03) for a, b in zip(pos[:-1], pos[1:], strict=True))
+
+
 @pytest.mark.timeout(400)
 def test_live_loop_over_zenoh_finds_the_car_on_the_in_process_map(loop, tmp_path):
     """``--distributed`` in small: real mapper and edge processes over loopback Zenoh, the

@@ -153,7 +153,8 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         obs = mapper.observe([mission.target], run.pos, semantic=semantic, z_band=robot.goal_band)
         t.append(time.perf_counter())
         run.search_ms.append(obs.search_ms)
-        nav = NavField(obs.states, obs.origin, obs.cell, run.pos, robot.radius)
+        nav = NavField(robot.with_own_body_free(obs.states, obs.origin, obs.cell, run.pos), obs.origin, obs.cell,
+                       run.pos, robot.radius)
         d = decide(policy, obs, nav, run.pos, state, mission.reach_m)
         t.append(time.perf_counter())
         for k, a, b in zip(("sense", "map", "search", "plan"), t[:-1], t[1:], strict=True):

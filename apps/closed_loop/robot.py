@@ -50,10 +50,27 @@ class Platform:
 
     def costmap_band(self, vox: float) -> tuple[float, float]:
         """z band (m) of the map a 2D costmap for this body reads: ground from the first voxel
-        layer above the ground's up to the camera; drone the body's height ± one voxel."""
+        layer above the ground's up to the camera; drone the voxel layers its body spans."""
         if self.name == "ground":
             return (max(GROUND_CLEARANCE_M - 0.05, vox) + 1e-3, self.z_band[0] + 0.2)
-        return (self.cruise_z - self.radius - vox, self.cruise_z + self.radius + vox)
+        return (self.cruise_z - self.radius, self.cruise_z + self.radius)
+
+    def with_own_body_free(self, states: np.ndarray, origin: np.ndarray, cell: float, at: np.ndarray
+                           ) -> np.ndarray:
+        """The costmap ``states`` ([x, y], cells of ``cell`` m from ``origin``) with the UNKNOWN
+        cells within ``radius + cell`` of the body at ``at`` (m) marked FREE — drone only. The
+        drone stands in that space (every move is checked against the true world), but its
+        cameras, tilted down, see the layer just above its own height only from ~0.7 m out; a
+        ground camera sees the ground around it from 0.55 m, so its costmap is left as it is."""
+        if self.name == "ground":
+            return states
+        from apps.closed_loop.planner import FREE, UNKNOWN
+
+        c = np.asarray(origin, np.float64) + (np.indices(states.shape).transpose(1, 2, 0) + 0.5) * cell
+        near = np.linalg.norm(c - np.asarray(at[:2], np.float64), axis=2) <= self.radius + cell
+        out = np.array(states, copy=True)
+        out[near & (out == UNKNOWN)] = FREE
+        return out
 
     def body_points(self, centre: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """(N, 3) sample points of the body (a disk of radius ``radius + margin`` m per level)

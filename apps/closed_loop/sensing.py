@@ -5,8 +5,10 @@ frames a mapper receives from ``rayfronts edge``.
 Views: ``views`` yaw directions evenly spaced (the first along +x), tilted down by
 ``tilt_deg`` (ground) or ``drone_tilt_deg`` (drone): with a 90° field of view a ground camera
 tilted 25° sees the ground from 0.55 m around the robot (it must know the space around its
-body is free) up to 20° above the horizon (far towers stay in view). Camera: square images of
-``resolution`` pixels.
+body is free) up to 20° above the horizon (far towers stay in view); a drone's cameras are
+tilted 10°, so they see the voxel layer just above its body from ~0.7 m out (its costmap must
+know the space at its own height) and the ground from ~4 m out at its 5.5 m cruise height.
+Camera: square images of ``resolution`` pixels.
 
 Depth sensor model (``sky_no_return``, default on): surfaces at any distance return their
 depth (the map's depth limit turns those beyond it into rays), the sky returns nothing (NaN,
@@ -37,7 +39,7 @@ class SensorConfig:
     resolution: int = 224
     views: int = 4
     tilt_deg: float = 25.0
-    drone_tilt_deg: float = 35.0
+    drone_tilt_deg: float = 10.0
     encoder: str = "label"
     label_stride: int = 8
     pca_dim: int = 32
