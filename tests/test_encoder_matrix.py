@@ -29,8 +29,13 @@ from tests.support.processes import ROOT, cli_cmd, proc_env, start_cli, stop_all
 
 FRAMES = 4
 RES = "48x64"                 # NARADIO: a 3x4 patch grid; label: 6x8 cells
+# fleet.no_space_evict_s: eight processes share two cores here, and a NARADIO edge serves its
+# feature space only after building the model and fitting its PCA; under load that has taken
+# over the default 60 s, the mapper then forgot the robot and dropped its held frames (eviction
+# is tested in tests/test_fleet*.py, not here)
 MAPPER = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0",
-          "snapshots.on_exit=false", "queues.per_robot=1000"]
+          "snapshots.on_exit=false", "queues.per_robot=1000", "fleet.no_space_evict_s=600",
+          "fleet.pending_ttl_s=600"]
 
 
 @pytest.fixture(scope="module")
@@ -66,10 +71,16 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
     logs = {k: open(logdir / f"{name}.{k}.log", "wb") for k in ("mapper", "edge")}
     mp = start_cli(["mapper", "--mode", "router", "--listen", ep, *MAPPER, f"query.image_model_dir={mdir}"],
                    logs["mapper"], env=env)
-    ed = start_cli(["edge", "--connect", ep, f"robot={name}", *items], logs["edge"], env=env)
+    procs = [mp]
     out: dict = {"name": name}
     try:
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=120_000), timeout=60.0) as c:
+            # the edge starts once the mapper answers: frames published before its subscriber
+            # exists are not received (a camera stream, not a queue), and a label edge with the
+            # text cache publishes within a second of starting
+            wait_for(lambda: c.stats(timeout=5.0), 120, every=0.5, what=f"{name}: mapper up")
+            ed = start_cli(["edge", "--connect", ep, f"robot={name}", *items], logs["edge"], env=env)
+            procs.insert(0, ed)
             seen: list = []
 
             def done():
@@ -99,7 +110,7 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
             out["n_voxels_answered"] = len(r.voxel_xyz)
             out["scores_finite"] = bool(np.isfinite(r.voxel_score).all())
     finally:
-        stop_all((ed, mp), signal.SIGTERM, 30)
+        stop_all(procs, signal.SIGTERM, 30)
         for f in logs.values():
             f.close()
     return out
