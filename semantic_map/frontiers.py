@@ -137,6 +137,10 @@ class FrontierTable:
             return torch.empty(0, dtype=torch.int64, device=self.device)
         return torch.unique(torch.cat(parts))
 
+    def memory_bytes(self) -> int:
+        """Bytes held: the keys and their fine-frontier counts."""
+        return sum(t.numel() * t.element_size() for t in (self.keys, self.counts))
+
     def contains(self, keys: torch.Tensor) -> torch.Tensor:
         return cell_keys.lookup(self.keys, keys) >= 0
 

@@ -522,7 +522,7 @@ class RayFrontsMap:
         """Bytes held by the semantic layers: voxels (rows at capacity and key index), ray
         bins (rows, index) and the frontier table. The occupancy grid is apart
         (:meth:`occupancy_memory_bytes`): it grows with observed space, not with voxels."""
-        return int(self.sem.memory_bytes() + self.ray_store.memory_bytes() + self.fronts.keys.numel() * 16)
+        return int(self.sem.memory_bytes() + self.ray_store.memory_bytes() + self.fronts.memory_bytes())
 
     def occupancy_memory_bytes(self) -> int:
         """Bytes held by the occupancy grid (OpenVDB ``memUsage``; torch: keys + values)."""

@@ -91,6 +91,7 @@ def test_map_memory_is_semantic_layers_occupancy_apart():
     m.flush()
     st = m.stats()
     assert st["n_voxels"] > 0 and st["n_rays"] > 0
+    assert m.fronts.memory_bytes() == 16 * len(m.fronts)          # int64 key + int64 count per frontier
     parts = m.sem.memory_bytes() + m.ray_store.memory_bytes() + 16 * len(m.fronts)
     assert st["memory_bytes"] == parts
     assert st["occupancy_memory_bytes"] == m.occupancy.memory_bytes() > 0

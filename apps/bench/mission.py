@@ -150,12 +150,13 @@ class _Queries:
 def map_memory(m) -> dict:
     """The map's memory estimate (MiB): the semantic layers and their parts, the occupancy grid apart."""
     mb = 1 / 2**20
-    return {"map_memory_mb": round(m.memory_bytes() * mb, 3),
+    layers, grid = m.memory_bytes(), m.occupancy_memory_bytes()
+    return {"map_memory_mb": round(layers * mb, 3),
             "semantic_mb": round(m.sem.memory_bytes() * mb, 3),
             "rays_mb": round(m.ray_store.memory_bytes() * mb, 3),
-            "frontiers_mb": round(m.fronts.keys.numel() * 16 * mb, 3),
-            "occupancy_mb": round(m.occupancy_memory_bytes() * mb, 3),
-            "total_memory_mb": round((m.memory_bytes() + m.occupancy_memory_bytes()) * mb, 3)}
+            "frontiers_mb": round(m.fronts.memory_bytes() * mb, 3),
+            "occupancy_mb": round(grid * mb, 3),
+            "total_memory_mb": round((layers + grid) * mb, 3)}
 
 
 def _boundaries(n: int, window: int, chunk: int) -> list[int]:
