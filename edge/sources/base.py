@@ -40,7 +40,6 @@ log = logging.getLogger(__name__)
 CORRUPT = "corrupt frame"
 
 
-
 class RateLimitedLog:
     """At most one line per key per ``every`` seconds; the next line says how many were held back."""
 
