@@ -33,12 +33,18 @@ def mapped_world(tmp_path_factory):
     mapper = start_cli(["mapper", "--mode", "router", "--listen", ep, "preset=throughput", f"map.vox_size={VOX}",
                         "map.depth_limit=20", "layers.rate_hz=0", "snapshots.on_exit=false",
                         "queues.per_robot=100000"], logs[0], env=env)
-    edge = start_cli(["edge", "--connect", ep, "--rate", "0", "robot=cam", "source.kind=synthetic",
-                      f"source.n_frames={FRAMES}", f"source.resolution={RES[0]}x{RES[1]}", "source.depth_limit=20",
-                      "encoder.kind=label", "pca.out_dim=64", "pca.fit_frames=8", "publish.linger_s=0.5"],
-                     logs[1], env=env)
+    edge = None
     try:
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=30.0) as c:
+            # the edge starts once the mapper answers: frames sent before its subscriber exists are
+            # not received (a camera stream, not a queue)
+            wait_for(lambda: c.stats(timeout=5.0), 120, every=0.5, what="mapper up")
+            edge = start_cli(["edge", "--connect", ep, "--rate", "0", "robot=cam", "source.kind=synthetic",
+                              f"source.n_frames={FRAMES}", f"source.resolution={RES[0]}x{RES[1]}",
+                              "source.depth_limit=20", "encoder.kind=label", "pca.out_dim=64", "pca.fit_frames=8",
+                              "publish.linger_s=0.5"],
+                             logs[1], env=env)
+
             def done():
                 st = c.stats(timeout=5.0)
                 return (edge.poll() is not None and st["frames"]["mapped"] >= FRAMES - 2
@@ -51,7 +57,7 @@ def mapped_world(tmp_path_factory):
                                      + (d / "mapper.log").read_text()[-2000:]) from None
         yield ep, World.generate(0), d
     finally:
-        stop_all((edge, mapper), signal.SIGTERM, 30)
+        stop_all([p for p in (edge, mapper) if p is not None], signal.SIGTERM, 30)
         for f in logs:
             f.close()
 

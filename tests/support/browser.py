@@ -192,7 +192,7 @@ def good(a: dict) -> bool:
 
 def start_viewer_stack(start, ep: str, grpc_port: int, web_port: int) -> tuple[str, subprocess.Popen, object]:
     """Router on ``ep``, a mapper serving rerun's web viewer (``grpc_port``, ``web_port``) and an
-    edge sending 30 label-encoded synthetic frames (started, not awaited). ``start(name, argv)``
+    edge sending 30 label-encoded synthetic frames (started once the mapper answers, not awaited). ``start(name, argv)``
     launches one ``rayfronts`` process and returns ``(Popen, log path)``. Returns the viewer's
     URL, the edge's Popen and its log path."""
     r, rlog = start("router", ["router", "--listen", ep])
@@ -202,6 +202,14 @@ def start_viewer_stack(start, ep: str, grpc_port: int, web_port: int) -> tuple[s
                                "layers.rate_hz=1", "snapshots.on_exit=false"])
     url = wait_log(m, mlog, r"web viewer at (http://127\.0\.0\.1:\d+/\?url=\S+)", 120).group(1)
     wait_log(m, mlog, "mapper up", 120)
+    # the edge starts once the mapper answers through the router: a label edge publishes within a
+    # second, and frames sent before the mapper's subscriber is routed are not received (a camera
+    # stream, not a queue); the tests count all 30
+    from common.zenoh_session import ZenohConfig
+    from query_client import Client
+    from tests.support.processes import wait_for
+    with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=30.0) as c:
+        wait_for(lambda: c.stats(timeout=5.0), 120, every=0.5, what="mapper answers through the router")
     e, elog = start("edge", ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.kind=synthetic",
                              "source.n_frames=30", "source.resolution=120x160", "source.depth_limit=20",
                              "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4"])
