@@ -3,8 +3,9 @@
 The extension is built by the project's CMake wherever a C++17 compiler exists (it needs
 no OpenVDB). When it is missing, or disabled (``RAYFRONTS_KERNELS=0`` in the environment,
 :func:`set_enabled` / :func:`disabled`), every caller uses its torch path; both paths give
-identical results (the tests run both). Kernels run on CPU tensors only; tensors on other
-devices always take the torch path.
+identical results (the tests run both), except :func:`half_scores`, which rounds less than
+its torch twin (float32 instead of float16: within the query copy's ``SCORE_ATOL``). Kernels
+run on CPU tensors only; tensors on other devices always take the torch path.
 """
 from __future__ import annotations
 
@@ -28,6 +29,12 @@ ArgminCost = Callable[[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Ten
                       tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
 _enabled = os.environ.get("RAYFRONTS_KERNELS", "1") not in ("0", "false", "off", "no")
+
+
+#: the float16 query product runs here (an x86-64 CPU with AVX2, FMA and F16C, and a module
+#: built with it)
+_HALF_SCORES = bool(_rfkernels is not None and hasattr(_rfkernels, "half_scores_available")
+                    and _rfkernels.half_scores_available())
 
 
 def available() -> bool:
@@ -161,3 +168,24 @@ def surface_samples(origin: torch.Tensor, D: torch.Tensor, depth_flat: torch.Ten
                                                     _np(offs, torch.float64), float(vox))
     cell_keys.check_range(lo, hi)
     return torch.from_numpy(pts), torch.from_numpy(keys)
+
+
+def half_scores_enabled(h: torch.Tensor) -> bool:
+    """True if :func:`half_scores` runs for float16 rows ``h`` (kernels enabled, a CPU with
+    AVX2/FMA/F16C, rows on the CPU)."""
+    return _HALF_SCORES and enabled(h) and h.dtype == torch.float16 and h.ndim == 2
+
+
+def half_scores(h: torch.Tensor, q: torch.Tensor, a: torch.Tensor, b: torch.Tensor | None, qm: float,
+                threads: int) -> torch.Tensor:
+    """Kernel-only ``(h.float() @ q) * a + qm * b`` (N,) float32 for float16 rows ``h`` (N, D),
+    a float32 query ``q`` (D,) and per-row float32 ``a``, ``b`` (``b`` None: no mean term), the
+    products and sums in float32 in one order per row (a row scores the same in any subset),
+    on ``threads`` threads. The torch twin (``torch.mv`` in float16, then the terms) rounds
+    the query and the sum to float16; both lie within ``SCORE_ATOL`` of the exact cosine."""
+    out = torch.empty(h.shape[0], dtype=torch.float32)
+    empty = torch.empty(0, dtype=torch.float32)
+    _rfkernels.half_scores(h.contiguous().view(torch.int16).numpy(), _np(q, torch.float32),
+                           _np(a, torch.float32), empty.numpy() if b is None else _np(b, torch.float32),
+                           float(qm), out.numpy(), int(threads))
+    return out

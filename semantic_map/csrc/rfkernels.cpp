@@ -3,7 +3,8 @@
 // Every kernel has a pure-torch twin in mapper/*.py that gives the same result; the
 // Python side (semantic_map/kernels.py) picks the kernel when this module imports. Kernels take
 // C-contiguous CPU numpy arrays / torch tensors (DLPack), release the GIL, run on one
-// thread and return numpy arrays (zero-copy for torch.from_numpy).
+// thread (half_scores: on as many as it is given) and return numpy arrays (zero-copy for
+// torch.from_numpy).
 //
 // * unique_i64(keys) -> (sorted unique, inverse, counts): torch.unique(sorted=True,
 //   return_inverse=True, return_counts=True) by open-addressing hashing (O(N) + sort of
@@ -24,11 +25,15 @@
 // * voxel_keys_f32/_f64(xyz, vox): packed keys of floor(xyz / vox) (float64 division).
 // * surface_samples(...): semantic surface points and the unique occupied voxels of a
 //   frame (semantic_map.depth_geometry), with the torch code's float64 operations.
+// * half_scores(...) (half_scores.cpp): the query snapshot's float16 text-query product; the
+//   one kernel that is not bit-identical to its torch twin (float32 instead of float16
+//   rounding: within the documented score tolerance, closer to the exact cosine).
 
 #include <nanobind/nanobind.h>
 #include <nanobind/ndarray.h>
 #include <nanobind/stl/tuple.h>
 
+#include "half_scores.h"
 #include "numpy_out.h"
 
 #include <algorithm>
@@ -649,4 +654,5 @@ NB_MODULE(_rfkernels, m) {
           nb::arg("chunk_lo"), nb::arg("chunk_hi"), nb::arg("chunk_base"), nb::arg("exclude_end"),
           nb::arg("include_start"));
     m.def("argmin_cost", &argmin_cost, nb::arg("rays"), nb::arg("fidx"), nb::arg("x1"), nb::arg("x2"));
+    register_half_scores(m);
 }
