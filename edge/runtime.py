@@ -104,6 +104,10 @@ class PublishSection:
                                 "floor(y / tile_m) of the camera centre in the robot's own pose frame, so Zenoh "
                                 "routes it to the shards owning that tile (docs/key_space.md#shards); 0 = plain "
                                 "robots/<robot>/frames")
+    wait_subscriber_s: float = field_(5.0, "before the first frame of a session, wait up to this long for a "
+                                           "subscriber (a mapper) to match the frames key (Zenoh matching "
+                                           "status), so frames sent while the route forms are not lost; then "
+                                           "send anyway (0 = do not wait)")
     lossless: bool = field_(False, "the encoder waits for the sender instead of replacing an unsent frame, so no "
                                    "frame is dropped at the edge: for replays, evaluation and tests (a live camera "
                                    "wants the newest frame: keep false)")
@@ -332,6 +336,7 @@ class EdgeRuntime:
         self._token = None
         self._queryable = None
         self._connected = threading.Event()
+        self._matched = False   # a subscriber matched the frames key in this session (see _wait_matching)
         self._fs_reply: bytes | None = None
         self._fs_lock = threading.Lock()
         self.feature_space = None
@@ -393,6 +398,7 @@ class EdgeRuntime:
                 s.close()
                 raise
             self.session = s
+            self._matched = False   # the first frame of this session waits for a subscriber
             if self.stop.is_set():  # closed while we were connecting
                 self._close_session()
                 return
@@ -439,6 +445,22 @@ class EdgeRuntime:
         except Exception as e:
             log.warning("edge_status put failed: %s", e)
 
+    def _wait_matching(self, pub) -> bool:
+        """Wait up to ``publish.wait_subscriber_s`` until ``pub`` has a matching subscriber;
+        True once it has one or the wait is over (the caller then stops asking)."""
+        deadline = time.monotonic() + max(0.0, float(self.cfg.publish.wait_subscriber_s))
+        while True:
+            try:
+                if pub.matching_status.matching:
+                    return True
+            except Exception as e:           # a session closing under us: send as before
+                log.debug("matching status unavailable: %s", e)
+                return True
+            if time.monotonic() >= deadline or self.stop.is_set():
+                log.info("no subscriber matches %s yet; sending anyway", self.keys.frames(self.cfg.robot))
+                return True
+            time.sleep(0.05)
+
     def _publish_loop(self) -> None:
         while True:
             item = self.slot.get(timeout=0.2)
@@ -450,9 +472,12 @@ class EdgeRuntime:
             while not self._connected.wait(0.2):
                 if self.stop.is_set():
                     return
+            pub = self._frame_publisher(frame)
+            if not self._matched:
+                self._matched = self._wait_matching(pub)
             t0 = time.time()
             try:
-                self._frame_publisher(frame).put(data)
+                pub.put(data)
             except Exception as e:
                 self.stats.put_errors += 1
                 log.warning("put failed: %s", e)

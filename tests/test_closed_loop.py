@@ -172,6 +172,8 @@ def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_pat
             run_episode(w, mission, p, LoopSettings(), chain=chain, trace=again)
             assert np.array_equal(pos, np.asarray(again.positions))
             assert r["path_m"] > 1.0 and r["step_ms_p50"]["step"] > 0
+            st = r["step_ms_p50"]                 # the simulated camera's share, and the rest
+            assert 0 < st["render"] < st["sense"] and 0 < st["robot_step"] < st["step"]
             rrd = tmp_path / "ep.rrd"
             record_episode(str(rrd), w, mission, tr, r)
             out = subprocess.run([rerun_binary(), "rrd", "stats", str(rrd)], capture_output=True, text=True,

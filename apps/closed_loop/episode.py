@@ -12,7 +12,10 @@ declaration counts when the declared instance's centroid lies within ``declare_m
 uncounted true instance of the target and the robot is within ``reach_m`` (+ one voxel) of
 it; otherwise it is a false find. World frame z up, metres; CPU times from
 ``time.process_time`` (this process: edge chain, map and planner together); wall times per
-stage (``step_ms_p50``: sense = render + encode + wire, map, search, plan, and the whole step).
+stage (``step_ms_p50``: sense = render + encode + wire, map, search, plan, and the whole step;
+in process also ``render``, the simulated camera's share of sense, and ``robot_step`` = step −
+render, what a robot whose camera delivers the images computes per step; 0 when not measured,
+as with ``--distributed``, whose edge renders).
 """
 from __future__ import annotations
 
@@ -81,7 +84,8 @@ class _Run:
     counted: set = field(default_factory=set)
     cpu: list = field(default_factory=list)
     search_ms: list = field(default_factory=list)
-    stage_ms: dict = field(default_factory=lambda: {"sense": [], "map": [], "search": [], "plan": [], "step": []})
+    stage_ms: dict = field(default_factory=lambda: {"sense": [], "map": [], "search": [], "plan": [], "step": [],
+                                                    "render": [], "robot_step": []})
 
     def start_step(self, step: int, trace: Trace | None) -> float:
         """Count step ``step`` (0-based) and record the position in ``trace``; returns the
@@ -146,8 +150,11 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
             t.append(time.perf_counter())
             t.append(t[-1])
         else:
-            frames = [chain.frame(p) for p in poses]
+            views = [chain.render(p) for p in poses]
+            rendered = time.perf_counter()
+            frames = [chain.encode(v, p) for v, p in zip(views, poses, strict=True)]
             t.append(time.perf_counter())
+            run.stage_ms["render"].append((rendered - t[0]) * 1e3)
             mapper.integrate(frames)
             t.append(time.perf_counter())
         obs = mapper.observe([mission.target], run.pos, semantic=semantic, z_band=robot.goal_band)
@@ -160,6 +167,8 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         for k, a, b in zip(("sense", "map", "search", "plan"), t[:-1], t[1:], strict=True):
             run.stage_ms[k].append((b - a) * 1e3)
         run.stage_ms["step"].append((t[-1] - t[0]) * 1e3)
+        if len(run.stage_ms["render"]) == len(run.stage_ms["step"]):
+            run.stage_ms["robot_step"].append(run.stage_ms["step"][-1] - run.stage_ms["render"][-1])
         _record(trace, obs, d, mapper, step)
         if d.declare is not None:
             state.declared.add(d.declare["id"])

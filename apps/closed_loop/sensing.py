@@ -86,11 +86,19 @@ class EdgeChain:
 
     def frame(self, pose: np.ndarray, robot: str = "sim") -> Frame:
         """One rendered view as the mapper receives it (decoded from the wire; the mapper's map
-        applies its depth limit)."""
+        applies its depth limit): :meth:`encode` of :meth:`render`."""
+        return self.encode(self.render(pose), pose, robot)
+
+    def render(self, pose: np.ndarray):
+        """The simulated camera: the world rendered at camera pose ``pose`` (4×4 camera-to-world)."""
+        return self.world.render(pose, self.K, self.hw)
+
+    def encode(self, r, pose: np.ndarray, robot: str = "sim") -> Frame:
+        """What the robot's edge does with a camera image ``r`` (:meth:`render`) taken at
+        ``pose``: encoder → PCA → wire, and the mapper's decode."""
         from common.wire import decode_frame, encode_frame
         from edge.runtime import compress_features
 
-        r = self.world.render(pose, self.K, self.hw)
         with torch.inference_mode():
             x, g = self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")
         depth = r.depth.astype(np.float32)
