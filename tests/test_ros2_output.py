@@ -75,7 +75,8 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
             qsub = Latest(s, "0/rayfronts/query/ros_vehicle/*/*")
             procs.append(start_cli(
                 ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.resolution=96x128", "source.n_frames=12",
-                 "source.depth_limit=20", "pca.out_dim=16", "pca.fit_frames=4", "publish.linger_s=8"],
+                 "source.depth_limit=20", "pca.out_dim=16", "pca.fit_frames=4", "publish.linger_s=8",
+                 "publish.lossless=true"],      # exactly 12 mapped: no frame replaced at the edge
                 logs[1], env=env))
             assert procs[1].wait(120) == 0
             st = wait_for(lambda: (lambda x: x if x["frames"]["mapped"] == 12

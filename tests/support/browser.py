@@ -212,5 +212,6 @@ def start_viewer_stack(start, ep: str, grpc_port: int, web_port: int) -> tuple[s
         wait_for(lambda: c.stats(timeout=5.0), 120, every=0.5, what="mapper answers through the router")
     e, elog = start("edge", ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.kind=synthetic",
                              "source.n_frames=30", "source.resolution=120x160", "source.depth_limit=20",
-                             "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4"])
+                             "encoder.kind=label", "pca.out_dim=32", "pca.fit_frames=4",
+                             "publish.lossless=true"])   # the tests count all 30: no frame replaced at the edge
     return url, e, elog
