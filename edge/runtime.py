@@ -445,20 +445,20 @@ class EdgeRuntime:
         except Exception as e:
             log.warning("edge_status put failed: %s", e)
 
-    def _wait_matching(self, pub) -> bool:
-        """Wait up to ``publish.wait_subscriber_s`` until ``pub`` has a matching subscriber;
-        True once it has one or the wait is over (the caller then stops asking)."""
+    def _wait_matching(self, pub) -> None:
+        """Wait up to ``publish.wait_subscriber_s`` until ``pub`` has a matching subscriber
+        (asked once per session: the caller then sends, matched or not)."""
         deadline = time.monotonic() + max(0.0, float(self.cfg.publish.wait_subscriber_s))
         while True:
             try:
                 if pub.matching_status.matching:
-                    return True
+                    return
             except Exception as e:           # a session closing under us: send as before
                 log.debug("matching status unavailable: %s", e)
-                return True
+                return
             if time.monotonic() >= deadline or self.stop.is_set():
                 log.info("no subscriber matches %s yet; sending anyway", self.keys.frames(self.cfg.robot))
-                return True
+                return
             time.sleep(0.05)
 
     def _publish_loop(self) -> None:
@@ -474,7 +474,8 @@ class EdgeRuntime:
                     return
             pub = self._frame_publisher(frame)
             if not self._matched:
-                self._matched = self._wait_matching(pub)
+                self._wait_matching(pub)
+                self._matched = True
             t0 = time.time()
             try:
                 pub.put(data)

@@ -184,8 +184,7 @@ def half_scores(h: torch.Tensor, q: torch.Tensor, a: torch.Tensor, b: torch.Tens
     on ``threads`` threads. The torch twin (``torch.mv`` in float16, then the terms) rounds
     the query and the sum to float16; both lie within ``SCORE_ATOL`` of the exact cosine."""
     out = torch.empty(h.shape[0], dtype=torch.float32)
-    empty = torch.empty(0, dtype=torch.float32)
+    bb = torch.empty(0, dtype=torch.float32) if b is None else b
     _rfkernels.half_scores(h.contiguous().view(torch.int16).numpy(), _np(q, torch.float32),
-                           _np(a, torch.float32), empty.numpy() if b is None else _np(b, torch.float32),
-                           float(qm), out.numpy(), int(threads))
+                           _np(a, torch.float32), _np(bb, torch.float32), float(qm), out.numpy(), int(threads))
     return out

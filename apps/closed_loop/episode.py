@@ -145,6 +145,7 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         c0 = run.start_step(step, trace)
         t = [time.perf_counter()]
         poses = chain.view_poses(robot, run.pos)
+        render_ms = None                                  # measured in process only
         if getattr(mapper, "renders_remotely", False):   # a live edge renders and sends; sense = whole trip
             mapper.sense(poses)
             t.append(time.perf_counter())
@@ -154,7 +155,7 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
             rendered = time.perf_counter()
             frames = [chain.encode(v, p) for v, p in zip(views, poses, strict=True)]
             t.append(time.perf_counter())
-            run.stage_ms["render"].append((rendered - t[0]) * 1e3)
+            render_ms = (rendered - t[0]) * 1e3
             mapper.integrate(frames)
             t.append(time.perf_counter())
         obs = mapper.observe([mission.target], run.pos, semantic=semantic, z_band=robot.goal_band)
@@ -167,8 +168,9 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         for k, a, b in zip(("sense", "map", "search", "plan"), t[:-1], t[1:], strict=True):
             run.stage_ms[k].append((b - a) * 1e3)
         run.stage_ms["step"].append((t[-1] - t[0]) * 1e3)
-        if len(run.stage_ms["render"]) == len(run.stage_ms["step"]):
-            run.stage_ms["robot_step"].append(run.stage_ms["step"][-1] - run.stage_ms["render"][-1])
+        if render_ms is not None:
+            run.stage_ms["render"].append(render_ms)
+            run.stage_ms["robot_step"].append(run.stage_ms["step"][-1] - render_ms)
         _record(trace, obs, d, mapper, step)
         if d.declare is not None:
             state.declared.add(d.declare["id"])
