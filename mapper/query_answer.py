@@ -70,6 +70,7 @@ def to_numpy(x: torch.Tensor | npt.ArrayLike) -> np.ndarray:
 
 _TEXT_ENCODERS: dict = {}
 _TEXT_ENCODERS_LOCK = threading.Lock()   # one load per model, whoever asks first (query or warm-up)
+TEXT_MODEL_LOADS: dict[str, dict] = {}   # model name -> {"thread": who loaded it, "load_s": seconds}
 
 
 def text_encoder(name: str, device: str | torch.device = "cpu", model_dir: str = "") -> CachedTextEncoder:
@@ -79,7 +80,10 @@ def text_encoder(name: str, device: str | torch.device = "cpu", model_dir: str =
         if key not in _TEXT_ENCODERS:
             from encoders.text import make_text_encoder
 
+            t0 = time.perf_counter()
             _TEXT_ENCODERS[key] = make_text_encoder(name, model_dir=model_dir or None, device=device)
+            TEXT_MODEL_LOADS[name] = {"thread": threading.current_thread().name,
+                                      "load_s": round(time.perf_counter() - t0, 4)}
         return _TEXT_ENCODERS[key]
 
 

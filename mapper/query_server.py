@@ -178,6 +178,8 @@ class QueryServer:
 
     # ================================================================= stats
     def stats(self) -> dict:
+        from mapper.query_answer import TEXT_MODEL_LOADS
+
         state = self.state
         with state.qlock:
             robots = {n: st.as_dict() for n, st in state.robots.items()}
@@ -191,6 +193,8 @@ class QueryServer:
             "uptime_s": time.time() - state.started, "standing_queries": sorted(state.standing),
             "snapshot": dict(state.last_snapshot), "map_version": state.version,
             "flushed_version": state.flushed_version, "text_warm_up_s": state.text_warm_up_s,
+            # which thread loaded each text model ("text-warm-up": before anyone asked)
+            "text_models": {k: dict(v) for k, v in TEXT_MODEL_LOADS.items()},
             "first_mapped_at": state.first_mapped_at, "last_mapped_at": state.last_mapped_at,
             # process CPU (all threads) from the first to the last integration, and in total
             "cpu_s": {"mapping": (state.cpu_mapped[1] - state.cpu_mapped[0]) if state.cpu_mapped else 0.0,

@@ -323,6 +323,35 @@ def test_prune_frontiers_tile_shell_and_redensify(backend):
     assert g.num_active == len(blk)
 
 
+def test_frontiers_bbox_across_tiles_of_every_level(backend):
+    """A bbox search visits only the box's leaf-sized chunks: tiles of a 128^3 internal node
+    and of single leaves, leaves, negative coordinates and boxes cutting through tiles all
+    give the brute-force frontier set of the box."""
+    rng = np.random.default_rng(9)
+    big = cube(128) + [-128, 0, -128]                   # one level-1 tile after prune
+    small = cube(8) + [8, 8, 0]                          # one leaf-sized tile
+    speck = rng.integers(-140, 30, size=(4000, 3))     # leaves around them, free and occupied
+    speck = speck[~np.isin(speck @ [1 << 40, 1 << 20, 1], np.concatenate([big, small]) @ [1 << 40, 1 << 20, 1])]
+    ijk = np.concatenate([big, small, speck])
+    vals = np.concatenate([np.full(len(big), -1), np.full(len(small), -2), rng.choice([-1, 3], size=len(speck))])
+    g = grid_from(backend, ijk, vals, lo=-5)
+    g.prune(0)
+    a_ijk, a_val = g.active()
+    assert a_ijk.shape[0] == len(ijk)
+    boxes = [((-140, -20, -20), (30, 20, 20)),           # across the big tile's face, end to end
+             ((-60, 40, -60), (-40, 60, -40)),           # inside the big tile
+             ((-3, -3, -3), (12, 12, 4)),                # the big tile's corner, the small tile, leaves
+             ((9, 9, 1), (14, 14, 6)),                   # inside the small tile
+             ((-200, 100, -200), (-150, 120, -150))]     # empty
+    for mu, mf, mo, r in [(1, 0, 0, 1), (0, 0, 0, 1), (4, 2, 0, 2)]:
+        for lo, hi in boxes:
+            got = g.frontiers(mu, mf, mo, r, (lo, hi))
+            ref = brute_frontiers(a_ijk.numpy(), a_val.numpy(), mu, mf, mo, r, (np.array(lo), np.array(hi)))
+            assert got.tolist() == ref.tolist(), (mu, mf, mo, r, lo, hi)
+    # the interior box with mu = 0 holds every free voxel of it (tile interior emitted directly)
+    assert g.frontiers(0, 0, 0, 1, boxes[1]).shape[0] == 21 ** 3
+
+
 @pytest.mark.parametrize("with_hole", [False, True])
 def test_prune_internal_node_median_of_medians(backend, with_hole):
     """16^3 leaves (128^3 voxels) collapse into one level-1 tile holding the lower median

@@ -103,8 +103,10 @@ def test_search_service_with_real_processes(tmp_path, procs, pca_file):
         assert q.returncode == 0, q.stderr[-2000:]
         first = json.loads(q.stdout)            # exactly one JSON object
         assert set(first) == {"found", "look_next", "beyond", "frames_mapped", "map_version", "timings_ms"}
-        # the first search only embeds its own phrase: far less than loading the model took
-        assert first["timings_ms"]["encode"] < 0.5 * warm_s * 1e3, (first["timings_ms"], warm_s)
+        assert warm_s > 0
+        # the first search found the text model loaded: the warm-up thread loaded it, not the search
+        loads = c.stats()["text_models"]
+        assert [v["thread"] for v in loads.values()] == ["text-warm-up"], loads
         # object-sized instances (>= 20 voxels at 0.5 m) are true cars: centroid within 2 voxels
         # of a car's box; small fragments can come from labels bleeding onto the ground at car
         # edges (the edge's feature sampling), they rank after the objects

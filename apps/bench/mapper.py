@@ -22,7 +22,8 @@ busy machine. ``stage_ms_per_frame`` are wall-clock stage times (stretched by lo
   ``growth_cpu_ratio`` = last window / first window. The two windows see different streets,
   so ``growth_control`` feeds the last window's frames again to an empty map afterwards:
   ``content_ratio`` = that / the first window (what the frames cost by themselves),
-  ``map_size_ratio`` = the grown map's last window / that (what the map's size costs).
+  ``map_size_ratio`` = the grown map's last window / that (what the map's size costs);
+  its ``stage_ms_per_frame`` against the last window's say which stages the size costs in.
 """
 from __future__ import annotations
 
@@ -223,6 +224,7 @@ def _fresh_map_control(args: argparse.Namespace, m: RayFrontsMap, frames: list[B
     fresh = round(1e3 * side.cpu / (e - s), 2)
     first, last = windows[0]["cpu_ms_per_frame"], windows[-1]["cpu_ms_per_frame"]
     return {"frames": [s, e], "fresh_map_cpu_ms_per_frame": fresh, "n_voxels": len(m.sem),
+            "stage_ms_per_frame": side.summary()["stage_ms_per_frame"],
             "content_ratio": round(fresh / first, 3) if first else None,
             "map_size_ratio": round(last / fresh, 3) if fresh else None}
 

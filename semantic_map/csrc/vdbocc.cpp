@@ -41,6 +41,14 @@ namespace nb = nanobind;
 
 using TreeT = openvdb::tree::Tree4<int8_t, 5, 4, 3>::Type;
 using GridT = openvdb::Grid<TreeT>;
+using LeafT = TreeT::LeafNodeType;
+using RootChildT = TreeT::RootNodeType::ChildNodeType;
+
+// An active tile met in a bbox search: its bounds, the leaf-sized part of it to visit, its value.
+struct TilePart {
+    openvdb::CoordBBox tile, part;
+    int8_t value;
+};
 using openvdb::Coord;
 using openvdb::CoordBBox;
 
@@ -150,6 +158,19 @@ public:
             cbox = CoordBBox(Coord(std::get<0>(bmin), std::get<1>(bmin), std::get<2>(bmin)),
                              Coord(std::get<0>(bmax), std::get<1>(bmax), std::get<2>(bmax)));
         std::vector<int32_t> result;
+        if (use_bbox && !cbox.empty()) {
+            const CoordBBox ebox = cbox.expandBy(r);
+            const Coord dim = ebox.dim();
+            if (double(dim.x()) * dim.y() * dim.z() <= double(kDenseFrontierCells)) {
+                {
+                    nb::gil_scoped_release release;
+                    std::shared_lock<std::shared_mutex> lock(mutex_);
+                    frontiers_dense(grid_->constTree(), mu, mf, mo, r, cbox, result);
+                }
+                const size_t k = result.size() / 3;
+                return to_numpy(std::move(result), {k, size_t(3)});
+            }
+        }
         {
             nb::gil_scoped_release release;
             std::shared_lock<std::shared_mutex> lock(mutex_);
@@ -174,14 +195,34 @@ public:
                 out.push_back(c.z());
             };
 
+            // Work: the leaves and the free active tiles to search, each tile with the part
+            // of it to visit. With a bbox they come from probing the bbox's leaf-sized chunks,
+            // so the cost follows the box, not the tree; without, from iterating the tree.
+            std::vector<const LeafT*> leaves;
+            std::vector<TilePart> tiles;  // free tiles only
+            if (use_bbox) {
+                collect_in_bbox(tree, cbox, leaves, tiles);
+                tiles.erase(std::remove_if(tiles.begin(), tiles.end(), [](const TilePart& t) { return t.value >= 0; }),
+                            tiles.end());
+            } else {
+                for (auto it = tree.cbeginLeaf(); it; ++it) leaves.push_back(&*it);
+                auto it = tree.cbeginValueOn();
+                it.setMaxDepth(TreeT::ValueOnCIter::LEAF_DEPTH - 1);  // do not descend into leaves
+                for (; it; ++it) {
+                    if (!it.isTileValue() || *it >= 0) continue;
+                    CoordBBox b;
+                    it.getBoundingBox(b);
+                    tiles.push_back({b, b, *it});
+                }
+            }
+
             // 1) voxels in leaf nodes
-            openvdb::tree::LeafManager<const TreeT> leaves(tree);
-            tbb::parallel_for(leaves.leafRange(), [&](const openvdb::tree::LeafManager<const TreeT>::LeafRange& range) {
+            tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 64),
+                              [&](const tbb::blocked_range<size_t>& range) {
                 openvdb::tree::ValueAccessor<const TreeT> acc(tree);
                 auto& out = found.local();
-                for (auto leaf = range.begin(); leaf; ++leaf) {
-                    if (use_bbox && !cbox.hasOverlap(leaf->getNodeBoundingBox())) continue;
-                    for (auto it = leaf->cbeginValueOn(); it; ++it) {
+                for (size_t l = range.begin(); l < range.end(); ++l) {
+                    for (auto it = leaves[l]->cbeginValueOn(); it; ++it) {
                         if (*it >= 0) continue;
                         const Coord c = it.getCoord();
                         if (use_bbox && !cbox.isInside(c)) continue;
@@ -190,21 +231,7 @@ public:
                 }
             });
 
-            // 2) active tiles with a free value (pruned nodes)
-            std::vector<CoordBBox> tiles;
-            {
-                auto it = tree.cbeginValueOn();
-                it.setMaxDepth(TreeT::ValueOnCIter::LEAF_DEPTH - 1);  // do not descend into leaves
-                for (; it; ++it) {
-                    if (!it.isTileValue() || *it >= 0) continue;
-                    CoordBBox b;
-                    it.getBoundingBox(b);
-                    if (use_bbox) {
-                        if (!cbox.hasOverlap(b)) continue;
-                    }
-                    tiles.push_back(b);
-                }
-            }
+            // 2) active tiles with a free value (pruned nodes).
             // A tile voxel farther than r from the tile's faces sees only the tile: all
             // `size` cells free, none unobserved or occupied.
             const bool interior_ok = (0 >= mu) && (size >= mf) && (0 >= mo);
@@ -213,8 +240,8 @@ public:
                 openvdb::tree::ValueAccessor<const TreeT> acc(tree);
                 auto& out = found.local();
                 for (size_t t = range.begin(); t < range.end(); ++t) {
-                    const CoordBBox tb = tiles[t];
-                    CoordBBox b = tb;
+                    const CoordBBox tb = tiles[t].tile;
+                    CoordBBox b = tiles[t].part;
                     if (use_bbox) b.intersect(cbox);
                     const Coord in_lo = tb.min().offsetBy(r), in_hi = tb.max().offsetBy(-r);
                     auto shell = [&](int v, int axis) { return v < in_lo[axis] || v > in_hi[axis]; };
@@ -254,6 +281,119 @@ public:
         }
         const size_t k = result.size() / 3;
         return to_numpy(std::move(result), {k, size_t(3)});
+    }
+
+    // The leaves overlapping `box` and the active tiles overlapping it, each tile with
+    // one leaf-sized chunk of it (so a tile spanning many chunks is listed once per chunk and
+    // every voxel is visited once): found by probing the box's leaf-aligned chunks.
+    static void collect_in_bbox(const TreeT& tree, const CoordBBox& box, std::vector<const LeafT*>& leaves,
+                                std::vector<TilePart>& tiles) {
+        // span of a tile by the depth getValueDepth reports (0: a root-table tile)
+        static const int span[3] = {int(RootChildT::DIM), int(RootChildT::ChildNodeType::DIM), int(LeafT::DIM)};
+        constexpr int D = int(LeafT::DIM);
+        auto floor_to = [](int v, int m) { return v >= 0 ? (v / m) * m : -(((-v) + m - 1) / m) * m; };
+        openvdb::tree::ValueAccessor<const TreeT> acc(tree);
+        const Coord lo(floor_to(box.min().x(), D), floor_to(box.min().y(), D), floor_to(box.min().z(), D));
+        for (int x = lo.x(); x <= box.max().x(); x += D)
+            for (int y = lo.y(); y <= box.max().y(); y += D)
+                for (int z = lo.z(); z <= box.max().z(); z += D) {
+                    const Coord o(x, y, z);
+                    if (const LeafT* leaf = acc.probeConstLeaf(o)) {
+                        leaves.push_back(leaf);
+                        continue;
+                    }
+                    const int depth = acc.getValueDepth(o);
+                    int8_t v = 0;
+                    if (depth < 0 || depth > 2 || !acc.probeValue(o, v)) continue;
+                    const int sp = span[depth];
+                    const Coord tmin(floor_to(x, sp), floor_to(y, sp), floor_to(z, sp));
+                    tiles.push_back({CoordBBox(tmin, tmin.offsetBy(sp - 1)), CoordBBox(o, o.offsetBy(D - 1)), v});
+                }
+    }
+
+    // Largest bbox (grown by the radius) searched through a dense copy, in cells (int8 state
+    // + two uint16 count planes: 5 bytes a cell, 80 MiB at the cap).
+    static constexpr int64_t kDenseFrontierCells = int64_t(1) << 24;
+
+    // frontiers() in a bbox through a dense copy of the box grown by r: each cell's class
+    // (unobserved / free / occupied, as classify), then the free and occupied counts of every
+    // (2r+1)^3 window by three separable running sums; unobserved = size - free - occupied.
+    // The cost follows the box's volume, not what the tree holds in it. Sorted (i, j, k).
+    static void frontiers_dense(const TreeT& tree, int mu, int mf, int mo, int r, const CoordBBox& cbox,
+                                std::vector<int32_t>& out) {
+        const CoordBBox ebox = cbox.expandBy(r);
+        const Coord e0 = ebox.min(), dim = ebox.dim();
+        const int64_t nx = dim.x(), ny = dim.y(), nz = dim.z();
+        const int64_t n = nx * ny * nz;
+        auto at = [&](const Coord& c) { return ((int64_t(c.x() - e0.x()) * ny) + (c.y() - e0.y())) * nz + (c.z() - e0.z()); };
+        // class per cell: 0 unobserved, 1 free, 2 occupied (inactive or 0 is unobserved)
+        std::vector<uint8_t> cls(static_cast<size_t>(n), 0);
+        std::vector<const LeafT*> leaves;
+        std::vector<TilePart> tiles;
+        collect_in_bbox(tree, ebox, leaves, tiles);
+        for (const LeafT* leaf : leaves) {
+            for (auto it = leaf->cbeginValueOn(); it; ++it) {
+                const Coord c = it.getCoord();
+                if (!ebox.isInside(c) || *it == 0) continue;
+                cls[size_t(at(c))] = *it < 0 ? 1 : 2;
+            }
+        }
+        for (const TilePart& tp : tiles) {
+            CoordBBox b = tp.part;
+            b.intersect(ebox);
+            if (b.empty() || tp.value == 0) continue;
+            const uint8_t v = tp.value < 0 ? 1 : 2;
+            for (int x = b.min().x(); x <= b.max().x(); ++x)
+                for (int y = b.min().y(); y <= b.max().y(); ++y) {
+                    const int64_t row = at(Coord(x, y, b.min().z()));
+                    std::fill(cls.begin() + row, cls.begin() + row + (b.max().z() - b.min().z() + 1), v);
+                }
+        }
+        // window sums: free and occupied counts, z then y then x
+        std::vector<uint16_t> fr(static_cast<size_t>(n)), oc(static_cast<size_t>(n));
+        for (int64_t q = 0; q < n; ++q) {
+            fr[size_t(q)] = cls[size_t(q)] == 1;
+            oc[size_t(q)] = cls[size_t(q)] == 2;
+        }
+        box_sum(fr, nx, ny, nz, r);
+        box_sum(oc, nx, ny, nz, r);
+        const int size = (2 * r + 1) * (2 * r + 1) * (2 * r + 1);
+        for (int x = cbox.min().x(); x <= cbox.max().x(); ++x)
+            for (int y = cbox.min().y(); y <= cbox.max().y(); ++y) {
+                const int64_t row = at(Coord(x, y, cbox.min().z()));
+                for (int z = cbox.min().z(); z <= cbox.max().z(); ++z) {
+                    const size_t q = size_t(row + (z - cbox.min().z()));
+                    if (cls[q] != 1) continue;
+                    const int f = fr[q], o = oc[q], u = size - f - o;
+                    if (u >= mu && f >= mf && o >= mo) {
+                        out.push_back(x);
+                        out.push_back(y);
+                        out.push_back(z);
+                    }
+                }
+            }
+    }
+
+    // In place: a[x, y, z] = sum of a over the (2r+1)^3 window around (x, y, z) clipped to
+    // the array (cells outside the array count 0: the caller's array is the box grown by r).
+    static void box_sum(std::vector<uint16_t>& a, int64_t nx, int64_t ny, int64_t nz, int r) {
+        std::vector<uint16_t> line(size_t(std::max(nx, std::max(ny, nz))));
+        auto pass = [&](int64_t len, int64_t stride, int64_t count, auto base_of) {
+            for (int64_t l = 0; l < count; ++l) {
+                const int64_t b = base_of(l);
+                for (int64_t i = 0; i < len; ++i) line[size_t(i)] = a[size_t(b + i * stride)];
+                uint32_t s = 0;
+                for (int64_t i = 0; i < std::min<int64_t>(r, len); ++i) s += line[size_t(i)];
+                for (int64_t i = 0; i < len; ++i) {
+                    if (i + r < len) s += line[size_t(i + r)];
+                    a[size_t(b + i * stride)] = uint16_t(s);
+                    if (i - r >= 0) s -= line[size_t(i - r)];
+                }
+            }
+        };
+        pass(nz, 1, nx * ny, [&](int64_t l) { return l * nz; });
+        pass(ny, nz, nx * nz, [&](int64_t l) { return (l / nz) * ny * nz + (l % nz); });
+        pass(nx, ny * nz, ny * nz, [&](int64_t l) { return l; });
     }
 
     void prune(int tol) {
