@@ -28,6 +28,9 @@ except ImportError as e:  # pragma: no cover - depends on the build
 ArgminCost = Callable[[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor], int],
                       tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
 
+#: coarse cells per block side of the association kernels' ray walk
+ASSOCIATION_BLOCK = 4
+
 _enabled = os.environ.get("RAYFRONTS_KERNELS", "1") not in ("0", "false", "off", "no")
 
 
@@ -128,7 +131,7 @@ def group_pairs(group: torch.Tensor, idx: torch.Tensor, wt: torch.Tensor, n_grou
 
 def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, frontier_ijk: torch.Tensor,
                    beta: float, base: torch.Tensor, max_dist: float, reject_close: bool,
-                   block: int = 4, scales: tuple[float, float | None] | None = None,
+                   block: int = ASSOCIATION_BLOCK, scales: tuple[float, float | None] | None = None,
                    argmin: ArgminCost | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Kernel-only ray -> frontier association: (rays, frontier idx, float64 cost), equal to
     :func:`semantic_map.ray_frontiers.associate`'s torch path (see the C++ source). With fixed
@@ -138,13 +141,19 @@ def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, fron
                                                _np(lengths, torch.float64), _np(frontier_ijk, torch.int64),
                                                float(beta), int(block), _np(base, torch.float64),
                                                float(max_dist), bool(reject_close))
+    return _pick(torch.from_numpy(ri), torch.from_numpy(fi), oo, vv, int(o.shape[0]), scales, argmin)
+
+
+def _pick(ri: torch.Tensor, fi: torch.Tensor, oo, vv, n_rays: int, scales: tuple[float, float | None] | None,
+          argmin: ArgminCost | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The per-ray choice among candidate pairs (float32 squared distances ``oo``, ``vv``)."""
     # square roots in torch: bit-identical to the torch path's float32 sqrt
     x1 = torch.from_numpy(oo).sqrt().to(torch.float64)
     x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
     if scales is not None:
         assert argmin is not None  # the absolute cost picks per ray with the caller's torch code
-        return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
-    r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
+        return argmin(ri, fi, (x1, x2), n_rays)
+    r, f, c = _rfkernels.argmin_cost(ri.numpy(), fi.contiguous().numpy(), x1.numpy(), x2.numpy())
     return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)
 
 

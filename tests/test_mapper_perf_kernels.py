@@ -116,6 +116,20 @@ def test_associate_many_rays_uses_one_base_point(monkeypatch):
     kernel_same((k, t))
 
 
+def test_associate_frontiers_far_apart():
+    # two frontier clusters ~12 km apart: the kernel's block range is too large for its dense
+    # block grid (it hashes the blocks instead); rays near each cluster
+    o, d, fr = _rays(8, 400, 500, 12)
+    shift = torch.tensor([10000, 7000, 0])
+    fr = torch.cat([fr, fr + shift])
+    o[200:] += shift.to(torch.float64)
+    k, t = both(lambda: associate(o, d, fr, 1.0, max_dist=15.0))
+    ref = associate_bruteforce(o, d, fr, 1.0, max_dist=15.0)
+    assert t[0].numel() > 40 and bool((t[1] >= 500).any()) and bool((t[1] < 500).any())
+    assert_same(t, ref)
+    kernel_same((k, t))
+
+
 def test_associate_degenerate_inputs():
     o, d, fr = _rays(7, 10, 20, 4)
     e = torch.empty((0, 3), dtype=torch.int64)

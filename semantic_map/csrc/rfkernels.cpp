@@ -9,14 +9,10 @@
 // * unique_i64(keys) -> (sorted unique, inverse, counts): torch.unique(sorted=True,
 //   return_inverse=True, return_counts=True) by open-addressing hashing (O(N) + sort of
 //   the unique keys), not by sorting all N keys.
-// * associate_rays(...) + argmin_cost(...): for rays (o, d, length) and coarse frontier
-//   cells of size beta, the association of semantic_map.ray_frontiers (test t > 0,
-//   |p - o - t d| <= beta, |p - o| <= max_dist (and >= 2 beta with reject_close); per-ray
-//   normalised cost; argmin) with bit-identical results (the two square roots per pair
-//   are taken by torch in between). Rays are walked (3-D DDA) through a grid of blocks
-//   of `block`^3 coarse cells; a block lists the frontiers whose cell lies in the block
-//   grown by one cell, which holds every frontier within beta of any point of the block,
-//   so the walk has half a cell of slack and needs no exact grazing.
+// * associate_rays(...) + argmin_cost(...) (ray_association.cpp): for rays (o, d, length)
+//   and coarse frontier cells of size beta, the association of semantic_map.ray_frontiers
+//   (test t > 0, |p - o - t d| <= beta, |p - o| <= max_dist (and >= 2 beta with
+//   reject_close); per-ray normalised cost; argmin) with bit-identical results.
 // * group_pairs(group, idx, wt, n_groups, n_src): the non-zeros of the (group x source)
 //   sampling matrix of semantic_map.depth_geometry.aggregate_samples, as its bincount path;
 //   sample_pairs(...) also computes the bilinear / nearest corners (_corners) itself.
@@ -34,6 +30,9 @@
 #include <nanobind/stl/tuple.h>
 
 #include "half_scores.h"
+#include "arrays.h"
+#include "key_ids.h"
+#include "ray_association.h"
 #include "numpy_out.h"
 
 #include <algorithm>
@@ -45,81 +44,12 @@
 #include <vector>
 
 namespace nb = nanobind;
+using rfk::KeyIds;
+using namespace rfk::arrays;
 
 namespace {
 
-using I64In = nb::ndarray<const int64_t, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
-using F64In = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
-using F32In = nb::ndarray<const float, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
-using F64x3In = nb::ndarray<const double, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
-using I64x3In = nb::ndarray<const int64_t, nb::shape<-1, 3>, nb::c_contig, nb::device::cpu>;
 
-
-inline uint64_t mix(uint64_t x) {  // splitmix64 finaliser
-    x ^= x >> 31;
-    x *= 0x7fb5d329728ea185ULL;
-    x ^= x >> 27;
-    x *= 0x81dadef4bc2dd44dULL;
-    x ^= x >> 33;
-    return x;
-}
-
-// Open-addressing (linear probing) map int64 key -> dense id in first-seen order.
-class KeyIds {
-public:
-    explicit KeyIds(size_t expected) {
-        size_t cap = 16;
-        while (cap < 2 * expected + 1) cap <<= 1;
-        mask_ = cap - 1;
-        slot_key_.resize(cap);
-        slot_id_.assign(cap, -1);
-    }
-    // id of key, inserting it if new
-    int64_t insert(int64_t key) {
-        size_t h = mix(uint64_t(key)) & mask_;
-        while (true) {
-            int64_t id = slot_id_[h];
-            if (id < 0) {
-                id = int64_t(keys_.size());
-                slot_id_[h] = id;
-                slot_key_[h] = key;
-                keys_.push_back(key);
-                if (keys_.size() * 2 > mask_) grow();
-                return id;
-            }
-            if (slot_key_[h] == key) return id;
-            h = (h + 1) & mask_;
-        }
-    }
-    int64_t find(int64_t key) const {
-        size_t h = mix(uint64_t(key)) & mask_;
-        while (true) {
-            int64_t id = slot_id_[h];
-            if (id < 0) return -1;
-            if (slot_key_[h] == key) return id;
-            h = (h + 1) & mask_;
-        }
-    }
-    const std::vector<int64_t>& keys() const { return keys_; }
-
-private:
-    void grow() {
-        size_t cap = (mask_ + 1) * 2;
-        mask_ = cap - 1;
-        slot_key_.assign(cap, 0);
-        slot_id_.assign(cap, -1);
-        for (size_t id = 0; id < keys_.size(); ++id) {
-            size_t h = mix(uint64_t(keys_[id])) & mask_;
-            while (slot_id_[h] >= 0) h = (h + 1) & mask_;
-            slot_id_[h] = int64_t(id);
-            slot_key_[h] = keys_[id];
-        }
-    }
-    size_t mask_ = 0;
-    std::vector<int64_t> slot_key_;
-    std::vector<int64_t> slot_id_;
-    std::vector<int64_t> keys_;
-};
 
 // rank[id] = position of keys[id] in ascending order
 std::vector<int64_t> sorted_rank(const std::vector<int64_t>& keys, std::vector<int64_t>& order) {
@@ -153,187 +83,6 @@ nb::tuple unique_i64(I64In keys) {
     size_t u = uniq.size();
     return nb::make_tuple(to_numpy(std::move(uniq), {u}), to_numpy(std::move(inverse), {n}),
                           to_numpy(std::move(counts), {u}));
-}
-
-inline int64_t floordiv(int64_t a, int64_t b) {
-    int64_t q = a / b;
-    return (a % b != 0 && ((a < 0) != (b < 0))) ? q - 1 : q;
-}
-
-inline int64_t block_key(int64_t i, int64_t j, int64_t k) {
-    constexpr int64_t off = int64_t(1) << 20, m = (int64_t(1) << 21) - 1;
-    return (((i + off) & m) << 42) | (((j + off) & m) << 21) | ((k + off) & m);
-}
-
-// Ray -> frontier candidate pairs (see the header comment and semantic_map/ray_frontiers.py).
-// Per pair the test is computed exactly as the torch code does (float32, relative to
-// `base`, sums left to right, scalar thresholds rounded to float32). Returns the passing
-// pairs grouped by ray (ascending), each once, with float32 d_ortho^2 and d_orig^2; the
-// square roots are left to torch (its float32 sqrt is not always correctly rounded, so
-// only torch can reproduce torch), then argmin_cost picks per ray.
-nb::tuple associate_rays(F64x3In origins, F64x3In dirs, F64In lengths, I64x3In fijk, double beta,
-                         int64_t block, F64In base, double max_dist, bool reject_close) {
-    const size_t R = origins.shape(0), F = fijk.shape(0);
-    if (dirs.shape(0) != R || lengths.shape(0) != R)
-        throw std::invalid_argument("origins, dirs and lengths must have the same number of rows");
-    if (!(beta > 0) || block < 1) throw std::invalid_argument("beta must be > 0 and block >= 1");
-    if (base.shape(0) != 3) throw std::invalid_argument("base must have 3 values");
-    std::vector<int64_t> out_r, out_f;
-    std::vector<float> out_oo, out_vv;
-    {
-        nb::gil_scoped_release release;
-        const double* o = origins.data();
-        const double* d = dirs.data();
-        const double* L = lengths.data();
-        const int64_t* c = fijk.data();
-        const double bs[3] = {base.data()[0], base.data()[1], base.data()[2]};
-        std::vector<float> p32(3 * F);
-        for (size_t f = 0; f < F; ++f)
-            for (int a = 0; a < 3; ++a) p32[3 * f + a] = float((double(c[3 * f + a]) + 0.5) * beta - bs[a]);
-        // block lists (CSR): frontier f is listed in every block whose cells grown by one
-        // cell contain f's cell
-        KeyIds blocks(F);
-        std::vector<int64_t> fb;  // (frontier, block id) pairs, up to 8 per frontier
-        fb.reserve(4 * F);
-        for (size_t f = 0; f < F; ++f) {
-            int64_t lo[3], hi[3];
-            for (int a = 0; a < 3; ++a) {
-                lo[a] = floordiv(c[3 * f + a] - 1, block);
-                hi[a] = floordiv(c[3 * f + a] + 1, block);
-            }
-            for (int64_t i = lo[0]; i <= hi[0]; ++i)
-                for (int64_t j = lo[1]; j <= hi[1]; ++j)
-                    for (int64_t k = lo[2]; k <= hi[2]; ++k) {
-                        fb.push_back(int64_t(f));
-                        fb.push_back(blocks.insert(block_key(i, j, k)));
-                    }
-        }
-        const size_t nb_ = blocks.keys().size();
-        std::vector<int64_t> start(nb_ + 1, 0), list(fb.size() / 2);
-        for (size_t q = 1; q < fb.size(); q += 2) ++start[fb[q] + 1];
-        for (size_t b = 0; b < nb_; ++b) start[b + 1] += start[b];
-        {
-            std::vector<int64_t> fill(start.begin(), start.end() - 1);
-            for (size_t q = 0; q < fb.size(); q += 2) list[fill[fb[q + 1]]++] = fb[q];
-        }
-        std::vector<int32_t> stamp(F, -1);
-        const double h = beta * double(block);
-        // thresholds as torch compares them: python double scalar -> float32
-        const float beta2 = float(beta * beta);
-        const float md2 = float(max_dist * max_dist);
-        const float close2 = float(4.0 * beta * beta);
-        for (size_t r = 0; r < R; ++r) {
-            const double ov[3] = {o[3 * r], o[3 * r + 1], o[3 * r + 2]};
-            const double dv[3] = {d[3 * r], d[3 * r + 1], d[3 * r + 2]};
-            const double len = L[r];
-            if (!std::isfinite(ov[0] + ov[1] + ov[2] + dv[0] + dv[1] + dv[2] + len)) continue;
-            const float o32[3] = {float(ov[0] - bs[0]), float(ov[1] - bs[1]), float(ov[2] - bs[2])};
-            const float d32[3] = {float(dv[0]), float(dv[1]), float(dv[2])};
-            int64_t cur[3], remaining[3], step[3];
-            double tmax[3], tdelta[3];
-            for (int a = 0; a < 3; ++a) {
-                cur[a] = int64_t(std::floor(ov[a] / h));
-                int64_t e = int64_t(std::floor((ov[a] + dv[a] * len) / h));
-                step[a] = e > cur[a] ? 1 : -1;
-                remaining[a] = e > cur[a] ? e - cur[a] : cur[a] - e;
-                if (remaining[a] > 0 && dv[a] != 0.0) {
-                    double plane = double(cur[a] + (step[a] > 0 ? 1 : 0)) * h;
-                    tmax[a] = (plane - ov[a]) / dv[a];
-                    tdelta[a] = h / std::fabs(dv[a]);
-                } else {
-                    remaining[a] = 0;
-                    tmax[a] = std::numeric_limits<double>::infinity();
-                    tdelta[a] = 0.0;
-                }
-            }
-            const int32_t tag = int32_t(r);
-            while (true) {
-                int64_t bid = blocks.find(block_key(cur[0], cur[1], cur[2]));
-                if (bid >= 0) {
-                    for (int64_t q = start[bid]; q < start[bid + 1]; ++q) {
-                        const int64_t f = list[q];
-                        if (stamp[f] == tag) continue;
-                        stamp[f] = tag;
-                        const float vx = p32[3 * f] - o32[0], vy = p32[3 * f + 1] - o32[1], vz = p32[3 * f + 2] - o32[2];
-                        const float px = vx * d32[0], py = vy * d32[1], pz = vz * d32[2];
-                        const float t = (px + py) + pz;
-                        const float sx = vx * vx, sy = vy * vy, sz = vz * vz;
-                        const float vv = (sx + sy) + sz;
-                        const float tt = t * t;
-                        float oo = vv - tt;
-                        if (oo < 0.0f) oo = 0.0f;
-                        if (!(t > 0.0f && oo <= beta2)) continue;
-                        if (max_dist > 0 && !(vv <= md2)) continue;
-                        if (reject_close && !(vv >= close2)) continue;
-                        out_r.push_back(int64_t(r));
-                        out_f.push_back(f);
-                        out_oo.push_back(oo);
-                        out_vv.push_back(vv);
-                    }
-                }
-                int a = 0;
-                if (tmax[1] < tmax[a]) a = 1;
-                if (tmax[2] < tmax[a]) a = 2;
-                if (remaining[a] == 0) break;  // every axis done (its tmax is +inf)
-                cur[a] += step[a];
-                if (--remaining[a] == 0) tmax[a] = std::numeric_limits<double>::infinity();
-                else tmax[a] += tdelta[a];
-            }
-        }
-    }
-    size_t k = out_r.size();
-    return nb::make_tuple(to_numpy(std::move(out_r), {k}), to_numpy(std::move(out_f), {k}),
-                          to_numpy(std::move(out_oo), {k}), to_numpy(std::move(out_vv), {k}));
-}
-
-// Per-ray argmin of the normalised cost over candidate pairs grouped by ray (ray ids
-// non-decreasing): cost = (x1 / max_ray x1 + x2 / max_ray x2) / 2 (a 0/0 term is 0), ties to
-// the lowest frontier index; the same float64 operations as the torch code.
-nb::tuple argmin_cost(I64In rays, I64In fidx, F64In x1, F64In x2) {
-    const size_t K = rays.shape(0);
-    if (fidx.shape(0) != K || x1.shape(0) != K || x2.shape(0) != K)
-        throw std::invalid_argument("rays, fidx, x1 and x2 must have the same length");
-    std::vector<int64_t> out_r, out_f;
-    std::vector<double> out_c;
-    {
-        nb::gil_scoped_release release;
-        const int64_t* ri = rays.data();
-        const int64_t* fi = fidx.data();
-        const double* a = x1.data();
-        const double* b = x2.data();
-        size_t s = 0;
-        while (s < K) {
-            size_t e = s;
-            double m1 = 0.0, m2 = 0.0;
-            while (e < K && ri[e] == ri[s]) {
-                m1 = std::max(m1, a[e]);
-                m2 = std::max(m2, b[e]);
-                ++e;
-            }
-            if (e < K && ri[e] < ri[s]) throw std::invalid_argument("rays must be grouped in ascending order");
-            double best = std::numeric_limits<double>::infinity();
-            int64_t bf = std::numeric_limits<int64_t>::max();
-            for (size_t q = s; q < e; ++q) {
-                double cost = 0.0;
-                cost += m1 > 0 ? a[q] / m1 : 0.0;
-                cost += m2 > 0 ? b[q] / m2 : 0.0;
-                cost /= 2.0;
-                if (cost < best || (cost == best && fi[q] < bf)) {
-                    best = cost;
-                    bf = fi[q];
-                }
-            }
-            if (std::isfinite(best)) {
-                out_r.push_back(ri[s]);
-                out_f.push_back(bf);
-                out_c.push_back(best);
-            }
-            s = e;
-        }
-    }
-    size_t k = out_r.size();
-    return nb::make_tuple(to_numpy(std::move(out_r), {k}), to_numpy(std::move(out_f), {k}),
-                          to_numpy(std::move(out_c), {k}));
 }
 
 // Non-zeros of the sparse (group x source) weight matrix A of
@@ -639,9 +388,6 @@ nb::tuple segment_cells_unique(F64x3In o, F64x3In e, double cell, I64In chunk_lo
 NB_MODULE(_rfkernels, m) {
     m.doc() = "CPU kernels for the RayFronts mapper (hash unique, ray-frontier candidates); see semantic_map.kernels";
     m.def("unique_i64", &unique_i64, nb::arg("keys"));
-    m.def("associate_rays", &associate_rays, nb::arg("origins"), nb::arg("dirs"), nb::arg("lengths"),
-          nb::arg("frontier_ijk"), nb::arg("beta"), nb::arg("block"), nb::arg("base"), nb::arg("max_dist"),
-          nb::arg("reject_close"));
     m.def("group_pairs", &group_pairs, nb::arg("group"), nb::arg("idx"), nb::arg("wt"), nb::arg("n_groups"),
           nb::arg("n_src"));
     m.def("sample_pairs", &sample_pairs, nb::arg("group"), nb::arg("pix"), nb::arg("H"), nb::arg("W"), nb::arg("h"),
@@ -653,6 +399,6 @@ NB_MODULE(_rfkernels, m) {
     m.def("segment_cells_unique", &segment_cells_unique, nb::arg("origins"), nb::arg("ends"), nb::arg("cell"),
           nb::arg("chunk_lo"), nb::arg("chunk_hi"), nb::arg("chunk_base"), nb::arg("exclude_end"),
           nb::arg("include_start"));
-    m.def("argmin_cost", &argmin_cost, nb::arg("rays"), nb::arg("fidx"), nb::arg("x1"), nb::arg("x2"));
+    register_ray_association(m);
     register_half_scores(m);
 }
