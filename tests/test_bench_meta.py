@@ -136,6 +136,9 @@ def test_bench_mapper_growing_control_is_the_last_frames_on_an_empty_map(tmp_pat
     assert [x["frames"] for x in w] == [[0, 8], [8, 16], [16, 24]] and c["frames"] == [16, 24]
     assert c["content_ratio"] == round(c["fresh_map_cpu_ms_per_frame"] / w[0]["cpu_ms_per_frame"], 3)
     assert c["map_size_ratio"] == round(w[-1]["cpu_ms_per_frame"] / c["fresh_map_cpu_ms_per_frame"], 3)
+    assert d["growth_cpu_ratio"] == round(w[-1]["cpu_ms_per_frame"] / w[0]["cpu_ms_per_frame"], 3)
+    assert d["growth_cpu_ratio_from_second"] == round(w[-1]["cpu_ms_per_frame"] / w[1]["cpu_ms_per_frame"], 3)
+    assert set(c["stage_ms_per_frame"]) >= {"frontiers", "fuse", "total"}
     p = argparse.ArgumentParser()
     bench_mapper.add_arguments(p)
     args = p.parse_args(["--preset", "throughput", "--frames", "24"])
