@@ -159,14 +159,27 @@ public:
                              Coord(std::get<0>(bmax), std::get<1>(bmax), std::get<2>(bmax)));
         std::vector<int32_t> result;
         if (use_bbox && !cbox.empty()) {
+            // a dense copy of the box when it is not much larger than what the tree holds in it
             const CoordBBox ebox = cbox.expandBy(r);
             const Coord dim = ebox.dim();
-            if (double(dim.x()) * dim.y() * dim.z() <= double(kDenseFrontierCells)) {
-                {
-                    nb::gil_scoped_release release;
-                    std::shared_lock<std::shared_mutex> lock(mutex_);
-                    frontiers_dense(grid_->constTree(), mu, mf, mo, r, cbox, result);
+            const double volume = double(dim.x()) * dim.y() * dim.z();
+            bool dense = false;
+            if (volume <= double(kDenseFrontierCells)) {
+                nb::gil_scoped_release release;
+                std::shared_lock<std::shared_mutex> lock(mutex_);
+                std::vector<const LeafT*> leaves;
+                std::vector<TilePart> tiles;
+                collect_in_bbox(grid_->constTree(), ebox, leaves, tiles);
+                double held = double(leaves.size()) * double(LeafT::SIZE);
+                for (const TilePart& t : tiles) {
+                    CoordBBox b = t.part;
+                    b.intersect(ebox);
+                    held += double(b.volume());
                 }
+                dense = volume <= kDenseOverHeld * held;
+                if (dense) frontiers_dense(mu, mf, mo, r, cbox, leaves, tiles, result);
+            }
+            if (dense) {
                 const size_t k = result.size() / 3;
                 return to_numpy(std::move(result), {k, size_t(3)});
             }
@@ -312,14 +325,19 @@ public:
     }
 
     // Largest bbox (grown by the radius) searched through a dense copy, in cells (int8 state
-    // + two uint16 count planes: 5 bytes a cell, 80 MiB at the cap).
-    static constexpr int64_t kDenseFrontierCells = int64_t(1) << 24;
+    // + two uint16 count planes: 5 bytes a cell, 40 MiB at the cap), and how much larger than
+    // the cells the tree holds in it (leaves counted whole) the box may be: a box that is mostly
+    // unknown (two robots far apart in one block) is searched sparsely.
+    static constexpr int64_t kDenseFrontierCells = int64_t(1) << 23;
+    static constexpr double kDenseOverHeld = 8.0;
 
-    // frontiers() in a bbox through a dense copy of the box grown by r: each cell's class
+    // frontiers() in a bbox through a dense copy of the box grown by r (`leaves` and `tiles`:
+    // collect_in_bbox of that box): each cell's class
     // (unobserved / free / occupied, as classify), then the free and occupied counts of every
     // (2r+1)^3 window by three separable running sums; unobserved = size - free - occupied.
     // The cost follows the box's volume, not what the tree holds in it. Sorted (i, j, k).
-    static void frontiers_dense(const TreeT& tree, int mu, int mf, int mo, int r, const CoordBBox& cbox,
+    static void frontiers_dense(int mu, int mf, int mo, int r, const CoordBBox& cbox,
+                                const std::vector<const LeafT*>& leaves, const std::vector<TilePart>& tiles,
                                 std::vector<int32_t>& out) {
         const CoordBBox ebox = cbox.expandBy(r);
         const Coord e0 = ebox.min(), dim = ebox.dim();
@@ -328,9 +346,6 @@ public:
         auto at = [&](const Coord& c) { return ((int64_t(c.x() - e0.x()) * ny) + (c.y() - e0.y())) * nz + (c.z() - e0.z()); };
         // class per cell: 0 unobserved, 1 free, 2 occupied (inactive or 0 is unobserved)
         std::vector<uint8_t> cls(static_cast<size_t>(n), 0);
-        std::vector<const LeafT*> leaves;
-        std::vector<TilePart> tiles;
-        collect_in_bbox(tree, ebox, leaves, tiles);
         for (const LeafT* leaf : leaves) {
             for (auto it = leaf->cbeginValueOn(); it; ++it) {
                 const Coord c = it.getCoord();
