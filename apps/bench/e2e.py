@@ -332,8 +332,11 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
     # ---------------------------------------------------------------- streaming
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     router = start("router", "router", "--listen", ep, "--zenoh-set", zs)
+    # search.warm_up=false: the text model's one-time load on map creation (seconds of CPU on
+    # a background thread, search.warm_up) would overlap this short stream; streaming is measured
     start("mapper", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs, f"preset={args.preset}",
-          "map.depth_limit=20", "queues.per_robot=100000", f"layers.rate_hz={args.layers_hz}", *args.mapper_set)
+          "map.depth_limit=20", "queues.per_robot=100000", f"layers.rate_hz={args.layers_hz}",
+          "search.warm_up=false", *args.mapper_set)
     zc = ZenohConfig(connect=[ep], connect_timeout_ms=60_000, shared_memory=args.shm)
     sizes = []
     with Client(zc, timeout=30.0) as c:

@@ -16,6 +16,10 @@ apart, and reports for that window:
   the mapper's advised rate);
 * ``total_vs_single``: total fused rate with N robots / with one.
 
+The mappers run with ``search.warm_up=false``: the text model's one-time load when a map is
+created (seconds of CPU on a background thread) would otherwise fall in the measured
+window on a 2-core machine.
+
 The ``shards`` row (skip with ``--no-shards``): two shard mappers split at x = 0 (10 m
 tiles, docs/key_space.md#shards) and one robot lapping across the border, its edge
 publishing tile-routed frames; over the window, ``deliveries_per_frame`` = the shards' own
@@ -140,7 +144,7 @@ def run_fleet(n: int, recs: list[Path], args: argparse.Namespace, work: Path) ->
         procs.start(f"router{n}", "router", "--listen", ep, "--zenoh-set", zs)
         mapper = procs.start(f"mapper{n}", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs,
                              f"preset={args.preset}", "map.depth_limit=20", "layers.rate_hz=0",
-                             "snapshots.on_exit=false", *args.mapper_set)
+                             "snapshots.on_exit=false", "search.warm_up=false", *args.mapper_set)
         basis = [f"pca.basis={_pca_file(work, recs[0], args.pca_dim)}"] if args.shared_basis else []
         for i, rb in enumerate(robots):
             procs.start(f"edge{n}-{rb}", "edge", "--connect", ep, "--zenoh-set", zs, f"robot={rb}",
@@ -203,7 +207,7 @@ def run_shards(rec: Path, args: argparse.Namespace, work: Path) -> dict:
             procs.start(f"mapper-{name}", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs,
                         f"preset={args.preset}", "map.depth_limit=20", "layers.rate_hz=0", "snapshots.on_exit=false",
                         f"shard.name={name}", f"shard.region={region}", f"shard.tile_m={SHARD_TILE_M}",
-                        *args.mapper_set)
+                        "search.warm_up=false", *args.mapper_set)
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0) as c:
             def count(_sample) -> None:
                 sent[0] += 1
