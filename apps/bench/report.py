@@ -113,6 +113,9 @@ def _query(d: dict) -> tuple[str, str]:
         st, af = ip.get("steady_ms") or {}, ip.get("after_change_ms") or {}
         txt = (f"{size}: p50 {_f(st.get('p50'))} / p95 {_f(st.get('p95'))} ms, first after a change p50 "
                f"{_f(af.get('p50'))} ms")
+        cold = ip.get("cold_ms") or {}
+        if cold.get("p50") is not None:
+            txt += f", a new query p50 {_f(cold['p50'])} / p95 {_f(cold.get('p95'))} ms"
         cl = row.get("client") or {}
         if cl.get("round_trip_ms"):
             txt += f", client round trip p50 {_f(cl['round_trip_ms'].get('p50'))} ms (+{_f(cl.get('overhead_p50_ms'))})"
