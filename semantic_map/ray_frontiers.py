@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -187,9 +187,15 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
         far = torch.maximum((o - lo).abs(), (o - hi).abs())
         L = far.norm(dim=1)
     if kernels.enabled(o, d, frontier_ijk):
-        return _in_ray_chunks(R, lambda s, e: kernels.associate_rays(
-            o[s:e], d[s:e], L[s:e], frontier_ijk, beta, base, max_dist, reject_close, block, scales=scales,
-            argmin=lambda r, f, x, n: _argmin_cost(r, f, x, n, scales)))
+        step = KERNEL_RAY_CHUNK
+        parts = [kernels.associate_rays(o[s:s + step], d[s:s + step], L[s:s + step], frontier_ijk, beta, base,
+                                        max_dist, reject_close, block, scales=scales,
+                                        argmin=lambda r, f, x, n: _argmin_cost(r, f, x, n, scales))
+                 for s in range(0, R, step)]
+        if len(parts) == 1:
+            return parts[0]
+        return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, step), strict=True)]),
+                torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
     ray_chunk = 8192  # per-ray results are independent: chunking over rays bounds memory
     if R > ray_chunk:
         parts = [associate(origins[s:s + ray_chunk], dirs[s:s + ray_chunk], frontier_ijk, beta, max_dist=max_dist,
@@ -245,17 +251,6 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
         return e, e.clone(), torch.empty(0, dtype=torch.float64, device=dev)
     ri, fi = torch.cat(ri_all), torch.cat(fi_all)
     return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, base, cost)
-
-
-def _in_ray_chunks(R: int, run: Callable[[int, int], Association]) -> Association:
-    """``run(start, end)`` over rays in chunks of :data:`KERNEL_RAY_CHUNK` (bounds the candidate-pair
-    memory), ray indices shifted back to the whole set."""
-    step = KERNEL_RAY_CHUNK
-    parts = [run(s, min(s + step, R)) for s in range(0, R, step)]
-    if len(parts) == 1:
-        return parts[0]
-    return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, step), strict=True)]),
-            torch.cat([a[1] for a in parts]), torch.cat([a[2] for a in parts]))
 
 
 def frontiers_near(keys: torch.Tensor, origins: torch.Tensor, reach: float, beta: float) -> torch.Tensor:

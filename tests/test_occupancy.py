@@ -350,6 +350,10 @@ def test_frontiers_bbox_across_tiles_of_every_level(backend):
             assert got.tolist() == ref.tolist(), (mu, mf, mo, r, lo, hi)
     # the interior box with mu = 0 holds every free voxel of it (tile interior emitted directly)
     assert g.frontiers(0, 0, 0, 1, boxes[1]).shape[0] == 21 ** 3
+    # a box with far more leaf-sized chunks than the tree has leaves: the tree is iterated
+    huge = ((-3000, -3000, -400), (3000, 3000, 400))
+    assert g.frontiers(1, 0, 0, 1, huge).tolist() == g.frontiers(1, 0, 0, 1).tolist() == brute_frontiers(
+        a_ijk.numpy(), a_val.numpy(), 1, 0, 0, 1).tolist()
 
 
 @pytest.mark.parametrize("with_hole", [False, True])

@@ -68,11 +68,14 @@ public:
             lo_[a] = std::numeric_limits<int64_t>::max();
             hi_[a] = std::numeric_limits<int64_t>::min();
         }
-        for (size_t f = 0; f < F; ++f)
+        for (size_t f = 0; f < F; ++f) {
+            int64_t blo[3], bhi[3];
+            blocks_of(c + 3 * f, block, blo, bhi);
             for (int a = 0; a < 3; ++a) {
-                lo_[a] = std::min(lo_[a], floordiv(c[3 * f + a] - 1, block));
-                hi_[a] = std::max(hi_[a], floordiv(c[3 * f + a] + 1, block));
+                lo_[a] = std::min(lo_[a], blo[a]);
+                hi_[a] = std::max(hi_[a], bhi[a]);
             }
+        }
         double cells = 1.0;
         for (int a = 0; a < 3; ++a) {
             n_[a] = F ? hi_[a] - lo_[a] + 1 : 0;

@@ -158,142 +158,159 @@ public:
             cbox = CoordBBox(Coord(std::get<0>(bmin), std::get<1>(bmin), std::get<2>(bmin)),
                              Coord(std::get<0>(bmax), std::get<1>(bmax), std::get<2>(bmax)));
         std::vector<int32_t> result;
-        if (use_bbox && !cbox.empty()) {
-            // a dense copy of the box when it is not much larger than what the tree holds in it
-            const CoordBBox ebox = cbox.expandBy(r);
-            const Coord dim = ebox.dim();
-            const double volume = double(dim.x()) * dim.y() * dim.z();
-            bool dense = false;
-            if (volume <= double(kDenseFrontierCells)) {
-                nb::gil_scoped_release release;
-                std::shared_lock<std::shared_mutex> lock(mutex_);
-                std::vector<const LeafT*> leaves;
-                std::vector<TilePart> tiles;
-                collect_in_bbox(grid_->constTree(), ebox, leaves, tiles);
-                double held = double(leaves.size()) * double(LeafT::SIZE);
-                for (const TilePart& t : tiles) {
-                    CoordBBox b = t.part;
-                    b.intersect(ebox);
-                    held += double(b.volume());
-                }
-                dense = volume <= kDenseOverHeld * held;
-                if (dense) frontiers_dense(mu, mf, mo, r, cbox, leaves, tiles, result);
-            }
-            if (dense) {
-                const size_t k = result.size() / 3;
-                return to_numpy(std::move(result), {k, size_t(3)});
-            }
-        }
+        if (use_bbox && cbox.empty()) return to_numpy(std::move(result), {size_t(0), size_t(3)});
         {
             nb::gil_scoped_release release;
             std::shared_lock<std::shared_mutex> lock(mutex_);
             const TreeT& tree = grid_->constTree();
-            const int size = (2 * r + 1) * (2 * r + 1) * (2 * r + 1);
-            tbb::enumerable_thread_specific<std::vector<int32_t>> found;
-
-            auto test = [&](openvdb::tree::ValueAccessor<const TreeT>& acc, const Coord& c) {
-                int unobs = 0, freec = 0, occ = 0;
-                for (int dx = -r; dx <= r; ++dx)
-                    for (int dy = -r; dy <= r; ++dy)
-                        for (int dz = -r; dz <= r; ++dz) {
-                            int8_t v = 0;
-                            const bool on = acc.probeValue(c.offsetBy(dx, dy, dz), v);
-                            classify(on, v, unobs, freec, occ);
-                        }
-                return unobs >= mu && freec >= mf && occ >= mo;
-            };
-            auto emit = [](std::vector<int32_t>& out, const Coord& c) {
-                out.push_back(c.x());
-                out.push_back(c.y());
-                out.push_back(c.z());
-            };
-
-            // Work: the leaves and the free active tiles to search, each tile with the part
-            // of it to visit. With a bbox they come from probing the bbox's leaf-sized chunks,
-            // so the cost follows the box, not the tree; without, from iterating the tree.
+            // Work: the leaves and active tiles to search, each tile with the part of it to
+            // visit. A box is probed chunk by chunk when that is cheaper than iterating the
+            // tree, and then read through a dense copy when the box is not much larger than
+            // what the tree holds in it; otherwise the tree is iterated.
             std::vector<const LeafT*> leaves;
-            std::vector<TilePart> tiles;  // free tiles only
-            if (use_bbox) {
-                collect_in_bbox(tree, cbox, leaves, tiles);
-                tiles.erase(std::remove_if(tiles.begin(), tiles.end(), [](const TilePart& t) { return t.value >= 0; }),
-                            tiles.end());
+            std::vector<TilePart> tiles;
+            bool dense = false;
+            const CoordBBox ebox = use_bbox ? cbox.expandBy(r) : cbox;  // the box and the neighbours it reads
+            if (use_bbox && probing_pays(tree, ebox)) {
+                collect_in_bbox(tree, ebox, leaves, tiles);
+                dense = dense_pays(ebox, leaves, tiles);
+                if (dense) frontiers_dense(mu, mf, mo, r, cbox, leaves, tiles, result);
             } else {
-                for (auto it = tree.cbeginLeaf(); it; ++it) leaves.push_back(&*it);
-                auto it = tree.cbeginValueOn();
-                it.setMaxDepth(TreeT::ValueOnCIter::LEAF_DEPTH - 1);  // do not descend into leaves
-                for (; it; ++it) {
-                    if (!it.isTileValue() || *it >= 0) continue;
-                    CoordBBox b;
-                    it.getBoundingBox(b);
-                    tiles.push_back({b, b, *it});
+                collect_all(tree, use_bbox ? &cbox : nullptr, leaves, tiles);
+            }
+            if (!dense) frontiers_sparse(tree, mu, mf, mo, r, use_bbox, cbox, leaves, tiles, result);
+        }
+        const size_t k = result.size() / 3;
+        return to_numpy(std::move(result), {k, size_t(3)});
+    }
+
+    // frontiers() by testing each free voxel's (2r+1)^3 neighbourhood through an accessor, in
+    // `leaves` and the free ones of `tiles` (candidates limited to cbox when use_bbox).
+    static void frontiers_sparse(const TreeT& tree, int mu, int mf, int mo, int r, bool use_bbox,
+                                 const CoordBBox& cbox, const std::vector<const LeafT*>& leaves,
+                                 const std::vector<TilePart>& tiles, std::vector<int32_t>& out) {
+        const int size = (2 * r + 1) * (2 * r + 1) * (2 * r + 1);
+        tbb::enumerable_thread_specific<std::vector<int32_t>> found;
+
+        auto test = [&](openvdb::tree::ValueAccessor<const TreeT>& acc, const Coord& c) {
+            int unobs = 0, freec = 0, occ = 0;
+            for (int dx = -r; dx <= r; ++dx)
+                for (int dy = -r; dy <= r; ++dy)
+                    for (int dz = -r; dz <= r; ++dz) {
+                        int8_t v = 0;
+                        const bool on = acc.probeValue(c.offsetBy(dx, dy, dz), v);
+                        classify(on, v, unobs, freec, occ);
+                    }
+            return unobs >= mu && freec >= mf && occ >= mo;
+        };
+        auto emit = [](std::vector<int32_t>& out, const Coord& c) {
+            out.push_back(c.x());
+            out.push_back(c.y());
+            out.push_back(c.z());
+        };
+
+        // 1) voxels in leaf nodes
+        tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 64),
+                          [&](const tbb::blocked_range<size_t>& range) {
+            openvdb::tree::ValueAccessor<const TreeT> acc(tree);
+            auto& out = found.local();
+            for (size_t l = range.begin(); l < range.end(); ++l) {
+                for (auto it = leaves[l]->cbeginValueOn(); it; ++it) {
+                    if (*it >= 0) continue;
+                    const Coord c = it.getCoord();
+                    if (use_bbox && !cbox.isInside(c)) continue;
+                    if (test(acc, c)) emit(out, c);
                 }
             }
+        });
 
-            // 1) voxels in leaf nodes
-            tbb::parallel_for(tbb::blocked_range<size_t>(0, leaves.size(), 64),
-                              [&](const tbb::blocked_range<size_t>& range) {
-                openvdb::tree::ValueAccessor<const TreeT> acc(tree);
-                auto& out = found.local();
-                for (size_t l = range.begin(); l < range.end(); ++l) {
-                    for (auto it = leaves[l]->cbeginValueOn(); it; ++it) {
-                        if (*it >= 0) continue;
-                        const Coord c = it.getCoord();
-                        if (use_bbox && !cbox.isInside(c)) continue;
-                        if (test(acc, c)) emit(out, c);
-                    }
-                }
-            });
-
-            // 2) active tiles with a free value (pruned nodes).
-            // A tile voxel farther than r from the tile's faces sees only the tile: all
-            // `size` cells free, none unobserved or occupied.
-            const bool interior_ok = (0 >= mu) && (size >= mf) && (0 >= mo);
-            tbb::parallel_for(tbb::blocked_range<size_t>(0, tiles.size(), 1),
-                              [&](const tbb::blocked_range<size_t>& range) {
-                openvdb::tree::ValueAccessor<const TreeT> acc(tree);
-                auto& out = found.local();
-                for (size_t t = range.begin(); t < range.end(); ++t) {
-                    const CoordBBox tb = tiles[t].tile;
-                    CoordBBox b = tiles[t].part;
-                    if (use_bbox) b.intersect(cbox);
-                    const Coord in_lo = tb.min().offsetBy(r), in_hi = tb.max().offsetBy(-r);
-                    auto shell = [&](int v, int axis) { return v < in_lo[axis] || v > in_hi[axis]; };
-                    for (int x = b.min().x(); x <= b.max().x(); ++x) {
-                        const bool sx = shell(x, 0);
-                        for (int y = b.min().y(); y <= b.max().y(); ++y) {
-                            const bool sxy = sx || shell(y, 1);
-                            if (sxy || interior_ok) {
-                                for (int z = b.min().z(); z <= b.max().z(); ++z) {
-                                    const Coord c(x, y, z);
-                                    if (sxy || shell(z, 2)) {
-                                        if (test(acc, c)) emit(out, c);
-                                    } else {
-                                        emit(out, c);  // interior_ok
-                                    }
-                                }
-                            } else {
-                                // only the two z-shell slabs can qualify
-                                const int z0 = b.min().z(), z1 = b.max().z();
-                                for (int z = z0; z <= std::min(z1, in_lo.z() - 1); ++z) {
-                                    const Coord c(x, y, z);
+        // 2) active tiles with a free value (pruned nodes).
+        // A tile voxel farther than r from the tile's faces sees only the tile: all
+        // `size` cells free, none unobserved or occupied.
+        const bool interior_ok = (0 >= mu) && (size >= mf) && (0 >= mo);
+        tbb::parallel_for(tbb::blocked_range<size_t>(0, tiles.size(), 1),
+                          [&](const tbb::blocked_range<size_t>& range) {
+            openvdb::tree::ValueAccessor<const TreeT> acc(tree);
+            auto& out = found.local();
+            for (size_t t = range.begin(); t < range.end(); ++t) {
+                if (tiles[t].value >= 0) continue;  // only free tiles hold candidates
+                const CoordBBox tb = tiles[t].tile;
+                CoordBBox b = tiles[t].part;
+                if (use_bbox) b.intersect(cbox);
+                const Coord in_lo = tb.min().offsetBy(r), in_hi = tb.max().offsetBy(-r);
+                auto shell = [&](int v, int axis) { return v < in_lo[axis] || v > in_hi[axis]; };
+                for (int x = b.min().x(); x <= b.max().x(); ++x) {
+                    const bool sx = shell(x, 0);
+                    for (int y = b.min().y(); y <= b.max().y(); ++y) {
+                        const bool sxy = sx || shell(y, 1);
+                        if (sxy || interior_ok) {
+                            for (int z = b.min().z(); z <= b.max().z(); ++z) {
+                                const Coord c(x, y, z);
+                                if (sxy || shell(z, 2)) {
                                     if (test(acc, c)) emit(out, c);
+                                } else {
+                                    emit(out, c);  // interior_ok
                                 }
-                                for (int z = std::max(z0, std::max(in_hi.z() + 1, in_lo.z())); z <= z1; ++z) {
-                                    const Coord c(x, y, z);
-                                    if (test(acc, c)) emit(out, c);
-                                }
+                            }
+                        } else {
+                            // only the two z-shell slabs can qualify
+                            const int z0 = b.min().z(), z1 = b.max().z();
+                            for (int z = z0; z <= std::min(z1, in_lo.z() - 1); ++z) {
+                                const Coord c(x, y, z);
+                                if (test(acc, c)) emit(out, c);
+                            }
+                            for (int z = std::max(z0, std::max(in_hi.z() + 1, in_lo.z())); z <= z1; ++z) {
+                                const Coord c(x, y, z);
+                                if (test(acc, c)) emit(out, c);
                             }
                         }
                     }
                 }
-            });
-            size_t total = 0;
-            for (auto& v : found) total += v.size();
-            result.reserve(total);
-            for (auto& v : found) result.insert(result.end(), v.begin(), v.end());
+            }
+        });
+        size_t total = out.size();
+        for (auto& v : found) total += v.size();
+        out.reserve(total);
+        for (auto& v : found) out.insert(out.end(), v.begin(), v.end());
+    }
+
+    // Probing a box's leaf-sized chunks costs one lookup a chunk; iterating the tree one step a
+    // leaf: probe unless the box has more chunks than the tree has leaves (and small boxes always).
+    static bool probing_pays(const TreeT& tree, const CoordBBox& box) {
+        constexpr double D = double(LeafT::DIM);
+        const Coord dim = box.dim();
+        const double chunks = (double(dim.x()) / D + 1) * (double(dim.y()) / D + 1) * (double(dim.z()) / D + 1);
+        return chunks <= std::max(double(tree.leafCount()), 4096.0);
+    }
+
+    // A dense copy of `box` pays when the box is at most kDenseFrontierCells and at most
+    // kDenseOverHeld times the cells the tree holds in it (`leaves` counted whole, `tiles`).
+    static bool dense_pays(const CoordBBox& box, const std::vector<const LeafT*>& leaves,
+                           const std::vector<TilePart>& tiles) {
+        const double volume = double(box.volume());
+        if (volume > double(kDenseFrontierCells)) return false;
+        double held = double(leaves.size()) * double(LeafT::SIZE);
+        for (const TilePart& t : tiles) {
+            CoordBBox b = t.part;
+            b.intersect(box);
+            held += double(b.volume());
         }
-        const size_t k = result.size() / 3;
-        return to_numpy(std::move(result), {k, size_t(3)});
+        return volume <= kDenseOverHeld * held;
+    }
+
+    // Every leaf and active tile of the tree (those overlapping *box when given), by iterating it.
+    static void collect_all(const TreeT& tree, const CoordBBox* box, std::vector<const LeafT*>& leaves,
+                            std::vector<TilePart>& tiles) {
+        for (auto it = tree.cbeginLeaf(); it; ++it)
+            if (!box || box->hasOverlap(it->getNodeBoundingBox())) leaves.push_back(&*it);
+        auto it = tree.cbeginValueOn();
+        it.setMaxDepth(TreeT::ValueOnCIter::LEAF_DEPTH - 1);  // do not descend into leaves
+        for (; it; ++it) {
+            if (!it.isTileValue()) continue;
+            CoordBBox b;
+            it.getBoundingBox(b);
+            if (!box || box->hasOverlap(b)) tiles.push_back({b, b, *it});
+        }
     }
 
     // The leaves overlapping `box` and the active tiles overlapping it, each tile with
@@ -326,8 +343,8 @@ public:
 
     // Largest bbox (grown by the radius) searched through a dense copy, in cells (int8 state
     // + two uint16 count planes: 5 bytes a cell, 40 MiB at the cap), and how much larger than
-    // the cells the tree holds in it (leaves counted whole) the box may be: a box that is mostly
-    // unknown (two robots far apart in one block) is searched sparsely.
+    // the cells the tree holds in it the box may be: a box that is mostly unknown (two robots
+    // far apart in one block) is searched sparsely.
     static constexpr int64_t kDenseFrontierCells = int64_t(1) << 23;
     static constexpr double kDenseOverHeld = 8.0;
 
