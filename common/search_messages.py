@@ -192,7 +192,7 @@ class SearchReply:
     * ``found``: instances ``{id, target, centroid, box_min, box_max, confidence, voxels,
       observations, first_seen, last_seen}`` (ids stable across searches of the same target
       set), best confidence first;
-    * ``look_next``: goals ``{position, heading_rad, score, gain_m3, distance_m, target,
+    * ``look_next``: goals ``{position, heading_rad, score, ray_z, gain_m3, distance_m, target,
       frontier, rays}``, best first;
     * ``beyond``: ``{rays: [{origin, direction, score, target}], estimates: [{position,
       radius_m, score, target}], search_volume_m3}``;

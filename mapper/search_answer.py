@@ -10,7 +10,9 @@ text embedded as :func:`mapper.query_answer.embed_text` does), then:
   target set: targets, background, threshold), filtered to the request's area / z band,
   best first: confidence (to 3 decimals: softmax at temperature 100 saturates), then size;
 * ``look_next``: :func:`semantic_map.look_next.look_next` on the map's occupancy and frontiers
-  (read under the map lock by the caller through ``read_map``);
+  (read under the map lock by the caller through ``read_map``), with each ray's ``ray_z``
+  (:func:`semantic_map.look_next.ray_outlier_z`: how far its cosine to a target stands out
+  among all the map's rays — evidence for far targets whose probabilities are ~0);
 * ``beyond``: best rays per target, triangulated estimates
   (:func:`semantic_map.beyond.triangulate`) and the search volume of the best rays' cones.
 
@@ -31,7 +33,7 @@ from common.conventions import voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from semantic_map.beyond import triangulate
 from semantic_map.instances import InstanceTracker
-from semantic_map.look_next import look_next, points_in_polygon
+from semantic_map.look_next import look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import score_rows, softmax_share
 from semantic_map.query_snapshot import one_thread
 
@@ -90,10 +92,18 @@ def embed_phrases(fs, req: SearchRequest, background: list[str], device, model_d
 
 def _probabilities(prep, q: torch.Tensor, n_targets: int, temperature: float) -> np.ndarray:
     """(T, N) softmax probabilities of the targets over targets + background."""
+    return _ray_scores(prep, q, n_targets, temperature)[0]
+
+
+def _ray_scores(prep, q: torch.Tensor, n_targets: int, temperature: float) -> tuple[np.ndarray, np.ndarray]:
+    """(T, N) softmax probabilities of the targets over targets + background, and (T, N)
+    the targets' cosine similarities (one similarity pass for both)."""
     if len(prep) == 0:
-        return np.zeros((n_targets, 0), np.float32)
-    p = score_rows(prep, q, None, softmax=True, temperature=temperature)
-    return p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False)
+        return np.zeros((n_targets, 0), np.float32), np.zeros((n_targets, 0), np.float32)
+    sim = score_rows(prep, q, None)
+    p = torch.softmax(temperature * sim, dim=0) if sim.numel() else sim
+    return (p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False),
+            sim[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False))
 
 
 def _voxel_probabilities(snap, fs, prep, q: torch.Tensor, n_targets: int, temperature: float,
@@ -190,7 +200,7 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     T = len(req.targets)
     vs = _voxel_probabilities(snap, fs, vprep, q, T, scfg.temperature, cfg.device)
     with one_thread():                          # a few thousand rays: no parallel region
-        rs = _probabilities(rprep, q, T, scfg.temperature)
+        rs, rcos = _ray_scores(rprep, q, T, scfg.temperature)
     tm["similarity"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     tracker = trackers.get(tracker_key(req, background), snap.vox, scfg.min_instance_voxels)
@@ -203,6 +213,7 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     tm["instances"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     rkeep = _in_area(snap.ray_origins.astype(np.float64), req.polygon(), req.z_band)
+    rz = ray_outlier_z(rcos)[:, rkeep]         # outliers among all the map's rays, then the area's
     goals: list[dict] = []
     if read_map is not None and req.max_goals > 0:
         def run(m) -> list:
@@ -213,7 +224,7 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
                 radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.fronts.beta)
                 return look_next(m.occupancy, float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
                                  snap.ray_dirs[rkeep], rs[:, rkeep].T, list(req.targets), req.from_xyz,
-                                 ray_radius_m=radius, standoff_m=scfg.standoff_m,
+                                 ray_z=rz.T, ray_radius_m=radius, standoff_m=scfg.standoff_m,
                                  sensing_radius_m=scfg.sensing_radius_m, max_goals=req.max_goals)
         got = read_map(run)
         if got is None:

@@ -9,20 +9,28 @@ For each frontier (coarse cell centre from the map's frontier table):
 * ``score`` / ``target``: the best target score of the rays whose origin lies within
   ``ray_radius_m`` of the frontier centre (rays are attached to frontier centres), and the
   target it belongs to (score 0 and target ``None`` without such rays);
+* ``ray_z``: the best :func:`ray_outlier_z` of those rays over the targets (0 without such
+  rays or without the caller's ``ray_z``): how far a ray's cosine to the target stands out
+  among all rays. A far target fills a small part of its rays' mean feature, so its
+  probability is ~0 and says nothing; its rays still read more like it than the others do;
 * ``position``: a viewpoint — the centre of a map voxel within ``standoff_m`` of the
   frontier centre that is **free** in the map and has no occupied voxel among its 26
   neighbours, the closest such voxel to the frontier centre (frontiers without one give no
   goal);
 * ``heading_rad``: yaw of the score-weighted mean direction of the supporting rays of the
-  target (if it has a horizontal component), else yaw toward the frontier centre;
+  target (if it has a horizontal component), else yaw toward the frontier centre; when the
+  score rounds to 0 and ``ray_z`` > 0, the rays and weights are those of ``ray_z`` (the
+  supporting ``rays`` listed are then the outliers);
 * ``gain_m3``: unknown volume within ``sensing_radius_m`` of the viewpoint, counted on the
   occupancy grid (on a lattice of every ``step``-th voxel when the sphere is large, each
   sample standing for ``(step·vox)^3``);
 * ``distance_m``: straight-line distance from ``from_xyz`` (0 without it).
 
-Goals are ranked by score (descending), then by ``gain_m3 / (1 + distance_m)`` (descending);
-at most one goal per viewpoint voxel. Only the ``max_candidates`` best frontiers (by score,
-then distance) are examined.
+Goals are ranked by score to three decimals (descending: softmax at temperature 100
+saturates, and below 0.001 it tells nothing apart), then by ``ray_z`` (descending), then by
+``gain_m3 / (1 + distance_m)`` (descending); at most one goal per viewpoint voxel. Only the
+``max_candidates`` best frontiers by score (then distance) and the ``max_candidates`` best by
+``ray_z`` are examined.
 """
 from __future__ import annotations
 
@@ -49,13 +57,14 @@ class Goal:
     target: str | None
     frontier: np.ndarray
     rays: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    ray_z: float = 0.0
 
     def as_dict(self) -> dict:
         """Plain-Python fields (``rays``: list of unit directions [dx, dy, dz])."""
         return dict(position=[float(v) for v in self.position], heading_rad=float(self.heading_rad),
                     score=float(self.score), gain_m3=float(self.gain_m3), distance_m=float(self.distance_m),
                     target=self.target, frontier=[float(v) for v in self.frontier],
-                    rays=[[float(v) for v in d] for d in self.rays])
+                    rays=[[float(v) for v in d] for d in self.rays], ray_z=float(self.ray_z))
 
 
 def points_in_polygon(xy: np.ndarray, polygon) -> np.ndarray:
@@ -140,6 +149,26 @@ def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.n
         for t in range(s.shape[1]):
             np.maximum.at(best[:, t], fi, s[ri, t])
     return best
+
+
+#: fewer rays than this in the area: no ray_z (a median and spread of a handful say nothing)
+MIN_RAYS_FOR_Z = 10
+
+
+def ray_outlier_z(cosines: np.ndarray) -> np.ndarray:
+    """(T, R) modified z-score of each ray's cosine to each target among the ``R`` rays
+    (Iglewicz and Hoaglin): ``0.6745 · (cos − median) / MAD`` per target, MAD the median
+    absolute deviation; 0 where fewer than :data:`MIN_RAYS_FOR_Z` rays or a zero MAD."""
+    c = np.asarray(cosines, np.float64)
+    c = c if c.ndim == 2 else c.reshape(1, -1)
+    z = np.zeros(c.shape, np.float32)
+    if c.shape[1] < MIN_RAYS_FOR_Z:
+        return z
+    med = np.median(c, axis=1, keepdims=True)
+    mad = np.median(np.abs(c - med), axis=1, keepdims=True)
+    ok = mad[:, 0] > 0
+    z[ok] = (0.6745 * (c[ok] - med[ok]) / mad[ok]).astype(np.float32)
+    return z
 
 
 def _rays_near(point: np.ndarray, tree, radius: float) -> np.ndarray:
@@ -228,12 +257,13 @@ def _best_first(score: np.ndarray, dist: np.ndarray, k: int) -> np.ndarray:
 
 
 def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
-              ray_scores: np.ndarray, targets: list[str], from_xyz=None, *, ray_radius_m: float = 1.0,
-              standoff_m: float = 1.0, sensing_radius_m: float = 3.0, max_goals: int = 10,
-              max_candidates: int = 64, max_rays: int = 5) -> list[Goal]:
+              ray_scores: np.ndarray, targets: list[str], from_xyz=None, *, ray_z: np.ndarray | None = None,
+              ray_radius_m: float = 1.0, standoff_m: float = 1.0, sensing_radius_m: float = 3.0,
+              max_goals: int = 10, max_candidates: int = 64, max_rays: int = 5) -> list[Goal]:
     """Ranked exploration goals (module docstring). ``frontiers`` (F, 3) frontier centres
     (already filtered to the area of interest), rays ``(R, 3)`` origins and unit directions,
-    ``ray_scores`` (R, T) per target in [0, 1], ``targets`` the T names."""
+    ``ray_scores`` (R, T) per target in [0, 1], ``targets`` the T names, ``ray_z`` (R, T)
+    :func:`ray_outlier_z` of the rays (None: every goal's ``ray_z`` is 0)."""
     f = np.asarray(frontiers, np.float64).reshape(-1, 3)
     dirs = np.asarray(ray_dirs, np.float64).reshape(-1, 3)
     scores = np.asarray(ray_scores, np.float64)
@@ -248,9 +278,20 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
     rays_tree = cKDTree(o) if len(o) else None
     best = ray_support(f, o, scores, ray_radius_m, rays_tree)
     fscore = best.max(1) if best.shape[1] else np.zeros(len(f))
+    fz, bz, zs = np.zeros(len(f)), np.zeros((len(f), len(targets))), np.zeros((len(dirs), len(targets)))
+    if ray_z is not None and len(o) and len(targets):
+        zs = np.asarray(ray_z, np.float64)
+        if zs.size != len(dirs) * len(targets):
+            raise ValueError(f"ray_z has shape {zs.shape}, expected ({len(dirs)}, {len(targets)})")
+        zs = zs.reshape(len(dirs), len(targets))
+        bz = ray_support(f, o, zs, ray_radius_m, rays_tree)
+        fz = bz.max(1)
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
     fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
-    order = _best_first(fscore, fdist, max(max_candidates, max_goals))
+    k = max(max_candidates, max_goals)
+    order = _best_first(fscore, fdist, k)
+    if fz.any():
+        order = np.asarray(list(dict.fromkeys([*order.tolist(), *_best_first(fz, fdist, k).tolist()])), np.int64)
     goals: list[Goal] = []
     seen: set = set()
     views = _viewpoints(grid, vox, f[order], standoff_m)
@@ -262,18 +303,21 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
             continue
         seen.add(key)
         t = int(np.argmax(best[i])) if best.shape[1] and fscore[i] > 0 else -1
+        by = scores
+        if round(float(fscore[i]), 3) == 0 and fz[i] > 0:      # no probability to speak of: the outlier rays
+            t, by = int(np.argmax(bz[i])), np.maximum(zs, 0.0)
         sup = _rays_near(f[i], rays_tree, ray_radius_m)
         if t >= 0 and len(sup):
-            sup = sup[np.argsort(-scores[sup, t], kind="stable")][:max_rays]
-            sd, sw = dirs[sup], scores[sup, t]
+            sup = sup[np.argsort(-by[sup, t], kind="stable")][:max_rays]
+            sd, sw = dirs[sup], by[sup, t]
         else:
             sd, sw = np.zeros((0, 3)), np.zeros((0,))
         goals.append(Goal(v, _heading(v, f[i], sd, sw), float(fscore[i]), 0.0,
                           0.0 if start is None else float(np.linalg.norm(v - start)),
-                          targets[t] if t >= 0 else None, f[i], sd.astype(np.float32)))
+                          targets[t] if t >= 0 else None, f[i], sd.astype(np.float32), float(fz[i])))
     if goals:
         gains = unknown_volume(grid, vox, np.stack([g.position for g in goals]), sensing_radius_m)
         for g, gain in zip(goals, gains, strict=True):
             g.gain_m3 = float(gain)
-    goals.sort(key=lambda g: (-g.score, -g.gain_m3 / (1.0 + g.distance_m)))
+    goals.sort(key=lambda g: (-round(g.score, 3), -g.ray_z, -g.gain_m3 / (1.0 + g.distance_m)))
     return goals[:max_goals]

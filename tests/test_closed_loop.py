@@ -134,6 +134,36 @@ def test_navfield_paths_stay_in_traversable_known_free_cells():
     assert states[tuple(cell)] == FREE and cell[1] < 30
 
 
+def test_ray_policies_follow_an_outlier_ray_when_probabilities_are_zero():
+    """A far target: every goal's probability ~0. The ray policies head for the goal whose
+    ray stands out (ray_z >= MIN_RAY_Z), even past a nearer goal with more unknown volume;
+    below the bar, and for frontier exploration, the gain per path decides. A held goal
+    chosen without evidence is dropped once evidence appears."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, explore
+    from apps.closed_loop.world_model import Observation
+
+    states = np.full((60, 60), FREE, np.int8)
+    at = np.array([5.0, 5.0, 1.5])
+
+    def goal(x, y, gain, z):
+        return dict(position=[x, y, 1.5], score=1e-12, gain_m3=gain, ray_z=z, target="water tower")
+
+    near, far = goal(12.0, 5.0, 30.0, 0.0), goal(5.0, 25.0, 2.0, MIN_RAY_Z + 1.0)
+    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
+    obs = Observation([], [near, far], states, np.zeros(2), 0.5)
+    for name, want in [("rayfronts", far), ("unidirectional", far), ("spherical", far), ("frontier", near)]:
+        d = explore(name, obs, nav, PolicyState())
+        assert np.allclose(d.goal_xy, want["position"][:2]), name
+    weak = dict(far, ray_z=MIN_RAY_Z - 0.5)
+    d = explore("rayfronts", Observation([], [near, weak], states, np.zeros(2), 0.5), nav, PolicyState())
+    assert np.allclose(d.goal_xy, near["position"][:2]) and d.why.startswith("frontier")
+    state = PolicyState()
+    explore("rayfronts", Observation([], [near, weak], states, np.zeros(2), 0.5), nav, state)   # holds `near`
+    d = explore("rayfronts", obs, nav, state)                                                    # evidence appears
+    assert np.allclose(d.goal_xy, far["position"][:2]) and d.why.startswith("ray z")
+
+
 def test_oracle_drives_the_true_shortest_path(loop):
     import dataclasses
 
@@ -232,7 +262,7 @@ def test_live_loop_over_zenoh_finds_the_car_on_the_in_process_map(loop, tmp_path
     w, chain, _ = loop
     robot, s = Platform.make("ground"), LoopSettings()
     mission = make_mission(w, robot, "object", "car", np.random.default_rng(0), budget_steps=12)
-    cfg = mapper_config("rayfronts", s.depth_limit_m, s.vox_m, chain.cfg.resolution, s.preset)
+    cfg = mapper_config("rayfronts", s.depth_limit_m, s.vox_m, chain.cfg.resolution, s.preset, s.background_phrases(w))
     with LiveMapper(3, "default", chain, cfg, robot.costmap_band(s.vox_m), s.window_m, tmp_path) as live:
         live._views.put(b"not a sim-views message")
         trace = Trace()
@@ -251,6 +281,16 @@ def test_live_loop_over_zenoh_finds_the_car_on_the_in_process_map(loop, tmp_path
     assert len(theirs) == len(mine) == len(local.map.sem) > 100 and set(theirs) == set(mine)
     assert max(abs(mine[k] - theirs[k]) for k in mine) <= SCORE_ATOL
     assert "sim_camera: ignoring a message" in (tmp_path / "edge.log").read_text()
+
+
+def test_landmark_budget_is_three_oracle_tours():
+    """A landmark's budget: 120 steps, at least three times the oracle's steps; objects keep theirs."""
+    from apps.closed_loop.evaluate import budget_steps
+
+    assert budget_steps("landmark", 210.0, 2.0) == 315
+    assert budget_steps("landmark", 30.0, 2.0) == 120
+    assert budget_steps("landmark", 210.0, 2.0, 0.5) == 158
+    assert budget_steps("object", 210.0, 2.0) == 40 and budget_steps("all", 500.0, 2.0) == 60
 
 
 def test_eval_search_outputs(tmp_path):
@@ -281,3 +321,34 @@ def test_eval_search_outputs(tmp_path):
     assert (tmp_path / "es_spl.png").stat().st_size > 1000
     bad = p.parse_args(["search", "--depth-limit", "0", "--json", str(out)])
     assert cli.run(bad) == 2
+
+
+def test_rayfronts_finds_the_far_water_tower_where_frontier_exploration_does_not():
+    """The far-landmark regression on development seed 0 (the eval's own mission: the seed's
+    car mission drawn first, then the water tower, ~220 m away; depth limit 20 m, 224 px, the
+    landmark budget of three oracle tours). RayFronts' success is at least frontier
+    exploration's, and it does find the tower: a change that loses the far evidence (ray_z,
+    the onward goals, the rays' crossing) fails here. Frontier exploration's path never
+    brings it near the tower; success is judged against the world's true instance."""
+    import dataclasses
+
+    from apps.closed_loop.episode import LoopSettings, run_episode
+    from apps.closed_loop.evaluate import budget_steps
+    from apps.closed_loop.missions import make_mission
+    from apps.closed_loop.robot import Platform
+    from apps.closed_loop.sensing import EdgeChain, SensorConfig
+    from synthetic_world import World
+
+    w, robot = World.generate(0), Platform.make("ground")
+    chain = EdgeChain(w, SensorConfig(resolution=224))
+    rng = np.random.default_rng(0)
+    make_mission(w, robot, "object", "car", rng, 40)
+    m = make_mission(w, robot, "landmark", "water tower", rng, 120)
+    m = dataclasses.replace(m, budget_steps=budget_steps("landmark", m.shortest_m, 2.0))
+    assert m.shortest_m > 150
+    s = LoopSettings(depth_limit_m=20.0)
+    rf = run_episode(w, m, "rayfronts", s, chain=chain)
+    fr = run_episode(w, m, "frontier", s, chain=chain)
+    assert rf["success"] >= fr["success"]
+    assert rf["success"] and rf["false_finds"] == 0 and not rf["collided"], rf
+    assert 0 < rf["spl"] <= 1.0 and rf["path_m"] >= m.shortest_m

@@ -14,7 +14,7 @@ from common.conventions import voxel_center
 from semantic_map.beyond import best_rays, closest_approach, triangulate
 from semantic_map.config import map_config
 from semantic_map.instances import InstanceTracker, connected_26
-from semantic_map.look_next import look_next, points_in_polygon, unknown_volume
+from semantic_map.look_next import MIN_RAYS_FOR_Z, look_next, points_in_polygon, ray_outlier_z, unknown_volume
 from semantic_map.map import RayFrontsMap
 from semantic_map.occupancy_queries import FREE, OCCUPIED, UNKNOWN, costmap_slice, point_states, state_grid
 from synthetic_world import World
@@ -192,7 +192,7 @@ def test_look_next_goals_free_in_map_and_world(built):
     st, _ = point_states(m.occupancy, VOX, pos, 0.0)
     assert np.all(st == FREE)
     assert np.all(w.labels_at(pos) == 0)                     # free in the true world as well
-    scores = [g.score for g in goals]
+    scores = [round(g.score, 3) for g in goals]          # ranked by score to 3 decimals
     assert scores == sorted(scores, reverse=True)
     for g in goals:
         assert np.linalg.norm(g.position - g.frontier) <= 1.0 + 1e-6
@@ -205,6 +205,51 @@ def test_look_next_goals_free_in_map_and_world(built):
     gains = unknown_volume(m.occupancy, VOX, pos[:2], 2.0)
     assert [g.gain_m3 for g in goals[:2]] == pytest.approx(list(gains))
     assert any(g.gain_m3 > 0 for g in goals)
+
+
+def test_ray_outlier_z_against_scipy():
+    """The modified z-score of each ray's cosine per target, against scipy's MAD."""
+    from scipy.stats import median_abs_deviation
+
+    rng = np.random.default_rng(2)
+    c = rng.normal(0.45, 0.02, (2, 60))
+    c[0, 7] = 0.60                                     # one ray reads much more like target 0
+    z = ray_outlier_z(c)
+    for t in range(2):
+        want = 0.6745 * (c[t] - np.median(c[t])) / median_abs_deviation(c[t], scale=1.0)
+        assert z[t] == pytest.approx(want, rel=1e-5, abs=1e-5)
+    assert int(np.argmax(z[0])) == 7 and z[0, 7] > 3.5 and z[1].max() < 3.5
+    assert not ray_outlier_z(c[:, :MIN_RAYS_FOR_Z - 1]).any()         # too few rays: no z
+    assert not ray_outlier_z(np.full((1, 40), 0.5)).any()              # no spread: no z
+    assert ray_outlier_z(np.zeros((1, 0))).shape == (1, 0)
+
+
+def test_look_next_brings_a_far_outlier_ray_forward(built):
+    """With every probability ~0 (a far target), the frontier whose ray stands out (ray_z)
+    is examined even when it is the farthest and ranks first; without ray_z it is not even a
+    candidate when candidates are few."""
+    m = built["map"]
+    rl = m.rays()
+    o, d = rl.origins.numpy(), rl.directions.numpy()
+    f = m.frontiers().centres.numpy()
+    start = built["poses"][STAGES[-1] - 1][:3, 3]
+    far = int(np.argmax(np.linalg.norm(o - start, axis=1)))         # the ray attached farthest away
+    score = np.full((len(o), 1), 1e-12)
+    z = np.zeros((len(o), 1))
+    z[far] = 6.0
+    plain = look_next(m.occupancy, VOX, f, o, d, score, ["water tower"], from_xyz=start, max_goals=3,
+                      max_candidates=3, ray_radius_m=1.0)
+    goals = look_next(m.occupancy, VOX, f, o, d, score, ["water tower"], from_xyz=start, max_goals=3,
+                      max_candidates=3, ray_radius_m=1.0, ray_z=z)
+    near_far = np.linalg.norm(f - o[far], axis=1) <= 1.0
+    assert near_far.any()
+    assert all(g.ray_z == 0 for g in plain)
+    assert not any(np.linalg.norm(g.frontier - o[far]) <= 1.0 for g in plain)
+    assert goals[0].ray_z == pytest.approx(6.0)                      # brute force: the best z within 1 m
+    assert np.linalg.norm(goals[0].frontier - o[far]) <= 1.0 + 1e-6
+    assert all(g.ray_z == 0 for g in goals[1:])
+    with pytest.raises(ValueError, match="ray_z has shape"):
+        look_next(m.occupancy, VOX, f, o, d, score, ["water tower"], ray_z=z[:-1])
 
 
 def test_unknown_volume_brute_force(built):

@@ -148,7 +148,8 @@ class LiveMapper:
         if not semantic:
             goals = [dict(g, score=0.0, target=None) for g in goals]
         return Observation(list(rep.found), goals, np.asarray(occ.states, np.int8), np.asarray(occ.origin, np.float64),
-                           float(occ.cell_m), [], ms)
+                           float(occ.cell_m), [], ms,
+                           list((rep.beyond or {}).get("estimates", [])) if semantic else [])
 
     def close(self) -> None:
         """Stop the edge, then the mapper (SIGINT, then SIGKILL after a bounded wait)."""

@@ -45,6 +45,17 @@ class LoopSettings:
     window_m: float = 30.0
     preset: str = "online"
     min_score: float = 0.3
+    #: the searches' background phrases: "world" = every class of the world but the target
+    #: (what the paper's querying softmaxes over: all class names), "default" = the mapper's
+    #: ``search.background`` (building, road, ground, tree, sky: a radio tower then reads as a
+    #: water tower, nothing else in the softmax being closer)
+    background: str = "world"
+
+    def background_phrases(self, world: World) -> list[str] | None:
+        """The phrases :attr:`background` names for ``world`` (None: the mapper's default)."""
+        if self.background not in ("world", "default"):
+            raise ValueError(f"background must be 'world' or 'default', not {self.background!r}")
+        return list(world.classes) if self.background == "world" else None
 
 
 @dataclass
@@ -161,8 +172,11 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         obs = mapper.observe([mission.target], run.pos, semantic=semantic, z_band=robot.goal_band)
         t.append(time.perf_counter())
         run.search_ms.append(obs.search_ms)
-        nav = NavField(robot.with_own_body_free(obs.states, obs.origin, obs.cell, run.pos), obs.origin, obs.cell,
-                       run.pos, robot.radius)
+        states = robot.with_own_body_free(obs.states, obs.origin, obs.cell, run.pos)
+        nav = NavField(states, obs.origin, obs.cell, run.pos, robot.radius)
+        if nav.boxed_in():        # a newly seen obstacle or unknown cell within the clearance of the
+            # robot's own cell: leave through free cells
+            nav = NavField.free_cells_only(states, obs.origin, obs.cell, run.pos)
         d = decide(policy, obs, nav, run.pos, state, mission.reach_m)
         t.append(time.perf_counter())
         for k, a, b in zip(("sense", "map", "search", "plan"), t[:-1], t[1:], strict=True):
@@ -209,7 +223,8 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
         if mapper is None:
             from apps.closed_loop.world_model import LocalMapper, mapper_config
 
-            cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset)
+            cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
+                                settings.background_phrases(world))
             mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m,
                                  score_poses=poses)
         _searching(world, mission, policy, robot, settings, chain, mapper, run, trace)

@@ -22,6 +22,17 @@ class NavField:
         self._cells = cells
         self._xy = self.origin + (cells + 0.5) * self.cell
 
+    @classmethod
+    def free_cells_only(cls, states: np.ndarray, origin: np.ndarray, cell: float, at: np.ndarray) -> "NavField":
+        """Paths through FREE cells without clearance: how a robot leaves a spot where the
+        clearance rule boxes it in (every move is still checked against the true world)."""
+        return cls(states, origin, cell, at, -float(cell))
+
+    def boxed_in(self) -> bool:
+        """Whether the robot can reach no cell but its own (its clearance is violated where it
+        stands, e.g. by an obstacle it has only just seen)."""
+        return len(self._cells) <= 1
+
     def nearest_reachable(self, xy: np.ndarray) -> tuple[np.ndarray, float, float]:
         """(cell (2,), path length m, xy distance m from the cell centre to ``xy``) of the
         reachable cell closest to ``xy`` (ties: the shorter path)."""

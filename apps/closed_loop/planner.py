@@ -109,7 +109,8 @@ def advance(path: list[tuple[int, ...]], origin: np.ndarray, cell: float, step_m
 def traversable(states: np.ndarray, cell: float, radius_m: float) -> np.ndarray:
     """(nx, ny) bool: cells where the robot may stand — FREE, and no OCCUPIED or UNKNOWN cell
     whose centre lies within ``radius_m + cell`` (m) of this cell's centre (unknown space may
-    hide an obstacle, so it keeps the same clearance as occupied space)."""
+    hide an obstacle, so it keeps the same clearance as occupied space). ``radius_m`` ≤
+    −``cell``: no clearance (every FREE cell)."""
     from scipy.ndimage import binary_dilation
 
     states = np.asarray(states)

@@ -6,8 +6,15 @@ Every map-based policy confirms the same way: an undeclared found instance of th
 (xy) of its box it is declared. They differ in how they explore until then:
 
 * ``rayfronts``: the look-next goal with the best semantic score (rays of the RayFronts map
-  toward the target, 30° bins), the nearest by path among goals within 10 % of the best;
-  without evidence (score < ``min_score``) like ``frontier``;
+  toward the target, 30° bins), the nearest by path among goals within 10 % of the best,
+  preferring those whose rays point on the way there (:func:`_onward`); when none does,
+  toward where the target's rays cross (:func:`_toward_estimate`);
+  when no score reaches ``min_score`` (a far target fills a small share of its rays, so its
+  probabilities are ~0), the goal whose ray stands out most (``ray_z`` ≥ ``min_ray_z``: the
+  ray's cosine to the target is an outlier among the rays'), the nearest by path among goals
+  within 10 % of it — or, when its frontier is next to the robot (where the rays left the
+  known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); without
+  either like ``frontier``;
 * ``unidirectional`` / ``spherical``: the same rule on the maps of the paper's semantic
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
@@ -60,7 +67,7 @@ class PolicyState:
 
     declared: set = field(default_factory=set)
     set_aside: list = field(default_factory=list)     # xy of goals that gave no progress
-    goal: tuple | None = None                         # (xy, score) of the exploration goal held
+    goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
 
 
 def _progress(nav: NavField, cell: np.ndarray) -> bool:
@@ -100,39 +107,55 @@ def _reachable_goals(obs: Observation, nav: NavField, state: PolicyState) -> lis
             continue
         cell, path_m, gap = nav.nearest_reachable(xy)
         if not _progress(nav, cell):
-            state.set_aside.append(xy)
+            if not nav.boxed_in():      # boxed in, no goal is reachable: the robot's fault, not the goal's
+                state.set_aside.append(xy)
             continue
         out.append((g, cell, path_m))
     return out
 
 
+#: a ray is evidence for a far target when its ray_z reaches this: Iglewicz and Hoaglin's
+#: usual outlier cut for the modified z-score (not tuned; on development seed 0 the rays
+#: toward the water tower read 5-8 from 200-240 m, the best of the others up to 3.6)
+MIN_RAY_Z = 3.5
+
+
 def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_score: float = 0.3,
-            min_goal_m: float = 4.0) -> Decision:
+            min_goal_m: float = 4.0, min_ray_z: float = MIN_RAY_Z) -> Decision:
     """The exploration goal of policy ``name`` (module docstring). Goals closer than
     ``min_goal_m`` by path are being seen already; they are taken only when nothing else is."""
     goals = _reachable_goals(obs, nav, state)
     if not goals:
         state.goal = None
         return Decision(why="no reachable goal")
-    held = _held(state, nav, goals)
+    far = [x for x in goals if x[2] >= min_goal_m] or goals
+    at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
+    d = _choose(name, obs, far, min_score, min_ray_z, goals, at)
+    evidence = not d.why.startswith("frontier")
+    held = _held(state, nav, far, evidence)
     if held is not None:
         return held
-    far = [x for x in goals if x[2] >= min_goal_m]
-    goals = far or goals
-    d = _choose(name, obs, goals, min_score)
-    state.goal = (d.goal_xy, d.score)
+    state.goal = (d.goal_xy, d.score, evidence)
     return d
 
 
-def _held(state: PolicyState, nav: NavField, goals: list) -> Decision | None:
-    """Keep driving to the held goal until it is reached (its cell is the robot's), set aside,
-    or a goal with clearly more evidence (+0.2 score) appears."""
+def _semantic(name: str) -> bool:
+    return name in ("rayfronts", "unidirectional", "spherical")
+
+
+def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False) -> Decision | None:
+    """Keep driving to the held goal until it is reached (the robot stands on the reachable
+    cell nearest it, however far that is from the goal: an unreachable goal is driven at, not
+    swapped each step for another one — which made robots shuttle between two), set aside,
+    or a better one shows: for a goal chosen by evidence, a goal with clearly more (+0.2
+    score); for one chosen without, this step's choice has evidence (``evidence``)."""
     if state.goal is None:
         return None
-    xy, score = state.goal
+    xy, score, semantic = state.goal
     cell, path_m, gap = nav.nearest_reachable(xy)
     top = max(g["score"] for g, _, _ in goals)
-    if not _progress(nav, cell) or gap > 2.0 or _set_aside(state, xy) or top > score + 0.2:
+    if not _progress(nav, cell) or _set_aside(state, xy) or (semantic and top > score + 0.2) \
+            or (evidence and not semantic):
         if not _progress(nav, cell):
             state.set_aside.append(np.asarray(xy))
         state.goal = None
@@ -140,14 +163,25 @@ def _held(state: PolicyState, nav: NavField, goals: list) -> Decision | None:
     return Decision(goal_cell=cell, goal_xy=xy, why="held goal", score=score)
 
 
-def _choose(name: str, obs: Observation, goals: list, min_score: float) -> Decision:
-    if name in ("rayfronts", "unidirectional", "spherical"):
+def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_z: float = MIN_RAY_Z,
+            every: list | None = None, at: np.ndarray | None = None) -> Decision:
+    """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
+    outlier ray may be attached next to the robot)."""
+    if _semantic(name):
         top = max(g["score"] for g, _, _ in goals)
         if top >= min_score:
             pool = [x for x in goals if x[0]["score"] >= 0.9 * top]
-            g, cell, _ = min(pool, key=lambda x: x[2])
+            onward = _onward(pool, at) if at is not None else []
+            if not onward and at is not None:
+                d = _toward_estimate(obs, goals, at, min_score, top)
+                if d is not None:
+                    return d
+            g, cell, _ = min(onward or pool, key=lambda x: x[2])
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
+        d = _follow_outlier(every or goals, goals, min_ray_z)
+        if d is not None:
+            return d
     if name == "sem-poses" and obs.poses:
         o, d, s = max(obs.poses, key=lambda p: p[2])
         h = np.asarray(d[:2], np.float64)
@@ -164,6 +198,69 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float) -> Decis
                                 score=float(s))
     g, cell, _ = max(goals, key=lambda x: (x[0].get("gain_m3", 0.0) / (1.0 + x[2]), -x[2]))
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="frontier gain/path")
+
+
+def _onward(goals: list, at: np.ndarray, min_cos: float = 0.8) -> list:
+    """The goals whose rays point on the way there: the bearing from the robot at ``at`` to
+    the goal lies within ``acos(min_cos)`` of the goal's ``heading_rad`` (the yaw of its rays).
+    Among frontiers whose rays all see the target, these lead toward it, not sideways."""
+    out = []
+    for x in goals:
+        v = np.asarray(x[0]["position"][:2], np.float64) - np.asarray(at[:2], np.float64)
+        h = x[0].get("heading_rad")
+        if h is not None and np.linalg.norm(v) > 1e-6 and \
+                float(v @ np.array([np.cos(h), np.sin(h)])) / np.linalg.norm(v) >= min_cos:
+            out.append(x)
+    return out
+
+
+def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: float, score: float,
+                     min_gain_m: float = 2.0) -> Decision | None:
+    """Toward where the target's rays cross (the search's best ``beyond`` estimate with
+    score ≥ ``min_score``): the goal with the shortest path plus straight line on to the
+    estimate, among those at least ``min_gain_m`` nearer to it than the robot; the decision
+    carries ``score``, the evidence that led here, so it is held like a ray goal. For when the
+    rays that see the target all sit behind the robot: close to a tall landmark, a camera
+    tilted down no longer sees its top, and the frontiers ahead gather no rays."""
+    est = [e for e in obs.estimates if e.get("score", 0.0) >= min_score]
+    if not est:
+        return None
+    e = np.asarray(max(est, key=lambda e: e["score"])["position"][:2], np.float64)
+    here = float(np.linalg.norm(e - np.asarray(at[:2], np.float64)))
+    best = None
+    for x in goals:
+        rest = float(np.linalg.norm(e - np.asarray(x[0]["position"][:2], np.float64)))
+        if rest <= here - min_gain_m and (best is None or x[2] + rest < best[0]):
+            best = (x[2] + rest, x)
+    if best is None:
+        return None
+    g, cell, _ = best[1]
+    return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="toward estimate", score=float(score))
+
+
+def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0.8) -> Decision | None:
+    """Toward the rays that stand out (``ray_z`` ≥ ``min_ray_z``): the best such goal (nearest
+    by path within 10 % of the best ``ray_z``) when it is among the ``far`` goals; else (its
+    frontier is next to the robot, where the rays left the known space) the nearest far goal
+    whose bearing lies within ``acos(min_cos)`` of its rays' heading; else the goal itself."""
+    top = max(g.get("ray_z", 0.0) for g, _, _ in every)
+    if top < min_ray_z:
+        return None
+    pool = [x for x in every if x[0].get("ray_z", 0.0) >= 0.9 * top]
+    g, cell, _ = min(pool, key=lambda x: x[2])
+    why = f"ray z {g.get('ray_z', 0.0):.1f}"
+    if not any(x[0] is g for x in far):
+        h = np.array([np.cos(g["heading_rad"]), np.sin(g["heading_rad"])])
+        o = np.asarray(g["position"][:2], np.float64)
+        ahead = []
+        for x in far:
+            v = np.asarray(x[0]["position"][:2], np.float64) - o
+            if np.linalg.norm(v) > 1e-6 and float(v @ h) / np.linalg.norm(v) >= min_cos:
+                ahead.append(x)
+        if ahead:
+            g, cell, _ = min(ahead, key=lambda x: x[2])
+            why += " ahead"
+    return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=why, score=float(g["score"]))
 
 
 def decide(name: str, obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState, reach_m: float

@@ -21,7 +21,8 @@ from common.frame import Frame
 
 @dataclass
 class Observation:
-    """One step's view of the map: search answer parts (dicts as on the wire), the 2D
+    """One step's view of the map: search answer parts (dicts as on the wire: ``found``,
+    ``look_next`` and, for the ray policies, ``estimates`` from ``beyond``), the 2D
     costmap of the body band (``states`` int8 FREE/OCCUPIED/UNKNOWN indexed [x, y],
     ``origin`` (2,) m of cell 0's min corner, ``cell`` m) and, for Semantic Poses, the
     scored camera poses ``(position (3,), unit heading (3,), score)``."""
@@ -33,6 +34,7 @@ class Observation:
     cell: float
     poses: list[tuple[np.ndarray, np.ndarray, float]] = field(default_factory=list)
     search_ms: float = 0.0
+    estimates: list[dict] = field(default_factory=list)   # the search's beyond.estimates (semantic only)
 
 
 #: per-frame point budgets of the closed loop's maps (the online preset maps every pixel;
@@ -40,10 +42,12 @@ class Observation:
 POINT_BUDGETS = dict(max_pts_per_frame=12000, max_empty_pts_per_frame=8000)
 
 
-def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int, preset: str = "online"):
+def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int, preset: str = "online",
+                  background: list[str] | None = None):
     """The mapper config of one policy's map: ``preset`` with ``method``'s overrides
     (semantic_map.config.METHODS), voxel size, depth limit and :data:`POINT_BUDGETS`; ray
-    erosion scaled to the image width as the search-volume benchmark scales it."""
+    erosion scaled to the image width as the search-volume benchmark scales it;
+    ``background``: the search's background phrases (None: the mapper's default)."""
     from mapper.service_config import load_mapper_config
     from semantic_map.config import map_config
 
@@ -51,6 +55,8 @@ def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int
     erosion = 1   # a far landmark is a few pixels wide at 224 px: erode the beyond-range mask by 1 px only
     mc = map_config(preset, dict(POINT_BUDGETS, vox_size=vox_m, depth_limit=depth_limit_m, ray_erosion=erosion),
                     method)
+    if background is not None:
+        cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, background=list(background)))
     return dataclasses.replace(cfg, map=mc.validate())
 
 
@@ -110,7 +116,8 @@ class LocalMapper:
         goals = rep.look_next
         if not semantic:
             goals = [dict(g, score=0.0, target=None) for g in goals]
-        return Observation(rep.found, goals, states, np.asarray(origin, np.float64), float(cell), poses, ms)
+        return Observation(rep.found, goals, states, np.asarray(origin, np.float64), float(cell), poses, ms,
+                           list(rep.beyond.get("estimates", [])) if semantic else [])
 
     def _search_cfg(self, semantic: bool):
         if semantic:

@@ -108,6 +108,9 @@ def _search_parser(sub) -> None:
     se.add_argument("--missions", default="object,landmark",
                     help=f"comma list of mission kinds: {', '.join(MISSIONS)} (default object,landmark)")
     se.add_argument("--budget-scale", type=float, default=1.0, help="scale the step budgets (default 1)")
+    se.add_argument("--background", choices=["world", "default"], default="world",
+                    help="the searches' background phrases: every class of the world but the target (default; the "
+                         "paper's querying softmaxes over all class names) or the mapper's search.background")
     se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
     se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
     se.add_argument("--json", required=True, metavar="FILE", help="summary + episode rows (.md/.csv/.png beside)")
@@ -145,7 +148,8 @@ def _run_search(args: argparse.Namespace) -> int:
                            episodes=args.episodes, policies=policies,
                            missions=[m.strip() for m in args.missions.split(",") if m.strip()],
                            budget_scale=args.budget_scale, resolution=args.resolution, step_m=args.step,
-                           distributed=args.distributed, work_dir=args.work_dir).validate()
+                           distributed=args.distributed, work_dir=args.work_dir,
+                           background=args.background).validate()
     doc = run_search_eval(cfg, args.rerun)
     paths = write_outputs(doc, args.json)
     print(table_markdown(doc))
