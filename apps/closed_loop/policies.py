@@ -187,11 +187,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
         h = np.asarray(d[:2], np.float64)
         if s >= min_score and np.linalg.norm(h) > 1e-6:
             h = h / np.linalg.norm(h)
-            pool = []
-            for g, cell, path_m in goals:
-                v = np.asarray(g["position"][:2]) - o[:2]
-                if np.linalg.norm(v) > 1e-6 and float(v @ h) / np.linalg.norm(v) >= 0.8:
-                    pool.append((g, cell, path_m))
+            pool = _ahead(goals, o, h, 0.8)
             if pool:
                 g, cell, _ = min(pool, key=lambda x: x[2])
                 return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"pose {s:.2f}",
@@ -200,18 +196,23 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="frontier gain/path")
 
 
+def _ahead(goals: list, origin: np.ndarray, heading: np.ndarray, min_cos: float = 0.8) -> list:
+    """The goals whose bearing from ``origin`` (xy, m) lies within ``acos(min_cos)`` of the
+    unit xy vector ``heading``."""
+    out = []
+    for x in goals:
+        v = np.asarray(x[0]["position"][:2], np.float64) - np.asarray(origin[:2], np.float64)
+        if np.linalg.norm(v) > 1e-6 and float(v @ heading) / np.linalg.norm(v) >= min_cos:
+            out.append(x)
+    return out
+
+
 def _onward(goals: list, at: np.ndarray, min_cos: float = 0.8) -> list:
     """The goals whose rays point on the way there: the bearing from the robot at ``at`` to
     the goal lies within ``acos(min_cos)`` of the goal's ``heading_rad`` (the yaw of its rays).
     Among frontiers whose rays all see the target, these lead toward it, not sideways."""
-    out = []
-    for x in goals:
-        v = np.asarray(x[0]["position"][:2], np.float64) - np.asarray(at[:2], np.float64)
-        h = x[0].get("heading_rad")
-        if h is not None and np.linalg.norm(v) > 1e-6 and \
-                float(v @ np.array([np.cos(h), np.sin(h)])) / np.linalg.norm(v) >= min_cos:
-            out.append(x)
-    return out
+    return [x for x in goals if x[0].get("heading_rad") is not None and
+            _ahead([x], at, np.array([np.cos(x[0]["heading_rad"]), np.sin(x[0]["heading_rad"])]), min_cos)]
 
 
 def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: float, score: float,
@@ -251,12 +252,7 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     why = f"ray z {g.get('ray_z', 0.0):.1f}"
     if not any(x[0] is g for x in far):
         h = np.array([np.cos(g["heading_rad"]), np.sin(g["heading_rad"])])
-        o = np.asarray(g["position"][:2], np.float64)
-        ahead = []
-        for x in far:
-            v = np.asarray(x[0]["position"][:2], np.float64) - o
-            if np.linalg.norm(v) > 1e-6 and float(v @ h) / np.linalg.norm(v) >= min_cos:
-                ahead.append(x)
+        ahead = _ahead(far, np.asarray(g["position"][:2], np.float64), h, min_cos)
         if ahead:
             g, cell, _ = min(ahead, key=lambda x: x[2])
             why += " ahead"
