@@ -37,7 +37,7 @@ from semantic_map.ray_frontiers import (
     RayStore,
     angles_deg,
     associate,
-    frontiers_near,
+    associate_near,
     infer_directions,
     warn_infer_direction,
 )
@@ -446,13 +446,14 @@ class RayFrontsMap:
         fk = self.fronts.keys
         rng = cfg.sensing_range()
         max_dist = cfg.ray_range_factor * rng if rng > 0 else -1.0
-        # only frontiers within max_dist of an origin can be candidates: search the rays' box
-        near = frontiers_near(fk, o, max_dist, cfg.beta) if max_dist > 0 and not cfg.zero_depth_mode else None
-        ri, fi, cost = associate(o, dr, cell_keys.unpack(fk if near is None else fk[near]), cfg.beta,
-                                 max_dist=max_dist, reject_close=cfg.ray_reject_close,
-                                 zero_depth=cfg.zero_depth_mode, cost=cfg.ray_cost_norm)
-        if near is not None:
-            fi = near[fi]
+        if max_dist > 0 and not cfg.zero_depth_mode:
+            # only frontiers within max_dist of a ray's origin can be its candidates
+            ri, fi, cost = associate_near(o, dr, fk, cfg.beta, max_dist, reject_close=cfg.ray_reject_close,
+                                          cost=cfg.ray_cost_norm)
+        else:
+            ri, fi, cost = associate(o, dr, cell_keys.unpack(fk), cfg.beta, max_dist=max_dist,
+                                     reject_close=cfg.ray_reject_close, zero_depth=cfg.zero_depth_mode,
+                                     cost=cfg.ray_cost_norm)
         t = self._tick("ray_associate", t)
         if cfg.ray_tracing and not cfg.zero_depth_mode and ri.numel():
             p = voxel_center(cell_keys.unpack(fk[fi]), cfg.beta).to(torch.float64)

@@ -254,17 +254,25 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
 
 
 def frontiers_near(keys: torch.Tensor, origins: torch.Tensor, reach: float, beta: float) -> torch.Tensor:
-    """Ascending indices into the ascending packed coarse ``keys`` (cell size ``beta``) of every
-    frontier whose cell lies in the axis-aligned box of ``origins`` (world metres) grown by
-    ``reach`` metres and one more cell: a superset of the frontiers whose centre is within
-    ``reach`` of some origin. Reads only the keys of the box (per i-plane of the box, the run
-    of its j-rows, found by binary search), so the cost follows the box, not the table."""
-    e = torch.empty(0, dtype=torch.int64, device=keys.device)
-    if keys.numel() == 0 or origins.shape[0] == 0:
-        return e
+    """:func:`frontiers_in_box` of the axis-aligned box of ``origins`` (world metres) grown by
+    ``reach`` metres: a superset of the frontiers whose centre is within ``reach`` of some
+    origin."""
+    if origins.shape[0] == 0:
+        return torch.empty(0, dtype=torch.int64, device=keys.device)
     o = origins.to(torch.float64)
-    lo = torch.floor((o.min(0).values - reach) / beta).to(torch.int64) - 1
-    hi = torch.floor((o.max(0).values + reach) / beta).to(torch.int64) + 1
+    return frontiers_in_box(keys, o.min(0).values - reach, o.max(0).values + reach, beta)
+
+
+def frontiers_in_box(keys: torch.Tensor, lo_m: torch.Tensor, hi_m: torch.Tensor, beta: float) -> torch.Tensor:
+    """Ascending indices into the ascending packed coarse ``keys`` (cell size ``beta``) of every
+    frontier whose cell lies in the box ``[lo_m, hi_m]`` (world metres, (3,)) grown by one
+    more cell. Reads only the keys of the box (per i-plane of the box, the run of its j-rows,
+    found by binary search), so the cost follows the box, not the table."""
+    e = torch.empty(0, dtype=torch.int64, device=keys.device)
+    if keys.numel() == 0:
+        return e
+    lo = torch.floor(lo_m.to(torch.float64) / beta).to(torch.int64) - 1
+    hi = torch.floor(hi_m.to(torch.float64) / beta).to(torch.int64) + 1
     lo = lo.clamp(-cell_keys.OFFSET, cell_keys.OFFSET - 1).to(keys.device) + cell_keys.OFFSET
     hi = hi.clamp(-cell_keys.OFFSET, cell_keys.OFFSET - 1).to(keys.device) + cell_keys.OFFSET
     b = cell_keys.BITS
@@ -274,6 +282,53 @@ def frontiers_near(keys: torch.Tensor, origins: torch.Tensor, reach: float, beta
     _, pos = _expand(first, last - first)
     k = keys[pos] & cell_keys.MASK
     return pos[(k >= lo[2]) & (k <= hi[2])]
+
+
+def associate_near(origins: torch.Tensor, dirs: torch.Tensor, keys: torch.Tensor, beta: float, max_dist: float,
+                   **kw) -> Association:
+    """:func:`associate` of the rays against the frontiers of the ascending packed coarse
+    ``keys``, each ray looking only at the frontiers near its own segment: the rays are grouped
+    by origin (cells of ``max_dist`` metres, one group when all origins lie within
+    ``2 * max_dist`` of each other) and each group is cast against the frontiers in the box of
+    its segments ``origin -> origin + max_dist * dir`` grown by ``1.5 beta``
+    (:func:`frontiers_in_box`). Same result as against the whole table: a candidate's centre
+    lies within ``max_dist`` of the origin and within ``beta`` of the ray, ahead of the origin,
+    so within ``beta`` of the segment (one base point for all groups keeps the float32 pair
+    metrics the same; frontier indices into ``keys``). The box of one camera's frustum is a
+    fraction of the box around its origin, and a ray block's rays re-queued from pruned
+    frontiers can come from anywhere on the map."""
+    if max_dist <= 0:
+        raise ValueError(f"associate_near needs a positive max_dist, got {max_dist}")
+    o = origins.to(torch.float64)
+    base = _base(o)
+    e = torch.empty(0, dtype=torch.int64, device=o.device)
+    R = o.shape[0]
+    if R and float((o.max(0).values - o.min(0).values).max()) > 2 * max_dist:
+        _, group = torch.unique(cell_keys.pack(torch.floor(o / max_dist).to(torch.int64)), return_inverse=True)
+        members: list[torch.Tensor | None] = [torch.nonzero(group == g).squeeze(1)
+                                              for g in range(int(group.max()) + 1)]
+    else:
+        members = [None]
+    ri_all, fi_all, c_all = [], [], []
+    for idx in members:
+        oo, dd = (o, dirs) if idx is None else (o[idx], dirs[idx])
+        ends = oo + dd.to(torch.float64) * max_dist
+        ok = torch.isfinite(ends).all(1)          # the kernel skips non-finite rays
+        if not bool(ok.any()):
+            continue
+        pts = torch.cat([oo[ok], ends[ok]])
+        near = frontiers_in_box(keys, pts.min(0).values - 1.5 * beta, pts.max(0).values + 1.5 * beta, beta)
+        ri, fi, c = associate(oo, dd, cell_keys.unpack(keys[near]), beta, max_dist=max_dist, _base_pt=base, **kw)
+        ri_all.append(ri if idx is None else idx[ri])
+        fi_all.append(near[fi])
+        c_all.append(c)
+    if not ri_all:
+        return e, e.clone(), torch.empty(0, dtype=torch.float64, device=o.device)
+    if len(ri_all) == 1:
+        return ri_all[0], fi_all[0], c_all[0]
+    ri, fi, c = torch.cat(ri_all), torch.cat(fi_all), torch.cat(c_all)
+    order = torch.argsort(ri)
+    return ri[order], fi[order], c[order]
 
 
 def _nearest(o: torch.Tensor, p: torch.Tensor) -> Association:

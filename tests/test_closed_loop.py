@@ -176,6 +176,37 @@ def test_oracle_drives_the_true_shortest_path(loop):
     assert r["path_m"] <= mission.shortest_m + 1e-6 and mission.shortest_m > 10.0
 
 
+def test_declarations_name_the_true_object_a_false_find_was(loop):
+    """A declaration's row: 'find' at a true target from within reach, 'false' at another
+    class's instance, with the world's nearest object (its class, id, distance to its box)
+    checked against every instance by brute force; the eval table lists the false one."""
+    from apps.closed_loop.episode import _check_declaration, _declaration_row, _Run
+    from apps.closed_loop.evaluate import table_markdown
+    from apps.closed_loop.missions import box_distance
+
+    w, _, mission = loop
+    car = mission.instances[0]
+    other = next(i for i in w.instances if w.classes[i.class_id] not in ("car", "ground", "road"))
+    run = _Run(np.asarray(car.center, np.float64))
+    rows = []
+    for inst in (car, other):
+        at = np.asarray(inst.center, np.float64)
+        d = {"id": inst.id, "centroid": [float(v) for v in inst.center]}
+        verdict = _check_declaration(d, mission, at, run.counted, 0.5)
+        rows.append(_declaration_row(w, d, verdict, run))
+    assert [r["verdict"] for r in rows] == ["find", "false"]
+    for r in rows:
+        dist = [box_distance(np.asarray(r["centroid"]), i.aabb_min, i.aabb_max) for i in w.instances]
+        best = w.instances[int(np.argmin(dist))]
+        assert r["nearest_m"] == pytest.approx(min(dist), abs=0.01) and r["nearest_id"] == best.id
+        assert r["nearest_class"] == w.classes[best.class_id]
+    assert rows[1]["nearest_m"] == 0.0          # the centre of its own box
+    doc = {"policies": {}, "episodes": [{"seed": 3, "policy": "rayfronts", "target": "car", "declarations": rows}]}
+    md = table_markdown(doc)
+    assert "False finds" in md and f"{w.classes[other.class_id]} #{other.id}" in md
+    assert f"car #{car.id}" not in md
+
+
 def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_path):
     """Each policy over a short budget: no collision (re-checked against the exact geometry
     with a finer sweep), the row's fields, and the same path when run again; the rayfronts

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from semantic_map import cell_keys, kernels
-from semantic_map.ray_frontiers import RayStore, associate, frontiers_near
+from semantic_map.ray_frontiers import RayStore, associate, associate_near, frontiers_near
 from tests.support.ray_store_ref import SortedRayStore
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -148,3 +148,29 @@ def test_association_within_the_rays_box_equals_the_whole_table(cost, kern):
         kernels.set_enabled(old)
     assert full[0].numel() > 150
     assert torch.equal(full[0], part[0]) and torch.equal(full[1], near[part[1]]) and torch.equal(full[2], part[2])
+
+
+@pytest.mark.parametrize("cost,kern", [("paper", True), ("absolute", True), ("paper", False)])
+def test_association_per_origin_group_equals_the_whole_table(cost, kern):
+    """Rays from scattered origins (a ray block's new rays plus rays re-queued from frontiers
+    pruned anywhere on the map): cast per origin group against each group's nearby frontiers,
+    the pairs, frontiers and costs equal casting all rays against the whole table; one tight
+    cluster takes the one-group path and equals it too."""
+    g = torch.Generator().manual_seed(5)
+    beta, max_dist = 1.5, 6.0
+    keys = torch.unique(cell_keys.pack(torch.randint(-50, 50, (60000, 3), generator=g)))
+    ijk = cell_keys.unpack(keys)
+    spread = ((torch.rand((7, 3), generator=g, dtype=torch.float64) - 0.5) * 140.0).repeat_interleave(60, 0)
+    tight = ((torch.rand((3, 3), generator=g, dtype=torch.float64) - 0.5) * 3.0).repeat_interleave(60, 0)
+    for o in (spread, tight):
+        d = torch.nn.functional.normalize(torch.randn((o.shape[0], 3), generator=g), dim=1)
+        old = kernels.set_enabled(kern)
+        try:
+            full = associate(o, d, ijk, beta, max_dist=max_dist, cost=cost)
+            part = associate_near(o, d, keys, beta, max_dist, cost=cost)
+        finally:
+            kernels.set_enabled(old)
+        assert full[0].numel() > o.shape[0] // 6
+        assert torch.equal(full[0], part[0]) and torch.equal(full[1], part[1]) and torch.equal(full[2], part[2])
+    with pytest.raises(ValueError):
+        associate_near(spread, d[:1].expand(spread.shape[0], 3), keys, beta, 0.0)

@@ -92,6 +92,7 @@ class _Run:
     false_finds: int = 0
     collided: bool = False
     finds: list = field(default_factory=list)
+    declarations: list = field(default_factory=list)
     counted: set = field(default_factory=set)
     cpu: list = field(default_factory=list)
     search_ms: list = field(default_factory=list)
@@ -115,6 +116,18 @@ class _Run:
         self.path_m += float(np.linalg.norm(nxt - self.pos))
         self.pos = nxt
         return True
+
+
+def _declaration_row(world: World, inst: dict, verdict: str, run: _Run) -> dict:
+    """What a declaration was: ``step`` (1-based), ``verdict`` ('find' | 'again' | 'false'),
+    the declared ``centroid`` and the TRUE world instance nearest to it (``nearest_class``,
+    ``nearest_id``, ``nearest_m``: distance from the centroid to its box; what a false find
+    really was)."""
+    c = np.asarray(inst["centroid"], np.float64)
+    near = min(world.instances, key=lambda i: box_distance(c, i.aabb_min, i.aabb_max))
+    return {"step": run.steps, "verdict": verdict, "centroid": [round(float(v), 2) for v in c],
+            "nearest_class": world.classes[near.class_id], "nearest_id": int(near.id),
+            "nearest_m": round(float(box_distance(c, near.aabb_min, near.aabb_max)), 2)}
 
 
 def _oracle(world: World, mission: Mission, robot: Platform, settings: LoopSettings, run: _Run,
@@ -192,6 +205,7 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
             if verdict == "find":
                 run.finds.append((run.steps, run.path_m))
             run.false_finds += verdict == "false"
+            run.declarations.append(_declaration_row(world, d.declare, verdict, run))
         elif d.goal_cell is None:
             stuck += 1
         else:
@@ -206,7 +220,8 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
 def run_episode(world: World, mission: Mission, policy: str, settings: LoopSettings,
                 chain: EdgeChain | None = None, mapper=None, trace: Trace | None = None) -> dict:
     """Run ``policy`` on ``mission``; returns the episode row (``success``, ``spl``, ``path_m``,
-    ``steps``, ``false_finds``, ``finds`` [(step, path_m)], ``collided``, ``cpu_ms_per_step``,
+    ``steps``, ``false_finds``, ``finds`` [(step, path_m)], ``declarations`` (one row per
+    declaration: :func:`_declaration_row`), ``collided``, ``cpu_ms_per_step``,
     ``search_ms_p50``, ...). ``mapper``: an object with ``integrate(frames)`` (or, with
     ``renders_remotely``, ``sense(poses)``) and ``observe(targets, at, semantic=..., z_band=...)``
     (default: a new LocalMapper for the policy)."""
@@ -234,6 +249,7 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
     return {"policy": policy, "success": bool(success), "spl": spl(success, mission.shortest_m, run.path_m),
             "path_m": run.path_m, "shortest_m": mission.shortest_m, "steps": run.steps,
             "false_finds": int(run.false_finds), "finds": run.finds, "found": len(run.counted),
+            "declarations": run.declarations,
             "collided": run.collided, "cpu_ms_per_step": float(np.mean(run.cpu)) if run.cpu else 0.0,
             "search_ms_p50": float(np.median(run.search_ms)) if run.search_ms else 0.0,
             "step_ms_p50": {k: float(np.median(v)) if v else 0.0 for k, v in run.stage_ms.items()},

@@ -209,6 +209,14 @@ def table_markdown(doc: dict) -> str:
             lines.append(f"| {name} | " + " | ".join(
                 f"{s['by_kind'][k]['success']:.2f} / {s['by_kind'][k]['spl']:.2f}" if k in s["by_kind"] else "–"
                 for k in kinds) + " |")
+    false = [(r, d) for r in doc["episodes"] for d in r.get("declarations", []) if d["verdict"] == "false"]
+    if false:
+        lines += ["", "False finds (what the declared instance really was: the true object nearest its centroid):",
+                  "", "| seed | policy | target | step | declared at (m) | nearest true object | its distance (m) |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['seed']} | {r['policy']} | {r['target']} | {d['step']} | "
+                  f"({', '.join(f'{v:.0f}' for v in d['centroid'])}) | {d['nearest_class']} #{d['nearest_id']} | "
+                  f"{d['nearest_m']:.1f} |" for r, d in false]
     return "\n".join(lines) + "\n"
 
 
