@@ -9,6 +9,7 @@ run on CPU tensors only; tensors on other devices always take the torch path.
 """
 from __future__ import annotations
 
+import math
 import os
 from contextlib import contextmanager
 from typing import Callable, Iterator
@@ -147,6 +148,40 @@ def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, fron
     x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
     if scales is not None:
         assert argmin is not None  # the absolute cost picks per ray with the caller's torch code
+        return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
+    r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
+    return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)
+
+
+#: direction bin of the fan association (radians): its measured best on the growth run's ray blocks
+FAN_BIN_RAD = math.radians(1.0)
+#: the fan association serves rays whose origins all lie within beta of their mean (one fan,
+#: its cones widened by that spread), else at most this many distinct origins (a fan each:
+#: each reads every frontier passed); more (rays re-queued from all over the map) walk
+FAN_MAX_ORIGINS = 16
+
+
+def associate_rays_fan(o: torch.Tensor, d: torch.Tensor, frontier_ijk: torch.Tensor, beta: float,
+                       base: torch.Tensor, max_dist: float, reject_close: bool,
+                       scales: tuple[float, float | None] | None = None, argmin: ArgminCost | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """:func:`associate_rays` (every ray of length ``max_dist`` > 0) for rays leaving from
+    within ``beta`` of their mean origin or from at most :data:`FAN_MAX_ORIGINS` points, with
+    unit directions (to 1e-6): the rays binned by direction, each frontier tests the rays of
+    its cone of candidate directions (see the C++ source). None when the rays do not qualify
+    (then walk: :func:`associate_rays`)."""
+    if o.shape[0] == 0 or not bool(((d.to(torch.float64).norm(dim=1) - 1.0).abs() <= 1e-6).all()):
+        return None
+    got = _rfkernels.associate_rays_fan(_np(o, torch.float64), _np(d, torch.float64), _np(frontier_ijk, torch.int64),
+                                        float(beta), _np(base, torch.float64), float(max_dist), bool(reject_close),
+                                        FAN_BIN_RAD, float(beta), FAN_MAX_ORIGINS)
+    if got is None:
+        return None
+    ri, fi, oo, vv = got
+    x1 = torch.from_numpy(oo).sqrt().to(torch.float64)
+    x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
+    if scales is not None:
+        assert argmin is not None
         return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
     r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
     return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)

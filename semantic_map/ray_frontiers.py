@@ -159,14 +159,16 @@ def _argmin_cost(ri, fi, terms, n_rays, scales=None):
 def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Tensor, beta: float, *,
               max_dist: float = -1.0, reject_close: bool = False, zero_depth: bool = False,
               cost: str = "paper", chunk: int = 1 << 22, block: int = kernels.ASSOCIATION_BLOCK,
-              _base_pt: torch.Tensor | None = None) -> Association:
+              fan_off: bool = False, _base_pt: torch.Tensor | None = None) -> Association:
     """Match rays to coarse frontiers (cells ``frontier_ijk`` (F, 3) of size ``beta``).
 
     Returns ``(ray_idx (K,), frontier_idx (K,), cost (K,) float64)`` for the rays that found
     a frontier; ``cost`` = ``paper`` | ``absolute`` (module docstring). Exact same result as
-    :func:`associate_bruteforce`. Candidates come from the C++ kernel (:mod:`semantic_map.kernels`,
-    blocks of ``block``³ coarse cells) when available, else from the torch walk below; the
-    exact test and cost are the same torch code."""
+    :func:`associate_bruteforce`. Candidates come from the C++ kernels (:mod:`semantic_map.kernels`)
+    when available — with ``max_dist`` > 0 and rays from a few origins, per origin the rays
+    binned by direction (``associate_rays_fan``; ``fan_off`` skips it), else a walk through
+    blocks of ``block``³ coarse cells — and otherwise from the torch walk below; the exact test
+    and cost are the same torch code."""
     dev = origins.device
     R, F = origins.shape[0], frontier_ijk.shape[0]
     e = torch.empty(0, dtype=torch.int64, device=dev)
@@ -188,10 +190,19 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
         L = far.norm(dim=1)
     if kernels.enabled(o, d, frontier_ijk):
         step = KERNEL_RAY_CHUNK
-        parts = [kernels.associate_rays(o[s:s + step], d[s:s + step], L[s:s + step], frontier_ijk, beta, base,
-                                        max_dist, reject_close, block, scales=scales,
-                                        argmin=lambda r, f, x, n: _argmin_cost(r, f, x, n, scales))
-                 for s in range(0, R, step)]
+        amin = lambda r, f, x, n: _argmin_cost(r, f, x, n, scales)  # noqa: E731
+
+        def chunk_pairs(s: int) -> Association:
+            got = None
+            if max_dist > 0 and not fan_off:
+                got = kernels.associate_rays_fan(o[s:s + step], d[s:s + step], frontier_ijk, beta, base, max_dist,
+                                                 reject_close, scales=scales, argmin=amin)
+            if got is None:
+                got = kernels.associate_rays(o[s:s + step], d[s:s + step], L[s:s + step], frontier_ijk, beta, base,
+                                             max_dist, reject_close, block, scales=scales, argmin=amin)
+            return got
+
+        parts = [chunk_pairs(s) for s in range(0, R, step)]
         if len(parts) == 1:
             return parts[0]
         return (torch.cat([a[0] + s for a, s in zip(parts, range(0, R, step), strict=True)]),

@@ -130,6 +130,55 @@ def test_associate_frontiers_far_apart():
     kernel_same((k, t))
 
 
+def _fan_rays(seed, centres, per, jitter, n_front, spread):
+    """Rays of a ray block: ``per`` rays from each of a few origins (``centres`` plus up to
+    ``jitter`` m), with straight up / down and +-pi azimuth directions among them, and
+    frontiers all around (some within a cell of an origin)."""
+    g = torch.Generator().manual_seed(seed)
+    c = torch.as_tensor(centres, dtype=torch.float64)
+    o = (c + (torch.rand(c.shape, generator=g, dtype=torch.float64) - 0.5) * 2 * jitter).repeat_interleave(per, 0)
+    d = torch.nn.functional.normalize(torch.randn(o.shape[0], 3, generator=g, dtype=torch.float64), dim=1)
+    d[0:60:6] = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    d[1:60:6] = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    d[2:60:6] = torch.nn.functional.normalize(torch.tensor([[-1.0, 1e-12, 0.0]], dtype=torch.float64), dim=1)
+    d[3:60:6] = torch.nn.functional.normalize(torch.tensor([[-1.0, -1e-12, 0.02]], dtype=torch.float64), dim=1)
+    d[4:60:6] = torch.nn.functional.normalize(torch.tensor([[0.01, 0.0, 1.0]], dtype=torch.float64), dim=1)
+    fr = torch.randint(-spread, spread, (n_front, 3), generator=g)
+    near_o = torch.floor(o[::per] / 1.0).to(torch.int64)       # frontiers at the origins' own cells
+    return o, d, torch.unique(torch.cat([fr, near_o, near_o + 1]), dim=0)
+
+
+@needs_kernels
+@pytest.mark.parametrize("case", ["one fan", "origins apart", "close, absolute", "float32 dirs"])
+def test_associate_fan_equals_the_walk_and_the_brute_force(case):
+    """The fan kernel (rays binned by direction per origin or per fan of nearby origins) gives
+    the walk's and the brute force's pairs, frontiers and costs bit for bit: one fan of 8
+    jittered origins, 5 origins 14 m apart (a fan each), reject_close with the absolute cost,
+    float32 directions; poles, the azimuth seam and frontiers at the origins included. 17
+    origins apart are refused (the caller walks)."""
+    beta, max_dist, close, cost = 1.0, 12.0, False, "paper"
+    if case == "origins apart":
+        o, d, fr = _fan_rays(11, [[14.0 * i, 0.0, 0.0] for i in range(5)], 600, 0.0, 9000, 30)
+    else:
+        o, d, fr = _fan_rays(10, [[0.0, 0.0, 0.0]] * 8, 500, 0.35, 6000, 14)
+    if case == "close, absolute":
+        close, cost = True, "absolute"
+    if case == "float32 dirs":
+        d = d.to(torch.float32)
+    base = torch.round(o.mean(0))
+    assert kernels.associate_rays_fan(o, d, fr, beta, base, max_dist, close) is not None   # the fan serves it
+    fan = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost=cost)
+    walk = associate(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost=cost, fan_off=True)
+    ref = associate_bruteforce(o, d, fr, beta, max_dist=max_dist, reject_close=close, cost=cost)
+    assert fan[0].numel() > o.shape[0] // 3
+    assert_same(walk, ref)
+    assert_same(fan, ref)
+    many, dm, fm = _fan_rays(12, [[3.0 * i, 0.0, 0.0] for i in range(17)], 20, 0.0, 500, 30)
+    assert kernels.associate_rays_fan(many, dm, fm, beta, torch.zeros(3, dtype=torch.float64), max_dist, False) is None
+    bent = d.to(torch.float64) * 1.001                  # not unit: the fan's cones would not hold
+    assert kernels.associate_rays_fan(o, bent, fr, beta, base, max_dist, close) is None
+
+
 def test_associate_degenerate_inputs():
     o, d, fr = _rays(7, 10, 20, 4)
     e = torch.empty((0, 3), dtype=torch.int64)

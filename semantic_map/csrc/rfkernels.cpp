@@ -12,7 +12,9 @@
 // * associate_rays(...) + argmin_cost(...) (ray_association.cpp): for rays (o, d, length)
 //   and coarse frontier cells of size beta, the association of semantic_map.ray_frontiers
 //   (test t > 0, |p - o - t d| <= beta, |p - o| <= max_dist (and >= 2 beta with
-//   reject_close); per-ray normalised cost; argmin) with bit-identical results.
+//   reject_close); per-ray normalised cost; argmin) with bit-identical results;
+//   associate_rays_fan(...) finds the same pairs for rays from a few origins (a ray block's
+//   cameras) by binning their directions instead of walking them.
 // * group_pairs(group, idx, wt, n_groups, n_src): the non-zeros of the (group x source)
 //   sampling matrix of semantic_map.depth_geometry.aggregate_samples, as its bincount path;
 //   sample_pairs(...) also computes the bilinear / nearest corners (_corners) itself.
