@@ -324,6 +324,32 @@ def test_landmark_budget_is_three_oracle_tours():
     assert budget_steps("object", 210.0, 2.0) == 40 and budget_steps("all", 500.0, 2.0) == 60
 
 
+def test_fewer_missions_replay_the_same_episodes(loop):
+    """Missions are drawn per seed in one fixed order, so ``--missions landmark`` (or the two
+    kinds in the other order) gives the landmark episode of ``--missions object,landmark``:
+    same start, target instance and budget; and the car of ``object`` alone is that run's car."""
+    from apps.closed_loop.evaluate import SearchEvalConfig, seed_missions
+    from apps.closed_loop.robot import Platform
+
+    w = loop[0]
+    robot = Platform.make("ground")
+    both = seed_missions(SearchEvalConfig(missions=["object", "landmark"]), w, robot, 3)
+    assert [k for k, _, _ in both] == ["object", "landmark"]
+    for asked, kind in ((["landmark"], "landmark"), (["landmark", "object"], "landmark"), (["object"], "object")):
+        got = {k: m for k, _, m in seed_missions(SearchEvalConfig(missions=asked), w, robot, 3)}
+        ref = next(m for k, _, m in both if k == kind)
+        assert set(got) == set(asked)
+        assert np.allclose(got[kind].start, ref.start) and got[kind].budget_steps == ref.budget_steps
+        assert [i.id for i in got[kind].instances] == [i.id for i in ref.instances]
+    # the generator is shared: a landmark drawn first (a fresh generator) starts elsewhere
+    from apps.closed_loop.evaluate import MISSIONS
+    from apps.closed_loop.missions import make_mission
+
+    lm = next(m for k, _, m in both if k == "landmark")
+    first = make_mission(w, robot, "landmark", lm.target, np.random.default_rng(3), MISSIONS["landmark"][1])
+    assert not np.allclose(first.start, lm.start)
+
+
 def test_eval_search_outputs(tmp_path):
     """``rayfronts eval search`` on one tiny run: the JSON's exact top-level shape, the table,
     the CSV rows (one per episode) and the plots."""

@@ -136,6 +136,30 @@ def _episode(cfg: SearchEvalConfig, world, seed: int, mission, policy: str, sett
             "distributed": True}
 
 
+def seed_missions(cfg: SearchEvalConfig, world, robot: Platform, seed: int) -> list:
+    """``(kind, episode, mission)`` of ``cfg.missions`` on ``world`` (seed ``seed``). Missions are
+    drawn from one generator per seed in the fixed order of :data:`MISSIONS` (object,
+    landmark, all), kinds not asked for included up to the last one asked for, so a run of
+    fewer kinds (``--missions landmark``) replays the same episodes as a run of all."""
+    rng = np.random.default_rng(seed)
+    wanted = [k for k in MISSIONS if k in cfg.missions]
+    out = []
+    for kind in list(MISSIONS)[:list(MISSIONS).index(wanted[-1]) + 1] if wanted else []:
+        targets, budget, k = MISSIONS[kind]
+        for e in range(cfg.episodes):
+            target = targets[e % len(targets)]
+            try:
+                mission = make_mission(world, robot, kind, target, rng, int(round(budget * cfg.budget_scale)), k=k)
+            except ValueError as err:
+                if kind in cfg.missions:
+                    log.warning("seed %d %s %s: %s", seed, kind, target, err)
+                continue
+            if kind in cfg.missions:
+                out.append((kind, e, dataclasses.replace(mission, budget_steps=budget_steps(
+                    kind, mission.shortest_m, cfg.step_m, cfg.budget_scale))))
+    return out
+
+
 def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None) -> dict:
     """Run every episode (module docstring); returns the JSON document."""
     from synthetic_world import World
@@ -150,32 +174,21 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None) -> dic
     for seed in cfg.seeds:
         world = World.generate(seed)
         chain = EdgeChain(world, SensorConfig(resolution=cfg.resolution))
-        rng = np.random.default_rng(seed)
-        for kind in cfg.missions:
-            targets, budget, k = MISSIONS[kind]
-            for e in range(cfg.episodes):
-                target = targets[e % len(targets)]
-                try:
-                    mission = make_mission(world, robot, kind, target, rng, int(round(budget * cfg.budget_scale)), k=k)
-                except ValueError as err:
-                    log.warning("seed %d %s %s: %s", seed, kind, target, err)
-                    continue
-                mission = dataclasses.replace(mission, budget_steps=budget_steps(kind, mission.shortest_m, cfg.step_m,
-                                                                                 cfg.budget_scale))
-                for depth in cfg.depth_limits:
-                    settings = dataclasses.replace(settings0, depth_limit_m=float(depth))
-                    for p in cfg.policies:
-                        trace = Trace() if rerun_path and not recorded and p == "rayfronts" else None
-                        r = _episode(cfg, world, seed, mission, p, settings, chain, trace)
-                        r.update(seed=seed, episode=e, depth_limit_m=float(depth), platform=cfg.platform)
-                        rows.append(r)
-                        log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",
-                                 seed, kind, target, depth, p, r["success"], r["spl"], r["path_m"], r["steps"])
-                        if trace is not None:
-                            from apps.closed_loop.recording import record_episode
+        for kind, e, mission in seed_missions(cfg, world, robot, seed):
+            for depth in cfg.depth_limits:
+                settings = dataclasses.replace(settings0, depth_limit_m=float(depth))
+                for p in cfg.policies:
+                    trace = Trace() if rerun_path and not recorded and p == "rayfronts" else None
+                    r = _episode(cfg, world, seed, mission, p, settings, chain, trace)
+                    r.update(seed=seed, episode=e, depth_limit_m=float(depth), platform=cfg.platform)
+                    rows.append(r)
+                    log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",
+                             seed, kind, mission.target, depth, p, r["success"], r["spl"], r["path_m"], r["steps"])
+                    if trace is not None:
+                        from apps.closed_loop.recording import record_episode
 
-                            record_episode(rerun_path, world, mission, trace, r)
-                            recorded = True
+                        record_episode(rerun_path, world, mission, trace, r)
+                        recorded = True
     return {"policies": summarize_policies(rows, cfg.policies),
             "settings": {**dataclasses.asdict(cfg), "vox_m": settings0.vox_m, "preset": settings0.preset,
                          "min_ray_z": MIN_RAY_Z,
