@@ -143,12 +143,20 @@ def associate_rays(o: torch.Tensor, d: torch.Tensor, lengths: torch.Tensor, fron
                                                _np(lengths, torch.float64), _np(frontier_ijk, torch.int64),
                                                float(beta), int(block), _np(base, torch.float64),
                                                float(max_dist), bool(reject_close))
+    return _pick(ri, fi, oo, vv, int(o.shape[0]), scales, argmin)
+
+
+def _pick(ri, fi, oo, vv, n_rays: int, scales: tuple[float, float | None] | None,
+          argmin: ArgminCost | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-ray choice among a kernel's candidate pairs (numpy ``ri``, ``fi``, float32 ``oo`` =
+    d_ortho², ``vv`` = d_orig²): the kernel's argmin, or with fixed cost ``scales`` the
+    caller's torch ``argmin``."""
     # square roots in torch: bit-identical to the torch path's float32 sqrt
     x1 = torch.from_numpy(oo).sqrt().to(torch.float64)
     x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
     if scales is not None:
         assert argmin is not None  # the absolute cost picks per ray with the caller's torch code
-        return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
+        return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), n_rays)
     r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
     return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)
 
@@ -178,13 +186,7 @@ def associate_rays_fan(o: torch.Tensor, d: torch.Tensor, frontier_ijk: torch.Ten
     if got is None:
         return None
     ri, fi, oo, vv = got
-    x1 = torch.from_numpy(oo).sqrt().to(torch.float64)
-    x2 = torch.from_numpy(vv).sqrt().to(torch.float64)
-    if scales is not None:
-        assert argmin is not None
-        return argmin(torch.from_numpy(ri), torch.from_numpy(fi), (x1, x2), int(o.shape[0]))
-    r, f, c = _rfkernels.argmin_cost(ri, fi, x1.numpy(), x2.numpy())
-    return torch.from_numpy(r), torch.from_numpy(f), torch.from_numpy(c)
+    return _pick(ri, fi, oo, vv, int(o.shape[0]), scales, argmin)
 
 
 def voxel_keys(xyz: torch.Tensor, vox: float) -> torch.Tensor:

@@ -264,16 +264,6 @@ def associate(origins: torch.Tensor, dirs: torch.Tensor, frontier_ijk: torch.Ten
     return _select(ri, fi, o, d, p, beta, max_dist, reject_close, R, base, cost)
 
 
-def frontiers_near(keys: torch.Tensor, origins: torch.Tensor, reach: float, beta: float) -> torch.Tensor:
-    """:func:`frontiers_in_box` of the axis-aligned box of ``origins`` (world metres) grown by
-    ``reach`` metres: a superset of the frontiers whose centre is within ``reach`` of some
-    origin."""
-    if origins.shape[0] == 0:
-        return torch.empty(0, dtype=torch.int64, device=keys.device)
-    o = origins.to(torch.float64)
-    return frontiers_in_box(keys, o.min(0).values - reach, o.max(0).values + reach, beta)
-
-
 def frontiers_in_box(keys: torch.Tensor, lo_m: torch.Tensor, hi_m: torch.Tensor, beta: float) -> torch.Tensor:
     """Ascending indices into the ascending packed coarse ``keys`` (cell size ``beta``) of every
     frontier whose cell lies in the box ``[lo_m, hi_m]`` (world metres, (3,)) grown by one

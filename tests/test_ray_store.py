@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from semantic_map import cell_keys, kernels
-from semantic_map.ray_frontiers import RayStore, associate, associate_near, frontiers_near
+from semantic_map.ray_frontiers import RayStore, associate, associate_near, frontiers_in_box
 from tests.support.ray_store_ref import SortedRayStore
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -125,7 +125,7 @@ def test_revived_bin_reuses_its_entry_and_merge_appends():
 
 @pytest.mark.parametrize("cost,kern", [("paper", True), ("absolute", True), ("paper", False)])
 def test_association_within_the_rays_box_equals_the_whole_table(cost, kern):
-    """The map casts rays against the frontiers of the rays' box only (``frontiers_near``):
+    """Rays cast against the frontiers of the origins' box grown by max_dist (``frontiers_in_box``):
     same pairs, frontiers and costs as against the whole table; the box selection equals a
     brute-force box test over all keys."""
     g = torch.Generator().manual_seed(3)
@@ -135,7 +135,7 @@ def test_association_within_the_rays_box_equals_the_whole_table(cost, kern):
     # three camera positions (a ray block), 100 rays each
     o = ((torch.rand((3, 3), generator=g, dtype=torch.float64) - 0.5) * 4.0).repeat_interleave(100, 0)
     d = torch.nn.functional.normalize(torch.randn((300, 3), generator=g), dim=1)
-    near = frontiers_near(keys, o, max_dist, beta)
+    near = frontiers_in_box(keys, o.min(0).values - max_dist, o.max(0).values + max_dist, beta)
     lo = torch.floor((o.min(0).values - max_dist) / beta).to(torch.int64) - 1
     hi = torch.floor((o.max(0).values + max_dist) / beta).to(torch.int64) + 1
     box = torch.nonzero(((ijk >= lo) & (ijk <= hi)).all(1)).squeeze(1)
