@@ -33,6 +33,9 @@ from apps.closed_loop.robot import Platform
 from apps.closed_loop.sensing import EdgeChain
 from synthetic_world import World
 
+#: the values of :attr:`LoopSettings.background`
+BACKGROUNDS = ("world", "default")
+
 
 @dataclass
 class LoopSettings:
@@ -53,8 +56,8 @@ class LoopSettings:
 
     def background_phrases(self, world: World) -> list[str] | None:
         """The phrases :attr:`background` names for ``world`` (None: the mapper's default)."""
-        if self.background not in ("world", "default"):
-            raise ValueError(f"background must be 'world' or 'default', not {self.background!r}")
+        if self.background not in BACKGROUNDS:
+            raise ValueError(f"background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
         return list(world.classes) if self.background == "world" else None
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.closed_loop.episode import LoopSettings, Trace, run_episode
+from apps.closed_loop.episode import BACKGROUNDS, LoopSettings, Trace, run_episode
 from apps.closed_loop.metrics import summarize
 from apps.closed_loop.missions import LANDMARK_TARGETS, OBJECT_TARGETS, make_mission
 from apps.closed_loop.policies import MIN_RAY_Z, POLICIES
@@ -80,8 +80,8 @@ class SearchEvalConfig:
             raise ValueError("depth limit 0 is not supported in the closed loop yet: the robot plans on the map's "
                              "occupancy, which a zero-depth map does not have (use 10 and/or 20)")
         Platform.make(self.platform)
-        if self.background not in ("world", "default"):
-            raise ValueError(f"--background must be world or default, not {self.background!r}")
+        if self.background not in BACKGROUNDS:
+            raise ValueError(f"--background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
         if self.episodes < 1 or self.budget_scale <= 0:
             raise ValueError("--episodes must be >= 1 and the budget scale > 0")
         if self.distributed and "sem-poses" in self.policies:

@@ -92,6 +92,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _search_parser(sub) -> None:
+    from apps.closed_loop.episode import BACKGROUNDS
     from apps.closed_loop.evaluate import MISSIONS
     from apps.closed_loop.policies import POLICIES
 
@@ -108,7 +109,7 @@ def _search_parser(sub) -> None:
     se.add_argument("--missions", default="object,landmark",
                     help=f"comma list of mission kinds: {', '.join(MISSIONS)} (default object,landmark)")
     se.add_argument("--budget-scale", type=float, default=1.0, help="scale the step budgets (default 1)")
-    se.add_argument("--background", choices=["world", "default"], default="world",
+    se.add_argument("--background", choices=list(BACKGROUNDS), default="world",
                     help="the searches' background phrases: every class of the world but the target (default; the "
                          "paper's querying softmaxes over all class names) or the mapper's search.background")
     se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
