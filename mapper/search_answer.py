@@ -11,8 +11,10 @@ text embedded as :func:`mapper.query_answer.embed_text` does), then:
   best first: confidence (to 3 decimals: softmax at temperature 100 saturates), then size;
 * ``look_next``: :func:`semantic_map.look_next.look_next` on the map's occupancy and frontiers
   (read under the map lock by the caller through ``read_map``), with each ray's ``ray_z``
-  (:func:`semantic_map.look_next.ray_outlier_z`: how far its cosine to a target stands out
-  among all the map's rays — evidence for far targets whose probabilities are ~0);
+  (:func:`semantic_map.look_next.ray_outlier_z` of :func:`distinct_cosines`: how far its
+  cosine to what sets a target apart from the other phrases stands out among all the map's
+  rays — evidence for far targets whose probabilities are ~0; a ray toward a similar class,
+  a radio tower for a water tower, reads ~0 where its raw cosine would stand out);
 * ``beyond``: best rays per target, triangulated estimates
   (:func:`semantic_map.beyond.triangulate`) and the search volume of the best rays' cones.
 
@@ -97,13 +99,36 @@ def _probabilities(prep, q: torch.Tensor, n_targets: int, temperature: float) ->
 
 def _ray_scores(prep, q: torch.Tensor, n_targets: int, temperature: float) -> tuple[np.ndarray, np.ndarray]:
     """(T, N) softmax probabilities of the targets over targets + background, and (T, N)
-    the targets' cosine similarities (one similarity pass for both)."""
+    the rows' :func:`distinct_cosines` (one similarity pass for both)."""
     if len(prep) == 0:
         return np.zeros((n_targets, 0), np.float32), np.zeros((n_targets, 0), np.float32)
     sim = score_rows(prep, q, None)
     p = torch.softmax(temperature * sim, dim=0) if sim.numel() else sim
     return (p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False),
-            sim[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False))
+            distinct_cosines(sim.detach().cpu().numpy(), q, n_targets))
+
+
+def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int) -> np.ndarray:
+    """(T, N): each row's cosine to what sets each target apart from the other phrases — the
+    part ``u`` of the target's unit embedding that no combination of the other phrases'
+    unit embeddings explains (least squares), from the rows' cosines ``sim`` (Q, N) to the
+    ``Q`` phrases ``q``: ``(cos_t − Σ_j a_j cos_j) / |u|``. A ray toward a class similar to
+    the target (a radio tower for a water tower) reads ~0, one that holds a share of the
+    target reads that share; the raw cosine where there is no other phrase, 0 where the
+    others explain the target wholly."""
+    s = np.asarray(sim, np.float64)
+    qn = torch.nn.functional.normalize(q.to(torch.float64), dim=1).cpu().numpy()
+    out = np.zeros((n_targets, s.shape[1]), np.float32)
+    for t in range(n_targets):
+        rest = np.r_[0:t, t + 1:len(qn)]
+        if not len(rest):
+            out[t] = s[t]
+            continue
+        a = np.linalg.lstsq(qn[rest] @ qn[rest].T, qn[rest] @ qn[t], rcond=1e-9)[0]
+        u2 = 1.0 - float(qn[t] @ qn[rest].T @ a)
+        if u2 > 1e-9:
+            out[t] = (s[t] - a @ s[rest]) / np.sqrt(u2)
+    return out
 
 
 def _voxel_probabilities(snap, fs, prep, q: torch.Tensor, n_targets: int, temperature: float,

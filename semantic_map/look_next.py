@@ -10,9 +10,11 @@ For each frontier (coarse cell centre from the map's frontier table):
   ``ray_radius_m`` of the frontier centre (rays are attached to frontier centres), and the
   target it belongs to (score 0 and target ``None`` without such rays);
 * ``ray_z``: the best :func:`ray_outlier_z` of those rays over the targets (0 without such
-  rays or without the caller's ``ray_z``): how far a ray's cosine to the target stands out
-  among all rays. A far target fills a small part of its rays' mean feature, so its
-  probability is ~0 and says nothing; its rays still read more like it than the others do;
+  rays or without the caller's ``ray_z``): how far a ray's evidence for the target (the
+  caller's: the mapper passes its cosine to what sets the target apart from the other
+  phrases) stands out among all rays. A far target fills a small part of its rays' mean
+  feature, so its probability is ~0 and says nothing; its rays still read more like it than
+  the others do;
 * ``position``: a viewpoint — the centre of a map voxel within ``standoff_m`` of the
   frontier centre that is **free** in the map and has no occupied voxel among its 26
   neighbours, the closest such voxel to the frontier centre (frontiers without one give no
@@ -155,11 +157,11 @@ def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.n
 MIN_RAYS_FOR_Z = 10
 
 
-def ray_outlier_z(cosines: np.ndarray) -> np.ndarray:
-    """(T, R) modified z-score of each ray's cosine to each target among the ``R`` rays
-    (Iglewicz and Hoaglin): ``0.6745 · (cos − median) / MAD`` per target, MAD the median
-    absolute deviation; 0 where fewer than :data:`MIN_RAYS_FOR_Z` rays or a zero MAD."""
-    c = np.asarray(cosines, np.float64)
+def ray_outlier_z(values: np.ndarray) -> np.ndarray:
+    """(T, R) modified z-score of each ray's value (a similarity) for each target among the
+    ``R`` rays (Iglewicz and Hoaglin): ``0.6745 · (v − median) / MAD`` per target, MAD the
+    median absolute deviation; 0 where fewer than :data:`MIN_RAYS_FOR_Z` rays or a zero MAD."""
+    c = np.asarray(values, np.float64)
     c = c if c.ndim == 2 else c.reshape(1, -1)
     z = np.zeros(c.shape, np.float32)
     if c.shape[1] < MIN_RAYS_FOR_Z:

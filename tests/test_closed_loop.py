@@ -109,6 +109,28 @@ def loop():
     return w, chain, mission
 
 
+def test_edge_chain_basis_keeps_every_class_apart(loop):
+    """The closed loop's PCA basis (fitted per world) keeps each of the world's classes: a cell
+    showing one class, compressed and decompressed, reads as that class and no other (cosine
+    to its own name ~1, brute force over all names). A basis fitted on views alone leaves
+    unseen classes to arbitrary directions (world 3: at 96 px its rock read as road, at 224 px
+    its water tower as the radio tower)."""
+    import torch
+
+    from edge.runtime import compress_features
+
+    w, chain, _ = loop
+    names = chain.encoder.table.float()                                   # (K, C) unit rows
+    cells = chain.class_cells().float()
+    assert cells.shape == names.shape
+    y = np.asarray(compress_features(chain.pca, cells.T.reshape(cells.shape[1], -1, 1).numpy()))
+    back = torch.as_tensor(np.asarray(chain.pca.decompress(y.reshape(y.shape[0], -1).T)), dtype=torch.float32)
+    cos = torch.nn.functional.normalize(back, dim=1) @ names.T
+    for k, name in enumerate(w.classes):
+        assert int(cos[k].argmax()) == k, (name, w.classes[int(cos[k].argmax())])
+        assert float(cos[k, k]) > 0.999, name
+
+
 def test_navfield_paths_stay_in_traversable_known_free_cells():
     """Paths only cross cells that are FREE with no occupied/unknown cell within the body's
     clearance (checked cell by cell here, against the states directly), and lengths equal an

@@ -246,3 +246,43 @@ def test_answer_search_equals_the_plain_path_across_map_changes(monkeypatch):
         _change(mp, 16, g, 31)
         mp.sem.remove(mp.sem.keys[:200].clone())
     assert n_found > 0
+
+
+def test_distinct_cosines_against_the_projection_and_a_similar_class_reads_zero():
+    """The rays' evidence for ray_z (mapper.search_answer.distinct_cosines) equals the cosine of
+    each ray to the target's embedding minus its least-squares projection on the other
+    phrases (computed here on the vectors, not the cosines), and on rays toward a class
+    similar to the target (a radio tower for a water tower: cosine 0.86) beside rays that hold
+    a small share of the target, the target's rays stand out while by raw cosine the similar
+    class's do."""
+    from mapper.search_answer import _ray_scores, distinct_cosines
+    from semantic_map.look_next import ray_outlier_z
+
+    rng = np.random.default_rng(3)
+    D = 32
+    basis = np.linalg.qr(rng.normal(size=(D, 6)))[0].T            # orthonormal class directions
+    water, radio = basis[0], 0.86 * basis[0] + np.sqrt(1 - 0.86 ** 2) * basis[1]
+    others = basis[2:]                                              # building, tree, ground, road
+    q = torch.as_tensor(np.vstack([water, radio, others]), dtype=torch.float32)
+    rays = [w @ others + 0.02 * rng.normal(size=D) for w in rng.dirichlet(np.ones(4), 60)]
+    at_radio = [radio + 0.02 * rng.normal(size=D) for _ in range(4)]
+    at_water = [0.3 * water + 0.7 * others[0] + 0.02 * rng.normal(size=D) for _ in range(4)]
+    feats = torch.as_tensor(np.vstack(rays + at_radio + at_water), dtype=torch.float32)
+    radio_rows, water_rows = np.arange(60, 64), np.arange(64, 68)
+
+    p, ev = _ray_scores(feats, q, 2, 100.0)
+    f = feats.numpy().astype(np.float64)
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    qv = q.numpy().astype(np.float64)
+    for t in range(2):
+        rest = np.delete(qv, t, 0)
+        u = qv[t] - rest.T @ np.linalg.lstsq(rest.T, qv[t], rcond=None)[0]
+        assert np.allclose(ev[t], f @ (u / np.linalg.norm(u)), atol=1e-5)
+    assert np.abs(ev[0, radio_rows]).max() < 0.1 and ev[0, water_rows].min() > 0.15
+    z, z_cos = ray_outlier_z(ev[:1])[0], ray_outlier_z((f @ qv[0])[None])[0]
+    assert z[water_rows].min() > z[radio_rows].max() and int(np.argmax(z)) in water_rows
+    assert int(np.argmax(z_cos)) in radio_rows                       # what raw cosines chase
+    sim = (f @ qv.T).T
+    assert np.allclose(distinct_cosines(sim[:1], q[:1], 1), sim[:1], atol=1e-6)    # no other phrase
+    twin = torch.cat([q[:1], q[:1]])                                 # the others explain it wholly
+    assert not distinct_cosines(np.vstack([sim[:1], sim[:1]]), twin, 1).any()

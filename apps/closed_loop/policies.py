@@ -7,11 +7,13 @@ Every map-based policy confirms the same way: an undeclared found instance of th
 
 * ``rayfronts``: the look-next goal with the best semantic score (rays of the RayFronts map
   toward the target, 30° bins), the nearest by path among goals within 10 % of the best,
-  preferring those whose rays point on the way there (:func:`_onward`); when none does,
-  toward where the target's rays cross (:func:`_toward_estimate`);
+  preferring those whose rays point on the way there (:func:`_onward`); when none does, on
+  past them along their rays (:func:`_beyond_evidence`), else toward where the target's rays
+  cross (:func:`_toward_estimate`);
   when no score reaches ``min_score`` (a far target fills a small share of its rays, so its
   probabilities are ~0), the goal whose ray stands out most (``ray_z`` ≥ ``min_ray_z``: the
-  ray's cosine to the target is an outlier among the rays'), the nearest by path among goals
+  ray's cosine to what sets the target apart from the other phrases is an outlier among the
+  rays'), the nearest by path among goals
   within 10 % of it — or, when its frontier is next to the robot (where the rays left the
   known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); without
   either like ``frontier``;
@@ -115,8 +117,7 @@ def _reachable_goals(obs: Observation, nav: NavField, state: PolicyState) -> lis
 
 
 #: a ray is evidence for a far target when its ray_z reaches this: Iglewicz and Hoaglin's
-#: usual outlier cut for the modified z-score (not tuned; on development seed 0 the rays
-#: toward the water tower read 5-8 from 200-240 m, the best of the others up to 3.6)
+#: usual outlier cut for the modified z-score (not tuned)
 MIN_RAY_Z = 3.5
 
 
@@ -173,7 +174,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             pool = [x for x in goals if x[0]["score"] >= 0.9 * top]
             onward = _onward(pool, at) if at is not None else []
             if not onward and at is not None:
-                d = _toward_estimate(obs, goals, at, min_score, top)
+                d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top)
                 if d is not None:
                     return d
             g, cell, _ = min(onward or pool, key=lambda x: x[2])
@@ -213,6 +214,31 @@ def _onward(goals: list, at: np.ndarray, min_cos: float = 0.8) -> list:
     Among frontiers whose rays all see the target, these lead toward it, not sideways."""
     return [x for x in goals if x[0].get("heading_rad") is not None and
             _ahead([x], at, np.array([np.cos(x[0]["heading_rad"]), np.sin(x[0]["heading_rad"])]), min_cos)]
+
+
+def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8, min_on_m: float = 4.0
+                     ) -> Decision | None:
+    """On past the goals whose rays see the target (``pool``): the goal with the shortest path
+    among those lying ahead along a pool goal's rays — bearing from the pool goal within
+    ``acos(min_cos)`` of its ``heading_rad``, at least ``min_on_m`` on along it. The target
+    lies on along those rays, not at the frontier where they were cast; for when no pool goal
+    is on the robot's way (the robot has passed them: close to a tall landmark a camera
+    tilted down loses its top, and the frontiers ahead gather no new rays). The decision
+    carries ``score``, the evidence that led here, so it is held like a ray goal."""
+    best = None
+    for g, _, _ in pool:
+        if g.get("heading_rad") is None:
+            continue
+        o = np.asarray(g["position"][:2], np.float64)
+        h = np.array([np.cos(g["heading_rad"]), np.sin(g["heading_rad"])])
+        for x in _ahead(goals, o, h, min_cos):
+            if float((np.asarray(x[0]["position"][:2], np.float64) - o) @ h) >= min_on_m \
+                    and (best is None or x[2] < best[2]):
+                best = x
+    if best is None:
+        return None
+    g, cell, _ = best
+    return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="beyond rays", score=float(score))
 
 
 def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: float, score: float,

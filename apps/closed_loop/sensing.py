@@ -50,9 +50,13 @@ class SensorConfig:
 class EdgeChain:
     """The edge's per-frame work in process: encoder → PCA → wire encode → decode.
 
-    The PCA basis is fitted once per world on ``fit_views`` renders around the world centre
-    (as an operator fits a basis offline before a mission), so every policy and every episode
-    of a world see the same feature space."""
+    The PCA basis is fitted once per world, as an operator fits a basis offline before a
+    mission on data of the site, so every policy and every episode of a world see the same
+    feature space: ``fit_views`` renders around the world centre plus one cell of each of the
+    world's classes (the label encoder's feature of a cell showing only that class). Without
+    the class cells a class that no fitting view shows (a far tower, a small bench) is left to
+    the arbitrary basis directions of zero variance, and its compressed feature can read as
+    another class (dev world 3: the water tower as the radio tower)."""
 
     def __init__(self, world: World, cfg: SensorConfig, fit_views: int = 8):
         from common.feature_space import FeatureSpace
@@ -68,15 +72,27 @@ class EdgeChain:
         hw = (cfg.resolution, cfg.resolution)
         self.hw = hw
         self.K = world.camera(hw, 90.0)
-        fit = OnlinePCAFitter(cfg.pca_dim, max_frames=fit_views)
-        for k in range(fit_views):
-            pose = camera_pose(np.array([0.0, 0.0, 1.5]), 2 * math.pi * k / fit_views, 0.3 * (k % 2))
-            r = world.render(pose, self.K, hw)
-            with torch.inference_mode():
+        fit = OnlinePCAFitter(cfg.pca_dim, max_frames=fit_views + 1)
+        with torch.inference_mode():
+            for k in range(fit_views):
+                pose = camera_pose(np.array([0.0, 0.0, 1.5]), 2 * math.pi * k / fit_views, 0.3 * (k % 2))
+                r = world.render(pose, self.K, hw)
                 fit.add(self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")[0])
+            fit.add(self.class_cells())
         self.pca = fit.fit()
         self.space = FeatureSpace.for_encoder(self.encoder, self.pca)
         self.seq = 0
+
+    def class_cells(self, side_px: int = 32) -> torch.Tensor:
+        """(K, C): the encoder's feature of an image showing only class k (``side_px`` square,
+        its cells averaged), for each of the world's K classes."""
+        rgb = np.zeros((side_px, side_px, 3), np.uint8)
+        rows = []
+        for k in range(len(self.world.classes)):
+            lab = np.full((side_px, side_px), k, np.int64)
+            x = self.encoder.encode_with_global(rgb, lab, global_space="features")[0]
+            rows.append(x.reshape(x.shape[0], -1).mean(1))
+        return torch.stack(rows)
 
     def view_poses(self, platform: Platform, centre: np.ndarray) -> list[np.ndarray]:
         """Camera poses of one step's views at camera centre ``centre`` (m)."""
