@@ -94,7 +94,15 @@ def embed_phrases(fs, req: SearchRequest, background: list[str], device, model_d
 
 def _probabilities(prep, q: torch.Tensor, n_targets: int, temperature: float) -> np.ndarray:
     """(T, N) softmax probabilities of the targets over targets + background."""
-    return _ray_scores(prep, q, n_targets, temperature)[0]
+    if len(prep) == 0:
+        return np.zeros((n_targets, 0), np.float32)
+    return _target_softmax(score_rows(prep, q, None), n_targets, temperature)
+
+
+def _target_softmax(sim: torch.Tensor, n_targets: int, temperature: float) -> np.ndarray:
+    """(T, N) the first ``n_targets`` rows of the softmax over all rows of ``temperature · sim``."""
+    p = torch.softmax(temperature * sim, dim=0) if sim.numel() else sim
+    return p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False)
 
 
 def _ray_scores(prep, q: torch.Tensor, n_targets: int, temperature: float) -> tuple[np.ndarray, np.ndarray]:
@@ -103,9 +111,7 @@ def _ray_scores(prep, q: torch.Tensor, n_targets: int, temperature: float) -> tu
     if len(prep) == 0:
         return np.zeros((n_targets, 0), np.float32), np.zeros((n_targets, 0), np.float32)
     sim = score_rows(prep, q, None)
-    p = torch.softmax(temperature * sim, dim=0) if sim.numel() else sim
-    return (p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False),
-            distinct_cosines(sim.detach().cpu().numpy(), q, n_targets))
+    return _target_softmax(sim, n_targets, temperature), distinct_cosines(sim.detach().cpu().numpy(), q, n_targets)
 
 
 def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int) -> np.ndarray:

@@ -208,12 +208,17 @@ def _ahead(goals: list, origin: np.ndarray, heading: np.ndarray, min_cos: float 
     return out
 
 
+def _heading(goal: dict) -> np.ndarray:
+    """The unit xy vector of a goal's ``heading_rad`` (the yaw of its rays)."""
+    return np.array([np.cos(goal["heading_rad"]), np.sin(goal["heading_rad"])])
+
+
 def _onward(goals: list, at: np.ndarray, min_cos: float = 0.8) -> list:
     """The goals whose rays point on the way there: the bearing from the robot at ``at`` to
     the goal lies within ``acos(min_cos)`` of the goal's ``heading_rad`` (the yaw of its rays).
     Among frontiers whose rays all see the target, these lead toward it, not sideways."""
     return [x for x in goals if x[0].get("heading_rad") is not None and
-            _ahead([x], at, np.array([np.cos(x[0]["heading_rad"]), np.sin(x[0]["heading_rad"])]), min_cos)]
+            _ahead([x], at, _heading(x[0]), min_cos)]
 
 
 def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8, min_on_m: float = 4.0
@@ -230,7 +235,7 @@ def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8
         if g.get("heading_rad") is None:
             continue
         o = np.asarray(g["position"][:2], np.float64)
-        h = np.array([np.cos(g["heading_rad"]), np.sin(g["heading_rad"])])
+        h = _heading(g)
         for x in _ahead(goals, o, h, min_cos):
             if float((np.asarray(x[0]["position"][:2], np.float64) - o) @ h) >= min_on_m \
                     and (best is None or x[2] < best[2]):
@@ -277,7 +282,7 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     g, cell, _ = min(pool, key=lambda x: x[2])
     why = f"ray z {g.get('ray_z', 0.0):.1f}"
     if not any(x[0] is g for x in far):
-        h = np.array([np.cos(g["heading_rad"]), np.sin(g["heading_rad"])])
+        h = _heading(g)
         ahead = _ahead(far, np.asarray(g["position"][:2], np.float64), h, min_cos)
         if ahead:
             g, cell, _ = min(ahead, key=lambda x: x[2])
