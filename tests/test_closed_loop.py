@@ -186,6 +186,39 @@ def test_ray_policies_follow_an_outlier_ray_when_probabilities_are_zero():
     assert np.allclose(d.goal_xy, far["position"][:2]) and d.why.startswith("ray z")
 
 
+def test_ray_policy_leaves_evidence_it_has_passed_for_the_fresh_outlier_ahead():
+    """Close to a tall landmark the camera loses its top: the frontier that kept the strong
+    rays (probability 1) lies behind the robot, which stands on along those rays. RayFronts
+    follows the fresh, weaker evidence next to it (an outlier ray, probability ~0) rather
+    than the shortest-path goal somewhere ahead along the spent rays, and holds that goal
+    the next step (the spent goal's score does not count as a better goal)."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, explore
+    from apps.closed_loop.world_model import Observation
+
+    states = np.full((140, 60), FREE, np.int8)
+    at = np.array([40.0, 5.0, 1.5])
+
+    def goal(x, y, score, z, gain=1.0):
+        return dict(position=[x, y, 1.5], score=score, gain_m3=gain, ray_z=z, heading_rad=0.0, target="water tower")
+
+    spent = goal(5.0, 5.0, 1.0, 1e6)                 # 35 m behind, its rays point at the robot's way
+    fresh = goal(55.0, 4.0, 1e-9, MIN_RAY_Z + 2.0)   # 15 m ahead
+    side = goal(42.0, 17.0, 1e-9, 0.0, gain=50.0)    # 12 m away, also ahead along the spent rays
+    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
+    obs = Observation([], [spent, fresh, side], states, np.zeros(2), 0.5)
+    state = PolicyState()
+    d = explore("rayfronts", obs, nav, state)
+    assert np.allclose(d.goal_xy, fresh["position"][:2]) and d.why.startswith("ray z"), d
+    d = explore("rayfronts", obs, nav, state)
+    assert np.allclose(d.goal_xy, fresh["position"][:2]) and d.why == "held goal", d
+    # not passed (the robot stands beside the spent goal's rays, not on along them): it still leads
+    at2 = np.array([8.0, 25.0, 1.5])
+    nav2 = NavField(states, np.zeros(2), 0.5, at2, 0.4)
+    d = explore("rayfronts", obs, nav2, PolicyState())
+    assert d.why.startswith("rays 1.00") or d.why == "beyond rays", d
+
+
 def test_oracle_drives_the_true_shortest_path(loop):
     import dataclasses
 

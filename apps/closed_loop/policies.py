@@ -5,8 +5,11 @@ Every map-based policy confirms the same way: an undeclared found instance of th
 (the search's ``found``, stable ids) is driven to; once the robot is within ``reach_m``
 (xy) of its box it is declared. They differ in how they explore until then:
 
-* ``rayfronts``: the look-next goal with the best semantic score (rays of the RayFronts map
-  toward the target, 30° bins), the nearest by path among goals within 10 % of the best,
+* ``rayfronts``: goals the robot has passed — it stands on along their rays
+  (:func:`_passed`) — are set apart: their evidence is spent, and only when no other goal
+  has any is it followed on (below). Among the rest: the look-next goal with the best
+  semantic score (rays of the RayFronts map toward the target, 30° bins), the nearest by
+  path among goals within 10 % of the best,
   preferring those whose rays point on the way there (:func:`_onward`); when none does, on
   past them along their rays (:func:`_beyond_evidence`), else toward where the target's rays
   cross (:func:`_toward_estimate`);
@@ -133,7 +136,8 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
     d = _choose(name, obs, far, min_score, min_ray_z, goals, at)
     evidence = not d.why.startswith("frontier")
-    held = _held(state, nav, far, evidence)
+    spent = _passed(far, at) if _semantic(name) else []
+    held = _held(state, nav, [x for x in far if not any(x is y for y in spent)] or far, evidence)
     if held is not None:
         return held
     state.goal = (d.goal_xy, d.score, evidence)
@@ -169,9 +173,12 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
     outlier ray may be attached next to the robot)."""
     if _semantic(name):
-        top = max(g["score"] for g, _, _ in goals)
+        every = every or goals
+        passed = _passed(every, at) if at is not None else []
+        live = [x for x in goals if not any(x is y for y in passed)]
+        top = max((g["score"] for g, _, _ in live), default=0.0)
         if top >= min_score:
-            pool = [x for x in goals if x[0]["score"] >= 0.9 * top]
+            pool = [x for x in live if x[0]["score"] >= 0.9 * top]
             onward = _onward(pool, at) if at is not None else []
             if not onward and at is not None:
                 d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top)
@@ -180,9 +187,15 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             g, cell, _ = min(onward or pool, key=lambda x: x[2])
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
-        d = _follow_outlier(every or goals, goals, min_ray_z)
+        d = _follow_outlier([x for x in every if not any(x is y for y in passed)] or every, live or goals, min_ray_z)
         if d is not None:
             return d
+        top = max((g["score"] for g, _, _ in passed), default=0.0)
+        if top >= min_score and at is not None:
+            pool = [x for x in passed if x[0]["score"] >= 0.9 * top]
+            d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top)
+            if d is not None:
+                return d
     if name == "sem-poses" and obs.poses:
         o, d, s = max(obs.poses, key=lambda p: p[2])
         h = np.asarray(d[:2], np.float64)
@@ -219,6 +232,25 @@ def _onward(goals: list, at: np.ndarray, min_cos: float = 0.8) -> list:
     Among frontiers whose rays all see the target, these lead toward it, not sideways."""
     return [x for x in goals if x[0].get("heading_rad") is not None and
             _ahead([x], at, _heading(x[0]), min_cos)]
+
+
+def _passed(goals: list, at: np.ndarray, min_cos: float = 0.8, min_on_m: float = 4.0) -> list:
+    """The goals the robot at ``at`` has passed: it stands on along their rays (bearing from
+    the goal within ``acos(min_cos)`` of its ``heading_rad``, at least ``min_on_m`` on). What
+    their rays saw lies ahead of the robot now; their evidence is spent (a frontier keeps the
+    rays of a direction until it is explored, so far behind the robot they would outrank the
+    fresh rays cast next to it)."""
+    out = []
+    for x in goals:
+        if x[0].get("heading_rad") is None:
+            continue
+        o = np.asarray(x[0]["position"][:2], np.float64)
+        h = _heading(x[0])
+        v = np.asarray(at[:2], np.float64) - o
+        on = float(v @ h)
+        if on >= min_on_m and on >= min_cos * float(np.linalg.norm(v)):
+            out.append(x)
+    return out
 
 
 def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8, min_on_m: float = 4.0
