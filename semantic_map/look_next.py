@@ -30,9 +30,13 @@ For each frontier (coarse cell centre from the map's frontier table):
 
 Goals are ranked by score to three decimals (descending: softmax at temperature 100
 saturates, and below 0.001 it tells nothing apart), then by ``ray_z`` (descending), then by
-``gain_m3 / (1 + distance_m)`` (descending); at most one goal per viewpoint voxel. Only the
-``max_candidates`` best frontiers by score (then distance) and the ``max_candidates`` best by
-``ray_z`` are examined.
+``gain_m3 / (1 + distance_m)`` (descending); at most one goal per viewpoint voxel. With
+``from_xyz``, ``explore_share`` of the ``max_goals`` places go to the goals with the best
+``gain_m3 / (1 + distance_m)`` among those the ranking leaves out: when more frontiers hold
+evidence than there are places (a robot amid frontiers that once saw a far landmark), the
+list still shows the way on. Only the ``max_candidates`` best frontiers by score (then
+distance), the ``max_candidates`` best by ``ray_z`` and, with ``from_xyz``, the
+``max_candidates`` nearest are examined.
 """
 from __future__ import annotations
 
@@ -261,7 +265,8 @@ def _best_first(score: np.ndarray, dist: np.ndarray, k: int) -> np.ndarray:
 def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
               ray_scores: np.ndarray, targets: list[str], from_xyz=None, *, ray_z: np.ndarray | None = None,
               ray_radius_m: float = 1.0, standoff_m: float = 1.0, sensing_radius_m: float = 3.0,
-              max_goals: int = 10, max_candidates: int = 64, max_rays: int = 5) -> list[Goal]:
+              max_goals: int = 10, max_candidates: int = 64, max_rays: int = 5,
+              explore_share: float = 0.25) -> list[Goal]:
     """Ranked exploration goals (module docstring). ``frontiers`` (F, 3) frontier centres
     (already filtered to the area of interest), rays ``(R, 3)`` origins and unit directions,
     ``ray_scores`` (R, T) per target in [0, 1], ``targets`` the T names, ``ray_z`` (R, T)
@@ -292,8 +297,11 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
     fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
     k = max(max_candidates, max_goals)
     order = _best_first(fscore, fdist, k)
-    if fz.any():
-        order = np.asarray(list(dict.fromkeys([*order.tolist(), *_best_first(fz, fdist, k).tolist()])), np.int64)
+    extra = [_best_first(fz, fdist, k)] if fz.any() else []
+    if start is not None:
+        extra.append(_best_first(np.zeros(len(f)), fdist, k))     # the nearest: the way on
+    if extra:
+        order = np.asarray(list(dict.fromkeys(np.concatenate([order, *extra]).tolist())), np.int64)
     goals: list[Goal] = []
     seen: set = set()
     views = _viewpoints(grid, vox, f[order], standoff_m)
@@ -321,5 +329,18 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
         gains = unknown_volume(grid, vox, np.stack([g.position for g in goals]), sensing_radius_m)
         for g, gain in zip(goals, gains, strict=True):
             g.gain_m3 = float(gain)
-    goals.sort(key=lambda g: (-round(g.score, 3), -g.ray_z, -g.gain_m3 / (1.0 + g.distance_m)))
+    return _ranked(goals, max_goals, int(max_goals * explore_share) if start is not None else 0)
+
+
+def _rank(g: Goal) -> tuple:
+    return -round(g.score, 3), -g.ray_z, -g.gain_m3 / (1.0 + g.distance_m)
+
+
+def _ranked(goals: list[Goal], max_goals: int, n_explore: int) -> list[Goal]:
+    """The ``max_goals`` best by :func:`_rank`, of which the last ``n_explore`` places go to
+    the best by gain per distance among the rest (module docstring), in rank order."""
+    goals = sorted(goals, key=_rank)
+    if len(goals) > max_goals and n_explore > 0:
+        rest = sorted(goals[max_goals - n_explore:], key=lambda g: -g.gain_m3 / (1.0 + g.distance_m))
+        goals = sorted(goals[:max_goals - n_explore] + rest[:n_explore], key=_rank)
     return goals[:max_goals]

@@ -219,6 +219,57 @@ def test_ray_policy_leaves_evidence_it_has_passed_for_the_fresh_outlier_ahead():
     assert d.why.startswith("rays 1.00") or d.why == "beyond rays", d
 
 
+def test_ray_policy_does_not_follow_a_ray_crossing_back_behind_it():
+    """Rays cast close together and nearly parallel cross near where they were cast: such an
+    estimate behind the robot (along its evidence's heading) is not driven back to; one
+    ahead is."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.policies import PolicyState, explore
+    from apps.closed_loop.world_model import Observation
+
+    states = np.full((140, 60), FREE, np.int8)
+    at = np.array([40.0, 5.0, 1.5])
+    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
+
+    def goal(x, y, score, heading=None):
+        return dict(position=[x, y, 1.5], score=score, gain_m3=1.0, ray_z=0.0, heading_rad=heading,
+                    target="water tower")
+
+    goals = [goal(30.0, 5.0, 1.0, 0.0), goal(20.0, 5.0, 0.0), goal(38.0, 20.0, 0.0)]   # evidence passed, +x
+    for est, want in [((25.0, 5.0), None), ((60.0, 20.0), (38.0, 20.0))]:
+        obs = Observation([], goals, states, np.zeros(2), 0.5,
+                          estimates=[dict(position=[*est, 20.0], score=1.0, target="water tower")])
+        d = explore("rayfronts", obs, nav, PolicyState())
+        if want is None:
+            assert d.why != "toward estimate", d
+        else:
+            assert d.why == "toward estimate" and np.allclose(d.goal_xy, want), d
+
+
+def test_ray_policy_counts_the_unknown_gap_to_a_goal():
+    """Of two goals with the same evidence, the one behind unknown space — a short path to
+    the reachable cell nearest it, then a long gap — is farther than a reachable one with a
+    longer path (the robot would stop at the gap's edge and set it aside)."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.policies import PolicyState, explore
+    from apps.closed_loop.world_model import Observation
+
+    states = np.full((100, 60), FREE, np.int8)
+    states[24:, :30] = UNKNOWN                         # x > 12 m, y < 15 m: not mapped yet
+    at = np.array([5.0, 5.0, 1.5])
+    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
+
+    def goal(x, y):
+        return dict(position=[x, y, 1.5], score=1.0, gain_m3=1.0, ray_z=0.0, target="water tower")
+
+    behind, open_ = goal(20.0, 5.0), goal(5.0, 17.0)
+    _, path_b, gap_b = nav.nearest_reachable(np.array(behind["position"][:2]))
+    _, path_o, gap_o = nav.nearest_reachable(np.array(open_["position"][:2]))
+    assert path_b < path_o and gap_o < 0.5 and path_b + gap_b > path_o + gap_o   # the premise
+    d = explore("rayfronts", Observation([], [behind, open_], states, np.zeros(2), 0.5), nav, PolicyState())
+    assert np.allclose(d.goal_xy, open_["position"][:2]), d
+
+
 def test_oracle_drives_the_true_shortest_path(loop):
     import dataclasses
 

@@ -252,6 +252,33 @@ def test_look_next_brings_a_far_outlier_ray_forward(built):
         look_next(m.occupancy, VOX, f, o, d, score, ["water tower"], ray_z=z[:-1])
 
 
+def test_look_next_keeps_places_for_the_way_on(built):
+    """When more frontiers hold evidence than ``max_goals`` has places, a quarter of the places
+    go to the best gain per distance among the goals the ranking leaves out (brute force: the
+    whole ranked list, cut by hand); without ``from_xyz`` or with ``explore_share=0`` the list
+    is the ranking's head."""
+    m = built["map"]
+    rl = m.rays()
+    o, d = rl.origins.numpy(), rl.directions.numpy()
+    f = m.frontiers().centres.numpy()
+    start = built["poses"][STAGES[-1] - 1][:3, 3]
+    r = np.linalg.norm(o - start, axis=1)
+    score = (r > np.median(r)).astype(np.float64)[:, None]          # the far half of the rays see it
+    kw = dict(from_xyz=start, max_candidates=100000, ray_radius_m=1.0, sensing_radius_m=2.0)
+    every = look_next(m.occupancy, VOX, f, o, d, score, ["car"], max_goals=100000, **kw)
+    n = 8
+    assert sum(g.score > 0.5 for g in every) > n                    # more evidence than places
+    goals = look_next(m.occupancy, VOX, f, o, d, score, ["car"], max_goals=n, **kw)
+    rest = sorted(every[n - 2:], key=lambda g: -g.gain_m3 / (1.0 + g.distance_m))[:2]
+    key = lambda g: tuple(np.round(g.position, 6))                  # noqa: E731
+    assert {key(g) for g in goals} == {key(g) for g in every[:n - 2] + rest}
+    assert any(g.score < 0.5 for g in goals)                        # the way on: no evidence, near
+    head = look_next(m.occupancy, VOX, f, o, d, score, ["car"], max_goals=n, explore_share=0.0, **kw)
+    assert [key(g) for g in head] == [key(g) for g in every[:n]]
+    scores = [round(g.score, 3) for g in goals]
+    assert scores == sorted(scores, reverse=True)                   # still in rank order
+
+
 def test_unknown_volume_brute_force(built):
     m = built["map"]
     p = np.array([[1.0, 2.0, 1.2], [5.0, -3.0, 0.5]])

@@ -8,15 +8,16 @@ Every map-based policy confirms the same way: an undeclared found instance of th
 * ``rayfronts``: goals the robot has passed — it stands on along their rays
   (:func:`_passed`) — are set apart: their evidence is spent, and only when no other goal
   has any is it followed on (below). Among the rest: the look-next goal with the best
-  semantic score (rays of the RayFronts map toward the target, 30° bins), the nearest by
-  path among goals within 10 % of the best,
+  semantic score (rays of the RayFronts map toward the target, 30° bins), the nearest
+  (:func:`_cost`: the path to the cell nearest the goal the robot can reach, plus the gap
+  of unknown space beyond it) among goals within 10 % of the best,
   preferring those whose rays point on the way there (:func:`_onward`); when none does, on
   past them along their rays (:func:`_beyond_evidence`), else toward where the target's rays
-  cross (:func:`_toward_estimate`);
+  cross (:func:`_toward_estimate`; not back behind the robot);
   when no score reaches ``min_score`` (a far target fills a small share of its rays, so its
   probabilities are ~0), the goal whose ray stands out most (``ray_z`` ≥ ``min_ray_z``: the
   ray's cosine to what sets the target apart from the other phrases is an outlier among the
-  rays'), the nearest by path among goals
+  rays'), the nearest among goals
   within 10 % of it — or, when its frontier is next to the robot (where the rays left the
   known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); without
   either like ``frontier``;
@@ -115,8 +116,14 @@ def _reachable_goals(obs: Observation, nav: NavField, state: PolicyState) -> lis
             if not nav.boxed_in():      # boxed in, no goal is reachable: the robot's fault, not the goal's
                 state.set_aside.append(xy)
             continue
-        out.append((g, cell, path_m))
+        out.append((dict(g, gap_m=float(gap)), cell, path_m))
     return out
+
+
+def _cost(x: tuple) -> float:
+    """How far a reachable goal ``(goal, cell, path_m)`` is: the path to the cell nearest it
+    that the robot can reach, plus the straight gap from there (unknown space between)."""
+    return x[2] + x[0].get("gap_m", 0.0)
 
 
 #: a ray is evidence for a far target when its ray_z reaches this: Iglewicz and Hoaglin's
@@ -181,10 +188,10 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             pool = [x for x in live if x[0]["score"] >= 0.9 * top]
             onward = _onward(pool, at) if at is not None else []
             if not onward and at is not None:
-                d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top)
+                d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top, pool=pool)
                 if d is not None:
                     return d
-            g, cell, _ = min(onward or pool, key=lambda x: x[2])
+            g, cell, _ = min(onward or pool, key=_cost)
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
         d = _follow_outlier([x for x in every if not any(x is y for y in passed)] or every, live or goals, min_ray_z)
@@ -193,7 +200,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
         top = max((g["score"] for g, _, _ in passed), default=0.0)
         if top >= min_score and at is not None:
             pool = [x for x in passed if x[0]["score"] >= 0.9 * top]
-            d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top)
+            d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top, pool=pool)
             if d is not None:
                 return d
     if name == "sem-poses" and obs.poses:
@@ -234,23 +241,15 @@ def _onward(goals: list, at: np.ndarray, min_cos: float = 0.8) -> list:
             _ahead([x], at, _heading(x[0]), min_cos)]
 
 
-def _passed(goals: list, at: np.ndarray, min_cos: float = 0.8, min_on_m: float = 4.0) -> list:
-    """The goals the robot at ``at`` has passed: it stands on along their rays (bearing from
-    the goal within ``acos(min_cos)`` of its ``heading_rad``, at least ``min_on_m`` on). What
+def _passed(goals: list, at: np.ndarray, min_on_m: float = 4.0) -> list:
+    """The goals the robot at ``at`` has passed: it stands at least ``min_on_m`` on along
+    their rays (the robot's offset from the goal, projected on its ``heading_rad``). What
     their rays saw lies ahead of the robot now; their evidence is spent (a frontier keeps the
     rays of a direction until it is explored, so far behind the robot they would outrank the
     fresh rays cast next to it)."""
-    out = []
-    for x in goals:
-        if x[0].get("heading_rad") is None:
-            continue
-        o = np.asarray(x[0]["position"][:2], np.float64)
-        h = _heading(x[0])
-        v = np.asarray(at[:2], np.float64) - o
-        on = float(v @ h)
-        if on >= min_on_m and on >= min_cos * float(np.linalg.norm(v)):
-            out.append(x)
-    return out
+    return [x for x in goals if x[0].get("heading_rad") is not None and
+            float((np.asarray(at[:2], np.float64) - np.asarray(x[0]["position"][:2], np.float64)) @ _heading(x[0]))
+            >= min_on_m]
 
 
 def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8, min_on_m: float = 4.0
@@ -270,7 +269,7 @@ def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8
         h = _heading(g)
         for x in _ahead(goals, o, h, min_cos):
             if float((np.asarray(x[0]["position"][:2], np.float64) - o) @ h) >= min_on_m \
-                    and (best is None or x[2] < best[2]):
+                    and (best is None or _cost(x) < _cost(best)):
                 best = x
     if best is None:
         return None
@@ -279,17 +278,22 @@ def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8
 
 
 def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: float, score: float,
-                     min_gain_m: float = 2.0) -> Decision | None:
+                     min_gain_m: float = 2.0, pool: list | None = None) -> Decision | None:
     """Toward where the target's rays cross (the search's best ``beyond`` estimate with
     score ≥ ``min_score``): the goal with the shortest path plus straight line on to the
     estimate, among those at least ``min_gain_m`` nearer to it than the robot; the decision
     carries ``score``, the evidence that led here, so it is held like a ray goal. For when the
     rays that see the target all sit behind the robot: close to a tall landmark, a camera
-    tilted down no longer sees its top, and the frontiers ahead gather no rays."""
+    tilted down no longer sees its top, and the frontiers ahead gather no rays. An estimate
+    behind the robot along the ``pool`` goals' mean heading (nearly parallel rays cast close
+    together cross near where they were cast) is not followed back."""
     est = [e for e in obs.estimates if e.get("score", 0.0) >= min_score]
     if not est:
         return None
     e = np.asarray(max(est, key=lambda e: e["score"])["position"][:2], np.float64)
+    hs = [_heading(g) for g, _, _ in pool or [] if g.get("heading_rad") is not None]
+    if hs and float((e - np.asarray(at[:2], np.float64)) @ np.sum(hs, axis=0)) < 0.0:
+        return None
     here = float(np.linalg.norm(e - np.asarray(at[:2], np.float64)))
     best = None
     for x in goals:
@@ -311,13 +315,13 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     if top < min_ray_z:
         return None
     pool = [x for x in every if x[0].get("ray_z", 0.0) >= 0.9 * top]
-    g, cell, _ = min(pool, key=lambda x: x[2])
+    g, cell, _ = min(pool, key=_cost)
     why = f"ray z {g.get('ray_z', 0.0):.1f}"
     if not any(x[0] is g for x in far):
         h = _heading(g)
         ahead = _ahead(far, np.asarray(g["position"][:2], np.float64), h, min_cos)
         if ahead:
-            g, cell, _ = min(ahead, key=lambda x: x[2])
+            g, cell, _ = min(ahead, key=_cost)
             why += " ahead"
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=why, score=float(g["score"]))
 
