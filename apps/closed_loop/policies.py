@@ -120,6 +120,12 @@ def _reachable_goals(obs: Observation, nav: NavField, state: PolicyState) -> lis
     return out
 
 
+def _without(goals: list, drop: list) -> list:
+    """``goals`` less the entries (the same objects) in ``drop``, in order."""
+    gone = {id(x) for x in drop}
+    return [x for x in goals if id(x) not in gone]
+
+
 def _cost(x: tuple) -> float:
     """How far a reachable goal ``(goal, cell, path_m)`` is: the path to the cell nearest it
     that the robot can reach, plus the straight gap from there (unknown space between)."""
@@ -144,7 +150,7 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     d = _choose(name, obs, far, min_score, min_ray_z, goals, at)
     evidence = not d.why.startswith("frontier")
     spent = _passed(far, at) if _semantic(name) else []
-    held = _held(state, nav, [x for x in far if not any(x is y for y in spent)] or far, evidence)
+    held = _held(state, nav, _without(far, spent) or far, evidence)
     if held is not None:
         return held
     state.goal = (d.goal_xy, d.score, evidence)
@@ -182,7 +188,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
     if _semantic(name):
         every = every or goals
         passed = _passed(every, at) if at is not None else []
-        live = [x for x in goals if not any(x is y for y in passed)]
+        live = _without(goals, passed)
         top = max((g["score"] for g, _, _ in live), default=0.0)
         if top >= min_score:
             pool = [x for x in live if x[0]["score"] >= 0.9 * top]
@@ -194,7 +200,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             g, cell, _ = min(onward or pool, key=_cost)
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
-        d = _follow_outlier([x for x in every if not any(x is y for y in passed)] or every, live or goals, min_ray_z)
+        d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z)
         if d is not None:
             return d
         top = max((g["score"] for g, _, _ in passed), default=0.0)
