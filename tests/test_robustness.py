@@ -217,7 +217,9 @@ def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, p
     procs.append(edge)
     watcher = client(ep)                 # a standing query that lives through the restart
     seen: list[int] = []
-    wait_for(lambda: watcher.stats(), 60, what="mapper up")
+    # a query on an empty map is answered with an error: register once a frame is mapped (on a
+    # loaded machine the edge's first frame can come after the mapper is up)
+    wait_for(lambda: watcher.stats()["frames"]["mapped"] >= 1, 60, what="mapper up with a frame mapped")
     watcher.watch("car", lambda r: seen.append(int(r.frames_mapped)), top_k=3, timeout=60.0)
     found: list = []                     # and a standing search
     watcher.watch_search("car", lambda r: found.append((int(r.frames_mapped), [i["id"] for i in r.found])),
