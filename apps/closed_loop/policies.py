@@ -147,10 +147,10 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
         return Decision(why="no reachable goal")
     far = [x for x in goals if x[2] >= min_goal_m] or goals
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
-    d = _choose(name, obs, far, min_score, min_ray_z, goals, at)
+    passed = _passed(goals, at) if _semantic(name) else []
+    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed)
     evidence = not d.why.startswith("frontier")
-    spent = _passed(far, at) if _semantic(name) else []
-    held = _held(state, nav, _without(far, spent) or far, evidence)
+    held = _held(state, nav, _without(far, passed) or far, evidence)
     if held is not None:
         return held
     state.goal = (d.goal_xy, d.score, evidence)
@@ -182,12 +182,13 @@ def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False
 
 
 def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_z: float = MIN_RAY_Z,
-            every: list | None = None, at: np.ndarray | None = None) -> Decision:
+            every: list | None = None, at: np.ndarray | None = None, passed: list | None = None) -> Decision:
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
-    outlier ray may be attached next to the robot)."""
+    outlier ray may be attached next to the robot; ``passed``: those of them the robot has
+    passed, :func:`_passed`)."""
     if _semantic(name):
         every = every or goals
-        passed = _passed(every, at) if at is not None else []
+        passed = passed or []
         live = _without(goals, passed)
         top = max((g["score"] for g, _, _ in live), default=0.0)
         if top >= min_score:
