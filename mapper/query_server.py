@@ -140,6 +140,10 @@ class QueryServer:
             if req.cancel:
                 state.standing.pop(req.id, None)
                 return encode_query_result(QueryResult(id=req.id, query="<cancelled>"))
+            if req.standing and state.map is None:
+                # registered before any frame: an empty answer now, published once the map exists
+                state.standing[req.id] = req
+                return encode_query_result(QueryResult(id=req.id, query=req.text or ""))
             res = self.run_query(req, flush=True)
             res.id = req.id
             answered.append(res)

@@ -209,21 +209,22 @@ def test_mapper_restart_restores_snapshot_and_edge_reconnects(tmp_path, procs, p
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     m1 = Proc("mapper1", mapper_args(ep, [f"snapshots.dir={snaps}", "snapshots.period_s=0.5"]), tmp_path)
     procs.append(m1)
+    watcher = client(ep)                 # a standing query that lives through the restart
+    seen: list[int] = []
+    # registered before any frame is mapped (no edge yet): answered empty now, published once the map exists
+    wait_for(lambda: watcher.stats()["frames"]["mapped"] == 0, 60, what="mapper up")
+    watcher.watch("car", lambda r: seen.append(int(r.frames_mapped)), top_k=3, timeout=60.0)
+    assert seen == [0], seen
+    found: list = []                     # and a standing search
+    watcher.watch_search("car", lambda r: found.append((int(r.frames_mapped), [i["id"] for i in r.found])),
+                         timeout=60.0)
     # Zenoh's reconnect backoff (1 s doubling to 4 s by default) capped at 0.5 s: the
     # reconnection is what is tested, not how long Zenoh's default backoff waits
     edge = Proc("edge", edge_args(ep, pca_file, frames=400, rate=6.0,
                                   extra=["publish.loop=true", "--zenoh-set", 'connect/retry={"period_init_ms": 200, '
                                          '"period_max_ms": 500, "period_increase_factor": 2}']), tmp_path)
     procs.append(edge)
-    watcher = client(ep)                 # a standing query that lives through the restart
-    seen: list[int] = []
-    # a query on an empty map is answered with an error: register once a frame is mapped (on a
-    # loaded machine the edge's first frame can come after the mapper is up)
-    wait_for(lambda: watcher.stats()["frames"]["mapped"] >= 1, 60, what="mapper up with a frame mapped")
-    watcher.watch("car", lambda r: seen.append(int(r.frames_mapped)), top_k=3, timeout=60.0)
-    found: list = []                     # and a standing search
-    watcher.watch_search("car", lambda r: found.append((int(r.frames_mapped), [i["id"] for i in r.found])),
-                         timeout=60.0)
+    wait_for(lambda: any(f >= 1 for f in seen), 90, what="the standing query answered once frames are mapped")
     with client(ep) as c:
         wait_for(lambda: c.snapshot().get("frames_mapped", 0) >= 4, 150, what="a periodic snapshot of >= 4 frames")
         m1.p.kill()   # no clean shutdown: only the periodic snapshot survives
