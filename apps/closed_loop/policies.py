@@ -8,11 +8,8 @@ instance got no nearer (:func:`_stalled_at`) is not taken. They differ in how th
 until then:
 
 * ``rayfronts``: goals the robot has passed — it stands on along their rays
-  (:func:`_passed`) — are set apart: their evidence is spent, and it is followed on (below)
-  only when no other goal has any or, when no other reaches ``min_score``, when it outweighs
-  theirs (a higher ``ray_z`` than any fresh goal's, whose best rays point elsewhere:
-  :func:`_outweighed`).
-  Among the rest: the look-next goal with the best
+  (:func:`_passed`) — are set apart: their evidence is spent, and only when no other goal
+  has any is it followed on (below). Among the rest: the look-next goal with the best
   semantic score (rays of the RayFronts map toward the target, 30° bins), the nearest
   (:func:`_cost`: the path to the cell nearest the goal the robot can reach, plus the gap
   of unknown space beyond it) among goals within 10 % of the best,
@@ -78,7 +75,7 @@ class PolicyState:
 
     declared: set = field(default_factory=set)
     set_aside: list = field(default_factory=list)     # xy of goals that gave no progress
-    stalled: dict = field(default_factory=dict)       # instance id -> xy where approaching it gave no progress
+    stalled: dict = field(default_factory=dict)       # instance id -> [(xy, m from its box)]: approach stalled
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
 
 
@@ -94,18 +91,22 @@ def _set_aside(state: PolicyState, xy: np.ndarray, radius: float = 1.5) -> bool:
 MAX_STALLS = 32
 
 
-def _stall(state: PolicyState, inst_id: int, at: np.ndarray) -> None:
-    """Remember that at ``at`` the robot came as near instance ``inst_id`` as the map lets it."""
+def _stall(state: PolicyState, inst_id: int, at: np.ndarray, dist_m: float) -> None:
+    """Remember that at ``at``, ``dist_m`` (xy) from its box, the robot came as near instance
+    ``inst_id`` as the map let it."""
     spots = state.stalled.setdefault(inst_id, [])
-    spots.append(np.asarray(at[:2], np.float64).copy())
+    spots.append((np.asarray(at[:2], np.float64).copy(), float(dist_m)))
     del spots[:-MAX_STALLS]
 
 
-def _stalled_at(state: PolicyState, inst_id: int, xy: np.ndarray, radius_m: float = 1.0) -> bool:
-    """Whether an approach of ``inst_id`` would lead back to where it stalled (within
-    ``radius_m``): from there it got no nearer, and a robot sent back and forth between that
-    spot and the exploration goal it then took never arrives anywhere."""
-    return any(np.linalg.norm(np.asarray(xy[:2]) - p) < radius_m for p in state.stalled.get(inst_id, []))
+def _stalled_at(state: PolicyState, inst_id: int, xy: np.ndarray, dist_m: float, radius_m: float = 1.0,
+                gain_m: float = 0.25) -> bool:
+    """Whether an approach of ``inst_id`` to ``xy`` (``dist_m`` from its box) leads back to
+    where it stalled — within ``radius_m`` of such a spot and not ``gain_m`` nearer the box
+    than the robot was there: from there it got no nearer, and a robot sent back and forth
+    between that spot and the exploration goal it then took never arrives anywhere."""
+    return any(np.linalg.norm(np.asarray(xy[:2]) - p) < radius_m and dist_m > d - gain_m
+               for p, d in state.stalled.get(inst_id, []))
 
 
 def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState, reach_m: float
@@ -121,10 +122,11 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
         aim = np.clip(at[:2], lo[:2], hi[:2])
         cell, path_m, gap = nav.nearest_reachable(aim)
         if not _progress(nav, cell):
-            _stall(state, inst["id"], at)
+            _stall(state, inst["id"], at, xy_box_distance(at, lo, hi))
             continue
+        to = nav.origin + (cell + 0.5) * nav.cell
         if gap > 0.5 * reach_m + xy_box_distance(at, lo, hi) or \
-                _stalled_at(state, inst["id"], nav.origin + (cell + 0.5) * nav.cell):
+                _stalled_at(state, inst["id"], to, xy_box_distance(to, lo, hi)):
             continue
         if best is None or path_m < best[0]:
             best = (path_m, cell, inst, aim)
@@ -234,9 +236,6 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             g, cell, _ = min(onward or pool, key=_cost)
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
-        d = _outweighed(passed, _without(every, passed), goals, obs, at, min_score, min_ray_z)
-        if d is not None:
-            return d
         d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z)
         if d is not None:
             return d
@@ -318,36 +317,6 @@ def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8
         return None
     g, cell, _ = best
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="beyond rays", score=float(score))
-
-
-def _outweighed(passed: list, fresh: list, goals: list, obs: Observation, at: np.ndarray | None,
-                min_score: float, min_ray_z: float, min_cos: float = 0.8) -> Decision | None:
-    """On past the evidence the robot has passed (:func:`_beyond_evidence`, else
-    :func:`_toward_estimate`) when it outweighs the fresh: its best ``ray_z`` (≥ ``min_ray_z``)
-    is above every fresh goal's, and the fresh outlier the robot would follow
-    (:func:`_follow_outlier`'s pool) points elsewhere — its heading more than ``acos(min_cos)``
-    from the spent rays' mean heading. A fresh outlier that points the same way is the target
-    seen again from nearer: it is followed however weak. Spent rays still point the way; a weak
-    outlier next to the robot that points elsewhere is noise beside them (development seed 14:
-    rays of ray_z 13–21 pointing anywhere beside spent ones of ~1.7·10³ toward the tower).
-    ray_z of one search share one median and spread, so they compare."""
-    spent = max((_ray_z(x) for x in passed), default=0.0)
-    top = max((_ray_z(x) for x in fresh), default=0.0)
-    if at is None or spent < min_ray_z or spent <= top:
-        return None
-    pool = [x for x in passed if _ray_z(x) >= 0.9 * spent and x[0].get("heading_rad") is not None]
-    if not pool:
-        return None
-    way = np.sum([_heading(g) for g, _, _ in pool], axis=0)
-    way = way / max(float(np.linalg.norm(way)), 1e-9)
-    if top >= min_ray_z and any(x[0].get("heading_rad") is not None and float(_heading(x[0]) @ way) >= min_cos
-                                for x in fresh if _ray_z(x) >= 0.9 * top):
-        return None
-    score = max(x[0]["score"] for x in pool)
-    d = _beyond_evidence(pool, goals, score) or _toward_estimate(obs, goals, at, min_score, score, pool=pool)
-    if d is not None:
-        d.why = f"spent z {spent:.0f}, {d.why}"
-    return d
 
 
 def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: float, score: float,
