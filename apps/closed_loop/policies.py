@@ -117,16 +117,16 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
         if inst["id"] in state.declared:
             continue
         lo, hi = np.asarray(inst["box_min"]), np.asarray(inst["box_max"])
-        if xy_box_distance(at, lo, hi) <= reach_m - 0.5:
+        here_m = xy_box_distance(at, lo, hi)
+        if here_m <= reach_m - 0.5:
             return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']}")
         aim = np.clip(at[:2], lo[:2], hi[:2])
         cell, path_m, gap = nav.nearest_reachable(aim)
         if not _progress(nav, cell):
-            _stall(state, inst["id"], at, xy_box_distance(at, lo, hi))
+            _stall(state, inst["id"], at, here_m)
             continue
         to = nav.origin + (cell + 0.5) * nav.cell
-        if gap > 0.5 * reach_m + xy_box_distance(at, lo, hi) or \
-                _stalled_at(state, inst["id"], to, xy_box_distance(to, lo, hi)):
+        if gap > 0.5 * reach_m + here_m or _stalled_at(state, inst["id"], to, xy_box_distance(to, lo, hi)):
             continue
         if best is None or path_m < best[0]:
             best = (path_m, cell, inst, aim)
@@ -154,11 +154,6 @@ def _without(goals: list, drop: list) -> list:
     """``goals`` less the entries (the same objects) in ``drop``, in order."""
     gone = {id(x) for x in drop}
     return [x for x in goals if id(x) not in gone]
-
-
-def _ray_z(x: tuple) -> float:
-    """The ``ray_z`` of a reachable goal ``(goal, cell, path_m)`` (0 without rays)."""
-    return x[0].get("ray_z", 0.0)
 
 
 def _cost(x: tuple) -> float:
@@ -353,10 +348,10 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     by path within 10 % of the best ``ray_z``) when it is among the ``far`` goals; else (its
     frontier is next to the robot, where the rays left the known space) the nearest far goal
     whose bearing lies within ``acos(min_cos)`` of its rays' heading; else the goal itself."""
-    top = max(_ray_z(x) for x in every)
+    top = max(g.get("ray_z", 0.0) for g, _, _ in every)
     if top < min_ray_z:
         return None
-    pool = [x for x in every if _ray_z(x) >= 0.9 * top]
+    pool = [x for x in every if x[0].get("ray_z", 0.0) >= 0.9 * top]
     g, cell, _ = min(pool, key=_cost)
     why = f"ray z {g.get('ray_z', 0.0):.1f}"
     if not any(x[0] is g for x in far):
