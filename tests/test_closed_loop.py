@@ -219,6 +219,49 @@ def test_ray_policy_leaves_evidence_it_has_passed_for_the_fresh_outlier_ahead():
     assert d.why.startswith("rays 1.00") or d.why == "beyond rays", d
 
 
+def test_ray_policy_keeps_the_strongest_bearing_against_weaker_outliers_elsewhere():
+    """A far target's rays keep their bearing and grow stronger; noise outliers jump and stay
+    weak. Once strong rays pointed +x, a weaker outlier pointing elsewhere is not followed:
+    an outlier agreeing with +x is, else the nearest goal ahead along +x. A stronger ray
+    anywhere is followed (and becomes the bearing); a declaration forgets the bearing."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, confirm, explore
+    from apps.closed_loop.world_model import Observation
+
+    states = np.full((140, 140), FREE, np.int8)
+    at = np.array([20.0, 20.0, 1.5])
+    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
+
+    def goal(x, y, z, heading=None):
+        return dict(position=[x, y, 1.5], score=1e-12, gain_m3=1.0, ray_z=z, heading_rad=heading,
+                    target="water tower")
+
+    def obs(*goals):
+        return Observation([], list(goals), states, np.zeros(2), 0.5)
+
+    strong = goal(60.0, 21.0, 1e3, 0.0)                     # 40 m along +x
+    noise = goal(20.0, 40.0, MIN_RAY_Z + 10.0, np.pi / 2)  # 20 m along +y, nearer
+    ahead = goal(45.0, 18.0, 0.0)                           # 25 m along +x, no rays
+    state = PolicyState()
+    assert np.allclose(explore("rayfronts", obs(strong, ahead), nav, state).goal_xy, strong["position"][:2])
+    state.goal = None                                       # the strong goal was explored: it is gone
+    d = explore("rayfronts", obs(noise, ahead), nav, state)
+    assert np.allclose(d.goal_xy, ahead["position"][:2]) and d.why.startswith("bearing"), d
+    d = explore("rayfronts", obs(noise, ahead), nav, PolicyState())      # no memory: the outlier leads
+    assert np.allclose(d.goal_xy, noise["position"][:2]) and d.why.startswith("ray z"), d
+    agreeing = goal(40.0, 30.0, MIN_RAY_Z + 1.0, 0.4)        # weaker still, but 23° from +x
+    state.goal = None
+    d = explore("rayfronts", obs(noise, agreeing, ahead), nav, state)
+    assert np.allclose(d.goal_xy, agreeing["position"][:2]) and d.why.startswith("ray z"), d
+    stronger = dict(noise, ray_z=2e3)
+    state.goal = None
+    d = explore("rayfronts", obs(stronger, ahead), nav, state)
+    assert np.allclose(d.goal_xy, stronger["position"][:2]) and state.bearing == (np.pi / 2, 2e3), d
+    car = dict(id=1, target="car", box_min=[20.5, 20.5, 0.0], box_max=[21.0, 21.0, 1.5])
+    d = confirm(Observation([car], [], states, np.zeros(2), 0.5), nav, at, state, reach_m=3.0)
+    assert d is not None and d.declare is car and state.bearing is None
+
+
 def test_an_approach_that_stalled_is_not_driven_back_to():
     """A found instance behind a wall: the approach leads to the wall's foot (B), where the
     robot gets no nearer. Sent elsewhere and back, it does not drive to B again (before, a

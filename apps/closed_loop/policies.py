@@ -21,8 +21,9 @@ until then:
   ray's cosine to what sets the target apart from the other phrases is an outlier among the
   rays'), the nearest among goals
   within 10 % of it — or, when its frontier is next to the robot (where the rays left the
-  known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); without
-  either like ``frontier``;
+  known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); an
+  outlier weaker than the episode's strongest and pointing elsewhere is passed over for
+  those agreeing with it (:func:`_remember_bearing`); without either like ``frontier``;
 * ``unidirectional`` / ``spherical``: the same rule on the maps of the paper's semantic
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
@@ -77,6 +78,7 @@ class PolicyState:
     set_aside: list = field(default_factory=list)     # xy of goals that gave no progress
     stalled: dict = field(default_factory=dict)       # instance id -> [(xy, m from its box)]: approach stalled
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
+    bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
 
 
 def _progress(nav: NavField, cell: np.ndarray) -> bool:
@@ -119,6 +121,7 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
         lo, hi = np.asarray(inst["box_min"]), np.asarray(inst["box_max"])
         here_m = xy_box_distance(at, lo, hi)
         if here_m <= reach_m - 0.5:
+            state.bearing = None        # the rays that led here were this instance's
             return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']}")
         aim = np.clip(at[:2], lo[:2], hi[:2])
         cell, path_m, gap = nav.nearest_reachable(aim)
@@ -171,6 +174,7 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
             min_goal_m: float = 4.0, min_ray_z: float = MIN_RAY_Z) -> Decision:
     """The exploration goal of policy ``name`` (module docstring). Goals closer than
     ``min_goal_m`` by path are being seen already; they are taken only when nothing else is."""
+    _remember_bearing(state, obs, min_ray_z)
     goals = _reachable_goals(obs, nav, state)
     if not goals:
         state.goal = None
@@ -178,7 +182,7 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     far = [x for x in goals if x[2] >= min_goal_m] or goals
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
     passed = _passed(goals, at) if _semantic(name) else []
-    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed)
+    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing)
     evidence = not d.why.startswith("frontier")
     held = _held(state, nav, _without(far, passed) or far, evidence)
     if held is not None:
@@ -212,10 +216,12 @@ def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False
 
 
 def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_z: float = MIN_RAY_Z,
-            every: list | None = None, at: np.ndarray | None = None, passed: list | None = None) -> Decision:
+            every: list | None = None, at: np.ndarray | None = None, passed: list | None = None,
+            bearing: tuple | None = None) -> Decision:
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
     outlier ray may be attached next to the robot; ``passed``: those of them the robot has
-    passed, :func:`_passed`)."""
+    passed, :func:`_passed`; ``bearing``: the episode's strongest outlier ray,
+    :func:`_remember_bearing`)."""
     if _semantic(name):
         every = every or goals
         passed = passed or []
@@ -231,7 +237,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             g, cell, _ = min(onward or pool, key=_cost)
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
-        d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z)
+        d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z, at=at, bearing=bearing)
         if d is not None:
             return d
         top = max((g["score"] for g, _, _ in passed), default=0.0)
@@ -343,16 +349,53 @@ def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: f
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="toward estimate", score=float(score))
 
 
-def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0.8) -> Decision | None:
+def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float) -> None:
+    """Keep the heading and ``ray_z`` of the strongest outlier ray (``ray_z`` ≥ ``min_ray_z``)
+    any look-next goal has carried this episode. A far target's rays keep their bearing from
+    step to step and grow stronger as the robot nears it; outliers of noise jump about and
+    stay weak. Forgotten when an instance is declared (the next target's rays are other)."""
+    for g in obs.look_next:
+        z = float(g.get("ray_z", 0.0))
+        if g.get("heading_rad") is not None and z >= min_ray_z and (state.bearing is None or z > state.bearing[1]):
+            state.bearing = (float(g["heading_rad"]), z)
+
+
+def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:
+    """Whether a goal's rays point within ``acos(min_cos)`` of ``heading_rad`` (60°: the
+    ray bins are 30° wide, and a far target's rays fall in one bin or the next)."""
+    return goal.get("heading_rad") is not None and float(np.cos(goal["heading_rad"] - heading_rad)) >= min_cos
+
+
+def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0.8, at: np.ndarray | None = None,
+                    bearing: tuple | None = None) -> Decision | None:
     """Toward the rays that stand out (``ray_z`` ≥ ``min_ray_z``): the best such goal (nearest
     by path within 10 % of the best ``ray_z``) when it is among the ``far`` goals; else (its
     frontier is next to the robot, where the rays left the known space) the nearest far goal
-    whose bearing lies within ``acos(min_cos)`` of its rays' heading; else the goal itself."""
+    whose bearing lies within ``acos(min_cos)`` of its rays' heading; else the goal itself.
+
+    An outlier weaker than the episode's strongest (``bearing``) and pointing elsewhere
+    (:func:`_agrees`) is noise until shown otherwise: the outliers that agree with that
+    bearing are followed instead, else the nearest far goal ahead of the robot (``at``) along
+    it; only when there is neither is the outlier followed."""
     top = max(g.get("ray_z", 0.0) for g, _, _ in every)
     if top < min_ray_z:
         return None
     pool = [x for x in every if x[0].get("ray_z", 0.0) >= 0.9 * top]
     g, cell, _ = min(pool, key=_cost)
+    if bearing is not None and top < bearing[1] and not _agrees(g, bearing[0]):
+        agreeing = [x for x in every if x[0].get("ray_z", 0.0) >= min_ray_z and _agrees(x[0], bearing[0])]
+        if agreeing:
+            every = agreeing
+            top = max(x[0].get("ray_z", 0.0) for x in every)
+            pool = [x for x in every if x[0].get("ray_z", 0.0) >= 0.9 * top]
+            g, cell, _ = min(pool, key=_cost)
+        elif at is not None:
+            h = np.array([np.cos(bearing[0]), np.sin(bearing[0])])
+            ahead = _ahead(far, at, h, min_cos)
+            if ahead:
+                g, cell, _ = min(ahead, key=_cost)
+                return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]),
+                                why=f"bearing z {bearing[1]:.1f}", score=float(g["score"]))
     why = f"ray z {g.get('ray_z', 0.0):.1f}"
     if not any(x[0] is g for x in far):
         h = _heading(g)
