@@ -226,12 +226,11 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
         every = every or goals
         passed = passed or []
         live = _without(goals, passed)
-        top = max((g["score"] for g, _, _ in live), default=0.0)
+        top, pool = _best_scored(live)
         if top >= min_score:
-            pool = [x for x in live if x[0]["score"] >= 0.9 * top]
             onward = _onward(pool, at) if at is not None else []
             if not onward and at is not None:
-                d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top, pool=pool)
+                d = _on_past(obs, pool, goals, at, min_score, top)
                 if d is not None:
                     return d
             g, cell, _ = min(onward or pool, key=_cost)
@@ -240,10 +239,9 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
         d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z, at=at, bearing=bearing)
         if d is not None:
             return d
-        top = max((g["score"] for g, _, _ in passed), default=0.0)
+        top, pool = _best_scored(passed)
         if top >= min_score and at is not None:
-            pool = [x for x in passed if x[0]["score"] >= 0.9 * top]
-            d = _beyond_evidence(pool, goals, top) or _toward_estimate(obs, goals, at, min_score, top, pool=pool)
+            d = _on_past(obs, pool, goals, at, min_score, top)
             if d is not None:
                 return d
     if name == "sem-poses" and obs.poses:
@@ -258,6 +256,20 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
                                 score=float(s))
     g, cell, _ = max(goals, key=lambda x: (x[0].get("gain_m3", 0.0) / (1.0 + x[2]), -x[2]))
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="frontier gain/path")
+
+
+def _best_scored(goals: list) -> tuple[float, list]:
+    """The best ``score`` among ``goals`` (0 when none) and the goals within 10 % of it."""
+    top = max((g["score"] for g, _, _ in goals), default=0.0)
+    return top, [x for x in goals if x[0]["score"] >= 0.9 * top]
+
+
+def _on_past(obs: Observation, pool: list, goals: list, at: np.ndarray, min_score: float, score: float
+             ) -> Decision | None:
+    """On past the evidence of ``pool`` when it is not on the robot's way: along its rays
+    (:func:`_beyond_evidence`), else toward where the target's rays cross
+    (:func:`_toward_estimate`); None when neither leads anywhere."""
+    return _beyond_evidence(pool, goals, score) or _toward_estimate(obs, goals, at, min_score, score, pool=pool)
 
 
 def _ahead(goals: list, origin: np.ndarray, heading: np.ndarray, min_cos: float = 0.8) -> list:
