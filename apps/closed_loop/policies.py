@@ -288,6 +288,12 @@ def _heading(goal: dict) -> np.ndarray:
     return np.array([np.cos(goal["heading_rad"]), np.sin(goal["heading_rad"])])
 
 
+def _on_along(xy: np.ndarray | list, goal: dict) -> float:
+    """How far ``xy`` (m) lies on along a goal's rays: its offset from the goal's position,
+    projected on the goal's ``heading_rad`` (negative: behind where the rays were cast)."""
+    return float((np.asarray(xy[:2], np.float64) - np.asarray(goal["position"][:2], np.float64)) @ _heading(goal))
+
+
 def _onward(goals: list, at: np.ndarray, min_cos: float = 0.8) -> list:
     """The goals whose rays point on the way there: the bearing from the robot at ``at`` to
     the goal lies within ``acos(min_cos)`` of the goal's ``heading_rad`` (the yaw of its rays).
@@ -302,9 +308,7 @@ def _passed(goals: list, at: np.ndarray, min_on_m: float = 4.0) -> list:
     their rays saw lies ahead of the robot now; their evidence is spent (a frontier keeps the
     rays of a direction until it is explored, so far behind the robot they would outrank the
     fresh rays cast next to it)."""
-    return [x for x in goals if x[0].get("heading_rad") is not None and
-            float((np.asarray(at[:2], np.float64) - np.asarray(x[0]["position"][:2], np.float64)) @ _heading(x[0]))
-            >= min_on_m]
+    return [x for x in goals if x[0].get("heading_rad") is not None and _on_along(at, x[0]) >= min_on_m]
 
 
 def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8, min_on_m: float = 4.0
@@ -323,8 +327,7 @@ def _beyond_evidence(pool: list, goals: list, score: float, min_cos: float = 0.8
         o = np.asarray(g["position"][:2], np.float64)
         h = _heading(g)
         for x in _ahead(goals, o, h, min_cos):
-            if float((np.asarray(x[0]["position"][:2], np.float64) - o) @ h) >= min_on_m \
-                    and (best is None or _cost(x) < _cost(best)):
+            if _on_along(x[0]["position"], g) >= min_on_m and (best is None or _cost(x) < _cost(best)):
                 best = x
     if best is None:
         return None
