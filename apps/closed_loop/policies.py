@@ -226,7 +226,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
         every = every or goals
         passed = passed or []
         live = _without(goals, passed)
-        top, pool = _best_scored(live)
+        top, pool = _best_by(live, "score")
         if top >= min_score:
             onward = _onward(pool, at) if at is not None else []
             if not onward and at is not None:
@@ -239,7 +239,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
         d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z, at=at, bearing=bearing)
         if d is not None:
             return d
-        top, pool = _best_scored(passed)
+        top, pool = _best_by(passed, "score")
         if top >= min_score and at is not None:
             d = _on_past(obs, pool, goals, at, min_score, top)
             if d is not None:
@@ -258,10 +258,11 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="frontier gain/path")
 
 
-def _best_scored(goals: list) -> tuple[float, list]:
-    """The best ``score`` among ``goals`` (0 when none) and the goals within 10 % of it."""
-    top = max((g["score"] for g, _, _ in goals), default=0.0)
-    return top, [x for x in goals if x[0]["score"] >= 0.9 * top]
+def _best_by(goals: list, key: str) -> tuple[float, list]:
+    """The best value of ``key`` (``score`` or ``ray_z``; 0 when absent) among reachable
+    ``goals`` (0 when none) and the goals within 10 % of it."""
+    top = max((g.get(key, 0.0) for g, _, _ in goals), default=0.0)
+    return top, [x for x in goals if x[0].get(key, 0.0) >= 0.9 * top]
 
 
 def _on_past(obs: Observation, pool: list, goals: list, at: np.ndarray, min_score: float, score: float
@@ -283,9 +284,14 @@ def _ahead(goals: list, origin: np.ndarray, heading: np.ndarray, min_cos: float 
     return out
 
 
+def _unit(yaw_rad: float) -> np.ndarray:
+    """The unit xy vector of yaw ``yaw_rad``."""
+    return np.array([np.cos(yaw_rad), np.sin(yaw_rad)])
+
+
 def _heading(goal: dict) -> np.ndarray:
     """The unit xy vector of a goal's ``heading_rad`` (the yaw of its rays)."""
-    return np.array([np.cos(goal["heading_rad"]), np.sin(goal["heading_rad"])])
+    return _unit(goal["heading_rad"])
 
 
 def _on_along(xy: np.ndarray | list, goal: dict) -> float:
@@ -392,21 +398,16 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     (:func:`_agrees`) is noise until shown otherwise: the outliers that agree with that
     bearing are followed instead, else the nearest far goal ahead of the robot (``at``) along
     it; only when there is neither is the outlier followed."""
-    top = max(g.get("ray_z", 0.0) for g, _, _ in every)
+    top, pool = _best_by(every, "ray_z")
     if top < min_ray_z:
         return None
-    pool = [x for x in every if x[0].get("ray_z", 0.0) >= 0.9 * top]
     g, cell, _ = min(pool, key=_cost)
     if bearing is not None and top < bearing[1] and not _agrees(g, bearing[0]):
         agreeing = [x for x in every if x[0].get("ray_z", 0.0) >= min_ray_z and _agrees(x[0], bearing[0])]
         if agreeing:
-            every = agreeing
-            top = max(x[0].get("ray_z", 0.0) for x in every)
-            pool = [x for x in every if x[0].get("ray_z", 0.0) >= 0.9 * top]
-            g, cell, _ = min(pool, key=_cost)
+            g, cell, _ = min(_best_by(agreeing, "ray_z")[1], key=_cost)
         elif at is not None:
-            h = np.array([np.cos(bearing[0]), np.sin(bearing[0])])
-            ahead = _ahead(far, at, h, min_cos)
+            ahead = _ahead(far, at, _unit(bearing[0]), min_cos)
             if ahead:
                 g, cell, _ = min(ahead, key=_cost)
                 return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]),
