@@ -262,6 +262,33 @@ def test_ray_policy_keeps_the_strongest_bearing_against_weaker_outliers_elsewher
     assert d is not None and d.declare is car and state.bearing is None
 
 
+def test_ray_policy_goes_on_past_its_bearing_rather_than_after_a_weaker_outlier_elsewhere():
+    """The robot has passed every goal whose strong rays set the bearing (+x), and no goal
+    lies ahead of it along +x; a weak outlier pointing elsewhere is left. It drives on past
+    the passed evidence (a goal ahead along those rays), not after the outlier (development
+    seed 21: 200 m back toward a weak ray of the radio tower's, the budget spent)."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, explore
+    from apps.closed_loop.world_model import Observation
+
+    states = np.full((140, 140), FREE, np.int8)
+    at = np.array([20.0, 20.0, 1.5])
+    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
+
+    def goal(x, y, z, heading=None):
+        return dict(position=[x, y, 1.5], score=1e-12, gain_m3=1.0, ray_z=z, heading_rad=heading,
+                    target="water tower")
+
+    spent = goal(10.0, 20.0, 1e3, 0.0)                      # 10 m behind the robot, rays along +x
+    noise = goal(20.0, 40.0, MIN_RAY_Z + 10.0, np.pi / 2)  # weak, along +y
+    side = goal(26.0, 29.0, 0.0)          # 56° off +x from the robot, 29° off it from the spent goal
+    for name in ("rayfronts", "unidirectional", "spherical"):
+        state = PolicyState()
+        d = explore(name, Observation([], [spent, noise, side], states, np.zeros(2), 0.5), nav, state)
+        assert state.bearing == (0.0, 1e3)                 # remembered from the passed goal's rays
+        assert np.allclose(d.goal_xy, side["position"][:2]) and d.why.startswith("beyond bearing"), (name, d)
+
+
 def test_an_approach_that_stalled_is_not_driven_back_to():
     """A found instance behind a wall: the approach leads to the wall's foot (B), where the
     robot gets no nearer. Sent elsewhere and back, it does not drive to B again (before, a

@@ -23,7 +23,8 @@ until then:
   within 10 % of it — or, when its frontier is next to the robot (where the rays left the
   known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); an
   outlier weaker than the episode's strongest and pointing elsewhere is passed over for
-  those agreeing with it (:func:`_remember_bearing`); without either like ``frontier``;
+  those agreeing with it, passed ones too (:func:`_remember_bearing`); without either like
+  ``frontier``;
 * ``unidirectional`` / ``spherical``: the same rule on the maps of the paper's semantic
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
@@ -236,7 +237,8 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             g, cell, _ = min(onward or pool, key=_cost)
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
-        d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z, at=at, bearing=bearing)
+        d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z, at=at, bearing=bearing,
+                            passed=passed)
         if d is not None:
             return d
         top, pool = _best_by(passed, "score")
@@ -388,7 +390,7 @@ def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:
 
 
 def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0.8, at: np.ndarray | None = None,
-                    bearing: tuple | None = None) -> Decision | None:
+                    bearing: tuple | None = None, passed: list | None = None) -> Decision | None:
     """Toward the rays that stand out (``ray_z`` ≥ ``min_ray_z``): the best such goal (nearest
     by path within 10 % of the best ``ray_z``) when it is among the ``far`` goals; else (its
     frontier is next to the robot, where the rays left the known space) the nearest far goal
@@ -397,7 +399,8 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     An outlier weaker than the episode's strongest (``bearing``) and pointing elsewhere
     (:func:`_agrees`) is noise until shown otherwise: the outliers that agree with that
     bearing are followed instead, else the nearest far goal ahead of the robot (``at``) along
-    it; only when there is neither is the outlier followed."""
+    it, else on past the ``passed`` outliers that agree with it (:func:`_beyond_evidence`);
+    only when there is none of these is the outlier followed."""
     top, pool = _best_by(every, "ray_z")
     if top < min_ray_z:
         return None
@@ -412,6 +415,11 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
                 g, cell, _ = min(ahead, key=_cost)
                 return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]),
                                 why=f"bearing z {bearing[1]:.1f}", score=float(g["score"]))
+            spent = [x for x in passed or [] if x[0].get("ray_z", 0.0) >= min_ray_z and _agrees(x[0], bearing[0])]
+            d = _beyond_evidence(_best_by(spent, "ray_z")[1], far, 0.0) if spent else None
+            if d is not None:
+                d.why = f"beyond bearing z {bearing[1]:.1f}"
+                return d
     why = f"ray z {g.get('ray_z', 0.0):.1f}"
     if not any(x[0] is g for x in far):
         h = _heading(g)
