@@ -23,8 +23,8 @@ until then:
   within 10 % of it — or, when its frontier is next to the robot (where the rays left the
   known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); an
   outlier weaker than the episode's strongest and pointing elsewhere is passed over for
-  those agreeing with it, passed ones too (:func:`_remember_bearing`); without either like
-  ``frontier``;
+  those agreeing with it — or for a goal on past them when the robot has passed them
+  (:func:`_remember_bearing`); without either like ``frontier``;
 * ``unidirectional`` / ``spherical``: the same rule on the maps of the paper's semantic
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
