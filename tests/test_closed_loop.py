@@ -219,22 +219,32 @@ def test_ray_policy_leaves_evidence_it_has_passed_for_the_fresh_outlier_ahead():
     assert d.why.startswith("rays 1.00") or d.why == "beyond rays", d
 
 
+def _open_field(at: np.ndarray) -> tuple:
+    """A 70 m × 70 m field of free 0.5 m cells (origin 0) and the robot's NavField at ``at``."""
+    from apps.closed_loop.navigation import NavField
+
+    states = np.full((140, 140), FREE, np.int8)
+    return states, NavField(states, np.zeros(2), 0.5, at, 0.4)
+
+
+def _far_target_goal(x: float, y: float, z: float, heading: float | None = None) -> dict:
+    """A look-next goal for a far water tower at (x, y): probability ~0, ``ray_z`` ``z``, its
+    rays' yaw ``heading`` (None: no rays)."""
+    return dict(position=[x, y, 1.5], score=1e-12, gain_m3=1.0, ray_z=z, heading_rad=heading,
+                target="water tower")
+
+
 def test_ray_policy_keeps_the_strongest_bearing_against_weaker_outliers_elsewhere():
     """A far target's rays keep their bearing and grow stronger; noise outliers jump and stay
     weak. Once strong rays pointed +x, a weaker outlier pointing elsewhere is not followed:
     an outlier agreeing with +x is, else the nearest goal ahead along +x. A stronger ray
     anywhere is followed (and becomes the bearing); a declaration forgets the bearing."""
-    from apps.closed_loop.navigation import NavField
     from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, confirm, explore
     from apps.closed_loop.world_model import Observation
 
-    states = np.full((140, 140), FREE, np.int8)
     at = np.array([20.0, 20.0, 1.5])
-    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
-
-    def goal(x, y, z, heading=None):
-        return dict(position=[x, y, 1.5], score=1e-12, gain_m3=1.0, ray_z=z, heading_rad=heading,
-                    target="water tower")
+    states, nav = _open_field(at)
+    goal = _far_target_goal
 
     def obs(*goals):
         return Observation([], list(goals), states, np.zeros(2), 0.5)
@@ -267,17 +277,11 @@ def test_ray_policy_goes_on_past_its_bearing_rather_than_after_a_weaker_outlier_
     lies ahead of it along +x; a weak outlier pointing elsewhere is left. It drives on past
     the passed evidence (a goal ahead along those rays), not after the outlier (development
     seed 21: 200 m back toward a weak ray of the radio tower's, the budget spent)."""
-    from apps.closed_loop.navigation import NavField
     from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, explore
     from apps.closed_loop.world_model import Observation
 
-    states = np.full((140, 140), FREE, np.int8)
-    at = np.array([20.0, 20.0, 1.5])
-    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
-
-    def goal(x, y, z, heading=None):
-        return dict(position=[x, y, 1.5], score=1e-12, gain_m3=1.0, ray_z=z, heading_rad=heading,
-                    target="water tower")
+    states, nav = _open_field(np.array([20.0, 20.0, 1.5]))
+    goal = _far_target_goal
 
     spent = goal(10.0, 20.0, 1e3, 0.0)                      # 10 m behind the robot, rays along +x
     noise = goal(20.0, 40.0, MIN_RAY_Z + 10.0, np.pi / 2)  # weak, along +y

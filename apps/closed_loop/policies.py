@@ -389,6 +389,12 @@ def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:
     return goal.get("heading_rad") is not None and float(np.cos(goal["heading_rad"] - heading_rad)) >= min_cos
 
 
+def _outliers_agreeing(goals: list, heading_rad: float, min_ray_z: float) -> list:
+    """The reachable ``goals`` whose rays stand out (``ray_z`` ≥ ``min_ray_z``) and agree with
+    ``heading_rad`` (:func:`_agrees`)."""
+    return [x for x in goals if x[0].get("ray_z", 0.0) >= min_ray_z and _agrees(x[0], heading_rad)]
+
+
 def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0.8, at: np.ndarray | None = None,
                     bearing: tuple | None = None, passed: list | None = None) -> Decision | None:
     """Toward the rays that stand out (``ray_z`` ≥ ``min_ray_z``): the best such goal (nearest
@@ -406,7 +412,7 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
         return None
     g, cell, _ = min(pool, key=_cost)
     if bearing is not None and top < bearing[1] and not _agrees(g, bearing[0]):
-        agreeing = [x for x in every if x[0].get("ray_z", 0.0) >= min_ray_z and _agrees(x[0], bearing[0])]
+        agreeing = _outliers_agreeing(every, bearing[0], min_ray_z)
         if agreeing:
             g, cell, _ = min(_best_by(agreeing, "ray_z")[1], key=_cost)
         elif at is not None:
@@ -415,7 +421,7 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
                 g, cell, _ = min(ahead, key=_cost)
                 return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]),
                                 why=f"bearing z {bearing[1]:.1f}", score=float(g["score"]))
-            spent = [x for x in passed or [] if x[0].get("ray_z", 0.0) >= min_ray_z and _agrees(x[0], bearing[0])]
+            spent = _outliers_agreeing(passed or [], bearing[0], min_ray_z)
             d = _beyond_evidence(_best_by(spent, "ray_z")[1], far, 0.0) if spent else None
             if d is not None:
                 d.why = f"beyond bearing z {bearing[1]:.1f}"
