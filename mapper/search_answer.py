@@ -244,7 +244,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     tm["instances"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     rkeep = _in_area(snap.ray_origins.astype(np.float64), req.polygon(), req.z_band)
-    rz = ray_outlier_z(rcos)[:, rkeep]         # outliers among all the map's rays, then the area's
+    rz = ray_outlier_z(rcos, scfg.ray_cosine_resolution)[:, rkeep]   # outliers among all the map's rays,
+    # then the area's
     goals: list[dict] = []
     if read_map is not None and req.max_goals > 0:
         def run(m) -> list:

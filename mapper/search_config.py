@@ -21,6 +21,10 @@ class SearchSection:
                                       "frontier cell size")
     standoff_m: float = field_(1.0, "a look-next viewpoint lies within this distance of its frontier")
     sensing_radius_m: float = field_(3.0, "unknown volume within this radius of a viewpoint is its gain")
+    ray_cosine_resolution: float = field_(2.0 ** -11, "a ray's cosine to what sets a target apart (ray_z's evidence) "
+                                                    "within this of the median ray's is not an outlier (ray_z 0): "
+                                                    "the features cross the wire as float16, whose rounding moves "
+                                                    "a cosine by up to ~2^-11; 0 = off")
     beyond_rays: int = field_(20, "best rays per target considered for triangulation")
     max_gap_m: float = field_(2.0, "two rays triangulate when they pass within this distance")
     angle_err_deg: float = field_(0.0, "direction uncertainty of a ray (estimate radius); 0 = half the map's "

@@ -161,10 +161,12 @@ def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.n
 MIN_RAYS_FOR_Z = 10
 
 
-def ray_outlier_z(values: np.ndarray) -> np.ndarray:
+def ray_outlier_z(values: np.ndarray, resolution: float = 0.0) -> np.ndarray:
     """(T, R) modified z-score of each ray's value (a similarity) for each target among the
     ``R`` rays (Iglewicz and Hoaglin): ``0.6745 · (v − median) / MAD`` per target, MAD the
-    median absolute deviation; 0 where fewer than :data:`MIN_RAYS_FOR_Z` rays or a zero MAD."""
+    median absolute deviation; 0 where fewer than :data:`MIN_RAYS_FOR_Z` rays or a zero MAD,
+    and where ``|v − median|`` < ``resolution`` (a value within the measurement's resolution
+    of the median is not told apart from it, however small the MAD)."""
     c = np.asarray(values, np.float64)
     c = c if c.ndim == 2 else c.reshape(1, -1)
     z = np.zeros(c.shape, np.float32)
@@ -174,6 +176,7 @@ def ray_outlier_z(values: np.ndarray) -> np.ndarray:
     mad = np.median(np.abs(c - med), axis=1, keepdims=True)
     ok = mad[:, 0] > 0
     z[ok] = (0.6745 * (c[ok] - med[ok]) / mad[ok]).astype(np.float32)
+    z[np.abs(c - med) < resolution] = 0.0
     return z
 
 

@@ -535,6 +535,39 @@ def test_live_loop_over_zenoh_finds_the_car_on_the_in_process_map(loop, tmp_path
     assert "sim_camera: ignoring a message" in (tmp_path / "edge.log").read_text()
 
 
+def test_the_first_steps_outlier_rays_are_the_wires_rounding_and_read_zero():
+    """Development seed 21 (the water tower ~280 m away, out of sight): after the first step's
+    views the rays whose distinct cosine stands out do so by the wire's float16 rounding
+    (within 1e-4 of the median). Without ``search.ray_cosine_resolution`` some look-next goal
+    reads ``ray_z`` >= MIN_RAY_Z and the ray policies would follow it; with the default
+    (2^-11) no goal's ``ray_z`` is above 0, so they explore by geometry (the same goals)."""
+    import dataclasses
+
+    from apps.closed_loop.episode import LoopSettings
+    from apps.closed_loop.evaluate import SearchEvalConfig, seed_missions
+    from apps.closed_loop.policies import MIN_RAY_Z
+    from apps.closed_loop.robot import Platform
+    from apps.closed_loop.sensing import EdgeChain, SensorConfig
+    from apps.closed_loop.world_model import LocalMapper, mapper_config
+    from synthetic_world import World
+
+    w, robot, s = World.generate(21), Platform.make("ground"), LoopSettings()
+    (_, _, mission), = seed_missions(SearchEvalConfig(missions=["landmark"], seeds=[21]), w, robot, 21)
+    assert mission.target == "water tower"
+    chain = EdgeChain(w, SensorConfig(resolution=224))
+    cfg = mapper_config("rayfronts", s.depth_limit_m, s.vox_m, 224, s.preset, s.background_phrases(w))
+    assert cfg.search.ray_cosine_resolution == 2.0 ** -11
+    local = LocalMapper(chain.space, cfg, robot.costmap_band(s.vox_m), s.window_m)
+    local.integrate([chain.frame(p) for p in chain.view_poses(robot, mission.start)])
+    band = robot.goal_band
+    z_default = [g["ray_z"] for g in local.observe([mission.target], mission.start, z_band=band).look_next]
+    local.cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, ray_cosine_resolution=0.0))
+    z_plain = [g["ray_z"] for g in local.observe([mission.target], mission.start, z_band=band).look_next]
+    assert len(z_default) == len(z_plain) > 5
+    assert max(z_plain) >= MIN_RAY_Z and max(z_default) < MIN_RAY_Z
+    assert not any(z_default)
+
+
 def test_landmark_budget_is_three_oracle_tours():
     """A landmark's budget: 120 steps, at least three times the oracle's steps; objects keep theirs."""
     from apps.closed_loop.evaluate import budget_steps

@@ -224,6 +224,20 @@ def test_ray_outlier_z_against_scipy():
     assert ray_outlier_z(np.zeros((1, 0))).shape == (1, 0)
 
 
+def test_ray_outlier_z_ignores_deviations_within_the_resolution():
+    """A tiny spread (float16 rounding: cosines within ~1e-6 of each other) makes a 1e-4 blip an
+    outlier of z ~ 100; with a resolution of 2^-11 only values further than that from the
+    median keep their z (unchanged: the MAD is that of all rays), the blip reads 0."""
+    rng = np.random.default_rng(5)
+    c = rng.normal(0.0, 1e-6, (1, 200))
+    c[0, 3], c[0, 9], c[0, 11] = 1e-4, 2e-3, -3e-3          # a rounding blip, a real ray, a real opposite
+    plain, floored = ray_outlier_z(c), ray_outlier_z(c, 2.0 ** -11)
+    assert plain[0, 3] > 3.5 and (np.abs(plain) > 0).sum() > 150
+    assert floored[0, 3] == 0 and np.count_nonzero(floored) == 2
+    assert floored[0, [9, 11]] == pytest.approx(plain[0, [9, 11]])
+    assert floored[0, 9] > 3.5 > floored[0, 11]
+
+
 def test_look_next_brings_a_far_outlier_ray_forward(built):
     """With every probability ~0 (a far target), the frontier whose ray stands out (ray_z)
     is examined even when it is the farthest and ranks first; without ray_z it is not even a
