@@ -5,7 +5,9 @@ For each step it prints the map's rays with the largest ``ray_z`` for the target
 the distinct cosine it is the z-score of (``mapper.search_answer.distinct_cosines``), the
 ray's heading (degrees, yaw in the xy plane) and its origin (m). With ``--float32`` the
 edge chain keeps the PCA coefficients float32 and skips the wire's encode/decode (``q16z``
-decodes to float16), so what stands out only through rounding falls away.
+decodes to float16), so what stands out only through rounding falls away. The search's floor
+(``search.ray_cosine_resolution``, which sets such rays' ``ray_z`` to 0) is set aside unless
+``--floor``.
 
     .venv/bin/python benchmarks/diagnostics/ray_rounding.py --seed 19 --steps 6
     .venv/bin/python benchmarks/diagnostics/ray_rounding.py --seed 19 --steps 6 --float32
@@ -45,6 +47,8 @@ def main() -> None:
     ap.add_argument("--policy", default="rayfronts")
     ap.add_argument("--top", type=int, default=4, help="rays printed per step")
     ap.add_argument("--float32", action="store_true", help="no float16 on the way from encoder to map")
+    ap.add_argument("--floor", action="store_true",
+                    help="keep search.ray_cosine_resolution (by default it is set aside, to show the rounding)")
     args = ap.parse_args()
 
     if args.float32:
@@ -54,9 +58,9 @@ def main() -> None:
     distinct: dict[str, np.ndarray] = {}
     outlier_z, look_next = search_answer.ray_outlier_z, search_answer.look_next
 
-    def record_z(values):
+    def record_z(values, resolution=0.0):
         distinct["v"] = np.asarray(values)[0].copy()
-        return outlier_z(values)
+        return outlier_z(values, resolution if args.floor else 0.0)
 
     def report(grid, vox, frontiers, origins, dirs, scores, targets, from_xyz, **kw):
         v, z = distinct["v"], kw["ray_z"][:, 0]
