@@ -122,8 +122,11 @@ def _coerce_int(value: Any, key: str) -> int:
 
 
 def _coerce_float(value: Any, key: str) -> float:
-    if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "-inf", "nan"):
-        return float(value)
+    if isinstance(value, str):          # "inf", "nan", and "1e-4" (YAML 1.1 reads a float without a dot as text)
+        try:
+            return float(value.strip())
+        except ValueError:
+            pass
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"config key '{key}': expected a number, got {value!r}")
     return float(value)

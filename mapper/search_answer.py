@@ -14,7 +14,8 @@ text embedded as :func:`mapper.query_answer.embed_text` does), then:
   (:func:`semantic_map.look_next.ray_outlier_z` of :func:`distinct_cosines`: how far its
   cosine to what sets a target apart from the other phrases stands out among all the map's
   rays — evidence for far targets whose probabilities are ~0; a ray toward a similar class,
-  a radio tower for a water tower, reads ~0 where its raw cosine would stand out);
+  a radio tower for a water tower, reads ~0 where its raw cosine would stand out; 0 within
+  ``search.ray_cosine_resolution`` of the median, the features' float16 rounding on the wire);
 * ``beyond``: best rays per target, triangulated estimates
   (:func:`semantic_map.beyond.triangulate`) and the search volume of the best rays' cones.
 
@@ -244,8 +245,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     tm["instances"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     rkeep = _in_area(snap.ray_origins.astype(np.float64), req.polygon(), req.z_band)
-    rz = ray_outlier_z(rcos, scfg.ray_cosine_resolution)[:, rkeep]   # outliers among all the map's rays,
-    # then the area's
+    # outliers among all the map's rays, then the area's
+    rz = ray_outlier_z(rcos, scfg.ray_cosine_resolution)[:, rkeep]
     goals: list[dict] = []
     if read_map is not None and req.max_goals > 0:
         def run(m) -> list:

@@ -56,6 +56,17 @@ def test_type_errors_are_clear():
         parse_override("novalue")
 
 
+def test_mapper_config_refuses_a_negative_ray_cosine_resolution():
+    from mapper.service_config import load_mapper_config
+
+    assert load_mapper_config(None, ["search.ray_cosine_resolution=0"]).search.ray_cosine_resolution == 0.0
+    # exponent notation without a dot (YAML 1.1 reads it as text) is a number too
+    assert load_mapper_config(None, ["search.ray_cosine_resolution=1e-3"]).search.ray_cosine_resolution == 1e-3
+    for bad in ("-1e-4", "nan"):
+        with pytest.raises(ConfigError, match=r"search\.ray_cosine_resolution.*>= 0"):
+            load_mapper_config(None, [f"search.ray_cosine_resolution={bad}"])
+
+
 def test_missing_file_and_bad_yaml(tmp_path: Path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(Outer, tmp_path / "nope.yaml")
