@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.config import field_
+from common.config import ConfigError, field_
 
 DEFAULT_BACKGROUND = ["building", "road", "ground", "tree", "sky"]
 
@@ -34,3 +34,10 @@ class SearchSection:
     max_occupancy_cells: int = field_(4_000_000, "cells an occupancy request may return")
     warm_up: bool = field_(True, "load the text model and embed the background phrases in the background as soon "
                                  "as the map's feature space is known, so the first search is as fast as the next")
+
+    def validate(self) -> "SearchSection":
+        """Refuses values the search cannot use (one line naming the key)."""
+        if not self.ray_cosine_resolution >= 0.0:         # NaN too
+            raise ConfigError(f"search.ray_cosine_resolution={self.ray_cosine_resolution}: must be >= 0 "
+                              "(0 = every deviation from the median counts)")
+        return self

@@ -187,9 +187,5 @@ def load_mapper_config(path: str | Path | None = None, overrides: Sequence[str] 
     cfg = load_config(schema, path, overrides, base=base)
     if hasattr(cfg.map, "validate"):
         cfg.map.validate()
-    if not cfg.search.ray_cosine_resolution >= 0.0:         # NaN too
-        from common.config import ConfigError
-
-        raise ConfigError(f"search.ray_cosine_resolution={cfg.search.ray_cosine_resolution}: must be >= 0 "
-                          "(0 = every deviation from the median counts)")
+    cfg.search.validate()
     return cfg
