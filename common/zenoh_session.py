@@ -25,9 +25,14 @@ event): ``-1`` (default) keeps retrying until the router appears, so an edge can
 before its base station; ``0`` tries once; ``N > 0`` retries for N ms. Once connected, Zenoh
 itself reconnects a client when the router comes back and re-declares its entities.
 
-Closing: a process that exits with callback subscribers/queryables still declared hangs at
-interpreter exit (Zenoh 1.10 pitfall). Use :class:`SessionGuard` (a context manager that
-undeclares what it tracks and closes the session) and :func:`install_signal_handlers`.
+Closing: Zenoh serves callback subscribers/queryables from non-daemon threads that end only
+when their session closes, so a process that exits with such a session still open would hang
+at interpreter exit (the interpreter joins those threads before ``atexit`` runs). Use
+:class:`SessionGuard` (a context manager that undeclares what it tracks and closes the
+session) and :func:`install_signal_handlers`; as a last resort every session opened by
+:func:`open_session` and still open is closed before the interpreter joins its threads
+(:func:`close_open_sessions`), so a program that forgets ``close()`` (or fails before it)
+still exits.
 """
 from __future__ import annotations
 
@@ -222,6 +227,46 @@ def config_mode(c: zenoh.Config) -> str:
 
 
 # --------------------------------------------------------------------------- open / close
+_OPEN_SESSIONS: list = []          # sessions opened by open_session (closed ones pruned on open)
+_OPEN_LOCK = threading.Lock()
+_EXIT_HOOK_SET = False
+
+
+def close_open_sessions() -> int:
+    """Close every session opened by :func:`open_session` that is still open; the number
+    closed. Runs before the interpreter joins non-daemon threads at exit (registered on the
+    first open), so Zenoh's callback threads end and the process exits."""
+    with _OPEN_LOCK:
+        sessions, _OPEN_SESSIONS[:] = list(_OPEN_SESSIONS), []
+    n = 0
+    for s in sessions:
+        if not s.is_closed():
+            close_quietly(s)
+            n += 1
+    return n
+
+
+def _track(session: zenoh.Session) -> zenoh.Session:
+    global _EXIT_HOOK_SET
+    with _OPEN_LOCK:
+        _OPEN_SESSIONS[:] = [s for s in _OPEN_SESSIONS if not s.is_closed()]
+        _OPEN_SESSIONS.append(session)
+        if not _EXIT_HOOK_SET:
+            # threading's pre-join hook (what concurrent.futures uses); atexit would run too late
+            register = getattr(threading, "_register_atexit", None)
+            try:
+                if register is not None:
+                    register(close_open_sessions)
+                else:                                       # pragma: no cover - CPython < 3.9
+                    import atexit
+
+                    atexit.register(close_open_sessions)
+                _EXIT_HOOK_SET = True
+            except RuntimeError:                            # the interpreter is already shutting down
+                pass
+    return session
+
+
 def open_session(cfg: ZenohConfig | zenoh.Config, *, stop: threading.Event | None = None,
                  extra: dict[str, Any] | None = None, default_mode: str = "client") -> zenoh.Session:
     """Open a ``zenoh.Session``.
@@ -234,7 +279,7 @@ def open_session(cfg: ZenohConfig | zenoh.Config, *, stop: threading.Event | Non
 
     if isinstance(cfg, zenoh.Config):
         try:
-            return zenoh.open(cfg)
+            return _track(zenoh.open(cfg))
         except Exception as e:
             from common.zenoh_errors import explain_zenoh_error
 
@@ -245,7 +290,7 @@ def open_session(cfg: ZenohConfig | zenoh.Config, *, stop: threading.Event | Non
     wait, warned = 0.1, False
     while True:
         try:
-            return zenoh.open(zc)
+            return _track(zenoh.open(zc))
         except Exception as e:
             err = e
         from common.zenoh_errors import explain_zenoh_error  # one sentence, no Rust source paths

@@ -199,6 +199,9 @@ class QueryServer:
             "flushed_version": state.flushed_version, "text_warm_up_s": state.text_warm_up_s,
             # which thread loaded each text model ("text-warm-up": before anyone asked)
             "text_models": {k: dict(v) for k, v in TEXT_MODEL_LOADS.items()},
+            "search": {"standing": len(state.standing_searches), "instance_next_id": state.trackers.next_id,
+                       "instance_ids_reserved_below": state.trackers.reserved_below,
+                       "instance_id_reserve_errors": state.trackers.reserve_errors},
             "first_mapped_at": state.first_mapped_at, "last_mapped_at": state.last_mapped_at,
             # process CPU (all threads) from the first to the last integration, and in total
             "cpu_s": {"mapping": (state.cpu_mapped[1] - state.cpu_mapped[0]) if state.cpu_mapped else 0.0,

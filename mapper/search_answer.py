@@ -23,6 +23,7 @@ World frame, metres, z up; timings in milliseconds.
 """
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import OrderedDict
@@ -40,24 +41,52 @@ from semantic_map.look_next import look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import score_rows, softmax_share
 from semantic_map.query_snapshot import one_thread
 
+log = logging.getLogger("rayfronts.mapper")
+
 
 class TrackerStore:
     """Instance trackers by target set (LRU, at most ``max_trackers``). Their ids come from one
-    counter (``next_id``): ids are unique over all target sets and, with the counter saved in
-    the snapshot, never reused after a restart."""
+    counter (``next_id``): ids are unique over all target sets and never reused after a
+    restart, a crash included.
 
-    def __init__(self, max_trackers: int = 32):
+    With a ``reserve`` callback, ids are handed out from durably reserved blocks: before the
+    first id at or above ``reserved_below`` is returned, ``reserve(n)`` is called with the new
+    ceiling ``n`` (``id_block`` ids further) and must persist it; a restart continues from the
+    persisted ceiling (:class:`mapper.snapshot_store.SnapshotStore`), so an id sent after the
+    newest snapshot is not issued again. A failing ``reserve`` is logged and counted
+    (``reserve_errors``) and the id is still issued: an answer is not refused for a disk error.
+    """
+
+    def __init__(self, max_trackers: int = 32, reserve: Callable[[int], None] | None = None,
+                 id_block: int = 256):
         self.max = max(1, int(max_trackers))
         self._t: OrderedDict = OrderedDict()
         self.next_id = 1
+        self.reserve = reserve
+        self.id_block = max(1, int(id_block))
+        self.reserved_below = 1          # ids < this are covered by the last successful reserve()
+        self.reserve_errors = 0
         self._lock = threading.Lock()
 
     def new_id(self) -> int:
         """The next instance id (thread-safe)."""
         with self._lock:
             i = self.next_id
+            if self.reserve is not None and i >= self.reserved_below:
+                ceiling = i + self.id_block
+                try:
+                    self.reserve(ceiling)
+                    self.reserved_below = ceiling
+                except Exception as e:   # the id is still issued; the next one tries again
+                    self.reserve_errors += 1
+                    log.error("could not reserve instance ids below %d: %s", ceiling, e)
             self.next_id += 1
             return i
+
+    def continue_from(self, next_id: int) -> None:
+        """Issue no id below ``next_id`` (a restored counter or reservation)."""
+        with self._lock:
+            self.next_id = max(self.next_id, int(next_id))
 
     def get(self, key: tuple, vox: float, min_voxels: int) -> InstanceTracker:
         """The tracker of ``key`` (created on first use; a map with another voxel size resets it)."""

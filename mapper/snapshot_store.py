@@ -7,6 +7,8 @@ On-disk layout under ``snapshots.dir``::
     snap-<ms>/map/           the map (RayFrontsMap.save)
     snap-<ms>/feature_space.bin   the feature-space envelope the map was built in
     snap-<ms>/meta.json      frames_mapped, stamp, version, per-robot mapped / last_seq
+    instance_ids.json        {"reserved_below": n}: search instance ids below n may have been
+                             sent; a restart issues none of them again (crash included)
 
 A snapshot is written into ``.tmp-snap-<ms>`` and renamed into place, then ``LATEST`` is
 replaced, so a crash never leaves a half snapshot behind the pointer. The newest
@@ -54,8 +56,37 @@ log = logging.getLogger("rayfronts.mapper")
 class SnapshotStore:
     """Snapshots of the shared map in ``cfg.snapshots.dir``."""
 
+    IDS_FILE = "instance_ids.json"
+
     def __init__(self, state: MapperState) -> None:
         self.state = state
+        if state.cfg.snapshots.dir:
+            state.trackers.reserve = self.reserve_instance_ids
+
+    def reserve_instance_ids(self, below: int) -> None:
+        """Persist that instance ids below ``below`` may be in use (write, fsync, rename):
+        called by the tracker store before it hands out an id at or above the last ceiling,
+        so ids sent after the newest snapshot survive a crash as reserved."""
+        root = Path(self.state.cfg.snapshots.dir)
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = root / (self.IDS_FILE + ".tmp")
+        write_bytes_durably(tmp, json.dumps({"reserved_below": int(below)}).encode())
+        os.replace(tmp, root / self.IDS_FILE)
+        fsync_dir(root)
+
+    def _restore_instance_ids(self, root: Path) -> None:
+        """Continue instance ids above the persisted reservation (a broken file is logged:
+        then only the snapshot's counter holds)."""
+        f = root / self.IDS_FILE
+        if not f.exists():
+            return
+        try:
+            below = int(json.loads(f.read_text())["reserved_below"])
+        except Exception as e:
+            log.error("%s is unreadable (%s): instance ids continue from the snapshot's counter", f, e)
+            return
+        self.state.trackers.continue_from(below)
+        log.info("instance ids continue from %d (reserved before the restart)", below)
 
     def save(self) -> dict:
         """Write the map atomically (tmp dir, then rename) to ``snapshots.dir/snap-<n>``."""
@@ -93,6 +124,7 @@ class SnapshotStore:
 
         state = self.state
         root = Path(state.cfg.snapshots.dir)
+        self._restore_instance_ids(root)
         gens = snapshot_generations(root)
         if not gens:
             log.info("no snapshot in %s: starting with an empty map", root)
@@ -156,7 +188,7 @@ class SnapshotStore:
         re-runs them on the restored map and publishes on ``mapper/searches/<id>``); instance
         ids continue from the saved counter, so none is reused."""
         state = self.state
-        state.trackers.next_id = max(state.trackers.next_id, next_id)
+        state.trackers.continue_from(next_id)
         for req in _decode_saved(saved, decode_search_request, "standing search"):
             state.standing_searches[req.id] = req
         if saved:

@@ -2,6 +2,7 @@
 (or an explicit choice), and a snapshot is durable and written outside the map lock."""
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -143,3 +144,29 @@ def test_standing_queries_are_saved_and_resume(tmp_path):
     assert (w.text, w.top_k, w.standing) == ("water tower", 4, True)
     assert e.softmax and np.array_equal(e.embedding, reqs[1].embedding)
     assert again.standing_due.is_set()      # answered once on the restored map
+
+
+def test_instance_ids_sent_after_the_newest_snapshot_are_not_reissued_after_a_crash(tmp_path):
+    """The snapshot's counter is 1; 300 ids are then sent (two reservation blocks) and the
+    process dies without another save: the restarted mapper continues above every id sent."""
+    _snapshot(tmp_path, ["map.vox_size=0.5"])
+    first = _restore(tmp_path, ["map.vox_size=0.5"])
+    assert first.trackers.next_id == 1
+    sent = [first.trackers.new_id() for _ in range(300)]
+    assert sent == list(range(1, 301)) and first.trackers.reserve_errors == 0
+    reserved = json.loads((tmp_path / "instance_ids.json").read_text())["reserved_below"]
+    assert reserved > max(sent)
+    again = _restore(tmp_path, ["map.vox_size=0.5"])        # no save in between: a crash
+    assert again.trackers.new_id() > max(sent)
+    # without the reservation file only the snapshot's counter is left, and ids repeat
+    (tmp_path / "instance_ids.json").unlink()
+    assert _restore(tmp_path, ["map.vox_size=0.5"]).trackers.new_id() == 1
+
+
+def test_a_failing_id_reservation_is_counted_and_the_id_still_issued(tmp_path, caplog):
+    (tmp_path / "instance_ids.json").mkdir()                  # the rename onto it fails
+    st = _restore(tmp_path, [])
+    assert "instance_ids.json is unreadable" in caplog.text
+    assert [st.trackers.new_id() for _ in range(3)] == [1, 2, 3]
+    assert st.trackers.reserve_errors == 3 and st.trackers.reserved_below == 1
+    assert "could not reserve instance ids below 2" in caplog.text

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -231,3 +232,21 @@ def test_make_acl_structure():
     for bad in (["a/b"], ["r1", "r1"], ["*"]):
         with pytest.raises(ValueError):
             make_acl.make_acl(bad)
+
+
+def test_a_program_that_never_closes_its_session_still_exits(tmp_path):
+    """Zenoh serves a callback subscriber from a non-daemon thread that ends only when its
+    session closes; a session from open_session is closed before the interpreter joins
+    threads, so a program that forgets close() (a failed test, a crashed script) exits."""
+    prog = tmp_path / "forgets_close.py"
+    prog.write_text(
+        "from common.zenoh_session import ZenohConfig, open_session\n"
+        "s = open_session(ZenohConfig(mode='peer', listen=['tcp/127.0.0.1:0']))\n"
+        "sub = s.declare_subscriber('rayfronts/x/**', lambda sample: None)\n"
+        "q = s.declare_queryable('rayfronts/y', lambda query: None)\n"
+        "kept = [s, sub, q]\n"
+        "print('leaving with the session open', flush=True)\n")
+    out = subprocess.run([sys.executable, str(prog)], capture_output=True, text=True, timeout=60,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "leaving with the session open" in out.stdout
