@@ -98,6 +98,16 @@ def write_bytes_durably(path: str | Path, data: bytes) -> None:
         os.fsync(f.fileno())
 
 
+def replace_file_durably(path: str | Path, data: bytes, tmp_name: str) -> None:
+    """Replace the file ``path`` with ``data`` atomically and durably: written to ``tmp_name``
+    beside it and fsynced, renamed over ``path``, then the directory fsynced."""
+    path = Path(path)
+    tmp = path.parent / tmp_name
+    write_bytes_durably(tmp, data)
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
 def write_capture(capture: tuple[dict[str, np.ndarray], dict], path: str | Path) -> Path:
     """Write a :func:`capture_map` result to the directory ``path``: ``arrays.npz`` and
     ``manifest.json``, each fsynced, then the directory."""

@@ -44,7 +44,7 @@ from common.messages import (
     encode_snapshot_reply,
 )
 from common.search_messages import decode_search_request, encode_search_request
-from mapper.snapshot import capture_map, fsync_dir, write_bytes_durably, write_capture
+from mapper.snapshot import capture_map, fsync_dir, replace_file_durably, write_bytes_durably, write_capture
 from mapper.state import MapperState, jsonable
 
 if TYPE_CHECKING:
@@ -69,10 +69,8 @@ class SnapshotStore:
         so ids sent after the newest snapshot survive a crash as reserved."""
         root = Path(self.state.cfg.snapshots.dir)
         root.mkdir(parents=True, exist_ok=True)
-        tmp = root / (self.IDS_FILE + ".tmp")
-        write_bytes_durably(tmp, json.dumps({"reserved_below": int(below)}).encode())
-        os.replace(tmp, root / self.IDS_FILE)
-        fsync_dir(root)
+        replace_file_durably(root / self.IDS_FILE, json.dumps({"reserved_below": int(below)}).encode(),
+                             self.IDS_FILE + ".tmp")
 
     def _restore_instance_ids(self, root: Path) -> None:
         """Continue instance ids above the persisted reservation (a broken file is logged:
@@ -186,7 +184,8 @@ class SnapshotStore:
     def _restore_searches(self, saved: list, next_id: int) -> None:
         """Standing searches saved with the snapshot resume under their ids (the search server
         re-runs them on the restored map and publishes on ``mapper/searches/<id>``); instance
-        ids continue from the saved counter, so none is reused."""
+        ids continue from the saved counter or the reservation (:meth:`reserve_instance_ids`),
+        whichever is higher, so none is reused."""
         state = self.state
         state.trackers.continue_from(next_id)
         for req in _decode_saved(saved, decode_search_request, "standing search"):
@@ -261,9 +260,7 @@ def write_snapshot(root: Path, capture: tuple[dict, dict], space_envelope: bytes
     fsync_dir(tmp)
     os.replace(tmp, root / name)
     fsync_dir(root)
-    write_bytes_durably(root / ".latest.tmp", name.encode())
-    os.replace(root / ".latest.tmp", root / "LATEST")
-    fsync_dir(root)
+    replace_file_durably(root / "LATEST", name.encode(), ".latest.tmp")
     snaps = sorted(p for p in root.glob("snap-*") if p.is_dir())
     for old in snaps[:-max(1, keep)]:
         shutil.rmtree(old, ignore_errors=True)
