@@ -12,8 +12,8 @@ the world's exact geometry:
 * ``best_voxel.error_m``: distance from the best voxel centre to the nearest instance;
 * ``best_ray.miss_m``: distance from the best ray (a half-line) to the nearest instance.
 
-Writes ``DIR/results.json`` (its fields are explained in the README, "What the demo
-writes") and ``DIR/demo.rrd`` (the mapper's rerun recording, with the operator blueprint).
+Writes ``DIR/results.json`` (its fields are explained in ``docs/commands.md#demo``)
+and ``DIR/demo.rrd`` (the mapper's rerun recording, with the operator blueprint).
 
 The progress line is rewritten in place (``\r``) only on a terminal; into a log or a pipe it
 prints one line at most every 5 s and when the edge finishes, so a log stays readable.
@@ -318,7 +318,7 @@ def run_demo(cfg: DemoConfig, progress: bool = True) -> dict:
 
 
 def demo_settings(cfg: DemoConfig, endpoint: str = "") -> dict:
-    """What results.json records about how the run was set up (README "What the demo writes")."""
+    """What results.json records about how the run was set up (``docs/commands.md#demo``)."""
     return {
         "frames": cfg.frames, "resolution": cfg.resolution, "depth_limit_m": cfg.depth_limit, "seed": cfg.seed,
         "vox_size_m": cfg.vox_size, "map_preset": cfg.preset, "pca_dim": cfg.pca_dim, "encoder": "label",
