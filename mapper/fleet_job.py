@@ -1,5 +1,5 @@
 """The mapper's fleet job: several robots in one map, told what happens, bounded; and this
-mapper as one shard of several (module map: :mod:`mapper.state`).
+mapper as one shard of several (module map: ARCHITECTURE.md).
 
 Hooks (the other jobs call them; pure parts in :mod:`mapper.fleet`, :mod:`mapper.shards`):
 

@@ -1,5 +1,5 @@
 """Frames in: the frame subscriber, robot liveliness, per-robot queues and the feature-space
-fetch of the mapper (module map: :mod:`mapper.state`; ARCHITECTURE.md).
+fetch of the mapper (module map: ARCHITECTURE.md).
 
 Data path::
 

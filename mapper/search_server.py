@@ -1,6 +1,6 @@
 """The planners' queryables: ``<p>/mapper/search`` (find targets, where to look next, what
 lies beyond) and ``<p>/mapper/occupancy`` (box / slice / points), plus standing searches
-published on ``<p>/mapper/searches/<id>`` (module map: :mod:`mapper.state`).
+published on ``<p>/mapper/searches/<id>`` (module map: ARCHITECTURE.md).
 
 A search runs like a query (:class:`mapper.query_server.QueryServer`): under
 ``state.query_lock``, on the query snapshot of the current map generation (the map worker is

@@ -25,7 +25,7 @@ entities, threads, close); each job is its own module over one shared
     (rerun file / gRPC)            RerunOutput           (outputs.rerun)
     ROS 2 topics (rmw_zenoh/bridge) RosOutput            (outputs.ros)   mapper-ros, Zenoh callbacks
 
-Module map, locks and events: :mod:`mapper.state` and ARCHITECTURE.md. The service's
+Module map: ARCHITECTURE.md; locks and events: :mod:`mapper.state`. The service's
 attributes ``map``, ``lock``, ``qlock``, ``mapped``, ``robots``, ... read and write the shared state.
 """
 from __future__ import annotations

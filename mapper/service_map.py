@@ -1,5 +1,5 @@
 """What the mapper process does with its map, kept free of Zenoh: create/load the map,
-integrate a decoded frame, flush, read the layers (module map: :mod:`mapper.state`).
+integrate a decoded frame, flush, read the layers (module map: ARCHITECTURE.md).
 Query answering is :mod:`mapper.query_answer`.
 World frame, metres, z up.
 """

@@ -1,5 +1,5 @@
 """Map snapshots: save (atomic), restore on start, keep the newest N, and the snapshot
-queryable (module map: :mod:`mapper.state`; ARCHITECTURE.md).
+queryable (module map: ARCHITECTURE.md).
 
 On-disk layout under ``snapshots.dir``::
 

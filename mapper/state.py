@@ -1,23 +1,7 @@
 """What the mapper's jobs share: the map, its feature space, the robot table, counters, locks
 and the wake-up events (one :class:`MapperState` per :class:`mapper.service.MapperService`).
 
-Mapper module map (the service is a thin composition of jobs; see ARCHITECTURE.md)::
-
-    mapper/service.py          MapperService: builds the state and the jobs, declares the Zenoh
-                               entities, starts the threads, closes everything (lifecycle only)
-    mapper/state.py            MapperState (this module), RobotState, counters, jsonable
-    mapper/ingest.py           frames in: subscriber, validation, per-robot queues, liveliness,
-                               feature-space fetch, round-robin next_frame
-    mapper/map_worker.py       the one integrating thread: integrate, idle flush, and the
-                               schedule of standing queries / layers / periodic snapshots
-    mapper/query_server.py     query + stats queryables, QuerySnapshot, standing queries, stats()
-    mapper/snapshot_store.py   save / restore / write_snapshot, the snapshot queryable
-    mapper/outputs/layers.py   layer messages: periodic publish and the layer queryable
-    mapper/outputs/rerun.py    rerun recording (RerunLogger) and the service's rerun output
-    mapper/service_map.py      Zenoh-free map life: create/load/integrate/flush, layer arrays
-    mapper/query_answer.py     Zenoh-free query answering: embed, score, cluster, search volume
-    semantic_map/query_snapshot.py   the query's incremental float16 copy of the map and its scoring
-    mapper/service_config.py   the mapper config schema, thread counts
+The mapper's module map (which job lives where, and its thread) is ARCHITECTURE.md, "mapper/".
 
 Locking: ``lock`` (the map lock) guards the map and its feature space; ``qlock`` the robot
 table and queues; ``query_lock`` serialises queries (one-shot and standing), always taken

@@ -1,4 +1,4 @@
-"""What the mapper publishes besides query answers (module map: :mod:`mapper.state`).
+"""What the mapper publishes besides query answers (module map: ARCHITECTURE.md).
 
 * :mod:`mapper.outputs.layers`: layer messages (voxels, frontiers, rays) on
   ``<prefix>/mapper/layers/<layer>``, periodic put and get-on-demand.

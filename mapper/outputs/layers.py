@@ -1,6 +1,6 @@
 """Layer messages of the mapper: voxels, frontiers, rays, occupancy stats, published on
 ``<prefix>/mapper/layers/<layer>`` at ``layers.rate_hz`` by the map worker and answered on a
-``get`` of the same key (module map: :mod:`mapper.state`; ARCHITECTURE.md).
+``get`` of the same key (module map: ARCHITECTURE.md).
 
 Layers are subsampled to ``layers.max_voxels`` / ``layers.max_rays`` (seeded, stable) by
 :func:`mapper.service_map.layer_arrays`; the message is :func:`common.messages.encode_layer`.
