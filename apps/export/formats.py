@@ -25,7 +25,7 @@ OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.196
 _PLY_TYPES = {np.dtype("<f4"): "float", np.dtype("u1"): "uchar", np.dtype("<i4"): "int"}
 
 
-def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
+def write_atomically(path: Path, write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path`` and rename it over ``path``
     (a failed write leaves no half file; the temporary one is removed)."""
     tmp = path.with_name(f".{path.name}.tmp")

@@ -89,7 +89,8 @@ def from_mapper(connect: str, prefix: str | None, timeout: float) -> Source:
             info = c.snapshot(save=True, timeout=timeout)
         except QueryError as e:
             if "no map yet" in str(e):
-                raise UserError(f"the mapper's map is empty (no frames mapped yet): {e}") from None
+                raise UserError(f"the mapper at {connect} has an empty map (no frames mapped yet): nothing to "
+                                "export; try again once an edge has sent frames") from None
             raise
     path = Path(str(info.get("path", "")))
     if not (path / "map").is_dir():
