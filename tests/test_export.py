@@ -93,6 +93,64 @@ def _mapper_scores(gen: Path, fs, text: str) -> dict[tuple, float]:
     return {tuple(c): float(s) for c, s in zip(ijk.tolist(), r.voxel_score, strict=True)}
 
 
+# First in the file: its edge embeds the synthetic world's class names into the session's
+# text cache (RAYFRONTS_TEXT_CACHE), which the PLY test's query and labels then read instead
+# of loading the text model again.
+def test_export_from_a_live_mapper_over_zenoh(procs, pca_file, tmp_path):
+    """A mapper and an edge over Zenoh: an export of its empty map is one line and exit 2
+    (``rayfronts export --connect`` as a process); after a few frames the exports (run in this
+    process) equal what the running mapper answers (its occupancy slice, its voxels layer, its
+    query scores), and the mapper keeps running throughout."""
+    from apps.processes import wait_for
+    from semantic_map.query_snapshot import SCORE_ATOL
+    from tests.support.console import ConsoleWorld
+    from tests.support.ports import free_port
+    from tests.support.processes import Proc
+    from tests.support.roles import client, edge_args, mapper_args
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    mapper = Proc("mapper", mapper_args(ep, ["queues.idle_flush_s=0.3", f"snapshots.dir={tmp_path / 'snaps'}"]),
+                  tmp_path)
+    procs.append(mapper)
+    with client(ep) as c:
+        wait_for(lambda: c.stats(timeout=5.0), 120, what="mapper answering")
+        _one_line_exit_2(_run_cli("--connect", ep, "--format", "ply", "--out", str(tmp_path / "e.ply")),
+                         "empty map")
+        assert mapper.p.poll() is None
+        procs.append(Proc("edge", edge_args(ep, pca_file, frames=4, rate=8.0), tmp_path))
+        assert procs[-1].p.wait(timeout=180) == 0, (tmp_path / "edge.log").read_text()[-2000:]
+        wait_for(lambda: ConsoleWorld._settled(c.stats()), 60, what="every frame mapped and flushed")
+        band = (0.2, 1.5)
+        yml = tmp_path / "live.yaml"
+        _export("--connect", ep, "--format", "map_server", "--out", str(yml), "--z-min", str(band[0]),
+                "--z-max", str(band[1]))
+        cells, meta = _load_map_server(yml)
+        cell = meta["resolution"]
+        lo = np.array(meta["origin"][:2]) + cell / 2
+        rep = c.occupancy_slice(lo, lo + (np.array(cells.shape) - 1) * cell, band)
+        assert rep.cell_m == cell and np.allclose(rep.origin, meta["origin"][:2])
+        live = np.array([-1, 0, 100])[np.asarray(rep.states) + 1]
+        assert (live == 100).sum() > 20 and (live == 0).sum() > 20
+        assert (cells == live).all()
+        # PLY with a query's scores: the voxels layer and the query answer
+        ply = tmp_path / "live.ply"
+        _export("--connect", ep, "--format", "ply", "--out", str(ply), "--query", "car")
+        got = _read("ply", ply, tmp_path)
+        layer, lmeta = c.layer("voxels")
+        assert lmeta["total"] == len(layer["xyz"]) == len(got["points"]) > 100
+        key = np.lexsort(got["points"].T[::-1]), np.lexsort(layer["xyz"].T[::-1])
+        np.testing.assert_array_equal(got["points"][key[0]], layer["xyz"][key[1]])
+        colours = np.stack([got[k] for k in ("red", "green", "blue")], 1).view(np.uint8)
+        np.testing.assert_array_equal(colours[key[0]], layer["rgb"][key[1]])
+        r = c.query("car", top_k=50)
+        assert len(r.voxel_xyz) == 50
+        at = {tuple(np.floor(q / VOX).astype(int).tolist()): i for i, q in enumerate(got["points"].astype(float))}
+        rows = [at[tuple(np.floor(q / VOX).astype(int).tolist())] for q in np.asarray(r.voxel_xyz, float)]
+        np.testing.assert_allclose(got["score"][rows], r.voxel_score, atol=SCORE_ATOL)
+        assert got["score"].max() <= r.voxel_score[0] + SCORE_ATOL
+        assert mapper.p.poll() is None and c.stats(timeout=5.0)["frames"]["mapped"] >= 1
+
+
 def test_ply_read_back_by_meshio_equals_the_map_voxels(snap, tmp_path, monkeypatch):
     from semantic_map.query_snapshot import SCORE_ATOL
 
@@ -215,6 +273,17 @@ def test_map_server_files_reload_to_the_slice(snap, tmp_path):
     st, origin, cell = costmap_slice(m.occupancy, VOX, seen[:, :2].min(0) * VOX + 0.25,
                                      seen[:, :2].max(0) * VOX + 0.25, band)
     assert (np.array([-1, 0, 100])[st + 1] == cells).all() and cell == VOX  # UNKNOWN -1, FREE 0, OCCUPIED 1
+    # --stride 2: cells of 2 x 2 voxel columns, occupied if any, free if all free, else unknown
+    out2 = tmp_path / "coarse.yaml"
+    _export("--snapshot", str(snap["root"]), "--format", "map_server", "--out", str(out2), "--stride", "2",
+            "--z-min", str(band[0]), "--z-max", str(band[1]))
+    coarse, meta2 = _load_map_server(out2)
+    assert meta2["resolution"] == 2 * VOX and meta2["origin"] == meta["origin"]
+    assert coarse.shape == tuple((np.array(cells.shape) + 1) // 2)
+    fine = _slice_from_arrays(a, x0, y0, 2 * coarse.shape[0], 2 * coarse.shape[1], band)
+    blocks = fine.reshape(coarse.shape[0], 2, coarse.shape[1], 2)
+    want = np.where((blocks == 100).any((1, 3)), 100, np.where((blocks == 0).all((1, 3)), 0, -1))
+    assert (coarse == want).all() and (want == 100).sum() > 50
 
 
 def test_snapshot_export_is_a_generation_the_mapper_restores(snap, tmp_path):
@@ -282,58 +351,3 @@ def test_bad_input_is_one_line_and_exit_2(snap, tmp_path):
     for p, words in runs:
         _one_line_exit_2(p, *words)
     assert not [f for f in tmp_path.iterdir() if f.suffix in (".ply", ".vdb", ".yaml", ".pgm", ".obj", ".tmp")]
-
-
-def test_export_from_a_live_mapper_over_zenoh(procs, pca_file, tmp_path):
-    """A mapper and an edge over Zenoh: an export of its empty map is one line and exit 2
-    (``rayfronts export --connect`` as a process); after a few frames the exports (run in this
-    process) equal what the running mapper answers (its occupancy slice, its voxels layer, its
-    query scores), and the mapper keeps running throughout."""
-    from apps.processes import wait_for
-    from semantic_map.query_snapshot import SCORE_ATOL
-    from tests.support.console import ConsoleWorld
-    from tests.support.ports import free_port
-    from tests.support.processes import Proc
-    from tests.support.roles import client, edge_args, mapper_args
-
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    mapper = Proc("mapper", mapper_args(ep, ["queues.idle_flush_s=0.3", f"snapshots.dir={tmp_path / 'snaps'}"]),
-                  tmp_path)
-    procs.append(mapper)
-    with client(ep) as c:
-        wait_for(lambda: c.stats(timeout=5.0), 120, what="mapper answering")
-        _one_line_exit_2(_run_cli("--connect", ep, "--format", "ply", "--out", str(tmp_path / "e.ply")),
-                         "empty map")
-        assert mapper.p.poll() is None
-        procs.append(Proc("edge", edge_args(ep, pca_file, frames=4, rate=8.0), tmp_path))
-        assert procs[-1].p.wait(timeout=180) == 0, (tmp_path / "edge.log").read_text()[-2000:]
-        wait_for(lambda: ConsoleWorld._settled(c.stats()), 60, what="every frame mapped and flushed")
-        band = (0.2, 1.5)
-        yml = tmp_path / "live.yaml"
-        _export("--connect", ep, "--format", "map_server", "--out", str(yml), "--z-min", str(band[0]),
-                "--z-max", str(band[1]))
-        cells, meta = _load_map_server(yml)
-        cell = meta["resolution"]
-        lo = np.array(meta["origin"][:2]) + cell / 2
-        rep = c.occupancy_slice(lo, lo + (np.array(cells.shape) - 1) * cell, band)
-        assert rep.cell_m == cell and np.allclose(rep.origin, meta["origin"][:2])
-        live = np.array([-1, 0, 100])[np.asarray(rep.states) + 1]
-        assert (live == 100).sum() > 20 and (live == 0).sum() > 20
-        assert (cells == live).all()
-        # PLY with a query's scores: the voxels layer and the query answer
-        ply = tmp_path / "live.ply"
-        _export("--connect", ep, "--format", "ply", "--out", str(ply), "--query", "car")
-        got = _read("ply", ply, tmp_path)
-        layer, lmeta = c.layer("voxels")
-        assert lmeta["total"] == len(layer["xyz"]) == len(got["points"]) > 100
-        key = np.lexsort(got["points"].T[::-1]), np.lexsort(layer["xyz"].T[::-1])
-        np.testing.assert_array_equal(got["points"][key[0]], layer["xyz"][key[1]])
-        colours = np.stack([got[k] for k in ("red", "green", "blue")], 1).view(np.uint8)
-        np.testing.assert_array_equal(colours[key[0]], layer["rgb"][key[1]])
-        r = c.query("car", top_k=50)
-        assert len(r.voxel_xyz) == 50
-        at = {tuple(np.floor(q / VOX).astype(int).tolist()): i for i, q in enumerate(got["points"].astype(float))}
-        rows = [at[tuple(np.floor(q / VOX).astype(int).tolist())] for q in np.asarray(r.voxel_xyz, float)]
-        np.testing.assert_allclose(got["score"][rows], r.voxel_score, atol=SCORE_ATOL)
-        assert got["score"].max() <= r.voxel_score[0] + SCORE_ATOL
-        assert mapper.p.poll() is None and c.stats(timeout=5.0)["frames"]["mapped"] >= 1
