@@ -46,6 +46,7 @@ SUBCOMMANDS: dict[str, str] = {
     "eval": "apps.evaluation.cli",
     "models": "edge.models_cli",
     "console": "apps.console",
+    "export": "apps.export",
 }
 
 _FALLBACK_HELP = {
@@ -60,6 +61,7 @@ _FALLBACK_HELP = {
     "eval": "the paper's benchmarks (search volume; 3D semantic segmentation)",
     "models": "prepare model directories (download/convert on a machine with internet)",
     "console": "operator console in a browser + HTTP/JSON API for planners",
+    "export": "write the map as standard files (PLY, OpenVDB, Nav2 map_server, snapshot)",
 }
 
 

@@ -15,7 +15,8 @@
 # (CMake option RAYFRONTS_PREBUILT, see CMakeLists.txt). RAYFRONTS_NO_EXT_CACHE=1 forces a build.
 #
 # EXTRAS with "test" also installs Debian's chromium (tests/test_browser_view.py drives it
-# headless); the demo alone does not need it.
+# headless) and the independent readers of tests/test_export.py (OpenVDB's Python module and
+# vdb_print, meshio; run by /usr/bin/python3); the demo alone does not need them.
 set -euo pipefail
 PY=${PY:-python3}
 VENV=${VENV:-.venv}
@@ -23,7 +24,7 @@ TORCH=${TORCH:-torch==2.13.0}
 EXTRAS=${EXTRAS:-all,test}
 CACHE=${RAYFRONTS_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/rayfronts}
 APT_PKGS="g++ make cmake libopenvdb-dev libboost-iostreams-dev openssl iproute2"
-case ",$EXTRAS," in *,test,*) APT_PKGS="$APT_PKGS chromium" ;; esac
+case ",$EXTRAS," in *,test,*) APT_PKGS="$APT_PKGS chromium python3-openvdb libopenvdb-tools python3-meshio" ;; esac
 export PIP_DISABLE_PIP_VERSION_CHECK=1
 export CMAKE_BUILD_PARALLEL_LEVEL=${CMAKE_BUILD_PARALLEL_LEVEL:-$(nproc 2>/dev/null || echo 2)}
 

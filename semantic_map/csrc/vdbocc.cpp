@@ -610,6 +610,57 @@ private:
     mutable std::shared_mutex mutex_;
 };
 
+// Write observed voxels as OpenVDB's standard grid types, readable by OpenVDB's own tools and
+// its Python module (which know only the standard types, not this module's int8 tree):
+//   FloatGrid "log_odds": the int8 log-odds as float (> 0 occupied, < 0 free), active where
+//                         observed (value != 0); background 0, inactive = unknown;
+//   BoolGrid  "occupied": true and active where the log-odds is > 0.
+// Transform: linear, voxel size vox, translated by vox/2 so that index (i, j, k) lands on
+// the centre of the map voxel covering [ijk*vox, (ijk+1)*vox) (metres, map frame). Each grid
+// carries the int32 metadata occ_lo / occ_hi (clamp bounds), voxel_size_m and convention.
+void write_standard(const std::string& path, const IjkIn& ijk, const I8In& vals, double vox, int lo, int hi,
+                    const std::string& convention) {
+    if (!(vox > 0.0) || !std::isfinite(vox)) throw std::invalid_argument("voxel size must be a finite value > 0");
+    const size_t n = ijk.shape(0);
+    if (vals.shape(0) != n) throw std::invalid_argument("values must have one entry per row of ijk");
+    const int32_t* p = ijk.data();
+    const int8_t* v = vals.data();
+    nb::gil_scoped_release release;
+    auto xform = openvdb::math::Transform::createLinearTransform(vox);
+    xform->postTranslate(openvdb::Vec3d(0.5 * vox, 0.5 * vox, 0.5 * vox));
+    auto logodds = openvdb::FloatGrid::create(0.0f);
+    auto occupied = openvdb::BoolGrid::create(false);
+    {
+        auto la = logodds->getAccessor();
+        auto oa = occupied->getAccessor();
+        for (size_t i = 0; i < n; ++i) {
+            if (v[i] == 0) continue;
+            const Coord c(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+            la.setValue(c, float(v[i]));
+            if (v[i] > 0) oa.setValue(c, true);
+        }
+    }
+    openvdb::GridPtrVec grids;
+    for (openvdb::GridBase::Ptr g : {openvdb::GridBase::Ptr(logodds), openvdb::GridBase::Ptr(occupied)}) {
+        g->setTransform(xform->copy());
+        g->setGridClass(openvdb::GRID_UNKNOWN);
+        g->insertMeta("occ_lo", openvdb::Int32Metadata(lo));
+        g->insertMeta("occ_hi", openvdb::Int32Metadata(hi));
+        g->insertMeta("voxel_size_m", openvdb::DoubleMetadata(vox));
+        g->insertMeta("convention", openvdb::StringMetadata(convention));
+        grids.push_back(g);
+    }
+    logodds->setName("log_odds");
+    occupied->setName("occupied");
+    try {
+        openvdb::io::File file(path);
+        file.write(grids);
+        file.close();
+    } catch (const openvdb::Exception& e) {
+        throw std::runtime_error("cannot write " + path + ": " + e.what());
+    }
+}
+
 }  // namespace
 
 NB_MODULE(_vdbocc, m) {
@@ -639,4 +690,7 @@ NB_MODULE(_vdbocc, m) {
         .def("mem_bytes", &OccGrid::mem_bytes)
         .def("save", &OccGrid::save, nb::arg("path"))
         .def_static("load", &OccGrid::load, nb::arg("path"), nb::rv_policy::take_ownership);
+    m.def("write_standard", &write_standard, nb::arg("path"), nb::arg("ijk"), nb::arg("values"), nb::arg("vox"),
+          nb::arg("lo"), nb::arg("hi"), nb::arg("convention"),
+          "write observed voxels as a FloatGrid 'log_odds' and a BoolGrid 'occupied' (.vdb)");
 }

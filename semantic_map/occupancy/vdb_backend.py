@@ -142,3 +142,25 @@ class VdbOccupancy:
             raise FileNotFoundError(path)
         g = _vdbocc.Grid.load(path)
         return cls(g.vox, g.lo, g.hi, _grid=g)
+
+
+#: what the ``convention`` metadata of :func:`write_standard_grids`' grids says
+STANDARD_CONVENTION = ("rayfronts occupancy: map frame, metres, z up; index (i,j,k) is the centre of the map voxel "
+                       "covering [ijk*vox, (ijk+1)*vox); log_odds: int8 log-odds as float, > 0 occupied, < 0 free, "
+                       "inactive = unknown; occupied: true where log_odds > 0")
+
+
+def write_standard_grids(path: str | os.PathLike, state: dict) -> None:
+    """Write an occupancy ``state`` (:meth:`VdbOccupancy.state` of either backend) to the ``.vdb``
+    file ``path`` as OpenVDB's standard grid types, which OpenVDB's own tools and Python
+    module read: a ``FloatGrid`` "log_odds" (the int8 log-odds as float, active where
+    observed, i.e. value != 0) and a ``BoolGrid`` "occupied" (true where > 0). Transform:
+    voxel size ``vox`` metres, index (i, j, k) at the voxel centre ``(ijk + 0.5) * vox``; grid
+    metadata ``occ_lo``, ``occ_hi``, ``voxel_size_m`` and ``convention``
+    (:data:`STANDARD_CONVENTION`)."""
+    if _vdbocc is None:
+        raise ImportError(f"the OpenVDB extension semantic_map._vdbocc is not built ({IMPORT_ERROR})")
+    ijk = np.ascontiguousarray(np.asarray(state["ijk"]).reshape(-1, 3).astype(np.int32))
+    vals = np.ascontiguousarray(np.asarray(state["values"]).reshape(-1).astype(np.int8))
+    _vdbocc.write_standard(os.fspath(path), ijk, vals, float(state["vox"]), int(state["lo"]), int(state["hi"]),
+                           STANDARD_CONVENTION)
