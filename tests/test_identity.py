@@ -303,3 +303,91 @@ def test_old_format_is_read_and_a_newer_one_refused(site, tmp_path, caplog):
     assert st3.map is None and "format_version 3; this build reads 1..2" in caplog.text
     gen = next((tmp_path / "v1").glob("snap-*"))
     assert "format_version" not in json.loads((gen / "meta.json").read_text())
+
+
+# ----------------------------------------------------------------------------- a real mapper, SIGKILLed
+def _search_json(ep: str) -> dict:
+    import subprocess
+
+    from tests.support.processes import ROOT, cli_cmd, proc_env
+
+    r = subprocess.run(cli_cmd("search", "car", "--json", "--max-instances", "200", "--max-goals", "0",
+                               "--connect", ep, "--timeout", "60"),
+                       env=proc_env(), cwd=str(ROOT), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return json.loads(r.stdout)
+
+
+@pytest.mark.timeout(300)
+def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
+    """A transform set at run time, objects found, a snapshot, SIGKILL, a restart from it:
+    the transform is back, every object (by position) has its id, and frames sent after the
+    restart land where the ones before did (on the same objects, the same ids)."""
+    from common.zenoh_session import free_tcp_port
+    from synthetic_world import World
+    from tests.support.processes import Proc, wait_for
+    from tests.support.roles import client, edge_args, mapped, mapper_args
+
+    world = World.generate(0)
+    cars = world.instances_of(world.class_id("car"))
+    T = np.eye(4)
+    T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]          # 90° about z, then 300 m away
+    T[:3, 3] = [300.0, 100.0, 0.0]
+    Tinv = np.linalg.inv(T)
+
+    def car_of(inst: dict, transform: np.ndarray) -> str | None:
+        if inst["voxels"] < BIG:
+            return None
+        c = (transform @ np.r_[np.asarray(inst["centroid"], np.float64), 1.0])[:3]
+        d = [float(np.linalg.norm(np.maximum(np.maximum(t.aabb_min - c, c - t.aabb_max), 0.0))) for t in cars]
+        return cars[int(np.argmin(d))].name if min(d) <= 2 * VOX else None
+
+    def settled(c, frames: int) -> bool:
+        s = c.stats()
+        return s["frames"]["mapped"] >= frames and s["flushed_version"] == s["map_version"]
+
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    args = mapper_args(ep, [f"snapshots.dir={tmp_path / 'snaps'}", "snapshots.period_s=0", "queues.idle_flush_s=0.3"])
+    m1 = Proc("mapper1", args, tmp_path)
+    procs.append(m1)
+    with client(ep) as c:
+        wait_for(lambda: mapped(c) == 0, 120, what="mapper up")
+        c.world_from_robot("r1", T)
+        edge = Proc("edge1", edge_args(ep, pca_file, frames=16, rate=8.0), tmp_path)
+        procs.append(edge)
+        assert edge.p.wait(timeout=180) == 0
+        wait_for(lambda: settled(c, 16), 120, what="16 frames mapped and flushed")
+        first = _search_json(ep)
+        assert first["frames_mapped"] == 16
+        objects = {car_of(f, Tinv): f["id"] for f in first["found"] if car_of(f, Tinv)}
+        assert len(objects) >= 3, first["found"]
+        # the frames landed through the transform: no object where the untransformed cars are
+        assert not [f for f in first["found"] if car_of(f, np.eye(4))]
+        # events in --json: each object's "new" (this is the trackers' first update)
+        new = {e["id"] for e in first["events"] if e["kind"] == "new"}
+        assert {f["id"] for f in first["found"]} <= new, first["events"]
+        c.snapshot(save=True)
+    m1.p.kill()                                             # SIGKILL: no shutdown, only the snapshot
+    m1.p.wait()
+    m2 = Proc("mapper2", args, tmp_path)
+    procs.append(m2)
+    with client(ep) as c:
+        wait_for(lambda: c.stats()["snapshot"].get("restored") is True, 120, what="restored mapper")
+        assert np.allclose(c.world_from_robot("r1"), T)
+        after = c.search("car", max_instances=200, max_goals=0)
+        by_pos = {tuple(np.round(f["centroid"], 4)): f["id"] for f in after.found}
+        differ = [(f["id"], by_pos.get(tuple(np.round(f["centroid"], 4))), f["centroid"]) for f in first["found"]
+                  if by_pos.get(tuple(np.round(f["centroid"], 4))) != f["id"]]
+        assert not differ, f"(id before, id after, centroid) of objects whose id changed: {differ}"
+        # frames after the restart (the same robot, its transform restored) land on the same objects
+        edge = Proc("edge2", edge_args(ep, pca_file, frames=16, rate=8.0), tmp_path)
+        procs.append(edge)
+        assert edge.p.wait(timeout=180) == 0
+        wait_for(lambda: settled(c, 32), 120, what="16 more frames mapped and flushed")
+        later = c.search("car", max_instances=200, max_goals=0)
+    assert later.frames_mapped == 32
+    now = {car_of(f, Tinv): f["id"] for f in later.found if car_of(f, Tinv)}
+    differ2 = {name: (i, now.get(name)) for name, i in objects.items() if now.get(name) != i}
+    assert not differ2, f"cars whose id changed after the restart's frames (before, after): {differ2}"
+    assert not [f for f in later.found if car_of(f, np.eye(4))]
+    assert m2.stop() == 0
