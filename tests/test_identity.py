@@ -56,14 +56,20 @@ class Site:
                              self.loc.trackers if trackers is None else trackers,
                              None, map_version=self.version)
 
-    def car_of(self, inst: dict, shift=None) -> str | None:
-        """The true car within 2 voxels of an object-sized instance's centroid (None: a fragment
-        or not a car); ``shift`` maps the centroid back into the world first."""
-        if inst["voxels"] < BIG:
-            return None
-        c = np.asarray(inst["centroid"], np.float64) if shift is None else shift(inst["centroid"])
-        d = [float(np.linalg.norm(np.maximum(np.maximum(t.aabb_min - c, c - t.aabb_max), 0.0))) for t in self.cars]
-        return self.cars[int(np.argmin(d))].name if min(d) <= 2 * VOX else None
+    def car_of(self, inst: dict) -> str | None:
+        return car_of(self.cars, inst)
+
+
+def car_of(cars: list, inst: dict, map_to_world: np.ndarray | None = None) -> str | None:
+    """The true car within 2 voxels of an object-sized instance's centroid (None: a fragment
+    or not a car); ``map_to_world`` (4x4) takes the centroid back into the world first."""
+    if inst["voxels"] < BIG:
+        return None
+    c = np.asarray(inst["centroid"], np.float64)
+    if map_to_world is not None:
+        c = (map_to_world @ np.r_[c, 1.0])[:3]
+    d = [float(np.linalg.norm(np.maximum(np.maximum(t.aabb_min - c, c - t.aabb_max), 0.0))) for t in cars]
+    return cars[int(np.argmin(d))].name if min(d) <= 2 * VOX else None
 
 
 def ids_by_car(site: Site, found: list[dict]) -> dict[str, int]:
@@ -335,13 +341,6 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
     T[:3, 3] = [300.0, 100.0, 0.0]
     Tinv = np.linalg.inv(T)
 
-    def car_of(inst: dict, transform: np.ndarray) -> str | None:
-        if inst["voxels"] < BIG:
-            return None
-        c = (transform @ np.r_[np.asarray(inst["centroid"], np.float64), 1.0])[:3]
-        d = [float(np.linalg.norm(np.maximum(np.maximum(t.aabb_min - c, c - t.aabb_max), 0.0))) for t in cars]
-        return cars[int(np.argmin(d))].name if min(d) <= 2 * VOX else None
-
     def settled(c, frames: int) -> bool:
         s = c.stats()
         return s["frames"]["mapped"] >= frames and s["flushed_version"] == s["map_version"]
@@ -359,10 +358,10 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
         wait_for(lambda: settled(c, 16), 120, what="16 frames mapped and flushed")
         first = _search_json(ep)
         assert first["frames_mapped"] == 16
-        objects = {car_of(f, Tinv): f["id"] for f in first["found"] if car_of(f, Tinv)}
+        objects = {car_of(cars, f, Tinv): f["id"] for f in first["found"] if car_of(cars, f, Tinv)}
         assert len(objects) >= 3, first["found"]
         # the frames landed through the transform: no object where the untransformed cars are
-        assert not [f for f in first["found"] if car_of(f, np.eye(4))]
+        assert not [f for f in first["found"] if car_of(cars, f)]
         # events in --json: each object's "new" (this is the trackers' first update)
         new = {e["id"] for e in first["events"] if e["kind"] == "new"}
         assert {f["id"] for f in first["found"]} <= new, first["events"]
@@ -386,8 +385,8 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
         wait_for(lambda: settled(c, 32), 120, what="16 more frames mapped and flushed")
         later = c.search("car", max_instances=200, max_goals=0)
     assert later.frames_mapped == 32
-    now = {car_of(f, Tinv): f["id"] for f in later.found if car_of(f, Tinv)}
+    now = {car_of(cars, f, Tinv): f["id"] for f in later.found if car_of(cars, f, Tinv)}
     differ2 = {name: (i, now.get(name)) for name, i in objects.items() if now.get(name) != i}
     assert not differ2, f"cars whose id changed after the restart's frames (before, after): {differ2}"
-    assert not [f for f in later.found if car_of(f, np.eye(4))]
+    assert not [f for f in later.found if car_of(cars, f)]
     assert m2.stop() == 0
