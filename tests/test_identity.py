@@ -390,3 +390,17 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
     assert not differ2, f"cars whose id changed after the restart's frames (before, after): {differ2}"
     assert not [f for f in later.found if car_of(cars, f)]
     assert m2.stop() == 0
+
+
+def test_identity_settings_refused_with_one_line():
+    from common.config import ConfigError
+    from mapper.service_config import load_mapper_config
+
+    cfg = load_mapper_config(None, ["search.identity_threshold=0.7", "search.instance_grace=0"])
+    assert (cfg.search.identity_threshold, cfg.search.instance_grace) == (0.7, 0)
+    for kv, msg in (("search.identity_threshold=1.0", r"search\.identity_threshold=1\.0: must be a probability"),
+                    ("search.identity_threshold=nan", "must be a probability in"),
+                    ("search.instance_grace=-1", r"search\.instance_grace=-1: must be >= 0")):
+        with pytest.raises(ConfigError, match=msg) as e:
+            load_mapper_config(None, [kv])
+        assert "\n" not in str(e.value)
