@@ -175,11 +175,13 @@ def parse_transform(value: TransformSpec, what: str = "world_from_robot") -> np.
 
 
 class RobotTransforms:
-    """Per-robot ``world_from_robot`` (thread-safe). Robots without one map as they are."""
+    """Per-robot ``world_from_robot`` (thread-safe). Robots without one map as they are.
+    Those set at run time (:meth:`set`) are listed by :meth:`runtime` (snapshots keep them)."""
 
     def __init__(self, initial: dict | None = None):
         self._lock = threading.Lock()
         self._t: dict[str, np.ndarray] = {}
+        self._runtime: set[str] = set()
         for robot, v in (initial or {}).items():
             self._t[str(robot)] = parse_transform(v, f"fleet.world_from_robot.{robot}")
 
@@ -189,10 +191,17 @@ class RobotTransforms:
             return None if t is None else t.copy()
 
     def set(self, robot: str, value: TransformSpec) -> np.ndarray:
+        """Set ``robot``'s transform at run time (raises :class:`TransformError`)."""
         T = parse_transform(value)
         with self._lock:
             self._t[robot] = T
+            self._runtime.add(robot)
         return T
+
+    def runtime(self) -> dict[str, list[float]]:
+        """``{robot: 16 numbers, row-major}`` of the transforms set at run time."""
+        with self._lock:
+            return {r: self._t[r].reshape(-1).tolist() for r in sorted(self._runtime)}
 
     def as_dict(self) -> dict:
         with self._lock:

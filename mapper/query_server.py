@@ -200,6 +200,7 @@ class QueryServer:
             # which thread loaded each text model ("text-warm-up": before anyone asked)
             "text_models": {k: dict(v) for k, v in TEXT_MODEL_LOADS.items()},
             "search": {"standing": len(state.standing_searches), "instance_next_id": state.trackers.next_id,
+                       "identity_trackers": len(state.trackers),
                        "instance_ids_reserved_below": state.trackers.reserved_below,
                        "instance_id_reserve_errors": state.trackers.reserve_errors},
             "first_mapped_at": state.first_mapped_at, "last_mapped_at": state.last_mapped_at,

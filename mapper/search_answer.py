@@ -5,10 +5,13 @@ A search scores every voxel and ray of the query snapshot
 target over targets + background phrases at ``search.temperature`` (the paper's querying;
 text embedded as :func:`mapper.query_answer.embed_text` does), then:
 
-* ``found``: voxels whose probability for a target is above the request's threshold, grouped
-  and tracked with stable ids (:class:`semantic_map.instances.InstanceTracker`, one per
-  target set: targets, background, threshold), filtered to the request's area / z band,
-  best first: confidence (to 3 decimals: softmax at temperature 100 saturates), then size;
+* ``found``: objects with stable ids (docs/identity.md): one identity tracker per target
+  (:class:`semantic_map.instances.InstanceTracker`, :func:`identity_key`) follows the voxels
+  whose probability over the target + the configured background is above
+  ``search.identity_threshold``, whatever the request; the request's threshold, background
+  and other targets then choose which of each object's voxels it sees (:func:`_request_view`).
+  Filtered to the request's area / z band, best first: confidence (to 3 decimals: softmax at
+  temperature 100 saturates), then size;
 * ``look_next``: :func:`semantic_map.look_next.look_next` on the map's occupancy and frontiers
   (read under the map lock by the caller through ``read_map``), with each ray's ``ray_z``
   (:func:`semantic_map.look_next.ray_outlier_z` of :func:`distinct_cosines`: how far its
@@ -23,6 +26,7 @@ World frame, metres, z up; timings in milliseconds.
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
 import time
@@ -33,10 +37,10 @@ import numpy as np
 import torch
 
 from common.cones import cone_union_volume
-from common.conventions import voxel_index
+from common.conventions import voxel_center, voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from semantic_map.beyond import triangulate
-from semantic_map.instances import InstanceTracker
+from semantic_map.instances import Instance, InstanceTracker, pack_ijk
 from semantic_map.look_next import look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import score_rows, softmax_share
 from semantic_map.query_snapshot import one_thread
@@ -45,9 +49,9 @@ log = logging.getLogger("rayfronts.mapper")
 
 
 class TrackerStore:
-    """Instance trackers by target set (LRU, at most ``max_trackers``). Their ids come from one
-    counter (``next_id``): ids are unique over all target sets and never reused after a
-    restart, a crash included.
+    """Identity trackers, one per target (:func:`identity_key`; LRU, at most ``max_trackers``).
+    Their ids come from one counter (``next_id``): ids are unique over all targets and never
+    reused after a restart, a crash included.
 
     With a ``reserve`` callback, ids are handed out from durably reserved blocks: before the
     first id at or above ``reserved_below`` is returned, ``reserve(n)`` is called with the new
@@ -55,6 +59,9 @@ class TrackerStore:
     persisted ceiling (:class:`mapper.snapshot_store.SnapshotStore`), so an id sent after the
     newest snapshot is not issued again. A failing ``reserve`` is logged and counted
     (``reserve_errors``) and the id is still issued: an answer is not refused for a disk error.
+
+    ``mutex`` is held while trackers change (:func:`answer_search`) and while they are copied
+    for a snapshot (:meth:`state`), so a snapshot holds whole updates.
     """
 
     def __init__(self, max_trackers: int = 32, reserve: Callable[[int], None] | None = None,
@@ -67,6 +74,8 @@ class TrackerStore:
         self.reserved_below = 1          # ids < this are covered by the last successful reserve()
         self.reserve_errors = 0
         self._lock = threading.Lock()
+        self.mutex = threading.RLock()
+        self._events: dict[tuple, tuple[tuple, list[dict]]] = {}   # key -> (update token, its events)
 
     def new_id(self) -> int:
         """The next instance id (thread-safe)."""
@@ -88,22 +97,78 @@ class TrackerStore:
         with self._lock:
             self.next_id = max(self.next_id, int(next_id))
 
-    def get(self, key: tuple, vox: float, min_voxels: int) -> InstanceTracker:
+    def get(self, key: tuple, vox: float, min_voxels: int, grace: int = 0) -> InstanceTracker:
         """The tracker of ``key`` (created on first use; a map with another voxel size resets it)."""
         t = self._t.get(key)
         if t is None or t.vox != float(vox):
-            t = InstanceTracker(vox, min_voxels, id_source=self.new_id)
+            t = InstanceTracker(vox, min_voxels, id_source=self.new_id, grace=grace)
             self._t[key] = t
+            self._events.pop(key, None)
+        t.min_voxels, t.grace = max(1, int(min_voxels)), max(0, int(grace))
         self._t.move_to_end(key)
         while len(self._t) > self.max:
-            self._t.popitem(last=False)
+            old, _ = self._t.popitem(last=False)
+            self._events.pop(old, None)
         return t
 
+    def update(self, key: tuple, ijk: np.ndarray, conf: np.ndarray, frame: int, token: tuple) -> list[dict]:
+        """Update ``key``'s tracker (:meth:`get` first) with its identity voxels; returns the
+        events of the tracker's last update: a repeat at the same ``token`` (map version and
+        frame) returns the events of the update it repeats, so every search of one map
+        version reports what that version changed."""
+        t = self._t[key]
+        ev = [e.as_dict() for e in t.update(str(key[1]), ijk, conf, frame)]
+        last = self._events.get(key)
+        if not ev and last is not None and last[0] == token:
+            return list(last[1])
+        self._events[key] = (token, ev)
+        return ev
 
-def tracker_key(req: SearchRequest, background: list[str]) -> tuple:
-    """Target-set identity of a request (its tracker)."""
-    emb = None if req.embeddings is None else hash(np.ascontiguousarray(req.embeddings).tobytes())
-    return (tuple(req.targets), emb, tuple(background), round(req.threshold, 6))
+    def state(self) -> tuple[dict, np.ndarray]:
+        """``(description, voxel keys)`` of every tracker (JSON-able; the keys concatenated in
+        the description's order): what :meth:`load_state` restores."""
+        with self.mutex:
+            trackers, keys = [], []
+            for key, t in self._t.items():
+                rows, k = t.state()
+                trackers.append({"key": list(key), "vox": t.vox, "min_voxels": t.min_voxels, "grace": t.grace,
+                                 "updates": t.updates, "instances": rows})
+                keys.append(k)
+            return ({"next_id": self.next_id, "trackers": trackers},
+                    np.concatenate(keys) if keys else np.zeros((0,), np.int64))
+
+    def load_state(self, desc: dict, keys: np.ndarray) -> None:
+        """Restore :meth:`state`'s trackers (raises ValueError/KeyError/TypeError on malformed
+        data; then nothing is restored) and continue ids above the saved counter."""
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        restored: OrderedDict = OrderedDict()
+        at = 0
+        for d in desc["trackers"]:
+            t = InstanceTracker(float(d["vox"]), int(d["min_voxels"]), id_source=self.new_id, grace=int(d["grace"]))
+            n = sum(int(r["n_keys"]) for r in d["instances"])
+            t.load_state(d["instances"], keys[at:at + n])
+            t.updates = int(d["updates"])
+            at += n
+            restored[(str(d["key"][0]), str(d["key"][1]))] = t
+        if at != len(keys):
+            raise ValueError(f"the trackers name {at} voxel keys, {len(keys)} saved")
+        with self.mutex:
+            self._t = restored
+            self._events.clear()
+        self.continue_from(int(desc.get("next_id", 1)))
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+
+def identity_key(req: SearchRequest, i: int) -> tuple[str, str]:
+    """Identity of the request's ``i``-th target (its tracker): ``("text", phrase)``, or
+    ``("embedding", sha1 of the float32 row)`` for a request's own embeddings. The request's
+    background, other targets and threshold are not part of it."""
+    if req.embeddings is None:
+        return ("text", req.targets[i])
+    row = np.ascontiguousarray(np.asarray(req.embeddings, np.float32).reshape(len(req.targets), -1)[i])
+    return ("embedding", hashlib.sha1(row.tobytes()).hexdigest())
 
 
 def embed_phrases(fs, req: SearchRequest, background: list[str], device, model_dir: str,
@@ -204,17 +269,104 @@ def _in_area(xyz: np.ndarray, poly, z_band) -> np.ndarray:
     return ok
 
 
-def _found(tracker: InstanceTracker, req: SearchRequest) -> list[dict]:
+def _identity_probabilities(snap, fs, prep, q: torch.Tensor, targets: list[str], text: bool,
+                            phrases: list[str], canonical: list[str], temperature: float, device,
+                            request: tuple[np.ndarray, int] | None = None) -> np.ndarray:
+    """(T, N) each target's probability over itself + the canonical background (``canonical``,
+    the configured ``search.background`` less the target's own phrase), whatever the request's
+    background and other targets: the voxels an object's identity is tracked on. ``q`` holds
+    the targets' rows then ``phrases``' (which include every canonical phrase). ``request``:
+    the request's probabilities and background length, reused where they are the same thing
+    (one target softmaxed against exactly the canonical phrases)."""
+    T = len(targets)
+    out = np.zeros((T, len(prep)), np.float32)
+    if len(prep) == 0:
+        return out
+    groups: dict[tuple, list[int]] = {}
+    for t in range(T):
+        rows = tuple(T + j for j, b in enumerate(phrases) if b in canonical and not (text and b == targets[t]))
+        groups.setdefault(rows, []).append(t)
+    if request is not None and T == 1 and list(groups) == [tuple(range(T, T + request[1]))]:
+        return request[0]
+    lse_of = getattr(snap, "phrase_logsumexp", None)
+    for rows, ts in groups.items():
+        lse = lse_of(fs, q[list(rows)], temperature, device) if (lse_of is not None and rows) else None
+        if lse is not None:
+            s = score_rows(prep, q[ts])
+            with one_thread():
+                for k, t in enumerate(ts):
+                    out[t] = softmax_share(s[k:k + 1], lse, temperature)[0].detach().cpu().numpy()
+            continue
+        sim = score_rows(prep, q[list(ts) + list(rows)], None)
+        for k, t in enumerate(ts):
+            out[t] = _target_softmax(torch.cat([sim[k:k + 1], sim[len(ts):]]), 1, temperature)[0]
+    return out
+
+
+def _request_view(inst: Instance, rk: np.ndarray, rijk: np.ndarray, rconf: np.ndarray, vox: float,
+                  min_voxels: int) -> dict | None:
+    """Identity instance ``inst`` as the request sees it: its voxels above the request's
+    threshold (``rk`` their packed keys ascending, ``rijk`` / ``rconf`` in the same order) give
+    ``voxels``, ``centroid``, box and ``confidence``; None when fewer than ``min_voxels``."""
+    if not len(rk) or not len(inst.keys):
+        return None
+    pos = np.minimum(np.searchsorted(rk, inst.keys), len(rk) - 1)
+    idx = pos[rk[pos] == inst.keys]
+    if len(idx) < max(1, min_voxels):
+        return None
+    ijk = rijk[idx]
+    d = inst.as_dict()
+    d.update(centroid=[float(v) for v in (ijk.mean(0) + 0.5) * vox],
+             box_min=[float(v) for v in voxel_center(ijk.min(0), vox)],
+             box_max=[float(v) for v in voxel_center(ijk.max(0), vox)],
+             confidence=float(rconf[idx].max()), voxels=int(len(idx)))
+    return d
+
+
+def _found(views: list[dict], req: SearchRequest) -> list[dict]:
+    """The request's instances inside its area / z band, best first, at most ``max_instances``."""
     poly, zb = req.polygon(), req.z_band
     out = []
-    for i in tracker.current():
-        if poly is not None and not points_in_polygon(i.centroid[None, :2], poly)[0]:
+    for d in views:
+        if poly is not None and not points_in_polygon(np.asarray([d["centroid"][:2]]), poly)[0]:
             continue
-        if zb is not None and (i.box_max[2] < zb[0] or i.box_min[2] > zb[1]):
+        if zb is not None and (d["box_max"][2] < zb[0] or d["box_min"][2] > zb[1]):
             continue
-        out.append(i)
-    out.sort(key=lambda i: (-round(i.confidence, 3), -i.voxels, i.id))
-    return [i.as_dict() for i in out[:req.max_instances]]
+        out.append(d)
+    out.sort(key=lambda d: (-round(d["confidence"], 3), -d["voxels"], d["id"]))
+    return out[:req.max_instances]
+
+
+def _instances(snap, fs, vprep, q: torch.Tensor, vs: np.ndarray, req: SearchRequest, phrases: list[str],
+               n_bg: int, cfg, trackers: TrackerStore, map_version: int) -> tuple[list[dict], list[dict]]:
+    """``(found, events)``: every target's identity tracker (:func:`identity_key`) updated
+    with the voxels whose identity probability is above ``search.identity_threshold``, then
+    seen through the request's probabilities ``vs`` (T, N) and threshold (docs/identity.md).
+    ``q``: the targets' rows then ``phrases``' (the request's ``n_bg`` background phrases first)."""
+    scfg = cfg.search
+    ident = _identity_probabilities(snap, fs, vprep, q, list(req.targets), req.embeddings is None, phrases,
+                                    list(scfg.background), scfg.temperature, cfg.device, request=(vs, n_bg))
+    token = (int(map_version), int(snap.frames_mapped))
+    views: list[dict] = []
+    events: list[dict] = []
+    with trackers.mutex:
+        for ti, name in enumerate(req.targets):
+            key = identity_key(req, ti)
+            tracker = trackers.get(key, snap.vox, scfg.min_instance_voxels, scfg.instance_grace)
+            rows = np.flatnonzero(ident[ti] > scfg.identity_threshold)
+            ev = trackers.update(key, _voxel_ijk(snap, rows), ident[ti, rows], snap.frames_mapped, token)
+            events += [dict(e, target=name) for e in ev]
+            current = tracker.current()
+            rrows = np.flatnonzero(vs[ti] > req.threshold)
+            rijk = _voxel_ijk(snap, rrows)
+            rk = pack_ijk(rijk)
+            o = np.argsort(rk, kind="stable")
+            for inst in current:
+                d = _request_view(inst, rk[o], rijk[o], vs[ti, rrows][o], snap.vox, scfg.min_instance_voxels)
+                if d is not None:
+                    d["target"] = name
+                    views.append(d)
+    return _found(views, req), events
 
 
 def _beyond(snap, rs: np.ndarray, targets: list[str], scfg, qcfg, angle_err: float, keep: np.ndarray) -> dict:
@@ -254,7 +406,10 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     t0 = t = time.perf_counter()
     background = [b for b in (req.background if req.background is not None else scfg.background)
                   if b not in req.targets]
-    q = embed_phrases(fs, req, background, cfg.device, cfg.text_model_dir, getattr(qcfg, "templates", "auto"))
+    # the identity's canonical background (search.background) is embedded after the request's
+    phrases = background + [b for b in scfg.background if b not in background]
+    q_all = embed_phrases(fs, req, phrases, cfg.device, cfg.text_model_dir, getattr(qcfg, "templates", "auto"))
+    q = q_all[:len(req.targets) + len(background)]
     tm["encode"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     vprep, rprep = snap.prepared(fs, cfg.device)
@@ -264,13 +419,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
         rs, rcos = _ray_scores(rprep, q, T, scfg.temperature)
     tm["similarity"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
-    tracker = trackers.get(tracker_key(req, background), snap.vox, scfg.min_instance_voxels)
-    events = []
-    for ti, name in enumerate(req.targets):
-        rows = np.flatnonzero(vs[ti] > req.threshold)
-        events += [e.as_dict() for e in tracker.update(name, _voxel_ijk(snap, rows), vs[ti, rows],
-                                                       snap.frames_mapped)]
-    found = _found(tracker, req)
+    found, events = _instances(snap, fs, vprep, q_all, vs, req, phrases, len(background), cfg, trackers,
+                               map_version)
     tm["instances"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     rkeep = _in_area(snap.ray_origins.astype(np.float64), req.polygon(), req.z_band)

@@ -16,7 +16,13 @@ class SearchSection:
                                     "(the paper's querying: probabilities over targets + background)")
     temperature: float = field_(100.0, "softmax temperature of search scores (the paper's 100)")
     min_instance_voxels: int = field_(3, "voxel groups smaller than this are not reported as instances")
-    max_trackers: int = field_(32, "instance trackers kept (one per target set); the least recently used is dropped")
+    max_trackers: int = field_(64, "instance identity trackers kept (one per target phrase or embedding); the least "
+                                   "recently used is dropped (its objects get new ids if searched again)")
+    identity_threshold: float = field_(0.5, "an object's identity follows the voxels whose probability for its "
+                                            "target over the target + search.background is above this, whatever "
+                                            "a request's threshold, background or other targets (docs/identity.md)")
+    instance_grace: int = field_(2, "map updates an object may go unseen (below identity_threshold) and still come "
+                                    "back with its id; after that it is lost (event 'lost')")
     ray_radius_m: float = field_(0.0, "rays attached within this distance of a frontier support it; 0 = the "
                                       "frontier cell size")
     standoff_m: float = field_(1.0, "a look-next viewpoint lies within this distance of its frontier")
@@ -40,4 +46,8 @@ class SearchSection:
         if not self.ray_cosine_resolution >= 0.0:         # NaN too
             raise ConfigError(f"search.ray_cosine_resolution={self.ray_cosine_resolution}: must be >= 0 "
                               "(0 = every deviation from the median counts)")
+        if not 0.0 < self.identity_threshold < 1.0:
+            raise ConfigError(f"search.identity_threshold={self.identity_threshold}: must be a probability in (0, 1)")
+        if self.instance_grace < 0:
+            raise ConfigError(f"search.instance_grace={self.instance_grace}: must be >= 0 (map updates)")
         return self

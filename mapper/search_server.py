@@ -7,7 +7,8 @@ A search runs like a query (:class:`mapper.query_server.QueryServer`): under
 first asked to flush buffered frames), scoring outside the map lock; it takes the map lock
 again only to read occupancy and frontiers for look-next goals (at most
 ``search.lock_timeout_s``; past it the reply has no goals and ``timings_ms.stale = 1``).
-The instance trackers (one per target set) live here, so ids stay stable across searches.
+The identity trackers (one per target, docs/identity.md) live in ``state.trackers``, so ids
+stay stable across searches.
 Scoring and answering: :mod:`mapper.search_answer`. Occupancy read-outs:
 :mod:`semantic_map.occupancy_queries`, under the map lock, bounded by
 ``search.max_occupancy_cells``.

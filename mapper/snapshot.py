@@ -25,6 +25,10 @@ if TYPE_CHECKING:
 
 FORMAT = "rayfronts-map"
 VERSION = 1
+#: version of a generation's ``meta.json`` (``format_version``; absent = 1): 2 adds the
+#: instance trackers, the run-time ``world_from_robot`` transforms and standing requests as
+#: objects (docs/snapshot_format.md); this build reads 1 and 2
+META_VERSION = 2
 
 
 class SnapshotError(RuntimeError):
@@ -244,5 +248,8 @@ def check_generation(path: str | Path) -> dict:
         raise SnapshotError(f"snapshot {path}: meta.json is not valid JSON: {e}") from None
     if not isinstance(meta, dict):
         raise SnapshotError(f"snapshot {path}: meta.json is not an object")
+    if meta.get("format_version", 1) not in range(1, META_VERSION + 1):
+        raise SnapshotError(f"snapshot {path}: meta.json has format_version {meta.get('format_version')!r}; "
+                            f"this build reads 1..{META_VERSION}")
     read_manifest(path / "map")
     return meta

@@ -6,7 +6,9 @@ On-disk layout under ``snapshots.dir``::
     LATEST                   name of the newest complete snapshot (replaced atomically)
     snap-<ms>/map/           the map (RayFrontsMap.save)
     snap-<ms>/feature_space.bin   the feature-space envelope the map was built in
-    snap-<ms>/meta.json      frames_mapped, stamp, version, per-robot mapped / last_seq
+    snap-<ms>/meta.json      frames_mapped, stamp, version, per-robot mapped / last_seq, standing
+                             queries and searches, run-time transforms, instance trackers
+    snap-<ms>/instance_keys.npy   the instance trackers' voxel keys (meta.json's ``instances``)
     instance_ids.json        {"reserved_below": n}: search instance ids below n may have been
                              sent; a restart issues none of them again (crash included)
 
@@ -26,6 +28,7 @@ mapper answered from the unflushed map: no rays, missing voxels).
 from __future__ import annotations
 
 import base64
+import io
 import json
 import logging
 import os
@@ -33,6 +36,8 @@ import shutil
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 from common.messages import (
     MessageError,
@@ -44,13 +49,24 @@ from common.messages import (
     encode_snapshot_reply,
 )
 from common.search_messages import decode_search_request, encode_search_request
-from mapper.snapshot import capture_map, fsync_dir, replace_file_durably, write_bytes_durably, write_capture
+from mapper.snapshot import (
+    META_VERSION,
+    capture_map,
+    fsync_dir,
+    replace_file_durably,
+    write_bytes_durably,
+    write_capture,
+)
 from mapper.state import MapperState, jsonable
 
 if TYPE_CHECKING:
     import zenoh
 
 log = logging.getLogger("rayfronts.mapper")
+
+
+#: the instance trackers' voxel keys in a generation (``<name>.npy``)
+INSTANCE_KEYS = "instance_keys"
 
 
 class SnapshotStore:
@@ -92,21 +108,25 @@ class SnapshotStore:
         root = Path(state.cfg.snapshots.dir)
         root.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
+        trackers, tracker_keys = state.trackers.state()      # whole updates (the trackers' mutex)
+        fleet = getattr(state, "fleet", None)
         with state.lock:
             if state.map is None:
                 raise MessageError("nothing to snapshot: no map yet")
             version = state.version
             with state.qlock:
-                meta = {"frames_mapped": state.mapped, "stamp": time.time(), "version": version,
+                meta = {"format_version": META_VERSION, "frames_mapped": state.mapped, "stamp": time.time(),
+                        "version": version,
                         "flushed_version": state.flushed_version,
                         "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in state.robots.items()},
-                        "standing": [base64.b64encode(encode_query_request(r)).decode()
-                                     for r in list(state.standing.values())],
-                        "standing_searches": [base64.b64encode(encode_search_request(r)).decode()
+                        "standing": [_saved_entry(encode_query_request(r)) for r in list(state.standing.values())],
+                        "standing_searches": [_saved_entry(encode_search_request(r))
                                               for r in list(state.standing_searches.values())],
-                        "instance_next_id": state.trackers.next_id}
+                        "instance_next_id": state.trackers.next_id, "instances": trackers,
+                        "world_from_robot": fleet.transforms.runtime() if fleet is not None else {}}
             capture = capture_map(state.map)     # copies, under the lock; written after it
-        path = write_snapshot(root, capture, state.space_reply, meta, state.cfg.snapshots.keep)
+        path = write_snapshot(root, capture, state.space_reply, meta, state.cfg.snapshots.keep,
+                              arrays={INSTANCE_KEYS: tracker_keys})
         state.snap_version = version
         state.last_snapshot = {"path": str(path), "frames_mapped": meta["frames_mapped"], "stamp": meta["stamp"],
                            "seconds": time.perf_counter() - t0}
@@ -161,6 +181,8 @@ class SnapshotStore:
             st.mapped, st.last_seq = int(r.get("mapped", 0)), int(r.get("last_seq", -1))
         self._restore_standing(meta.get("standing", []))
         self._restore_searches(meta.get("standing_searches", []), int(meta.get("instance_next_id", 1)))
+        self._restore_trackers(path, meta)
+        self._restore_transforms(meta.get("world_from_robot", {}))
         state.last_snapshot = {"path": str(path), "frames_mapped": state.mapped, "stamp": meta.get("stamp", 0.0),
                            "restored": True}
         if broken:
@@ -193,6 +215,39 @@ class SnapshotStore:
         if saved:
             log.info("restored %d standing search(es): %s", len(state.standing_searches),
                      ", ".join(sorted(state.standing_searches)))
+
+    def _restore_trackers(self, path: Path, meta: dict) -> None:
+        """The instance trackers as saved (format 2): the same objects keep their ids. A
+        format-1 snapshot has none (objects get new ids); unreadable ones are logged and the
+        trackers start empty (ids still continue above every id issued)."""
+        desc = meta.get("instances")
+        if desc is None:
+            log.info("snapshot %s holds no instance trackers (format 1): objects get new ids", path)
+            return
+        try:
+            keys = np.load(path / f"{INSTANCE_KEYS}.npy", allow_pickle=False)
+            self.state.trackers.load_state(desc, keys)
+        except Exception as e:
+            log.error("snapshot %s: instance trackers unreadable (%s); objects get new ids", path, e)
+            return
+        log.info("restored %d instance tracker(s), ids from %d", len(self.state.trackers),
+                 self.state.trackers.next_id)
+
+    def _restore_transforms(self, saved: dict) -> None:
+        """``world_from_robot`` transforms set at run time before the save are set again (they
+        override the configured ones, as they did then); a bad one is logged and skipped."""
+        fleet = getattr(self.state, "fleet", None)
+        if not saved or fleet is None:
+            return
+        from mapper.fleet import TransformError
+
+        for robot, vals in saved.items():
+            try:
+                fleet.transforms.set(str(robot), vals)
+            except TransformError as e:
+                log.error("snapshot: the saved world_from_robot of robot %s is unusable (%s); skipped", robot, e)
+                continue
+            log.info("robot %s: world_from_robot set at run time restored from the snapshot", robot)
 
     def _keep_after_config_check(self, path: Path) -> bool:
         """Whether the restored generation at ``path`` is kept, given ``snapshots.map_config``
@@ -238,10 +293,10 @@ class SnapshotStore:
 
 
 def write_snapshot(root: Path, capture: tuple[dict, dict], space_envelope: bytes, meta: dict,
-                   keep: int = 2) -> Path:
+                   keep: int = 2, arrays: dict | None = None) -> Path:
     """Write ``root/snap-<ms>`` atomically with a map ``capture`` (:func:`mapper.snapshot.capture_map`,
-    taken under the map lock; no lock is needed here), its feature-space envelope and ``meta``;
-    keeps the newest ``keep`` snapshots.
+    taken under the map lock; no lock is needed here), its feature-space envelope, ``meta``
+    and ``arrays`` (``<name>.npy`` each); keeps the newest ``keep`` snapshots.
 
     Durable before visible: every file and directory of the generation is fsynced, then the
     ``.tmp-`` dir is renamed into place and the root fsynced, then ``LATEST`` is written,
@@ -257,6 +312,10 @@ def write_snapshot(root: Path, capture: tuple[dict, dict], space_envelope: bytes
     write_capture(capture, tmp / "map")
     write_bytes_durably(tmp / "feature_space.bin", space_envelope)
     write_bytes_durably(tmp / "meta.json", json.dumps(meta).encode())
+    for array_name, a in (arrays or {}).items():
+        buf = io.BytesIO()
+        np.save(buf, a, allow_pickle=False)
+        write_bytes_durably(tmp / f"{array_name}.npy", buf.getvalue())
     fsync_dir(tmp)
     os.replace(tmp, root / name)
     fsync_dir(root)
@@ -267,13 +326,20 @@ def write_snapshot(root: Path, capture: tuple[dict, dict], space_envelope: bytes
     return root / name
 
 
+def _saved_entry(message: bytes) -> dict:
+    """One standing query / search as ``meta.json`` keeps it (format 2): an object whose
+    ``request`` is the base64 request message (room for more fields, e.g. a lease)."""
+    return {"request": base64.b64encode(message).decode()}
+
+
 def _decode_saved(saved: list, decode, what: str) -> list:
-    """The requests saved in ``meta.json`` (base64 messages); an unreadable one is one error
-    line and skipped."""
+    """The requests saved in ``meta.json``: :func:`_saved_entry` objects (format 2; other
+    fields ignored) or bare base64 messages (format 1); an unreadable one is one error line
+    and skipped."""
     out = []
     for item in saved:
         try:
-            out.append(decode(base64.b64decode(item)))
-        except (MessageError, ValueError, TypeError) as e:
+            out.append(decode(base64.b64decode(item["request"] if isinstance(item, dict) else item)))
+        except (MessageError, ValueError, TypeError, KeyError) as e:
             log.error("snapshot: a saved %s is unreadable (%s); skipped", what, e)
     return out

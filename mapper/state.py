@@ -154,7 +154,7 @@ class MapperState:
         self.standing_searches: dict = {}      # standing search id -> SearchRequest (mapper.search_server)
         from mapper.search_answer import TrackerStore
 
-        self.trackers = TrackerStore(cfg.search.max_trackers)   # search instances; its id counter is snapshotted
+        self.trackers = TrackerStore(cfg.search.max_trackers)   # identity trackers; saved in snapshots
         self.last_snapshot: dict = {}          # what the last save / restore wrote or read
         self.text_warm_up_s: float | None = None  # seconds the text model's warm-up took (None: not done)
         self.timings = {"integrate_ms": Percentiles(), "integrate_cpu_ms": Percentiles(),

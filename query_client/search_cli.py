@@ -105,7 +105,7 @@ def format_reply(r) -> str:
 
 def _as_json(r) -> str:
     d = r.to_dict()
-    return json.dumps({k: d[k] for k in ("found", "look_next", "beyond", "frames_mapped", "map_version",
+    return json.dumps({k: d[k] for k in ("found", "look_next", "beyond", "events", "frames_mapped", "map_version",
                                          "timings_ms")})
 
 

@@ -15,9 +15,15 @@ that target by voxel overlap:
   (smallest ``first_seen``, ties by smallest id; event ``merge`` with ``merged`` = the other
   ids, which end);
 * a group overlapping nothing is a new instance (event ``new``); a previous instance
-  overlapping nothing ends (event ``lost``).
+  overlapping nothing is **missing**: with ``grace`` = N it stays matchable (by its last
+  voxels) for N more updates without being current, and a group overlapping it then takes its
+  id back (no event); after N updates unseen it ends (event ``lost``; N = 0: at once);
+* an instance that keeps its id with more voxels than before grows (event ``grow``, with
+  ``voxels`` its new count; a merge says ``merge`` instead).
 
 Ids are positive integers, unique across the tracker's targets and never reused.
+:meth:`InstanceTracker.state` / :meth:`InstanceTracker.load_state` carry the instances (the
+missing ones too) across a restart as plain data.
 The tracker keeps the components of each target's last voxel set: an update with the same
 voxels (the same map version searched again) skips the labelling, and one with the same
 voxels, confidences and frame returns at once (it would change nothing).
@@ -149,8 +155,9 @@ class Instance:
 
 @dataclass
 class InstanceEvent:
-    """What an update did to an id: ``kind`` in {"new", "split", "merge", "lost"}; ``parent``
-    the split instance (split); ``merged`` the ids absorbed into ``id`` (merge)."""
+    """What an update did to an id: ``kind`` in {"new", "grow", "split", "merge", "lost"};
+    ``parent`` the split instance (split); ``merged`` the ids absorbed into ``id`` (merge);
+    ``voxels`` the instance's new voxel count (grow)."""
 
     kind: str
     id: int
@@ -158,6 +165,7 @@ class InstanceEvent:
     frame: int
     parent: int | None = None
     merged: list[int] = field(default_factory=list)
+    voxels: int | None = None
 
     def as_dict(self) -> dict:
         d: dict = dict(kind=self.kind, id=int(self.id), target=self.target, frame=int(self.frame))
@@ -165,6 +173,8 @@ class InstanceEvent:
             d["parent"] = int(self.parent)
         if self.merged:
             d["merged"] = [int(i) for i in self.merged]
+        if self.voxels is not None:
+            d["voxels"] = int(self.voxels)
         return d
 
 
@@ -188,18 +198,22 @@ class InstanceTracker:
     """Stable instance ids per target across map updates (see the module docstring).
 
     ``vox``: voxel size (m). ``min_voxels``: groups smaller than this are ignored (noise).
+    ``grace``: updates a missing instance stays matchable before it is ``lost``.
     """
 
-    def __init__(self, vox: float, min_voxels: int = 1, id_source: Callable[[], int] | None = None):
+    def __init__(self, vox: float, min_voxels: int = 1, id_source: Callable[[], int] | None = None,
+                 grace: int = 0):
         """``id_source``: where new ids come from (one counter shared by several trackers, kept
         across restarts), default this tracker's own counter from 1."""
         if vox <= 0:
             raise ValueError(f"vox must be > 0, got {vox}")
         self.vox = float(vox)
         self.min_voxels = max(1, int(min_voxels))
+        self.grace = max(0, int(grace))
         self.next_id = 1
         self._id_source = id_source
         self.instances: dict[str, list[Instance]] = {}
+        self.missing: dict[str, list[tuple[Instance, int]]] = {}   # target -> (instance, updates unseen)
         self.updates = 0
         self._components: dict[str, tuple[np.ndarray, np.ndarray]] = {}   # target -> (keys, labels) last seen
         self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
@@ -241,7 +255,9 @@ class InstanceTracker:
         sel = remap[labels] >= 0 if len(labels) else np.zeros((0,), bool)
         ijk, conf, keys, labels = ijk[sel], conf[sel], keys[sel], remap[labels[sel]]
         sizes = sizes[keep]
-        prev = self.instances.get(target, [])
+        cur = self.instances.get(target, [])
+        gone = self.missing.get(target, [])
+        prev = cur + [g for g, _ in gone]            # missing instances stay matchable (grace)
         n_groups = len(sizes)
         by_group = np.lexsort((keys, labels))           # grouped, keys ascending within a group
         bounds = np.searchsorted(labels[by_group], np.arange(n_groups + 1))
@@ -285,6 +301,8 @@ class InstanceTracker:
                 inst.observations = old.observations + (1 if frame != old.last_seen else 0)
                 if len(heirs) > 1:
                     events.append(InstanceEvent("merge", old.id, target, frame, merged=[h.id for h in heirs[1:]]))
+                elif inst.voxels > old.voxels:
+                    events.append(InstanceEvent("grow", old.id, target, frame, voxels=inst.voxels))
             else:
                 inst.id = self._new_id()
                 if parent_of[j] >= 0:
@@ -294,11 +312,52 @@ class InstanceTracker:
             out.append(inst)
         seen = np.zeros(len(prev), bool)
         seen[pi] = True
-        for i in np.flatnonzero(~seen):
-            events.append(InstanceEvent("lost", prev[i].id, target, frame))
+        unseen = [(prev[i], 1 if i < len(cur) else gone[i - len(cur)][1] + 1) for i in np.flatnonzero(~seen)]
+        events += [InstanceEvent("lost", p.id, target, frame) for p, n in unseen if n > self.grace]
         out.sort(key=lambda x: x.id)
         self.instances[target] = out
+        self.missing[target] = [(p, n) for p, n in unseen if n <= self.grace]
         return events
+
+    def state(self) -> tuple[list[dict], np.ndarray]:
+        """``(instances, keys)``: every current and missing instance as
+        :meth:`Instance.as_dict` plus ``missed`` (updates unseen, 0 = current) and ``n_keys``,
+        and their voxel keys concatenated in that order (int64): what :meth:`load_state`
+        restores (the caches of the last input are not kept)."""
+        rows: list[dict] = []
+        keys: list[np.ndarray] = []
+        for target in sorted(set(self.instances) | set(self.missing)):
+            both = [(i, 0) for i in self.instances.get(target, [])] + list(self.missing.get(target, []))
+            for inst, missed in both:
+                rows.append(dict(inst.as_dict(), missed=int(missed), n_keys=len(inst.keys)))
+                keys.append(np.asarray(inst.keys, np.int64))
+        return rows, (np.concatenate(keys) if keys else np.zeros((0,), np.int64))
+
+    def load_state(self, rows: list[dict], keys: np.ndarray) -> None:
+        """Put back what :meth:`state` returned (raises ValueError/KeyError/TypeError on
+        malformed data, leaving the tracker as it was)."""
+        keys = np.asarray(keys, np.int64).reshape(-1)
+        if sum(int(r["n_keys"]) for r in rows) != len(keys):
+            raise ValueError(f"instance rows name {sum(int(r['n_keys']) for r in rows)} voxel keys, {len(keys)} given")
+        instances: dict[str, list[Instance]] = {}
+        missing: dict[str, list[tuple[Instance, int]]] = {}
+        at = 0
+        for r in rows:
+            n = int(r["n_keys"])
+            inst = Instance(int(r["id"]), str(r["target"]), np.asarray(r["centroid"], np.float64),
+                            np.asarray(r["box_min"], np.float64), np.asarray(r["box_max"], np.float64),
+                            float(r["confidence"]), int(r["voxels"]), int(r["observations"]), int(r["first_seen"]),
+                            int(r["last_seen"]), np.sort(keys[at:at + n]))
+            at += n
+            if int(r["missed"]) == 0:
+                instances.setdefault(inst.target, []).append(inst)
+            else:
+                missing.setdefault(inst.target, []).append((inst, int(r["missed"])))
+        for v in instances.values():
+            v.sort(key=lambda x: x.id)
+        self.instances, self.missing = instances, missing
+        self._components.clear()
+        self._last.clear()
 
     def current(self, target: str | None = None) -> list[Instance]:
         """The live instances (of ``target``, else of every target), by id."""

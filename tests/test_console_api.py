@@ -39,7 +39,7 @@ def test_stream_delivers_updates_and_cancels_on_disconnect(console_world):
         second = s.next()
     finally:
         s.close()
-    keys = {"found", "look_next", "beyond", "frames_mapped", "map_version", "timings_ms"}
+    keys = {"found", "look_next", "beyond", "events", "frames_mapped", "map_version", "timings_ms"}
     assert set(first) == keys and set(second) == keys
     assert second["map_version"] > first["map_version"], (first["map_version"], second["map_version"])
     # the console cancels the standing search when the client goes away
@@ -75,6 +75,7 @@ def test_search_equals_the_cli(console_world):
         assert set(g) == set(want)
         assert g["map_version"] == want["map_version"] and g["frames_mapped"] == want["frames_mapped"]
         assert [(f["id"], f["target"]) for f in g["found"]] == [(f["id"], f["target"]) for f in want["found"]]
+        assert g["events"] == want["events"]          # what this map version changed, for every search of it
         assert np.allclose([f["confidence"] for f in g["found"]], [f["confidence"] for f in want["found"]])
         assert len(g["look_next"]) == len(want["look_next"])
         assert [sorted(x) for x in g["look_next"]] == [sorted(x) for x in want["look_next"]]

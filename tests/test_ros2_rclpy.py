@@ -12,6 +12,7 @@ the package index): its ``serialize_message`` / ``deserialize_message`` are the 
 """
 from __future__ import annotations
 
+import json
 import math
 import signal
 import threading
@@ -163,6 +164,9 @@ def test_mapper_ros_outputs_decode_with_rclpy(tmp_path, procs, pca_file):
                                        [g["heading_rad"] for g in rep.look_next], atol=1e-6)
             np.testing.assert_allclose(np.asarray(gs.data), [g["score"] for g in rep.look_next], rtol=1e-6)
             assert gs.layout.dim[0].label == "goals" and gs.layout.dim[0].size == len(rep.look_next)
+            # the answer's events as JSON (what this map version changed: the same for every search of it)
+            ev = json.loads(deserialize_message(rec.last("rayfronts/search/events")[1], String).data)
+            assert ev == rep.events
 
             # per publisher: increasing sequence numbers from 1 and the gid of its own liveliness token
             toks = [str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/0/**", timeout=3.0) if r.ok is not None]

@@ -114,7 +114,13 @@ def test_ids_stable_while_objects_grow(built):
                 assert {_true_car(built, x) for x in prev} == {_true_car(built, ib)}
                 grew += ib.voxels > oldest.voxels
         for e in b["events"]:
-            assert e.kind in ("new", "merge"), e
+            assert e.kind in ("new", "merge", "grow"), e
+        # a grow event for every kept id (one heir) with more voxels, and only for those
+        before = {i.id: i.voxels for i in a["instances"]}
+        grown = {i.id: i.voxels for i in b["instances"] if i.id in before and i.voxels > before[i.id]}
+        merged = {e.id for e in b["events"] if e.kind == "merge"}
+        assert {e.id: e.voxels for e in b["events"] if e.kind == "grow"} == {
+            k: v for k, v in grown.items() if k not in merged}
     assert grew >= 1
     # per true car found from the first stage on: its oldest id is its id at the end
     first = {}

@@ -95,6 +95,8 @@ class _ReferenceTracker:
                 if len(heirs) > 1:
                     events.append(dict(kind="merge", id=d["id"], target=target, frame=frame,
                                        merged=[h["id"] for h in heirs[1:]]))
+                elif len(g) > heirs[0]["voxels"]:
+                    events.append(dict(kind="grow", id=d["id"], target=target, frame=frame, voxels=len(g)))
             else:
                 d["id"] = self.next_id
                 self.next_id += 1

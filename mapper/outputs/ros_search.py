@@ -14,12 +14,15 @@ Topics (under ``ros.topic_prefix``, frame ``ros.frame_id``: the map's world, z u
 * ``<p>/search/found_poses`` — geometry_msgs/PoseArray: instance centroids (best first);
 * ``<p>/search/goals`` — geometry_msgs/PoseArray: look-next goals (yaw = ``heading_rad``);
 * ``<p>/search/goal_scores`` — std_msgs/Float32MultiArray: the goals' scores, same order;
+* ``<p>/search/events`` — std_msgs/String: the reply's ``events`` as a JSON list
+  (docs/identity.md#events; ``[]`` when the update changed nothing);
 * ``<p>/costmap`` — nav_msgs/OccupancyGrid of the z band ``ros.costmap_z_band``: -1 unknown,
   0 free, 100 occupied; cell ``(x, y)`` at ``data[y * width + x]``, origin the min corner
   of cell 0 at z = the band's bottom, published with the layers.
 """
 from __future__ import annotations
 
+import json
 import logging
 import math
 import threading
@@ -132,6 +135,7 @@ class RosSearch:
                        "found_poses": (f"{p}/search/found_poses", POSE_ARRAY),
                        "goals": (f"{p}/search/goals", POSE_ARRAY),
                        "goal_scores": (f"{p}/search/goal_scores", FLOAT32_ARRAY),
+                       "events": (f"{p}/search/events", STRING),
                        "costmap": (f"{p}/costmap", OCCUPANCY_GRID)}
         self.text_topic = f"{p}/search_text"
         self.request = None            # the standing SearchRequest, once one arrived
@@ -214,7 +218,8 @@ class RosSearch:
                 self.topics["goals"][0]: (POSE_ARRAY, pose_array(T, fid, t, gxyz,
                                                                  [g.get("heading_rad", 0.0) for g in goals])),
                 self.topics["goal_scores"][0]: (FLOAT32_ARRAY, float32_array(T, [g["score"] for g in goals],
-                                                                             "goals"))}
+                                                                             "goals")),
+                self.topics["events"][0]: (STRING, T[STRING](data=json.dumps(rep.events)))}
 
     def publish_reply(self, rep: SearchReply) -> None:
         for topic, (msgtype, msg) in self.reply_messages(rep).items():
