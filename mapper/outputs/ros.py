@@ -84,6 +84,15 @@ class RosSection:
     costmap_box: list[float] = field_([], "xy region [x0, y0, x1, y1] (m) of the costmap; [] = the extent of the "
                                           "map's observed voxels")
     costmap_stride: int = field_(1, "costmap cell size in map voxels")
+    robots: dict[str, Any] = field_({}, "per-robot search, Nav2 goals and costmap: ros.robots.<id>.<key> "
+                                        "(docs/ros2.md; keys: mapper.outputs.ros_robots.RosRobotSection)")
+
+    def validate(self) -> "RosSection":
+        """Refuses a ``ros.robots.<id>`` entry the ROS output cannot use (one line naming the key)."""
+        from mapper.outputs.ros_robots import robot_sections
+
+        robot_sections(self.robots)
+        return self
 
 
 # ------------------------------------------------------------------ message builders
@@ -231,10 +240,13 @@ class RosOutput:
         self.published: dict[str, int] = {}
         self.errors = 0
         self.search = None
+        self.robots = None
         if search is not None:
+            from mapper.outputs.ros_robots import RosRobots
             from mapper.outputs.ros_search import RosSearch
 
             self.search = RosSearch(self, search)
+            self.robots = RosRobots(self, search)
 
     # -------------------------------------------------------------- zenoh entities
     def _key(self, topic: str, msgtype: str) -> str:
@@ -242,29 +254,48 @@ class RosOutput:
 
         return publish_key(topic, msgtype, self.cfg.keys, self.domain, self.cdr.type_hash(msgtype, self.cfg.distro))
 
-    def _token(self, kind: str, topic: str | None = None, msgtype: str | None = None) -> str:
-        """Declare the rmw_zenoh liveliness token of an entity; its key ("" in the bridge layout)."""
-        from common.ros2.keys import RMW_ZENOH, liveliness_token
+    def _token(self, kind: str, topic: str | None = None, msgtype: str | None = None, qos: str = "") -> str:
+        """Declare the rmw_zenoh liveliness token of an entity (``qos``: its QoS component,
+        "" = rmw_zenoh's defaults); its key ("" in the bridge layout)."""
+        from common.ros2.keys import DEFAULT_QOS, RMW_ZENOH, liveliness_token
 
         if self.cfg.keys != RMW_ZENOH:
             return ""
         self._eid += 1
         key = liveliness_token(self.domain, str(self.session.zid()), 0, 0 if kind == "NN" else self._eid, kind,
                                self.cfg.node, topic=topic, msgtype=msgtype,
-                               type_hash=self.cdr.type_hash(msgtype, self.cfg.distro) if msgtype else "")
+                               type_hash=self.cdr.type_hash(msgtype, self.cfg.distro) if msgtype else "",
+                               qos=qos or DEFAULT_QOS)
         self._entities.append(self.session.liveliness().declare_token(key))
         return key
 
-    def _publisher(self, topic: str, msgtype: str) -> _Pub:
+    def _publisher(self, topic: str, msgtype: str, latched: bool = False) -> _Pub:
         """The publisher of ``topic`` (declared with its token on first use): its own gid and
-        sequence counter, as an rmw_zenoh publisher has (docs/key_space.md, ROS 2)."""
-        from common.ros2.keys import entity_gid
+        sequence counter, as an rmw_zenoh publisher has (docs/key_space.md, ROS 2).
+
+        ``latched``: reliable + transient-local with depth 1 (what Nav2's static layer and
+        map_server use), as rmw_zenoh implements it: a Zenoh advanced publisher that caches
+        the last sample for late subscribers (rmw_zenoh's transient-local subscriptions are
+        advanced subscribers that query that cache), is detectable through liveliness and
+        sends sporadic heartbeats (500 ms) for sample-miss detection; its token says
+        ``:1:,1:,:,:,,``."""
+        from common.ros2.keys import TRANSIENT_LOCAL, entity_gid, qos_component
 
         pub = self._pubs.get(topic)
         if pub is None:
-            zpub = self.session.declare_publisher(self._key(topic, msgtype))
+            key = self._key(topic, msgtype)
+            if latched:
+                import zenoh
+                from zenoh import ext
+
+                zpub = ext.declare_advanced_publisher(
+                    self.session, key, reliability=zenoh.Reliability.RELIABLE, cache=ext.CacheConfig(max_samples=1),
+                    publisher_detection=True, sample_miss_detection=ext.MissDetectionConfig(sporadic_heartbeat=0.5))
+            else:
+                zpub = self.session.declare_publisher(key)
             self._entities.append(zpub)
-            token = self._token("MP", topic, msgtype)
+            token = self._token("MP", topic, msgtype, qos_component(durability=TRANSIENT_LOCAL, depth=1) if latched
+                                else "")
             pub = self._pubs[topic] = _Pub(zpub, token, entity_gid(token) if token else bytes(16))
         return pub
 
@@ -286,9 +317,12 @@ class RosOutput:
         self._token("MS", self.query_text_topic, STRING)
         self._entities.append(self.session.declare_subscriber(state.keys.mapper_queries_all, self._on_standing))
         if self.search is not None:
+            from mapper.outputs.ros_search import OCCUPANCY_GRID
+
             for topic, msgtype in self.search.topics.values():
-                self._publisher(topic, msgtype)
+                self._publisher(topic, msgtype, latched=msgtype == OCCUPANCY_GRID)
             self._entities += self.search.start()
+            self._entities += self.robots.start()
         if self.cfg.rate_hz > 0:
             self._thread = threading.Thread(target=self._loop, name="mapper-ros", daemon=True)
             self._thread.start()
@@ -310,14 +344,15 @@ class RosOutput:
         self.session = None
 
     # -------------------------------------------------------------- publishing
-    def _put(self, topic: str, msgtype: str, msg) -> None:
+    def _put(self, topic: str, msgtype: str, msg, latched: bool = False) -> None:
+        """Serialise and publish ``msg`` on ``topic`` (``latched``: see :meth:`_publisher`)."""
         from common.ros2.keys import RMW_ZENOH
 
         data = self.cdr.serialize(msg, msgtype, self.cfg.distro)
         with self._lock:
             if self.session is None:
                 return
-            pub = self._publisher(topic, msgtype)
+            pub = self._publisher(topic, msgtype, latched)
             pub.seq += 1
             att = None
             if self.cfg.keys == RMW_ZENOH:
@@ -350,7 +385,9 @@ class RosOutput:
         if self.search is not None and self.cfg.costmap_z_band:
             cm = self.search.costmap_message()
             if cm is not None:
-                self._put(cm[0], *cm[1])
+                self._put(cm[0], *cm[1], latched=True)
+        if self.robots is not None:
+            self.robots.update_all()
 
     def _loop(self) -> None:
         state = self.state

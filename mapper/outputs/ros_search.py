@@ -113,6 +113,19 @@ def occupancy_grid(T: dict, frame_id: str, t: float, rep: OccupancyReply, z0: fl
     return T[OCCUPANCY_GRID](header=_header(T, frame_id, t), info=info, data=data)
 
 
+def search_reply_messages(T: dict, frame_id: str, t: float, rep: SearchReply, base: str) -> dict:
+    """{topic: (type, message)} of a search reply under topic ``base`` (``<p>/search``):
+    ``base/found`` MarkerArray, ``base/found_poses`` PoseArray of the instance centroids,
+    ``base/goals`` PoseArray of the look-next goals (yaw = heading), ``base/goal_scores``."""
+    goals = rep.look_next
+    centroids = np.array([f["centroid"] for f in rep.found], np.float64).reshape(-1, 3)
+    gxyz = np.array([g["position"] for g in goals], np.float64).reshape(-1, 3)
+    return {f"{base}/found": (MARKER_ARRAY, found_markers(T, frame_id, t, rep.found)),
+            f"{base}/found_poses": (POSE_ARRAY, pose_array(T, frame_id, t, centroids)),
+            f"{base}/goals": (POSE_ARRAY, pose_array(T, frame_id, t, gxyz, [g.get("heading_rad", 0.0) for g in goals])),
+            f"{base}/goal_scores": (FLOAT32_ARRAY, float32_array(T, [g["score"] for g in goals], "goals"))}
+
+
 def parse_targets(text: str) -> list[str]:
     """``"chair, red car"`` → ``["chair", "red car"]`` (ValueError when none)."""
     targets = [p.strip() for p in str(text).split(",") if p.strip()]
@@ -204,17 +217,8 @@ class RosSearch:
 
     def reply_messages(self, rep: SearchReply) -> dict:
         """{topic: (type, message)} of a search reply."""
-        o, t = self.out, time.time()
-        T, fid = o.T, o.cfg.frame_id
-        goals = rep.look_next
-        centroids = np.array([f["centroid"] for f in rep.found], np.float64).reshape(-1, 3)
-        gxyz = np.array([g["position"] for g in goals], np.float64).reshape(-1, 3)
-        return {self.topics["found"][0]: (MARKER_ARRAY, found_markers(T, fid, t, rep.found)),
-                self.topics["found_poses"][0]: (POSE_ARRAY, pose_array(T, fid, t, centroids)),
-                self.topics["goals"][0]: (POSE_ARRAY, pose_array(T, fid, t, gxyz,
-                                                                 [g.get("heading_rad", 0.0) for g in goals])),
-                self.topics["goal_scores"][0]: (FLOAT32_ARRAY, float32_array(T, [g["score"] for g in goals],
-                                                                             "goals"))}
+        o = self.out
+        return search_reply_messages(o.T, o.cfg.frame_id, time.time(), rep, self.topics["found"][0].rsplit("/", 1)[0])
 
     def publish_reply(self, rep: SearchReply) -> None:
         for topic, (msgtype, msg) in self.reply_messages(rep).items():
