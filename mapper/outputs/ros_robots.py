@@ -55,7 +55,7 @@ SEARCH_KEYS = ("targets", "background", "area", "box", "z_band", "threshold", "m
 MAX_REMEMBERED = 1000
 #: platform defaults: the search z band (world z, m; None = every height) and the costmap z
 #: band (ground: world z; aerial: relative to the robot's z)
-PLATFORMS = {"ground": {"search_z": [-0.5, 3.0], "costmap_z": [0.2, 1.5], "relative": False},
+PLATFORMS = {"ground": {"search_z": [-0.5, 3.0], "costmap_z": [0.5, 1.5], "relative": False},
              "aerial": {"search_z": None, "costmap_z": [-1.0, 1.0], "relative": True}}
 
 
@@ -66,8 +66,8 @@ class RosRobotSection:
     robot: str = field_("", "mapper robot id whose frames give the position ('' = the entry's id)")
     namespace: str = field_("", "ROS namespace of the robot's topics ('' = /<id>)")
     platform: Literal["ground", "aerial"] = field_(
-        "ground", "ground: search z band [-0.5, 3] m and costmap band [0.2, 1.5] m (world z); aerial: whole "
-                  "height, costmap band robot z +- 1 m")
+        "ground", "ground: search z band [-0.5, 3] m and costmap band [0.5, 1.5] m (world z, ground at 0: the "
+                  "band's voxels start above the ground's); aerial: whole height, costmap band robot z +- 1 m")
     targets: list[str] = field_([], "phrases searched from the start ([] = none until <ns>/rayfronts/search asks)")
     background: list[str] = field_([], "background phrases ([] = the mapper's search.background)")
     area: list[list[float]] = field_([], "search polygon [[x, y], ...] (>= 3 vertices; [] = everywhere)")
@@ -80,7 +80,9 @@ class RosRobotSection:
     goal_topic: str = field_("", "PoseStamped goal topic ('' = <ns>/goal_pose; Nav2's bt_navigator)")
     goal_min_move_m: float = field_(0.5, "a new goal is sent only when it moved more than this ...")
     goal_min_turn_deg: float = field_(20.0, "... or its heading turned more than this")
-    approach_confidence: float = field_(0.9, "a found object this confident becomes the goal (its approach pose)")
+    approach: bool = field_(True, "a confident found object becomes the goal (its approach pose); false = only "
+                                  "look-next goals")
+    approach_confidence: float = field_(0.9, "confidence a found object needs to become the goal")
     approach_standoff_m: float = field_(1.0, "the approach pose stands this far outside the object's box")
     costmap: Literal["window", "site", "off"] = field_(
         "window", "window: a square around the robot; site: the fixed costmap_box; off: none")
@@ -245,9 +247,9 @@ class GoalGate:
 
 def choose_goal(rep: SearchReply, c: RosRobotSection, robot_xyz: np.ndarray) -> tuple[np.ndarray, float, str] | None:
     """``(position, yaw, kind)`` of the goal to send: the approach to the best found instance
-    at ``approach_confidence`` or above (kind ``approach``), else the best look-next goal
+    at ``approach_confidence`` or above (kind ``approach``; unless ``approach`` is off), else the best look-next goal
     (``look``); None when there is neither."""
-    best = [f for f in rep.found if float(f.get("confidence", 0.0)) >= c.approach_confidence]
+    best = [f for f in rep.found if c.approach and float(f.get("confidence", 0.0)) >= c.approach_confidence]
     if best:
         xyz, yaw = approach_pose(best[0], robot_xyz, c.approach_standoff_m, c.platform)
         return xyz, yaw, "approach"
@@ -325,6 +327,7 @@ class RosRobots:
         self.out, self.search = out, search
         self.robots = {rid: RobotSearch(rid, c) for rid, c in robot_sections(out.cfg.robots).items()}
         self.rejected: Counter = Counter()     # bad input by reason (unknown_namespace, bad_search)
+        self.last_error = ""
         self._lock = threading.Lock()          # one robot update at a time
 
     # -------------------------------------------------------------- wiring
@@ -362,10 +365,12 @@ class RosRobots:
         raise ValueError(f"unknown robot namespace {namespace!r} (configured: {names}); set "
                          f"ros.robots.<id>.namespace={namespace} or map a robot named {rid or '<id>'} first")
 
-    def _reject(self, reason: str, msg: str, *args) -> None:
+    def _reject(self, reason: str, topic: str, why: str) -> None:
+        """Count a bad input and log its one line (rate-limited per reason); kept as ``last_error``."""
         self.rejected[reason] += 1
         self.out.errors += 1
-        self.out.state.warn(f"ros-robots:{reason}", msg, *args)
+        self.last_error = f"ROS 2 search on {topic} rejected: {why}"
+        self.out.state.warn(f"ros-robots:{reason}", "%s", self.last_error)
 
     def _on_search(self, sample) -> None:
         """std_msgs/String on ``<ns>/rayfronts/search`` → that robot's search (answered in a thread)."""
@@ -380,8 +385,8 @@ class RosRobots:
             r = self.robot_of(ns)
             search = parse_search_text(str(msg.data), r.cfg)
         except Exception as e:
-            self._reject("unknown_namespace" if "unknown robot namespace" in str(e) else "bad_search",
-                         "ROS 2 search on %s rejected: %s", topic, " ".join(str(e).split()))
+            self._reject("unknown_namespace" if "unknown robot namespace" in str(e) else "bad_search", topic,
+                         " ".join(str(e).split()))
             return
         r.restart(search)
         log.info("ROS 2 search of robot %s: %s", r.id, search.targets if search else "cancelled")
