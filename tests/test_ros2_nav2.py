@@ -93,7 +93,7 @@ def world_map():
 class Rig:
     """MapperState + SearchServer + RosOutput on a router session; a client session recording."""
 
-    def __init__(self, wm, robots: dict, n_frames: int = 14):
+    def __init__(self, wm, robots: dict, n_frames: int = 14, msg_serv: bool = False, record: bool = True):
         from dataclasses import replace
 
         from common.keys import KeySpace
@@ -101,7 +101,8 @@ class Rig:
         from mapper.search_server import SearchServer
         from mapper.state import MapperState, RobotState
 
-        cfg = replace(wm["cfg"], ros=replace(wm["cfg"].ros, robots=robots))
+        ros = wm["cfg"].ros
+        cfg = replace(wm["cfg"], ros=replace(ros, robots=robots, msg_serv=replace(ros.msg_serv, enabled=msg_serv)))
         cfg.ros.validate()
         self.wm = wm
         self.state = st = MapperState(cfg, threading.Event())
@@ -111,7 +112,7 @@ class Rig:
         port = free_tcp_port()
         st.session = open_loopback_router(port)
         self.client = zenoh.open(zenoh_client_config(f"tcp/127.0.0.1:{port}"))
-        self.rec = Recorder(self.client)
+        self.rec = Recorder(self.client) if record else None
 
         class Snapshots:        # the query server's part a search reads: a snapshot of the map
             def snapshot(_, timings, flush=False):
@@ -383,5 +384,99 @@ def test_bad_search_input_one_line_counted_and_serving_goes_on(world_map, caplog
         put("r9", "car")
         wait_for(lambda: rig.rec.of("/r9/rayfronts/search/goals") or None, 30, what="r9 answered")
         assert robots.rejected["unknown_namespace"] == 1
+    finally:
+        rig.close()
+
+
+def _cloud(raw) -> tuple[list[str], dict[str, np.ndarray], str]:
+    """rclpy PointCloud2 → (field names, {field: (N,) float32} through its field table, frame_id)."""
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    msg = deserialize_message(raw, PointCloud2)
+    assert msg.height == 1 and msg.row_step == msg.point_step * msg.width and not msg.is_bigendian
+    a = np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.width, msg.point_step)
+    assert all(f.datatype == 7 and f.count == 1 for f in msg.fields)
+    return ([f.name for f in msg.fields], {f.name: a[:, f.offset:f.offset + 4].copy().view("<f4").reshape(-1)
+                                           for f in msg.fields}, msg.header.frame_id)
+
+
+@pytest.mark.timeout(120)
+def test_upstream_messaging_service_drop_in(world_map):
+    """Upstream RayFronts' interface: text queries as std_msgs/String on
+    rayfronts/msg_serv/new_text_query; per query x, y, z, sim clouds of the voxels and
+    x, y, z, theta, phi, sim of the rays, only on topics someone subscribes to; sim the softmax
+    across the queries (checked against the map's own features)."""
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    rig = Rig(world_map, {}, n_frames=10, msg_serv=True, record=False)
+    got: dict = {}
+    lock = threading.Lock()
+
+    def keep(sample):
+        with lock:
+            got.setdefault("/".join(str(sample.key_expr).split("/")[1:-2]), []).append(sample.payload.to_bytes())
+
+    try:
+        subs = [rig.client.declare_subscriber(f"0/rayfronts/msg_serv/{t}/*/*", keep)
+                for t in ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building")]
+        time.sleep(0.5)
+        h = cdr.type_hash("std_msgs/msg/String", "jazzy")
+        for text in ("car", "building", "car", ""):
+            rig.client.put(f"0/rayfronts/msg_serv/new_text_query/std_msgs::msg::dds_::String_/{h}",
+                           serialize_message(String(data=text)))
+            time.sleep(0.3)
+        ms = rig.out.msg_serv
+        wait_for(lambda: ms.rejected == 1 or None, 20, what="the empty query refused")
+        assert ms.queries == ["car", "building"] and "empty query text" in ms.last_error
+        ms.publish()                    # (also after each query) now with both queries
+        wait_for(lambda: all(f"rayfronts/msg_serv/{t}" in got for t in
+                             ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building")) or None,
+                 30, what="the three subscribed clouds")
+        with lock:
+            car, bld, rays = (got[f"rayfronts/msg_serv/{t}"][-1] for t in
+                              ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building"))
+        names, c0, fid = _cloud(car)
+        _, c1, _ = _cloud(bld)
+        assert names == ["x", "y", "z", "sim"] and fid == "map"
+        # the map's voxels, all of them (threshold 0), the same order in both clouds
+        m = rig.state.map
+        vox = float(m.cfg.vox_size)
+        ijk = m.sem.ijk().numpy()
+        xyz = np.stack([c0["x"], c0["y"], c0["z"]], 1)
+        ref = (ijk + 0.5) * vox
+        assert len(xyz) == len(ref) > 100
+        np.testing.assert_allclose(xyz[np.lexsort(xyz.T)], ref[np.lexsort(ref.T)], atol=1e-5)
+        np.testing.assert_array_equal(xyz, np.stack([c1["x"], c1["y"], c1["z"]], 1))
+        # sim: softmax over the two queries of 100 * cosine with each class's one-hot vector
+        w = world_map["world"]
+        f = m.sem.feat.float().numpy()
+        cos = f[:, [w.classes.index("car"), w.classes.index("building")]] / np.linalg.norm(f, axis=1)[:, None]
+        p = np.exp(100 * (cos - cos.max(1, keepdims=True)))
+        p /= p.sum(1, keepdims=True)
+        order = {tuple(np.round(v, 4)): i for i, v in enumerate(ref)}
+        idx = np.array([order[tuple(np.round(v, 4))] for v in xyz])
+        np.testing.assert_allclose(c0["sim"] + c1["sim"], 1.0, atol=1e-5)
+        sure = np.abs(cos[idx, 0] - cos[idx, 1]) > 0.05          # beyond the float16 copy's rounding
+        assert sure.sum() > 50 and (p[idx, 0] > 0.99).sum() > 5 and (p[idx, 1] > 0.99).sum() > 5
+        np.testing.assert_allclose(c0["sim"][sure], p[idx[sure], 0], atol=0.02)
+        # rays: each ray's frontier, its direction's angles, its share of "building"
+        rn, r1, _ = _cloud(rays)
+        assert rn == ["x", "y", "z", "theta", "phi", "sim"]
+        o = m.ray_store.origins().numpy()
+        d = m.ray_store.directions().numpy()
+        assert len(r1["x"]) == len(o) > 10
+        np.testing.assert_allclose(np.stack([r1["x"], r1["y"], r1["z"]], 1), o, atol=1e-5)
+        np.testing.assert_allclose(r1["theta"], np.degrees(np.arctan2(d[:, 1], d[:, 0])), atol=1e-3)
+        np.testing.assert_allclose(r1["phi"], np.degrees(np.arccos(np.clip(d[:, 2], -1, 1))), atol=1e-3)
+        assert ((r1["sim"] >= 0) & (r1["sim"] <= 1)).all()
+        # nobody subscribes to the 'all' clouds, the car's rays or the frontiers: never published
+        pub = rig.out.published
+        assert pub.get("/rayfronts/msg_serv/voxels_sim/q0_car", 0) >= 1
+        for t in ("voxels_sim/all", "rays_sim/all", "rays_sim/q0_car", "frontiers"):
+            assert pub.get(f"/rayfronts/msg_serv/{t}", 0) == 0, t
+        for sub in subs:
+            sub.undeclare()
     finally:
         rig.close()

@@ -40,9 +40,10 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from common.config import field_
+from common.config import field_, section
 from common.zenoh_session import close_quietly, undeclare_all
 from mapper.outputs.ros_markers import marker_extra_fields
+from mapper.outputs.ros_msg_serv import MsgServSection
 
 if TYPE_CHECKING:
     import zenoh
@@ -86,6 +87,8 @@ class RosSection:
     costmap_stride: int = field_(1, "costmap cell size in map voxels")
     robots: dict[str, Any] = field_({}, "per-robot search, Nav2 goals and costmap: ros.robots.<id>.<key> "
                                         "(docs/ros2.md; keys: mapper.outputs.ros_robots.RosRobotSection)")
+    msg_serv: MsgServSection = section(MsgServSection, "upstream RayFronts' ROS 2 messaging-service topics "
+                                                        "(text queries in, similarity clouds out; docs/ros2.md)")
 
     def validate(self) -> "RosSection":
         """Refuses a ``ros.robots.<id>`` entry the ROS output cannot use (one line naming the key)."""
@@ -241,12 +244,17 @@ class RosOutput:
         self.errors = 0
         self.search = None
         self.robots = None
+        self.msg_serv = None
         if search is not None:
             from mapper.outputs.ros_robots import RosRobots
             from mapper.outputs.ros_search import RosSearch
 
             self.search = RosSearch(self, search)
             self.robots = RosRobots(self, search)
+            if self.cfg.msg_serv.enabled:
+                from mapper.outputs.ros_msg_serv import MsgServ
+
+                self.msg_serv = MsgServ(self, search)
 
     # -------------------------------------------------------------- zenoh entities
     def _key(self, topic: str, msgtype: str) -> str:
@@ -323,6 +331,8 @@ class RosOutput:
                 self._publisher(topic, msgtype, latched=msgtype == OCCUPANCY_GRID)
             self._entities += self.search.start()
             self._entities += self.robots.start()
+            if self.msg_serv is not None:
+                self._entities += self.msg_serv.start()
         if self.cfg.rate_hz > 0:
             self._thread = threading.Thread(target=self._loop, name="mapper-ros", daemon=True)
             self._thread.start()
@@ -388,6 +398,8 @@ class RosOutput:
                 self._put(cm[0], *cm[1], latched=True)
         if self.robots is not None:
             self.robots.update_all()
+        if self.msg_serv is not None:
+            self.msg_serv.publish()
 
     def _loop(self) -> None:
         state = self.state
