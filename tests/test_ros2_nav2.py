@@ -276,7 +276,9 @@ def test_costmap_fixed_origin_transient_local_equals_slice(world_map):
     from common.ros2.keys import parse_liveliness, parse_qos
     from semantic_map.occupancy_queries import costmap_slice
 
-    rig = Rig(world_map, {"r1": {"costmap_window_m": 24.0, "costmap_resolution_m": 1.0}}, n_frames=4)
+    rig = Rig(world_map, {"r1": {"costmap_window_m": 24.0, "costmap_resolution_m": 1.0},
+                          "r2": {"costmap_window_m": 24.0, "costmap_resolution_m": 1.0,
+                                 "unknown_near_obstacle": "occupied", "unknown_near_obstacle_m": 1.5}}, n_frames=4)
     try:
         # a robot moving a little at each of ten map updates: origin and size stay
         grids, refs = [], []
@@ -304,6 +306,20 @@ def test_costmap_fixed_origin_transient_local_equals_slice(world_map):
             np.testing.assert_array_equal(grid, np.where(ref == 1, 100, np.where(ref == 0, 0, -1)))
         assert {-1, 0, 100} <= set(np.unique(np.asarray(grids[-1].data)).tolist())
         assert len({bytes(np.asarray(g.data, np.int8)) for g in grids}) > 1, "the map changed under it"
+        # r2 where r1 began (the same window) on the same map: unknown cells within 1.5 m (centre
+        # to centre) of an occupied one are occupied
+        rig.place("r2", np.array([0.0, 23.4, 1.5]))
+        rig.out.robots.update("r2")
+        wait_for(lambda: rig.rec.of("/r2/rayfronts/costmap") or None, 20, what="r2's costmap")
+        og2 = deserialize_message(rig.rec.of("/r2/rayfronts/costmap")[-1], OccupancyGrid)
+        g1 = np.asarray(grids[-1].data, np.int8).reshape(24, 24).T
+        g2 = np.asarray(og2.data, np.int8).reshape(24, 24).T
+        assert og2.info.origin.position.x == grids[-1].info.origin.position.x
+        occ = np.argwhere(g1 == 100)
+        near = np.array([[(g1[i, j] == -1) and ((occ - [i, j]) ** 2).sum(1).min() <= 1.5 ** 2 for j in range(24)]
+                         for i in range(24)])
+        assert near.sum() > 5
+        np.testing.assert_array_equal(g2, np.where(near, 100, g1))
 
         # transient-local + reliable, depth 1, in the publisher's liveliness token (rmw_zenoh's
         # format: <reliability>:<durability>:<history>,<depth>:... each only where not default;
@@ -480,3 +496,49 @@ def test_upstream_messaging_service_drop_in(world_map):
             sub.undeclare()
     finally:
         rig.close()
+
+
+def test_costmap_window_unknown_near_obstacles_and_goal_gate_pure():
+    """The pure parts against brute force: the window's origin, unknown cells near obstacles,
+    the goal gate's thresholds, the platforms' costmap bands."""
+    from mapper.outputs.ros_robots import (
+        GoalGate,
+        RobotSearch,
+        RosRobots,
+        robot_section,
+        unknown_near_obstacles,
+        window_origin,
+    )
+
+    # window: re-centred (whole cells) only when the robot leaves the middle half
+    o = window_origin(None, np.array([3.3, -2.1]), 20, 0.5)
+    np.testing.assert_allclose(o, [-2.0, -7.5])      # floor((3.3 - 5) / 0.5) * 0.5, floor((-2.1 - 5) / 0.5) * 0.5
+    for xy in ([5.4, -2.1], [0.6, -4.9], [5.5, 0.0]):        # in the middle half [0.5, 5.5] x [-5, 0]
+        assert window_origin(o, np.array(xy), 20, 0.5) is o
+    moved = window_origin(o, np.array([6.2, -2.1]), 20, 0.5)
+    np.testing.assert_allclose(moved, [1.0, -7.5])
+    # unknown near obstacles: brute force over cell centres
+    rng = np.random.default_rng(4)
+    st = rng.choice([-1, 0, 1], size=(30, 25), p=[0.5, 0.4, 0.1]).astype(np.int8)
+    for r in (0.5, 1.0, 1.5, 2.9):
+        got = unknown_near_obstacles(st, r)
+        occ = np.argwhere(st == 1)
+        ref = np.zeros(st.shape, bool)
+        for i, j in np.argwhere(st == -1):
+            ref[i, j] = bool(((occ - [i, j]) ** 2).sum(1).min() <= r * r)
+        np.testing.assert_array_equal(got, ref)
+        assert r < 1 and not got.any() or got.any()
+    # the gate: distance and heading (wrapped), and a change of kind
+    g = GoalGate(0.5, 20)
+    assert g.due(np.zeros(3), 0.0, "look") and not g.due(np.array([0.4, 0.2, 0]), 0.0, "look")
+    assert not g.due(np.zeros(3), math.radians(19), "look") and g.due(np.zeros(3), math.radians(21), "look")
+    assert not g.due(np.zeros(3), math.radians(21) - 2 * math.pi, "look")     # the same heading
+    assert g.due(np.zeros(3), math.radians(21), "approach")
+    # costmap bands: ground fixed (world z), aerial around the robot, or as given
+    rr = RosRobots.__new__(RosRobots)
+    pose = np.eye(4)
+    pose[2, 3] = 12.0
+    assert rr.costmap_band(RobotSearch("a", robot_section("a", {})), pose) == [0.5, 1.5]
+    assert rr.costmap_band(RobotSearch("b", robot_section("b", {"platform": "aerial"})), pose) == [11.0, 13.0]
+    assert rr.costmap_band(RobotSearch("b", robot_section("b", {"platform": "aerial"})), None) is None
+    assert rr.costmap_band(RobotSearch("c", robot_section("c", {"costmap_z_band": [1, 2]})), pose) == [1.0, 2.0]

@@ -15,7 +15,10 @@ Topics (under ``ros.topic_prefix``, default ``/rayfronts``), in the world frame
 * ``/rayfronts/query_text`` (subscribed) — std_msgs/String: adds a standing text query with
   id ``ros_<text, non-alphanumerics as _>`` and ``ros.query_top_k`` voxels;
 * the planners' search and costmap (``<prefix>/search_text`` in; ``/search/*`` and
-  ``/costmap`` out): :mod:`mapper.outputs.ros_search`, when the mapper's search service is given.
+  ``/costmap`` out): :mod:`mapper.outputs.ros_search`, when the mapper's search service is given;
+* per robot (``ros.robots.<id>``): its search, Nav2 goal, feedback and costmap on its own
+  namespace (:mod:`mapper.outputs.ros_robots`); upstream RayFronts' messaging-service topics
+  (``ros.msg_serv``, :mod:`mapper.outputs.ros_msg_serv`); docs/ros2.md.
 
 Layers go out at ``ros.rate_hz`` from their own thread (``mapper-ros``) when the map changed
 (integrated or flushed),
@@ -42,7 +45,7 @@ import numpy.typing as npt
 
 from common.config import field_, section
 from common.zenoh_session import close_quietly, undeclare_all
-from mapper.outputs.ros_markers import marker_extra_fields
+from mapper.outputs.ros_markers import POINTCLOUD2, MsgTypes, header_msg, marker_extra_fields, pointcloud2
 from mapper.outputs.ros_msg_serv import MsgServSection
 
 if TYPE_CHECKING:
@@ -52,7 +55,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rayfronts.mapper")
 
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 STRING = "std_msgs/msg/String"
 
@@ -99,43 +101,10 @@ class RosSection:
 
 
 # ------------------------------------------------------------------ message builders
-#: message classes by name (:func:`common.ros2.cdr.types`)
-MsgTypes = dict[str, type]
-
-
-def _stamp(types: MsgTypes, t: float) -> Any:
-    sec = int(t)
-    return types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
-
-
-def _header(types: MsgTypes, frame_id: str, t: float) -> Any:
-    return types["std_msgs/msg/Header"](stamp=_stamp(types, t), frame_id=frame_id)
-
-
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
     """(N, 3) uint8 → (N,) float32 whose bits are 0x00RRGGBB (PCL's packed rgb)."""
     rgb = np.asarray(rgb, np.uint32).reshape(-1, 3)
     return ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).astype("<u4").view("<f4")
-
-
-def pointcloud2(types: MsgTypes, frame_id: str, t: float, xyz: np.ndarray,
-                extra: dict[str, np.ndarray] | None = None) -> Any:
-    """PointCloud2 with float32 fields x, y, z and then ``extra`` (name → (N,) float32), dense,
-    little endian, one row."""
-    xyz = np.asarray(xyz, "<f4").reshape(-1, 3)
-    extra = extra or {}
-    names = ["x", "y", "z", *extra]
-    n = len(xyz)
-    data = np.empty((n, len(names)), "<f4")  # column copies keep the bits (packed rgb)
-    data[:, :3] = xyz
-    for i, v in enumerate(extra.values()):
-        data[:, 3 + i] = np.asarray(v, "<f4").reshape(-1)
-    point_field: Any = types["sensor_msgs/msg/PointField"]
-    fields = [point_field(name=nm, offset=4 * i, datatype=point_field.FLOAT32, count=1) for i, nm in enumerate(names)]
-    step = 4 * len(names)
-    return types[POINTCLOUD2](header=_header(types, frame_id, t), height=1, width=n, fields=fields, is_bigendian=False,
-                          point_step=step, row_step=step * n,
-                          data=np.ascontiguousarray(data).view(np.uint8).reshape(-1), is_dense=True)
 
 
 def weight_colour(w: npt.ArrayLike) -> np.ndarray:
@@ -154,7 +123,7 @@ def ray_markers(types: MsgTypes, frame_id: str, t: float, origin: npt.ArrayLike,
     marker_t: Any = types["visualization_msgs/msg/Marker"]
     vector3, point = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Point"]
     quaternion, colour_rgba = types["geometry_msgs/msg/Quaternion"], types["std_msgs/msg/ColorRGBA"]
-    hdr = _header(types, frame_id, t)
+    hdr = header_msg(types, frame_id, t)
     pose = types["geometry_msgs/msg/Pose"](position=point(x=0.0, y=0.0, z=0.0),
                                            orientation=quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
     zero = types["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)

@@ -34,10 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.config import field_
+from mapper.outputs.ros_markers import POINTCLOUD2
 
 log = logging.getLogger("rayfronts.mapper")
 
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 STRING = "std_msgs/msg/String"
 
 
@@ -138,7 +138,7 @@ class MsgServ:
 
     def messages(self) -> dict:
         """{topic: (type, PointCloud2)} of every wanted topic (nothing wanted: {})."""
-        from mapper.outputs.ros import pointcloud2
+        from mapper.outputs.ros_markers import pointcloud2
         from mapper.service_map import layer_arrays
 
         o, c = self.out, self.cfg
@@ -163,7 +163,7 @@ class MsgServ:
                 wanted: set[str]) -> dict:
         """The wanted clouds of ``<prefix>/<sub>/``: points (N, 3), scores (Q, N), extra fields
         (name → (N,)) before ``sim``; points below ``publish_threshold`` left out."""
-        from mapper.outputs.ros import pointcloud2
+        from mapper.outputs.ros_markers import pointcloud2
 
         o, c, t = self.out, self.cfg, time.time()
         keep = sim.max(0) >= c.publish_threshold if sim.shape[1] else np.zeros(0, bool)

@@ -33,6 +33,7 @@ import json
 import logging
 import math
 import threading
+import time
 from collections import Counter
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -76,6 +77,8 @@ class RosRobotSection:
     threshold: float = field_(0.5, "probability a voxel needs to count as a target")
     max_goals: int = field_(5, "look-next goals in the ranked list")
     max_instances: int = field_(10, "found instances published")
+    search_period_s: float = field_(1.0, "the search is re-run after map changes at most this often (s); a new "
+                                         "search is answered at once")
     frame_id: str = field_("map", "header.frame_id of the robot's goals, poses and costmap")
     goal_topic: str = field_("", "PoseStamped goal topic ('' = <ns>/goal_pose; Nav2's bt_navigator)")
     goal_min_move_m: float = field_(0.5, "a new goal is sent only when it moved more than this ...")
@@ -128,7 +131,7 @@ def robot_section(rid: str, raw: Any) -> RosRobotSection:
     if c.costmap == "site" and not c.costmap_box:
         raise ConfigError(f"{p}.costmap=site needs {p}.costmap_box=[x0, y0, x1, y1]")
     for k in ("goal_min_move_m", "goal_min_turn_deg", "approach_standoff_m", "costmap_resolution_m",
-              "unknown_near_obstacle_m"):
+              "unknown_near_obstacle_m", "search_period_s"):
         if not getattr(c, k) >= 0:
             raise ConfigError(f"{p}.{k}={getattr(c, k)}: must be >= 0")
     if not c.costmap_window_m > 0:
@@ -297,12 +300,14 @@ class RobotSearch:
         self.seen: dict[int, tuple[float, list[float]]] = {}   # instance id -> (confidence, centroid)
         self.goals_sent = 0
         self.last_reply: SearchReply | None = None
+        self.searched_at = -math.inf          # monotonic time of the last search
 
     def restart(self, search: RosRobotSection | None) -> None:
         """A new search (None: stop): feedback and the goal gate start over."""
         self.search = search
         self.gate = GoalGate(self.cfg.goal_min_move_m, self.cfg.goal_min_turn_deg)
         self.best_confidence, self.seen, self.last_reply = 0.0, {}, None
+        self.searched_at = -math.inf
 
     def remember(self, rep: SearchReply) -> None:
         for f in rep.found:
@@ -405,10 +410,11 @@ class RosRobots:
     def update_all(self) -> None:
         """Every robot's search, goal and costmap (the output's thread, after map changes)."""
         for rid in list(self.robots):
-            self.update(rid)
+            self.update(rid, force=False)
 
-    def update(self, rid: str) -> None:
-        """One robot: run its search from its position and publish; publish its costmap."""
+    def update(self, rid: str, force: bool = True) -> None:
+        """One robot: run its search from its position and publish (unless ``force`` is off and
+        the last search is younger than ``search_period_s``); publish its costmap."""
         from common.messages import MessageError
 
         r = self.robots.get(rid)
@@ -418,7 +424,9 @@ class RosRobots:
             pose, stamp = self.position(r)
             xyz = None if pose is None else pose[:3, 3]
             try:
-                if r.search is not None:
+                now = time.monotonic()
+                if r.search is not None and (force or now - r.searched_at >= r.cfg.search_period_s):
+                    r.searched_at = now
                     rep = self.search.run_search(search_request(r.search, xyz))
                     self.publish_search(r, rep, xyz, stamp)
                 if r.cfg.costmap != "off":
@@ -434,7 +442,8 @@ class RosRobots:
     def messages(self, r: RobotSearch, rep: SearchReply, xyz: np.ndarray | None, stamp: float) -> dict:
         """{topic: (type, message)} of robot ``r``'s answer ``rep``: the ranked list, feedback,
         and the PoseStamped goal when :class:`GoalGate` lets it through."""
-        from mapper.outputs.ros_search import _header, _pose, pose_array, search_reply_messages
+        from mapper.outputs.ros_markers import header_msg
+        from mapper.outputs.ros_search import pose_array, pose_msg, search_reply_messages
 
         o, c = self.out, r.cfg
         T, fid = o.T, c.frame_id
@@ -446,7 +455,8 @@ class RosRobots:
         out[f"{base}/objects_found"] = (UINT32, T[UINT32](data=len(r.seen)))
         out[f"{base}/result_poses"] = (POSE_ARRAY, pose_array(T, fid, stamp, res_xyz))
         goal = choose_goal(rep, c, xyz if xyz is not None else np.zeros(3))
-        status = {"robot": r.id, "targets": list(r.search.targets) if r.search else [],
+        status = {"robot": r.id, "robot_xyz": None if xyz is None else [float(v) for v in xyz], "stamp": stamp,
+                  "targets": list(r.search.targets) if r.search else [],
                   "best_confidence": r.best_confidence, "objects_found": len(r.seen), "found_ids": ids[:50],
                   "goal": None if goal is None else {"kind": goal[2], "position": [float(v) for v in goal[0]],
                                                      "yaw_rad": goal[1]},
@@ -454,8 +464,8 @@ class RosRobots:
         out[f"{base}/status"] = (STRING, T[STRING](data=json.dumps(status)))
         if goal is not None and r.gate.due(*goal):
             r.goals_sent += 1
-            out[c.goal_topic] = (POSE_STAMPED, T[POSE_STAMPED](header=_header(T, fid, stamp),
-                                                               pose=_pose(T, goal[0], goal[1])))
+            out[c.goal_topic] = (POSE_STAMPED, T[POSE_STAMPED](header=header_msg(T, fid, stamp),
+                                                               pose=pose_msg(T, goal[0], goal[1])))
         return out
 
     def publish_search(self, r: RobotSearch, rep: SearchReply, xyz: np.ndarray | None, stamp: float) -> None:
