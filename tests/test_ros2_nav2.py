@@ -542,3 +542,61 @@ def test_costmap_window_unknown_near_obstacles_and_goal_gate_pure():
     assert rr.costmap_band(RobotSearch("b", robot_section("b", {"platform": "aerial"})), pose) == [11.0, 13.0]
     assert rr.costmap_band(RobotSearch("b", robot_section("b", {"platform": "aerial"})), None) is None
     assert rr.costmap_band(RobotSearch("c", robot_section("c", {"costmap_z_band": [1, 2]})), pose) == [1.0, 2.0]
+
+
+@pytest.mark.timeout(120)
+def test_path_to_the_goal_over_free_cells_is_shortest(world_map):
+    """nav_msgs/Path (``path``): from the robot over its costmap to the goal, never through an
+    occupied cell, as cheap as scipy's Dijkstra finds over the same 8-connected graph (a step:
+    its length times 1 into a free cell, 3 into an unknown one)."""
+    from nav_msgs.msg import OccupancyGrid, Path
+    from rclpy.serialization import deserialize_message
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    rig = Rig(world_map, {"r1": {"targets": ["car"], "approach": False, "path": True, "costmap_window_m": 60.0}})
+    try:
+        xyz = np.array([0.0, 23.4, 1.5])
+        rig.place("r1", xyz)
+        rig.out.robots.update("r1")
+        wait_for(lambda: rig.rec.of("/r1/rayfronts/search/path") or None, 30, what="the path")
+        path = deserialize_message(rig.rec.of("/r1/rayfronts/search/path")[-1], Path)
+        og = deserialize_message(rig.rec.of("/r1/rayfronts/costmap")[-1], OccupancyGrid)
+        goal = _stamped(rig.rec.of("/r1/goal_pose")[-1])
+        pts = np.array([[p.pose.position.x, p.pose.position.y] for p in path.poses])
+        assert len(pts) > 5 and path.header.frame_id == "map"
+        np.testing.assert_allclose(pts[0], xyz[:2], atol=1e-9)
+        np.testing.assert_allclose(pts[-1], [goal.pose.position.x, goal.pose.position.y], atol=1e-9)
+        nx, ny, cell = og.info.width, og.info.height, og.info.resolution
+        o = np.array([og.info.origin.position.x, og.info.origin.position.y])
+        grid = np.asarray(og.data, np.int8).reshape(ny, nx).T
+        ij = np.floor((pts - o) / cell).astype(int)
+        assert (grid[ij[1:-1, 0], ij[1:-1, 1]] != 100).all()               # never through an obstacle
+        assert (grid[ij[1:-1, 0], ij[1:-1, 1]] == 0).sum() > 5               # and over known free cells
+        step = np.abs(np.diff(ij, axis=0))
+        assert (step.max(1) == 1).all()                                    # 8-neighbours, one at a time
+        # as short as the shortest way over the same graph (scipy's Dijkstra)
+        ok = grid != 100
+        ok[tuple(ij[-1])] = True
+        cost = np.where(grid == 0, 1.0, 3.0)
+        cost[tuple(ij[-1])] = 1.0
+        idx = np.arange(nx * ny).reshape(nx, ny)
+        rows, cols, w = [], [], []
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if di == dj == 0:
+                    continue
+                a = ok[max(0, -di):nx - max(0, di), max(0, -dj):ny - max(0, dj)]
+                b = ok[max(0, di):nx - max(0, -di), max(0, dj):ny - max(0, -dj)]
+                sa = idx[max(0, -di):nx - max(0, di), max(0, -dj):ny - max(0, dj)][a & b]
+                sb = idx[max(0, di):nx - max(0, -di), max(0, dj):ny - max(0, -dj)][a & b]
+                rows += [sa]
+                cols += [sb]
+                w += [math.hypot(di, dj) * cost[max(0, di):nx - max(0, -di), max(0, dj):ny - max(0, -dj)][a & b]]
+        g = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(nx * ny,) * 2)
+        best = dijkstra(g.tocsr(), indices=idx[tuple(ij[0])])[idx[tuple(ij[-1])]]
+        entered = cost[ij[1:, 0], ij[1:, 1]]
+        assert (np.hypot(*step.T) * entered).sum() == pytest.approx(best, abs=1e-9)
+        assert best < 3.0 * np.hypot(*(ij[-1] - ij[0]))      # cheaper than straight through the unknown
+    finally:
+        rig.close()

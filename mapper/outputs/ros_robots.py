@@ -22,6 +22,9 @@ robot's own clock, used as every header stamp of its messages). Topics, under it
   ``.../objects_found`` (std_msgs/UInt32, distinct instances so far), ``.../result_poses``
   (PoseArray: each instance found so far at its last centroid, best first) and ``.../status``
   (std_msgs/String, JSON of the same plus the targets and the goal's kind);
+* ``<ns>/rayfronts/search/path`` (with ``path``) — nav_msgs/Path from the robot to the goal
+  over the costmap (:func:`grid_path`: free cells, unknown ones at ``path_unknown_cost``;
+  no poses when there is no way);
 * ``costmap_topic`` (default ``<ns>/rayfronts/costmap``) — nav_msgs/OccupancyGrid, reliable +
   transient-local depth 1 (Nav2's static layer): a ``costmap_window_m`` square around the robot
   whose origin moves (by whole cells) only when the robot leaves the window's middle half, or
@@ -50,6 +53,7 @@ POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 FLOAT32 = "std_msgs/msg/Float32"
 UINT32 = "std_msgs/msg/UInt32"
 STRING = "std_msgs/msg/String"
+PATH = "nav_msgs/msg/Path"
 #: search-string keys (:func:`parse_search_text`)
 SEARCH_KEYS = ("targets", "background", "area", "box", "z_band", "threshold", "max_goals", "max_instances", "cancel")
 #: instances remembered per search for the feedback (the lowest confidence is dropped past it)
@@ -97,6 +101,10 @@ class RosRobotSection:
     unknown_near_obstacle: Literal["unknown", "occupied"] = field_(
         "unknown", "unknown cells within unknown_near_obstacle_m of an occupied cell: kept unknown or made occupied")
     unknown_near_obstacle_m: float = field_(0.0, "radius of unknown_near_obstacle (m)")
+    path: bool = field_(False, "also publish <ns>/rayfronts/search/path (nav_msgs/Path): the cheapest way from the "
+                               "robot to the goal over the costmap (8-connected; no poses when there is none)")
+    path_unknown_cost: float = field_(3.0, "a step into an unknown cell costs this many times one into a free cell "
+                                           "(0 = unknown cells are not crossed); occupied cells never are")
 
 
 def _pair(v: list[float], key: str) -> None:
@@ -131,7 +139,7 @@ def robot_section(rid: str, raw: Any) -> RosRobotSection:
     if c.costmap == "site" and not c.costmap_box:
         raise ConfigError(f"{p}.costmap=site needs {p}.costmap_box=[x0, y0, x1, y1]")
     for k in ("goal_min_move_m", "goal_min_turn_deg", "approach_standoff_m", "costmap_resolution_m",
-              "unknown_near_obstacle_m", "search_period_s"):
+              "unknown_near_obstacle_m", "search_period_s", "path_unknown_cost"):
         if not getattr(c, k) >= 0:
             raise ConfigError(f"{p}.{k}={getattr(c, k)}: must be >= 0")
     if not c.costmap_window_m > 0:
@@ -287,6 +295,50 @@ def unknown_near_obstacles(states: np.ndarray, radius_cells: float) -> np.ndarra
     return binary_dilation(st == 1, structure=disc) & (st == -1)
 
 
+def grid_path(cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> list[tuple[int, int]] | None:
+    """Cheapest 8-connected path of cells from ``start`` to ``goal`` (both included): a step
+    costs its length (1, diagonals √2) times ``cost`` (nx, ny) of the cell it enters (inf:
+    not entered; the goal may be entered whatever its cost: 1). None when there is none (or
+    an end lies outside the grid)."""
+    import heapq
+
+    c = np.asarray(cost, np.float64).copy()
+    nx, ny = c.shape
+    if not (0 <= start[0] < nx and 0 <= start[1] < ny and 0 <= goal[0] < nx and 0 <= goal[1] < ny):
+        return None
+    c[goal] = 1.0
+    dist = np.full(c.shape, np.inf)
+    prev = np.full(c.shape + (2,), -1, np.int64)
+    dist[start] = 0.0
+    heap = [(0.0, start)]
+    steps = [(di, dj, math.hypot(di, dj)) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+    while heap:
+        d, (i, j) = heapq.heappop(heap)
+        if (i, j) == goal:
+            break
+        if d > dist[i, j]:
+            continue
+        for di, dj, w in steps:
+            a, b = i + di, j + dj
+            if 0 <= a < nx and 0 <= b < ny and d + w * c[a, b] < dist[a, b]:
+                dist[a, b] = d + w * c[a, b]
+                prev[a, b] = (i, j)
+                heapq.heappush(heap, (dist[a, b], (a, b)))
+    if not np.isfinite(dist[goal]):
+        return None
+    out = [goal]
+    while out[-1] != start:
+        out.append(tuple(int(v) for v in prev[out[-1]]))
+    return out[::-1]
+
+
+def step_costs(states: np.ndarray, unknown_cost: float) -> np.ndarray:
+    """Per-cell step cost of a costmap's states: free 1, unknown ``unknown_cost`` (0 → inf),
+    occupied inf."""
+    st = np.asarray(states)
+    return np.where(st == 0, 1.0, np.where(st == 1, np.inf, unknown_cost if unknown_cost > 0 else np.inf))
+
+
 # ------------------------------------------------------------------ the robots
 class RobotSearch:
     """One robot: its section, current search, goal gate, costmap origin and feedback."""
@@ -301,6 +353,7 @@ class RobotSearch:
         self.goals_sent = 0
         self.last_reply: SearchReply | None = None
         self.searched_at = -math.inf          # monotonic time of the last search
+        self.grid: tuple[np.ndarray, float, np.ndarray] | None = None   # last costmap: origin, cell, states
 
     def restart(self, search: RosRobotSection | None) -> None:
         """A new search (None: stop): feedback and the goal gate start over."""
@@ -333,7 +386,9 @@ class RosRobots:
         self.robots = {rid: RobotSearch(rid, c) for rid, c in robot_sections(out.cfg.robots).items()}
         self.rejected: Counter = Counter()     # bad input by reason (unknown_namespace, bad_search)
         self.last_error = ""
-        self._lock = threading.Lock()          # one robot update at a time
+        self._lock = threading.RLock()         # one robot update at a time
+        self._pending: set[str] = set()        # robots with an answer thread not yet started on it
+        self._pending_lock = threading.Lock()
 
     # -------------------------------------------------------------- wiring
     def start(self) -> list:
@@ -395,7 +450,17 @@ class RosRobots:
             return
         r.restart(search)
         log.info("ROS 2 search of robot %s: %s", r.id, search.targets if search else "cancelled")
-        threading.Thread(target=self.update, args=(r.id,), name="mapper-ros-robot", daemon=True).start()
+        with self._pending_lock:              # one waiting answer per robot: a flood of requests
+            if r.id in self._pending:         # is answered once, with the latest search
+                return
+            self._pending.add(r.id)
+        threading.Thread(target=self._answer, args=(r.id,), name="mapper-ros-robot", daemon=True).start()
+
+    def _answer(self, rid: str) -> None:
+        with self._lock:                      # once no update runs: later requests start a new answer
+            with self._pending_lock:
+                self._pending.discard(rid)
+            self.update(rid)
 
     # -------------------------------------------------------------- updates
     def position(self, r: RobotSearch) -> tuple[np.ndarray | None, float]:
@@ -424,15 +489,15 @@ class RosRobots:
             pose, stamp = self.position(r)
             xyz = None if pose is None else pose[:3, 3]
             try:
+                if r.cfg.costmap != "off":
+                    cm = self.costmap_message(r, pose, stamp)
+                    if cm is not None:
+                        self.out._put(r.cfg.costmap_topic, *cm, latched=True)
                 now = time.monotonic()
                 if r.search is not None and (force or now - r.searched_at >= r.cfg.search_period_s):
                     r.searched_at = now
                     rep = self.search.run_search(search_request(r.search, xyz))
                     self.publish_search(r, rep, xyz, stamp)
-                if r.cfg.costmap != "off":
-                    cm = self.costmap_message(r, pose, stamp)
-                    if cm is not None:
-                        self.out._put(r.cfg.costmap_topic, *cm, latched=True)
             except MessageError as e:           # an empty map: answered once it has frames
                 log.debug("ROS 2 robot %s: %s", rid, e)
             except Exception as e:
@@ -462,11 +527,36 @@ class RosRobots:
                                                      "yaw_rad": goal[1]},
                   "map_version": int(rep.map_version), "frames_mapped": int(rep.frames_mapped)}
         out[f"{base}/status"] = (STRING, T[STRING](data=json.dumps(status)))
+        if c.path:
+            out[f"{base}/path"] = (PATH, self.path_message(r, xyz, goal, stamp))
         if goal is not None and r.gate.due(*goal):
             r.goals_sent += 1
             out[c.goal_topic] = (POSE_STAMPED, T[POSE_STAMPED](header=header_msg(T, fid, stamp),
                                                                pose=pose_msg(T, goal[0], goal[1])))
         return out
+
+    def path_message(self, r: RobotSearch, xyz: np.ndarray | None, goal, stamp: float) -> Any:
+        """nav_msgs/Path from the robot's position over its last costmap (cell centres, at the
+        robot's height; :func:`grid_path`) to the goal pose; no poses when there is no way."""
+        from mapper.outputs.ros_markers import header_msg
+        from mapper.outputs.ros_search import pose_msg
+
+        T, fid = self.out.T, r.cfg.frame_id
+        poses = []
+        if goal is not None and xyz is not None and r.grid is not None:
+            origin, cell, states = r.grid
+            ends = [tuple(int(v) for v in np.floor((np.asarray(p[:2]) - origin) / cell)) for p in (xyz, goal[0])]
+            cells = grid_path(step_costs(states, r.cfg.path_unknown_cost), ends[0], ends[1])
+            if cells is not None:
+                pts = [np.asarray(xyz, np.float64)]
+                pts += [np.array([origin[0] + (i + 0.5) * cell, origin[1] + (j + 0.5) * cell, xyz[2]])
+                        for i, j in cells[1:-1]]
+                pts.append(np.asarray(goal[0], np.float64))
+                yaws = [math.atan2(b[1] - a[1], b[0] - a[0]) for a, b in zip(pts[:-1], pts[1:], strict=True)]
+                yaws.append(goal[1])
+                poses = [T[POSE_STAMPED](header=header_msg(T, fid, stamp), pose=pose_msg(T, p, y))
+                         for p, y in zip(pts, yaws, strict=True)]
+        return T[PATH](header=header_msg(T, fid, stamp), poses=poses)
 
     def publish_search(self, r: RobotSearch, rep: SearchReply, xyz: np.ndarray | None, stamp: float) -> None:
         r.last_reply = rep
@@ -529,4 +619,5 @@ class RosRobots:
             st_ = np.array(rep.states, np.int8)
             st_[unknown_near_obstacles(st_, r.cfg.unknown_near_obstacle_m / rep.cell_m)] = 1
             rep.states = st_
+        r.grid = (np.asarray(rep.origin, np.float64), float(rep.cell_m), np.asarray(rep.states))
         return OCCUPANCY_GRID, occupancy_grid(self.out.T, r.cfg.frame_id, stamp, rep, band[0])
