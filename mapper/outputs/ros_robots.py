@@ -206,10 +206,13 @@ def parse_search_text(text: str, base: RosRobotSection) -> RosRobotSection | Non
     for k in ("threshold", "max_goals", "max_instances"):
         if k in doc:
             ch[k] = doc[k]
+    if "area" in ch or "box" in ch:            # the asked region replaces the configured one
+        ch.setdefault("area", [])
+        ch.setdefault("box", [])
     try:
-        c = merge(base, ch, "search.")
+        c = merge(base, ch)
     except ConfigError as e:
-        raise ValueError(str(e)) from None
+        raise ValueError(str(e).replace("config key ", "", 1)) from None
     search_request(c, None)        # MessageError (a ValueError) names the bad field
     return c
 
