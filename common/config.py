@@ -166,9 +166,20 @@ def merge(cfg: _T, data: dict | None, prefix: str = "") -> _T:
         t = hints[k]
         if dataclasses.is_dataclass(t):
             changes[k] = merge(getattr(cfg, k), v, prefix + k + ".")
+        elif typing.get_origin(t) is dict and isinstance(getattr(cfg, k), dict):
+            # a mapping section (e.g. ros.robots.<id>.<key>): each source adds to it
+            changes[k] = _deep_update(getattr(cfg, k), _coerce(v, t, prefix + k))
         else:
             changes[k] = _coerce(v, t, prefix + k)
     return dataclasses.replace(cfg, **changes)
+
+
+def _deep_update(old: dict, new: dict) -> dict:
+    """``old`` with ``new``'s entries; nested mappings are updated the same way (copies)."""
+    out = dict(old)
+    for k, v in new.items():
+        out[k] = _deep_update(out[k], v) if isinstance(out.get(k), dict) and isinstance(v, dict) else v
+    return out
 
 
 def split_key_value(item: str, what: str = "override", form: str = "key=value") -> tuple[str, str]:

@@ -206,6 +206,7 @@ class MapWorker:
             if frame.seq <= st.last_seq:
                 st.seq_regressions += 1
             st.last_seq = frame.seq
+            st.pose, st.pose_stamp = frame.pose, float(frame.stamp)
             state.mapped += 1
             if isinstance(e_cpu, (int, float)) and not isinstance(e_cpu, bool):
                 if st.edge_cpu is None or e_cpu < st.edge_cpu[1]:   # first, or the edge restarted

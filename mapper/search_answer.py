@@ -452,3 +452,22 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     tm["total"] = (time.perf_counter() - t0) * 1e3
     return SearchReply(id=req.id, found=found, look_next=goals, beyond=beyond, events=events,
                        frames_mapped=int(snap.frames_mapped), map_version=int(map_version), timings_ms=tm)
+
+
+def text_similarities(snap, fs, texts: list[str], cfg, softmax: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each text's similarity to every voxel and ray of query snapshot ``snap``: ``(voxel
+    centres (N, 3) m, voxel scores (Q, N), ray scores (Q, R))`` (rays in ``snap.ray_origins`` /
+    ``ray_dirs`` order). Scores: cosine, or with ``softmax`` the softmax across the texts at
+    ``search.temperature`` (upstream RayFronts' ``compute_prob``; one text → all 1)."""
+    from mapper.query_answer import embed_text
+
+    q = torch.cat([embed_text(fs, t, cfg.device, cfg.text_model_dir, getattr(cfg.query, "templates", "auto"))
+                   .reshape(1, -1) for t in texts]).to(torch.float32)
+    vprep, rprep = snap.prepared(fs, cfg.device)
+    temp = float(cfg.search.temperature)
+    with one_thread():
+        vs = score_rows(vprep, q, None, softmax=softmax, temperature=temp) if len(vprep) else torch.zeros(len(q), 0)
+        rs = score_rows(rprep, q, None, softmax=softmax, temperature=temp) if len(rprep) else torch.zeros(len(q), 0)
+    xyz = snap.voxel_xyz(np.arange(snap.n_voxels)) if snap.n_voxels else np.zeros((0, 3), np.float32)
+    return (np.asarray(xyz, np.float32).reshape(-1, 3), vs.detach().cpu().numpy().astype(np.float32),
+            rs.detach().cpu().numpy().astype(np.float32))

@@ -79,6 +79,21 @@ class SearchServer:
             rerun.search_answered(rep, req)
         return rep
 
+    def similarities(self, texts: list[str], softmax: bool) -> tuple:
+        """:func:`mapper.search_answer.text_similarities` on the current map's query snapshot,
+        plus the snapshot's ray origins and directions: ``(voxel xyz, voxel scores, ray
+        origins, ray directions, ray scores)``; MessageError for an empty map."""
+        from mapper.search_answer import text_similarities
+
+        s = self.state
+        if s.map is None or s.space is None:
+            raise MessageError("the map is empty (no frames mapped yet)")
+        with s.query_lock:
+            set_torch_threads(s.cfg, query=True)
+            snap = self.queries.snapshot({})
+            vxyz, vs, rs = text_similarities(snap, s.space, list(texts), s.cfg, softmax)
+            return vxyz, vs, snap.ray_origins.copy(), snap.ray_dirs.copy(), rs
+
     def search_payload(self, data: bytes) -> bytes:
         """Answer an encoded search request: an encoded reply (a cancel, or a standing search
         registered before the map exists, gets an empty one)."""

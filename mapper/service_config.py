@@ -188,4 +188,5 @@ def load_mapper_config(path: str | Path | None = None, overrides: Sequence[str] 
     if hasattr(cfg.map, "validate"):
         cfg.map.validate()
     cfg.search.validate()
+    cfg.ros.validate()
     return cfg

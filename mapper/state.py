@@ -81,6 +81,8 @@ class RobotState:
     fleet: object = None             # mapper.fleet_job.FleetRobot (rates, re-projection, shard counts)
     edge_state: str = ""             # the edge's own state (robots/<robot>/edge_status): running, refused, ...
     edge_reason: str = ""            # why, for refused / failed
+    pose: np.ndarray | None = None   # (4, 4) world pose of its last mapped frame (after world_from_robot)
+    pose_stamp: float = 0.0          # that frame's stamp (s): the robot's own clock
 
     def as_dict(self) -> dict:
         d = {"received": self.received, "mapped": self.mapped, "dropped": self.dropped,

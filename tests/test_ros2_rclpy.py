@@ -46,10 +46,10 @@ def _cloud(msg) -> dict[str, np.ndarray]:
 class Recorder:
     """Every sample under ``0/rayfronts/**``: (key, payload, attachment) in arrival order."""
 
-    def __init__(self, s):
+    def __init__(self, s, key: str = "0/rayfronts/**"):
         self.lock = threading.Lock()
         self.samples: list = []
-        self.sub = s.declare_subscriber("0/rayfronts/**", self._cb)
+        self.sub = s.declare_subscriber(key, self._cb)
 
     def _cb(self, sample):
         with self.lock:
@@ -60,8 +60,9 @@ class Recorder:
         with self.lock:
             return [x for x in self.samples if x[0].startswith(f"0/{topic}/")]
 
-    def last(self, topic: str):
-        got = self.of(topic)
+    def last(self, topic: str, depth: int | None = None):
+        """The last sample of ``topic`` (``depth``: of exactly that topic, not its sub-topics)."""
+        got = [x for x in self.of(topic) if depth is None or x[0].count("/") == topic.count("/") + 3]
         return got[-1] if got else None
 
 
@@ -85,6 +86,7 @@ def test_mapper_ros_outputs_decode_with_rclpy(tmp_path, procs, pca_file):
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     procs.append(Proc("mapper", mapper_args(ep, ["queues.idle_flush_s=0.5", "ros.enabled=true", "ros.rate_hz=2",
                                                  "ros.frame_id=odom", "ros.costmap_z_band=[0.0,2.0]",
+                                                 "ros.robots.r1.approach=false",
                                                  "layers.max_voxels=100000000", "ros.max_rays=100000000"]),
                       tmp_path))
     s = None
@@ -93,6 +95,7 @@ def test_mapper_ros_outputs_decode_with_rclpy(tmp_path, procs, pca_file):
             wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
             s = zenoh.open(zenoh_client_config(ep))
             rec = Recorder(s)
+            r1 = Recorder(s, "0/r1/**")
             time.sleep(0.5)
             procs.append(Proc("edge", edge_args(ep, pca_file, frames=24, rate=6.0), tmp_path))
             assert procs[1].p.wait(timeout=150) == 0
@@ -188,6 +191,49 @@ def test_mapper_ros_outputs_decode_with_rclpy(tmp_path, procs, pca_file):
                 assert {a[2] for a in atts} == {_gid(pub_tok[topic])}, topic
                 gids[topic] = atts[0][2]
             assert len(set(gids.values())) == len(gids)
+
+            # robot r1's own search, asked on its namespace: ranked from the position of its last
+            # mapped frame, its goal as a PoseStamped on /r1/goal_pose stamped with that frame's stamp
+            from geometry_msgs.msg import PoseStamped
+            from std_msgs.msg import String as Str
+
+            from edge.sources import SourceConfig
+            from synthetic_world import World
+
+            sc = SourceConfig()
+            last = World.generate(sc.seed, sc.preset).trajectory(sc.trajectory, 24, seed=sc.trajectory_seed)[-1]
+            version = c.stats()["map_version"]
+            s.put(f"0/r1/rayfronts/search/{STRING_KEY}/{h}", serialize_message(String(data="{targets: [car]}")))
+
+            def final_status():
+                got = r1.last("r1/rayfronts/search/status", 0)
+                st = got and json.loads(deserialize_message(got[1], Str).data)
+                return st if st and st["map_version"] == version else None
+
+            st = wait_for(final_status, 60, what="r1's search of the final map")
+            np.testing.assert_allclose(st["robot_xyz"], last[:3, 3], atol=1e-9)
+            ref = c.search("car", threshold=0.5, max_instances=10, max_goals=5, z_band=(-0.5, 3.0),
+                           from_xyz=st["robot_xyz"])
+            g1 = deserialize_message(r1.last("r1/rayfronts/search/goals", 0)[1], PoseArray)
+            assert len(g1.poses) == len(ref.look_next) > 0
+            np.testing.assert_allclose([[p.position.x, p.position.y, p.position.z] for p in g1.poses],
+                                       [g["position"] for g in ref.look_next], atol=1e-9)
+            # the goal last sent (quiet since while the goal held): the first goal of the search
+            # it came with (same stamp), within the gate's 0.5 m / 20 deg of the final first goal
+            gp = deserialize_message(r1.last("r1/goal_pose", 0)[1], PoseStamped)
+            assert gp.header.frame_id == "map"
+            gxyz = np.array([gp.pose.position.x, gp.pose.position.y, gp.pose.position.z])
+            gyaw = math.atan2(2 * gp.pose.orientation.z * gp.pose.orientation.w, 1 - 2 * gp.pose.orientation.z ** 2)
+            stamp = gp.header.stamp.sec + gp.header.stamp.nanosec * 1e-9
+            sts = [json.loads(deserialize_message(x[1], Str).data) for x in r1.of("r1/rayfronts/search/status")
+                   if x[0].count("/") == 6]
+            assert sts and len(r1.of("r1/goal_pose")) >= 1
+            same = [x for x in sts if abs(x["stamp"] - stamp) < 1e-6 and x["goal"]["kind"] == "look"
+                    and np.allclose(x["goal"]["position"], gxyz, atol=1e-9)]
+            assert same and same[-1]["goal"]["yaw_rad"] == pytest.approx(gyaw, abs=1e-6)
+            assert np.linalg.norm(gxyz - ref.look_next[0]["position"]) <= 0.5 + 1e-9
+            turn = abs((gyaw - ref.look_next[0]["heading_rad"] + math.pi) % (2 * math.pi) - math.pi)
+            assert turn <= math.radians(20) + 1e-9
             assert c.mapper_alive()
     finally:
         if s is not None:

@@ -14,6 +14,12 @@ TYPE_HASH_NONE = "TypeHashNotSupported"
 #: rmw_zenoh's QoS component with every policy at its default (reliable, volatile,
 #: keep-last, default depth, no deadline / lifespan, automatic liveliness).
 DEFAULT_QOS = "::,:,:,:,,"
+#: rmw's QoS policy values (``rmw/types.h``), as rmw_zenoh writes them in a token's QoS component
+RELIABLE, BEST_EFFORT = 1, 2
+TRANSIENT_LOCAL, VOLATILE = 1, 2
+KEEP_LAST, KEEP_ALL = 1, 2
+#: rmw_zenoh's default profile (its ``QoS::default_qos``): reliable, volatile, keep-last 42
+DEFAULT_DEPTH = 42
 ENTITY_KINDS = {"NN": "node", "MP": "publisher", "MS": "subscription", "SS": "service", "SC": "client"}
 
 _BAD = re.compile(r"[*$?#\s]")
@@ -95,6 +101,36 @@ def parse_key(key: str, layout: str, domain: int = 0) -> tuple[str, str | None, 
     if len(parts) < 4 or parts[0] != str(check_domain(domain)):
         raise RosKeyError(f"{key!r} is not an rmw_zenoh data key of domain {domain}")
     return "/" + "/".join(parts[1:-2]), ros_type(parts[-2]), parts[-1]
+
+
+def qos_component(reliability: int = RELIABLE, durability: int = VOLATILE, history: int = KEEP_LAST,
+                  depth: int = DEFAULT_DEPTH) -> str:
+    """rmw_zenoh's QoS component of a topic token:
+    ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<s>,<ns>``,
+    each policy written as its rmw enum value only where it differs from rmw_zenoh's default
+    profile (reliable, volatile, keep-last 42; no deadline / lifespan, automatic liveliness), else
+    empty. ``qos_component()`` is :data:`DEFAULT_QOS`; Nav2's map topics (reliable,
+    transient-local, depth 1) are ``":1:,1:,:,:,,"``."""
+    def part(value: int, default: int) -> str:
+        return "" if int(value) == default else str(int(value))
+
+    return (f"{part(reliability, RELIABLE)}:{part(durability, VOLATILE)}:{part(history, KEEP_LAST)},"
+            f"{part(depth, DEFAULT_DEPTH)}:,:,:,,")
+
+
+def parse_qos(component: str) -> dict:
+    """Inverse of :func:`qos_component` for the policies it writes: ``{"reliability",
+    "durability", "history", "depth"}`` as rmw enum values (defaults filled in); RosKeyError
+    when it is not of that form."""
+    parts = str(component).split(":")
+    hist = parts[2].split(",") if len(parts) == 6 else []
+    if len(hist) != 2:
+        raise RosKeyError(f"not an rmw_zenoh QoS component: {component!r}")
+    try:
+        return {"reliability": int(parts[0] or RELIABLE), "durability": int(parts[1] or VOLATILE),
+                "history": int(hist[0] or KEEP_LAST), "depth": int(hist[1] or DEFAULT_DEPTH)}
+    except ValueError:
+        raise RosKeyError(f"not an rmw_zenoh QoS component: {component!r}") from None
 
 
 # ------------------------------------------------------------------ graph tokens

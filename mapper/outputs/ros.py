@@ -15,7 +15,10 @@ Topics (under ``ros.topic_prefix``, default ``/rayfronts``), in the world frame
 * ``/rayfronts/query_text`` (subscribed) — std_msgs/String: adds a standing text query with
   id ``ros_<text, non-alphanumerics as _>`` and ``ros.query_top_k`` voxels;
 * the planners' search and costmap (``<prefix>/search_text`` in; ``/search/*`` and
-  ``/costmap`` out): :mod:`mapper.outputs.ros_search`, when the mapper's search service is given.
+  ``/costmap`` out): :mod:`mapper.outputs.ros_search`, when the mapper's search service is given;
+* per robot (``ros.robots.<id>``): its search, Nav2 goal, feedback and costmap on its own
+  namespace (:mod:`mapper.outputs.ros_robots`); upstream RayFronts' messaging-service topics
+  (``ros.msg_serv``, :mod:`mapper.outputs.ros_msg_serv`); docs/ros2.md.
 
 Layers go out at ``ros.rate_hz`` from their own thread (``mapper-ros``) when the map changed
 (integrated or flushed),
@@ -40,9 +43,10 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from common.config import field_
+from common.config import field_, section
 from common.zenoh_session import close_quietly, undeclare_all
-from mapper.outputs.ros_markers import marker_extra_fields
+from mapper.outputs.ros_markers import POINTCLOUD2, MsgTypes, header_msg, marker_extra_fields, pointcloud2
+from mapper.outputs.ros_msg_serv import MsgServSection
 
 if TYPE_CHECKING:
     import zenoh
@@ -51,7 +55,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rayfronts.mapper")
 
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 STRING = "std_msgs/msg/String"
 
@@ -84,46 +87,24 @@ class RosSection:
     costmap_box: list[float] = field_([], "xy region [x0, y0, x1, y1] (m) of the costmap; [] = the extent of the "
                                           "map's observed voxels")
     costmap_stride: int = field_(1, "costmap cell size in map voxels")
+    robots: dict[str, Any] = field_({}, "per-robot search, Nav2 goals and costmap: ros.robots.<id>.<key> "
+                                        "(docs/ros2.md; keys: mapper.outputs.ros_robots.RosRobotSection)")
+    msg_serv: MsgServSection = section(MsgServSection, "upstream RayFronts' ROS 2 messaging-service topics "
+                                                        "(text queries in, similarity clouds out; docs/ros2.md)")
+
+    def validate(self) -> "RosSection":
+        """Refuses a ``ros.robots.<id>`` entry the ROS output cannot use (one line naming the key)."""
+        from mapper.outputs.ros_robots import robot_sections
+
+        robot_sections(self.robots)
+        return self
 
 
 # ------------------------------------------------------------------ message builders
-#: message classes by name (:func:`common.ros2.cdr.types`)
-MsgTypes = dict[str, type]
-
-
-def _stamp(types: MsgTypes, t: float) -> Any:
-    sec = int(t)
-    return types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
-
-
-def _header(types: MsgTypes, frame_id: str, t: float) -> Any:
-    return types["std_msgs/msg/Header"](stamp=_stamp(types, t), frame_id=frame_id)
-
-
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
     """(N, 3) uint8 → (N,) float32 whose bits are 0x00RRGGBB (PCL's packed rgb)."""
     rgb = np.asarray(rgb, np.uint32).reshape(-1, 3)
     return ((rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]).astype("<u4").view("<f4")
-
-
-def pointcloud2(types: MsgTypes, frame_id: str, t: float, xyz: np.ndarray,
-                extra: dict[str, np.ndarray] | None = None) -> Any:
-    """PointCloud2 with float32 fields x, y, z and then ``extra`` (name → (N,) float32), dense,
-    little endian, one row."""
-    xyz = np.asarray(xyz, "<f4").reshape(-1, 3)
-    extra = extra or {}
-    names = ["x", "y", "z", *extra]
-    n = len(xyz)
-    data = np.empty((n, len(names)), "<f4")  # column copies keep the bits (packed rgb)
-    data[:, :3] = xyz
-    for i, v in enumerate(extra.values()):
-        data[:, 3 + i] = np.asarray(v, "<f4").reshape(-1)
-    point_field: Any = types["sensor_msgs/msg/PointField"]
-    fields = [point_field(name=nm, offset=4 * i, datatype=point_field.FLOAT32, count=1) for i, nm in enumerate(names)]
-    step = 4 * len(names)
-    return types[POINTCLOUD2](header=_header(types, frame_id, t), height=1, width=n, fields=fields, is_bigendian=False,
-                          point_step=step, row_step=step * n,
-                          data=np.ascontiguousarray(data).view(np.uint8).reshape(-1), is_dense=True)
 
 
 def weight_colour(w: npt.ArrayLike) -> np.ndarray:
@@ -142,7 +123,7 @@ def ray_markers(types: MsgTypes, frame_id: str, t: float, origin: npt.ArrayLike,
     marker_t: Any = types["visualization_msgs/msg/Marker"]
     vector3, point = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Point"]
     quaternion, colour_rgba = types["geometry_msgs/msg/Quaternion"], types["std_msgs/msg/ColorRGBA"]
-    hdr = _header(types, frame_id, t)
+    hdr = header_msg(types, frame_id, t)
     pose = types["geometry_msgs/msg/Pose"](position=point(x=0.0, y=0.0, z=0.0),
                                            orientation=quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
     zero = types["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)
@@ -231,10 +212,18 @@ class RosOutput:
         self.published: dict[str, int] = {}
         self.errors = 0
         self.search = None
+        self.robots = None
+        self.msg_serv = None
         if search is not None:
+            from mapper.outputs.ros_robots import RosRobots
             from mapper.outputs.ros_search import RosSearch
 
             self.search = RosSearch(self, search)
+            self.robots = RosRobots(self, search)
+            if self.cfg.msg_serv.enabled:
+                from mapper.outputs.ros_msg_serv import MsgServ
+
+                self.msg_serv = MsgServ(self, search)
 
     # -------------------------------------------------------------- zenoh entities
     def _key(self, topic: str, msgtype: str) -> str:
@@ -242,29 +231,48 @@ class RosOutput:
 
         return publish_key(topic, msgtype, self.cfg.keys, self.domain, self.cdr.type_hash(msgtype, self.cfg.distro))
 
-    def _token(self, kind: str, topic: str | None = None, msgtype: str | None = None) -> str:
-        """Declare the rmw_zenoh liveliness token of an entity; its key ("" in the bridge layout)."""
-        from common.ros2.keys import RMW_ZENOH, liveliness_token
+    def _token(self, kind: str, topic: str | None = None, msgtype: str | None = None, qos: str = "") -> str:
+        """Declare the rmw_zenoh liveliness token of an entity (``qos``: its QoS component,
+        "" = rmw_zenoh's defaults); its key ("" in the bridge layout)."""
+        from common.ros2.keys import DEFAULT_QOS, RMW_ZENOH, liveliness_token
 
         if self.cfg.keys != RMW_ZENOH:
             return ""
         self._eid += 1
         key = liveliness_token(self.domain, str(self.session.zid()), 0, 0 if kind == "NN" else self._eid, kind,
                                self.cfg.node, topic=topic, msgtype=msgtype,
-                               type_hash=self.cdr.type_hash(msgtype, self.cfg.distro) if msgtype else "")
+                               type_hash=self.cdr.type_hash(msgtype, self.cfg.distro) if msgtype else "",
+                               qos=qos or DEFAULT_QOS)
         self._entities.append(self.session.liveliness().declare_token(key))
         return key
 
-    def _publisher(self, topic: str, msgtype: str) -> _Pub:
+    def _publisher(self, topic: str, msgtype: str, latched: bool = False) -> _Pub:
         """The publisher of ``topic`` (declared with its token on first use): its own gid and
-        sequence counter, as an rmw_zenoh publisher has (docs/key_space.md, ROS 2)."""
-        from common.ros2.keys import entity_gid
+        sequence counter, as an rmw_zenoh publisher has (docs/key_space.md, ROS 2).
+
+        ``latched``: reliable + transient-local with depth 1 (what Nav2's static layer and
+        map_server use), as rmw_zenoh implements it: a Zenoh advanced publisher that caches
+        the last sample for late subscribers (rmw_zenoh's transient-local subscriptions are
+        advanced subscribers that query that cache), is detectable through liveliness and
+        sends sporadic heartbeats (500 ms) for sample-miss detection; its token says
+        ``:1:,1:,:,:,,``."""
+        from common.ros2.keys import TRANSIENT_LOCAL, entity_gid, qos_component
 
         pub = self._pubs.get(topic)
         if pub is None:
-            zpub = self.session.declare_publisher(self._key(topic, msgtype))
+            key = self._key(topic, msgtype)
+            if latched:
+                import zenoh
+                from zenoh import ext
+
+                zpub = ext.declare_advanced_publisher(
+                    self.session, key, reliability=zenoh.Reliability.RELIABLE, cache=ext.CacheConfig(max_samples=1),
+                    publisher_detection=True, sample_miss_detection=ext.MissDetectionConfig(sporadic_heartbeat=0.5))
+            else:
+                zpub = self.session.declare_publisher(key)
             self._entities.append(zpub)
-            token = self._token("MP", topic, msgtype)
+            token = self._token("MP", topic, msgtype, qos_component(durability=TRANSIENT_LOCAL, depth=1) if latched
+                                else "")
             pub = self._pubs[topic] = _Pub(zpub, token, entity_gid(token) if token else bytes(16))
         return pub
 
@@ -286,9 +294,14 @@ class RosOutput:
         self._token("MS", self.query_text_topic, STRING)
         self._entities.append(self.session.declare_subscriber(state.keys.mapper_queries_all, self._on_standing))
         if self.search is not None:
+            from mapper.outputs.ros_search import OCCUPANCY_GRID
+
             for topic, msgtype in self.search.topics.values():
-                self._publisher(topic, msgtype)
+                self._publisher(topic, msgtype, latched=msgtype == OCCUPANCY_GRID)
             self._entities += self.search.start()
+            self._entities += self.robots.start()
+            if self.msg_serv is not None:
+                self._entities += self.msg_serv.start()
         if self.cfg.rate_hz > 0:
             self._thread = threading.Thread(target=self._loop, name="mapper-ros", daemon=True)
             self._thread.start()
@@ -310,14 +323,15 @@ class RosOutput:
         self.session = None
 
     # -------------------------------------------------------------- publishing
-    def _put(self, topic: str, msgtype: str, msg) -> None:
+    def _put(self, topic: str, msgtype: str, msg, latched: bool = False) -> None:
+        """Serialise and publish ``msg`` on ``topic`` (``latched``: see :meth:`_publisher`)."""
         from common.ros2.keys import RMW_ZENOH
 
         data = self.cdr.serialize(msg, msgtype, self.cfg.distro)
         with self._lock:
             if self.session is None:
                 return
-            pub = self._publisher(topic, msgtype)
+            pub = self._publisher(topic, msgtype, latched)
             pub.seq += 1
             att = None
             if self.cfg.keys == RMW_ZENOH:
@@ -350,7 +364,11 @@ class RosOutput:
         if self.search is not None and self.cfg.costmap_z_band:
             cm = self.search.costmap_message()
             if cm is not None:
-                self._put(cm[0], *cm[1])
+                self._put(cm[0], *cm[1], latched=True)
+        if self.robots is not None:
+            self.robots.update_all()
+        if self.msg_serv is not None:
+            self.msg_serv.publish()
 
     def _loop(self) -> None:
         state = self.state

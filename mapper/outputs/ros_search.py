@@ -18,7 +18,8 @@ Topics (under ``ros.topic_prefix``, frame ``ros.frame_id``: the map's world, z u
   (docs/identity.md#events; ``[]`` when the update changed nothing);
 * ``<p>/costmap`` — nav_msgs/OccupancyGrid of the z band ``ros.costmap_z_band``: -1 unknown,
   0 free, 100 occupied; cell ``(x, y)`` at ``data[y * width + x]``, origin the min corner
-  of cell 0 at z = the band's bottom, published with the layers.
+  of cell 0 at z = the band's bottom, published with the layers, reliable + transient-local
+  depth 1 (a late subscriber gets the last grid; :meth:`mapper.outputs.ros.RosOutput._publisher`).
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from common.search_messages import OccupancyReply, SearchReply
-from mapper.outputs.ros_markers import marker_extra_fields
+from mapper.outputs.ros_markers import header_msg, marker_extra_fields, stamp_msg
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -47,16 +48,7 @@ SEARCH_ID = "ros_search"
 GRID_VALUES = {-1: -1, 0: 0, 1: 100}
 
 
-def _stamp(T: dict, t: float) -> Any:
-    sec = int(t)
-    return T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int((t - sec) * 1e9))
-
-
-def _header(T: dict, frame_id: str, t: float) -> Any:
-    return T["std_msgs/msg/Header"](stamp=_stamp(T, t), frame_id=frame_id)
-
-
-def _pose(T: dict, xyz, yaw: float = 0.0) -> Any:
+def pose_msg(T: dict, xyz, yaw: float = 0.0) -> Any:
     """Pose at ``xyz`` (m) turned ``yaw`` (rad) about z."""
     q = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
     p = T["geometry_msgs/msg/Point"](x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
@@ -67,7 +59,8 @@ def pose_array(T: dict, frame_id: str, t: float, xyz, yaw=None) -> Any:
     """PoseArray of positions (N, 3) (m), yaw (N,) rad or None (identity orientations)."""
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     yaw = np.zeros(len(xyz)) if yaw is None else np.asarray(yaw, np.float64).reshape(-1)
-    return T[POSE_ARRAY](header=_header(T, frame_id, t), poses=[_pose(T, p, a) for p, a in zip(xyz, yaw, strict=True)])
+    return T[POSE_ARRAY](header=header_msg(T, frame_id, t),
+                         poses=[pose_msg(T, p, a) for p, a in zip(xyz, yaw, strict=True)])
 
 
 def float32_array(T: dict, values, label: str) -> Any:
@@ -81,13 +74,13 @@ def float32_array(T: dict, values, label: str) -> Any:
 def found_markers(T: dict, frame_id: str, t: float, found: list[dict]) -> Any:
     """MarkerArray: DELETEALL, then per instance a CUBE (its box) and a text label (ids = instance ids)."""
     marker_t: Any = T["visualization_msgs/msg/Marker"]
-    hdr = _header(T, frame_id, t)
+    hdr = header_msg(T, frame_id, t)
     zero = T["builtin_interfaces/msg/Duration"](sec=0, nanosec=0)
     extra = marker_extra_fields(T, hdr)
 
     def marker(ns: str, i: int, kind: int, action: int, centre=(0.0, 0.0, 0.0), size=(1.0, 1.0, 1.0),
                rgba=(0.0, 0.0, 0.0, 0.0), text: str = "") -> Any:
-        return marker_t(header=hdr, ns=ns, id=int(i), type=kind, action=action, pose=_pose(T, centre),
+        return marker_t(header=hdr, ns=ns, id=int(i), type=kind, action=action, pose=pose_msg(T, centre),
                         scale=T["geometry_msgs/msg/Vector3"](x=float(size[0]), y=float(size[1]), z=float(size[2])),
                         color=T["std_msgs/msg/ColorRGBA"](r=float(rgba[0]), g=float(rgba[1]), b=float(rgba[2]),
                                                           a=float(rgba[3])),
@@ -111,9 +104,24 @@ def occupancy_grid(T: dict, frame_id: str, t: float, rep: OccupancyReply, z0: fl
     st = np.asarray(rep.states, np.int8)
     nx, ny = st.shape
     data = np.where(st > 0, 100, np.where(st == 0, 0, -1)).astype(np.int8).T.reshape(-1)
-    info = T["nav_msgs/msg/MapMetaData"](map_load_time=_stamp(T, t), resolution=float(rep.cell_m), width=nx,
-                                         height=ny, origin=_pose(T, (rep.origin[0], rep.origin[1], z0)))
-    return T[OCCUPANCY_GRID](header=_header(T, frame_id, t), info=info, data=data)
+    info = T["nav_msgs/msg/MapMetaData"](map_load_time=stamp_msg(T, t), resolution=float(rep.cell_m), width=nx,
+                                         height=ny, origin=pose_msg(T, (rep.origin[0], rep.origin[1], z0)))
+    return T[OCCUPANCY_GRID](header=header_msg(T, frame_id, t), info=info, data=data)
+
+
+def search_reply_messages(T: dict, frame_id: str, t: float, rep: SearchReply, base: str) -> dict:
+    """{topic: (type, message)} of a search reply under topic ``base`` (``<p>/search``):
+    ``base/found`` MarkerArray, ``base/found_poses`` PoseArray of the instance centroids,
+    ``base/goals`` PoseArray of the look-next goals (yaw = heading), ``base/goal_scores``,
+    ``base/events`` the reply's ``events`` as a JSON string."""
+    goals = rep.look_next
+    centroids = np.array([f["centroid"] for f in rep.found], np.float64).reshape(-1, 3)
+    gxyz = np.array([g["position"] for g in goals], np.float64).reshape(-1, 3)
+    return {f"{base}/found": (MARKER_ARRAY, found_markers(T, frame_id, t, rep.found)),
+            f"{base}/found_poses": (POSE_ARRAY, pose_array(T, frame_id, t, centroids)),
+            f"{base}/goals": (POSE_ARRAY, pose_array(T, frame_id, t, gxyz, [g.get("heading_rad", 0.0) for g in goals])),
+            f"{base}/goal_scores": (FLOAT32_ARRAY, float32_array(T, [g["score"] for g in goals], "goals")),
+            f"{base}/events": (STRING, T[STRING](data=json.dumps(rep.events)))}
 
 
 def parse_targets(text: str) -> list[str]:
@@ -208,18 +216,8 @@ class RosSearch:
 
     def reply_messages(self, rep: SearchReply) -> dict:
         """{topic: (type, message)} of a search reply."""
-        o, t = self.out, time.time()
-        T, fid = o.T, o.cfg.frame_id
-        goals = rep.look_next
-        centroids = np.array([f["centroid"] for f in rep.found], np.float64).reshape(-1, 3)
-        gxyz = np.array([g["position"] for g in goals], np.float64).reshape(-1, 3)
-        return {self.topics["found"][0]: (MARKER_ARRAY, found_markers(T, fid, t, rep.found)),
-                self.topics["found_poses"][0]: (POSE_ARRAY, pose_array(T, fid, t, centroids)),
-                self.topics["goals"][0]: (POSE_ARRAY, pose_array(T, fid, t, gxyz,
-                                                                 [g.get("heading_rad", 0.0) for g in goals])),
-                self.topics["goal_scores"][0]: (FLOAT32_ARRAY, float32_array(T, [g["score"] for g in goals],
-                                                                             "goals")),
-                self.topics["events"][0]: (STRING, T[STRING](data=json.dumps(rep.events)))}
+        o = self.out
+        return search_reply_messages(o.T, o.cfg.frame_id, time.time(), rep, self.topics["found"][0].rsplit("/", 1)[0])
 
     def publish_reply(self, rep: SearchReply) -> None:
         for topic, (msgtype, msg) in self.reply_messages(rep).items():
