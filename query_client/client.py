@@ -159,7 +159,9 @@ class Client(PlannerCalls):
             errs.append(r.err.payload.to_string() if r.err is not None else "?")
         if errs:
             raise MapperUnavailable(f"no answer on {key}: {'; '.join(errs)}")
-        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable?)")
+        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable? with access control: "
+                                f"is this certificate allowed to ask {key}? a robot may ask only "
+                                f"{self.keys.prefix}/mapper/robots/<its own id>/...)")
 
     def _get_all(self, key: str, payload: bytes | None, timeout: float | None) -> tuple[list, list[str]]:
         """Every reply to one ``get`` (all queryables on ``key``: every mapper shard):

@@ -21,7 +21,10 @@ Keys: docs/key_space.md. ``<p>`` is the prefix (``--prefix``).
     ``frames/*``) and ``<p>/robots/<id>/edge_status``; the liveliness token
     ``<p>/robots/<id>/alive``; serves (declare_queryable + reply) its ``feature_space`` and
     ``edge_status``. It receives the mapper's queries of those and the subscriptions to its
-    frames and status (egress query / declare_subscriber).
+    frames and status (egress query / declare_subscriber: the mapper declares
+    ``<p>/robots/*/frames``, ``.../frames/<tile>`` and ``.../edge_status`` for all robots at
+    once; a declaration carries no data, and without it the edge's wait for a subscriber
+    (Zenoh matching status) would never end and its frames would be replaced unsent).
   - asks the mapper for its OWN searches and occupancy: query
     ``<p>/mapper/robots/<id>/search`` and ``<p>/mapper/robots/<id>/occupancy`` (and gets the
     replies); subscribes to its standing searches' results ``<p>/mapper/robots/<id>/searches/*``
@@ -89,7 +92,6 @@ def _robot_rules(p: str, r: str) -> list[dict]:
         _rule(f"robot_{r}_alive", ["liveliness_token"], ["ingress"], [f"{root}/alive"]),
         _rule(f"robot_{r}_serve", ["declare_queryable", "reply"], ["ingress"], served),
         _rule(f"robot_{r}_receive_query", ["query"], ["egress"], served),
-        _rule(f"robot_{r}_receive_subscription", ["declare_subscriber"], ["egress"], [*frames, f"{root}/edge_status"]),
         _rule(f"robot_{r}_ask", ["query"], ["ingress"], planner),
         _rule(f"robot_{r}_receive_answer", ["reply"], ["egress"], planner),
         _rule(f"robot_{r}_subscribe", ["declare_subscriber"], ["ingress"], results),
@@ -98,7 +100,8 @@ def _robot_rules(p: str, r: str) -> list[dict]:
 
 
 def _robots_shared(p: str) -> list[dict]:
-    """Rules every robot has: watch the mapper and its shards, read the map's feature space."""
+    """Rules every robot has: watch the mapper and its shards, read the map's feature space,
+    learn of the subscriptions to robots' frames and status."""
     watched = [f"{p}/mapper/alive", f"{p}/mapper/shards/*"]
     space = [f"{p}/mapper/feature_space"]
     return [
@@ -106,6 +109,9 @@ def _robots_shared(p: str) -> list[dict]:
         _rule("robots_watch_mapper_out", ["liveliness_token"], ["egress"], watched),
         _rule("robots_read_feature_space_in", ["query"], ["ingress"], space),
         _rule("robots_read_feature_space_out", ["reply"], ["egress"], space),
+        # the mapper's (and shards') subscriptions: robots/*/frames, robots/*/frames/<tile>, robots/*/edge_status
+        _rule("robots_receive_subscriptions", ["declare_subscriber"], ["egress"],
+              [f"{p}/robots/*/frames", f"{p}/robots/*/frames/*", f"{p}/robots/*/edge_status"]),
     ]
 
 
