@@ -36,6 +36,7 @@ class Leases:
     def __init__(self, what: str, section: str, default_s: float, max_total: int, max_per_client: int,
                  clock: Callable[[], float] = time.monotonic):
         self.what, self.section = what, section
+        self.plural = what[:-1] + "ies" if what.endswith("y") else what + "es"
         self.default_s, self.max_total, self.max_per_client = float(default_s), int(max_total), int(max_per_client)
         self.clock = clock
         self._leases: dict[str, _Lease] = {}
@@ -49,11 +50,11 @@ class Leases:
             now = self.clock()
             if sid not in self._leases:
                 if held >= self.max_total:
-                    raise MessageError(f"too many {self.what}s on this mapper ({held}, limit "
+                    raise MessageError(f"too many {self.plural} on this mapper ({held}, limit "
                                        f"{self.section}.max_standing={self.max_total}): cancel one first")
                 mine = sum(1 for v in self._leases.values() if v.client == client and v.until > now)
                 if mine >= self.max_per_client:
-                    raise MessageError(f"too many {self.what}s for client {client or '(unnamed)'!r} ({mine}, limit "
+                    raise MessageError(f"too many {self.plural} for client {client or '(unnamed)'!r} ({mine}, limit "
                                        f"{self.section}.max_standing_per_client={self.max_per_client}): "
                                        f"cancel one first")
             self._leases[sid] = _Lease(client, lease, now + lease)
