@@ -149,7 +149,15 @@ def test_standing_requests_end_with_their_client(tmp_path, procs, pca_file):
                 from common.messages import decode_query_result
                 decode_query_result(_raw_get(ghost, K.mapper_query, encode_query_request(QueryRequest(renew=True,
                                                                                                      id="nope"))))
-            assert c.stats()["request_errors"]["search"] == 3
+            # a robot-scoped key with a wildcard for the robot, and a robot touching the operators' search
+            with pytest.raises(MessageError, match="with one robot id") as e:
+                decode_search_reply(_raw_get(ghost, "rayfronts/mapper/robots/*/search",
+                                             encode_search_request(SearchRequest(targets=["car"]))))
+            assert "\n" not in str(e.value)
+            with pytest.raises(MessageError, match="'g2a' belongs to the operators, not to robot r1"):
+                decode_search_reply(_raw_get(ghost, K.robot_search("r1"),
+                                             encode_search_request(SearchRequest(cancel=True, id="g2a"))))
+            assert c.stats()["request_errors"]["search"] == 5
             assert c.search("car").frames_mapped >= 2
             h.cancel()
             qh.cancel()
