@@ -89,7 +89,8 @@ def text_encoder(name: str, device: str | torch.device = "cpu", model_dir: str =
                 why = " ".join(str(e).split())
                 raise MessageError(f"cannot embed text: the map's feature space needs the {name} text model on the "
                                    f"mapper ({why}); set text_model_dir=DIR (a directory 'rayfronts models' "
-                                   f"prepared) and restart the mapper, or send embeddings instead of text") from None
+                                   f"prepared) and restart the mapper, or send embeddings (with background []) "
+                                   "instead of text") from None
             TEXT_MODEL_LOADS[name] = {"thread": threading.current_thread().name,
                                       "load_s": round(time.perf_counter() - t0, 4)}
         return _TEXT_ENCODERS[key]

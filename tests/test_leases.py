@@ -79,6 +79,32 @@ def test_text_search_without_text_model_is_one_line():
     assert "\n" not in msg and "set text_model_dir=DIR" in msg and "siglip" in msg
     with pytest.raises(MessageError, match="/nonexistent-text-model is not a directory.*set text_model_dir"):
         text_encoder("siglip", "cpu", "/nonexistent-text-model")
+    # through the search's embedding and the queryable's reply: the asker reads that line
+    from types import SimpleNamespace
+
+    from mapper.replies import REQUEST_ERRORS, reply_to
+    from mapper.search_answer import embed_phrases
+
+    naradio = SimpleNamespace(id="naradio-space", text_model="siglip", head_config={"kind": "siglip"}, lang_dim=1152,
+                              embed_queries=lambda *a, **k: pytest.fail("embedded without a text model"))
+    req = SearchRequest(targets=["car"]).validate()
+
+    class Query:
+        key_expr = "rayfronts/mapper/search"
+        payload = SimpleNamespace(to_bytes=lambda: encode_search_request(req))
+        out = b""
+
+        def reply(self, key, payload, attachment=None):
+            Query.out = payload
+
+    before = REQUEST_ERRORS["search"]
+    reply_to(Query(), "search", lambda data: embed_phrases(naradio, decode_search_request(data), ["road"], "cpu", "",
+                                                           "auto"))
+    with pytest.raises(MessageError) as e:
+        decode_search_reply(Query.out)
+    assert str(e.value).startswith("remote error: cannot embed text") and "internal error" not in str(e.value)
+    assert "set text_model_dir=DIR" in str(e.value) and "\n" not in str(e.value)
+    assert REQUEST_ERRORS["search"] == before + 1
 
 
 def _raw_get(session, key: str, payload: bytes) -> bytes:
