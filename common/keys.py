@@ -23,6 +23,10 @@ experiments can share one Zenoh network::
     <p>/mapper/search                  mapper queryable: search for planners (found / look next / beyond)
     <p>/mapper/searches/<id>           mapper publishes results of a standing search
     <p>/mapper/occupancy               mapper queryable: occupancy box / slice / points
+    <p>/mapper/robots/<robot>/search   mapper queryable: search asked by robot <robot> (its
+                                       onboard planner; the ACL lets a robot ask only its own)
+    <p>/mapper/robots/<robot>/occupancy        the same for occupancy
+    <p>/mapper/robots/<robot>/searches/<id>    results of a standing search robot <robot> registered
 
 Robot ids, query ids and layer names are single key chunks: ``[A-Za-z0-9_-]{1,64}``
 (no ``/``, no Zenoh wildcards ``*``/``$``, no ``?#`` which Zenoh reserves).
@@ -69,6 +73,7 @@ class KeySpace:
         self.prefix = prefix
         self._robot_re = re.compile(rf"^{re.escape(prefix)}/robots/({ID_PATTERN})/"
                                     rf"(?:[A-Za-z0-9_-]+|frames/-?[0-9]+_-?[0-9]+)$")
+        self._asker_re = re.compile(rf"^{re.escape(prefix)}/mapper/robots/({ID_PATTERN})/[A-Za-z0-9_-]+$")
 
     def __repr__(self) -> str:
         return f"KeySpace({self.prefix!r})"
@@ -186,6 +191,35 @@ class KeySpace:
     def mapper_searches(self, sid: str) -> str:
         """Where the mapper publishes a standing search's replies."""
         return f"{self.prefix}/mapper/searches/{check_id(sid, 'search id')}"
+
+    # ------------------------------------------------- robot-scoped planner keys
+    def robot_search(self, robot: str) -> str:
+        """``<p>/mapper/robots/<robot>/search``: the search queryable as robot ``robot`` asks
+        it (its certificate may ask only this one; docs/key_space.md)."""
+        return f"{self.prefix}/mapper/robots/{check_id(robot)}/search"
+
+    @property
+    def robot_search_all(self) -> str:
+        """``<p>/mapper/robots/*/search`` (the mapper's queryable)."""
+        return f"{self.prefix}/mapper/robots/*/search"
+
+    def robot_occupancy(self, robot: str) -> str:
+        """``<p>/mapper/robots/<robot>/occupancy``: occupancy as robot ``robot`` asks it."""
+        return f"{self.prefix}/mapper/robots/{check_id(robot)}/occupancy"
+
+    @property
+    def robot_occupancy_all(self) -> str:
+        return f"{self.prefix}/mapper/robots/*/occupancy"
+
+    def robot_searches(self, robot: str, sid: str) -> str:
+        """Where the mapper publishes standing search ``sid`` that robot ``robot`` registered."""
+        return f"{self.prefix}/mapper/robots/{check_id(robot)}/searches/{check_id(sid, 'search id')}"
+
+    def asker_from_key(self, key: object) -> str | None:
+        """Robot id of a ``<p>/mapper/robots/<robot>/<leaf>`` key (a robot-scoped planner
+        key), else ``None``: also for a wildcard or an invalid id in place of the robot."""
+        m = self._asker_re.match(str(key))
+        return m.group(1) if m else None
 
     @property
     def everything(self) -> str:

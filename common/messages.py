@@ -43,6 +43,8 @@ QUERY_REQUEST_LIMITS = WireLimits(max_message_bytes=MAX_IMAGE_BYTES + (1 << 20),
                                   max_nesting=4, max_containers=64, max_str_bytes=64 << 10)
 MAX_TOP_K = 100_000
 _ID_RE = re.compile(r"^[A-Za-z0-9_-]{0,64}$")
+#: longest lease a standing query / search may ask for (s)
+MAX_LEASE_S = 3600.0
 
 LAYERS = ("voxels", "frontiers", "rays", "occupancy")
 
@@ -110,7 +112,9 @@ class QueryRequest:
     ``embedding`` (a vector in the map's language space, e.g. from a planner).
 
     ``standing=True`` registers the query to be re-run after map updates and published on
-    ``mapper/queries/<id>``; ``cancel=True`` removes the standing query ``id``."""
+    ``mapper/queries/<id>``; ``cancel=True`` removes the standing query ``id``. A standing
+    query lives ``lease_s`` seconds (0 = the mapper's ``query.lease_s``) unless renewed
+    (``renew=True`` + ``id``); ``client`` names the asker for the mapper's per-client cap."""
 
     text: str | None = None
     image: bytes | None = None
@@ -120,12 +124,16 @@ class QueryRequest:
     standing: bool = False
     cancel: bool = False
     id: str = ""
+    lease_s: float = 0.0
+    renew: bool = False
+    client: str = ""
 
     def validate(self) -> "QueryRequest":
         given = [n for n in ("text", "image", "embedding") if getattr(self, n) is not None]
-        if self.cancel:
+        self.lease_s = check_lease(self.lease_s, self.renew, self.client)
+        if self.cancel or self.renew:
             if not self.id:
-                raise MessageError("a cancel request needs the standing query id")
+                raise MessageError(f"a {'cancel' if self.cancel else 'renew'} request needs the standing query id")
         elif len(given) != 1:
             raise MessageError(f"a query needs exactly one of text, image, embedding (got {given or 'none'})")
         if self.text is not None:
@@ -157,10 +165,24 @@ class QueryRequest:
         return "<image>" if self.image is not None else "<embedding>"
 
 
+def check_lease(lease_s: Any, renew: Any, client: Any) -> float:
+    """The validated ``lease_s`` (seconds, 0 = the mapper's default) of a standing request,
+    after checking ``renew`` (bool) and ``client`` (an id, may be empty); one-line errors."""
+    if isinstance(lease_s, bool) or not isinstance(lease_s, (int, float)) or not 0.0 <= lease_s <= MAX_LEASE_S:
+        raise MessageError(f"lease_s must be seconds in [0, {MAX_LEASE_S:g}] (0 = the mapper's default), "
+                           f"got {lease_s!r}")
+    if not isinstance(renew, bool):
+        raise MessageError("'renew' must be true/false")
+    if not isinstance(client, str) or not _ID_RE.match(client):
+        raise MessageError(f"client id {client!r} must match [A-Za-z0-9_-]{{0,64}}")
+    return float(lease_s)
+
+
 def encode_query_request(req: QueryRequest) -> bytes:
     req.validate()
     body: dict[str, Any] = {"top_k": int(req.top_k), "softmax": bool(req.softmax), "standing": bool(req.standing),
-                            "cancel": bool(req.cancel), "id": req.id}
+                            "cancel": bool(req.cancel), "id": req.id, "lease_s": req.lease_s, "renew": req.renew,
+                            "client": req.client}
     if req.text is not None:
         body["text"] = req.text
     if req.image is not None:
@@ -172,7 +194,8 @@ def encode_query_request(req: QueryRequest) -> bytes:
 
 def decode_query_request(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> QueryRequest:
     body = _decode(data, SCHEMA_QUERY_REQUEST, limits or QUERY_REQUEST_LIMITS)
-    unknown = set(body) - {"text", "image", "embedding", "top_k", "softmax", "standing", "cancel", "id"}
+    unknown = set(body) - {"text", "image", "embedding", "top_k", "softmax", "standing", "cancel", "id", "lease_s",
+                           "renew", "client"}
     if unknown:
         raise MessageError(f"{SCHEMA_QUERY_REQUEST}: unknown fields {sorted(unknown)}")
     emb = body.get("embedding")
@@ -181,7 +204,8 @@ def decode_query_request(data: bytes | bytearray | memoryview, limits: WireLimit
     req = QueryRequest(text=body.get("text"), image=body.get("image"), embedding=emb,
                        top_k=body.get("top_k", 10), softmax=body.get("softmax", False),
                        standing=body.get("standing", False), cancel=body.get("cancel", False),
-                       id=body.get("id", ""))
+                       id=body.get("id", ""), lease_s=body.get("lease_s", 0.0), renew=body.get("renew", False),
+                       client=body.get("client", ""))
     for k in ("softmax", "standing", "cancel"):
         if not isinstance(getattr(req, k), bool):
             raise MessageError(f"{SCHEMA_QUERY_REQUEST}: {k!r} must be true/false")

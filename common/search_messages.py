@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from common.messages import VERSION, MessageError, _decode
+from common.messages import VERSION, MessageError, _decode, check_lease
 from common.wire import WireLimits, encode_message
 
 SCHEMA_SEARCH_REQUEST = "rayfronts.search_request"
@@ -40,7 +40,7 @@ OCC_KINDS = ("box", "slice", "points")
 SEARCH_REQUEST_LIMITS = WireLimits(max_message_bytes=4 << 20, max_header_bytes=1 << 20, max_container_len=4096,
                                    max_nesting=5, max_containers=1024, max_str_bytes=64 << 10)
 _REQUEST_FIELDS = {"targets", "embeddings", "background", "area", "box", "z_band", "threshold", "max_instances",
-                   "max_goals", "from_xyz", "standing", "cancel", "id"}
+                   "max_goals", "from_xyz", "standing", "cancel", "id", "lease_s", "renew", "client", "owner"}
 _OCC_FIELDS = {"kind", "box_min", "box_max", "z_band", "points", "stride", "radius"}
 
 
@@ -79,7 +79,10 @@ class SearchRequest:
     targets + background. ``area``: polygon [[x, y], ...] (>= 3 vertices) or ``box``
     [x0, y0, x1, y1]; ``z_band`` [z0, z1]; ``threshold`` in (0, 1); ``from_xyz`` the asker's
     position (distances of look-next goals). ``standing`` registers it under ``id`` (its
-    instance tracker is kept); ``cancel`` drops the standing search ``id``."""
+    instance tracker is kept); ``cancel`` drops the standing search ``id``; a standing search
+    lives ``lease_s`` seconds (0 = the mapper's ``search.lease_s``) unless renewed (``renew`` +
+    ``id``); ``client`` names the asker (per-client cap). ``owner`` is set by the mapper: the
+    robot whose key (``<p>/mapper/robots/<robot>/search``) registered it, "" otherwise."""
 
     targets: list[str] = field(default_factory=list)
     embeddings: np.ndarray | None = None
@@ -94,15 +97,21 @@ class SearchRequest:
     standing: bool = False
     cancel: bool = False
     id: str = ""
+    lease_s: float = 0.0
+    renew: bool = False
+    client: str = ""
+    owner: str = ""
 
     def validate(self) -> "SearchRequest":  # noqa: C901 - one check per field
         import re
 
-        if not isinstance(self.id, str) or not re.match(r"^[A-Za-z0-9_-]{0,64}$", self.id):
-            raise MessageError(f"search id {self.id!r} must match [A-Za-z0-9_-]{{0,64}}")
-        if self.cancel:
+        for k in ("id", "owner"):
+            if not isinstance(getattr(self, k), str) or not re.match(r"^[A-Za-z0-9_-]{0,64}$", getattr(self, k)):
+                raise MessageError(f"search {k} {getattr(self, k)!r} must match [A-Za-z0-9_-]{{0,64}}")
+        self.lease_s = check_lease(self.lease_s, self.renew, self.client)
+        if self.cancel or self.renew:
             if not self.id:
-                raise MessageError("a cancel request needs the standing search id")
+                raise MessageError(f"a {'cancel' if self.cancel else 'renew'} request needs the standing search id")
             return self
         self.targets = _phrases(self.targets, "targets", 1, MAX_TARGETS)
         if self.background is not None:

@@ -74,14 +74,23 @@ TEXT_MODEL_LOADS: dict[str, dict] = {}   # model name -> {"thread": who loaded i
 
 
 def text_encoder(name: str, device: str | torch.device = "cpu", model_dir: str = "") -> CachedTextEncoder:
-    """The text model the feature space names (loaded once per process, thread-safe)."""
+    """The text model the feature space names (loaded once per process, thread-safe). A model
+    missing on disk raises a one-line :class:`MessageError` naming ``text_model_dir``."""
     key = (name, str(device), model_dir)
     with _TEXT_ENCODERS_LOCK:
         if key not in _TEXT_ENCODERS:
+            from common.model_files import ModelFileError
             from encoders.text import make_text_encoder
 
             t0 = time.perf_counter()
-            _TEXT_ENCODERS[key] = make_text_encoder(name, model_dir=model_dir or None, device=device)
+            try:
+                _TEXT_ENCODERS[key] = make_text_encoder(name, model_dir=model_dir or None, device=device)
+            except ModelFileError as e:     # bad setup, not a bug: one line naming what to set
+                why = " ".join(str(e).split())
+                raise MessageError(f"cannot embed text: the map's feature space needs the {name} text model on the "
+                                   f"mapper ({why}); set text_model_dir=DIR (a directory 'rayfronts models' "
+                                   f"prepared) and restart the mapper, or send embeddings (with background []) "
+                                   "instead of text") from None
             TEXT_MODEL_LOADS[name] = {"thread": threading.current_thread().name,
                                       "load_s": round(time.perf_counter() - t0, 4)}
         return _TEXT_ENCODERS[key]

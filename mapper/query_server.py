@@ -46,7 +46,7 @@ from common.messages import (
     encode_query_result,
     encode_stats,
 )
-from mapper.replies import reply_to
+from mapper.replies import REQUEST_ERRORS, reply_to
 from mapper.service_config import set_torch_threads
 from mapper.state import MapperState, jsonable
 
@@ -137,14 +137,28 @@ class QueryServer:
 
         def answer(data: bytes) -> bytes:
             req = decode_query_request(data)
+            leases = state.query_leases
             if req.cancel:
                 state.standing.pop(req.id, None)
+                leases.drop(req.id)
                 return encode_query_result(QueryResult(id=req.id, query="<cancelled>"))
-            if req.standing and state.map is None:
-                # registered before any frame: an empty answer now, published once the map exists
-                state.standing[req.id] = req
-                return encode_query_result(QueryResult(id=req.id, query=req.text or ""))
-            res = self.run_query(req, flush=True)
+            if req.renew:
+                leases.renew(req.id, req.id in state.standing)
+                return encode_query_result(QueryResult(id=req.id, query="<renewed>"))
+            if req.standing:              # leased (mapper.leases); the mapper's own have no client
+                req.client = req.client or "anonymous"
+                fresh = req.id not in state.standing
+                leases.admit(req.id, req.client, req.lease_s, len(state.standing))
+                if state.map is None:
+                    # registered before any frame: an empty answer now, published once the map exists
+                    state.standing[req.id] = req
+                    return encode_query_result(QueryResult(id=req.id, query=req.text or ""))
+            try:
+                res = self.run_query(req, flush=True)
+            except Exception:
+                if req.standing and fresh:
+                    leases.drop(req.id)
+                raise
             res.id = req.id
             answered.append(res)
             if req.standing:
@@ -162,12 +176,19 @@ class QueryServer:
         """Re-runs standing queries when the map worker says the map changed."""
         state = self.state
         while not state.stop.is_set():
+            self.end_expired()
             if not state.standing_due.wait(0.5):
                 continue
             state.standing_due.clear()
             if state.stop.is_set():
                 return
             self.run_standing()
+
+    def end_expired(self) -> None:
+        """Drop the standing queries whose lease ran out (their client stopped renewing)."""
+        for qid in self.state.query_leases.expired():
+            if self.state.standing.pop(qid, None) is not None:
+                log.info("standing query %s ended: its lease ran out (the client is gone)", qid)
 
     def run_standing(self) -> None:
         state = self.state
@@ -202,7 +223,10 @@ class QueryServer:
             "search": {"standing": len(state.standing_searches), "instance_next_id": state.trackers.next_id,
                        "identity_trackers": len(state.trackers),
                        "instance_ids_reserved_below": state.trackers.reserved_below,
-                       "instance_id_reserve_errors": state.trackers.reserve_errors},
+                       "instance_id_reserve_errors": state.trackers.reserve_errors,
+                       "leases_s": state.search_leases.describe()},
+            "query_leases_s": state.query_leases.describe(),
+            "request_errors": dict(REQUEST_ERRORS),
             "first_mapped_at": state.first_mapped_at, "last_mapped_at": state.last_mapped_at,
             # process CPU (all threads) from the first to the last integration, and in total
             "cpu_s": {"mapping": (state.cpu_mapped[1] - state.cpu_mapped[0]) if state.cpu_mapped else 0.0,

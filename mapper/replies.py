@@ -1,12 +1,16 @@
 """Answering a mapper queryable: one reply per Zenoh query, errors as one line."""
 from __future__ import annotations
 
+import collections
 import logging
 from typing import Any, Callable
 
 from common.messages import MessageError, encode_error
 
 log = logging.getLogger("rayfronts.mapper")
+
+#: requests answered with an error, by what was asked ("search", "query", ...; stats "request_errors")
+REQUEST_ERRORS: collections.Counter = collections.Counter()
 
 
 def reply_to(query: Any, what: str, answer: Callable[[bytes], bytes],
@@ -21,8 +25,10 @@ def reply_to(query: Any, what: str, answer: Callable[[bytes], bytes],
                 raise MessageError(f"{what} without payload")
             payload = answer(query.payload.to_bytes())
         except (MessageError, ValueError) as e:
+            REQUEST_ERRORS[what] += 1
             payload = encode_error(str(e))
         except Exception as e:
+            REQUEST_ERRORS[what] += 1
             log.exception("%s failed", what)
             payload = encode_error(f"internal error: {e!r}")
         if attachment is not None:

@@ -1,6 +1,10 @@
 """The planners' queryables: ``<p>/mapper/search`` (find targets, where to look next, what
 lies beyond) and ``<p>/mapper/occupancy`` (box / slice / points), plus standing searches
-published on ``<p>/mapper/searches/<id>`` (module map: ARCHITECTURE.md).
+published on ``<p>/mapper/searches/<id>`` (module map: ARCHITECTURE.md). A robot's onboard
+planner asks the same on ``<p>/mapper/robots/<robot>/search`` / ``occupancy`` (the site ACL
+lets a robot certificate ask only its own); its standing searches are published on
+``<p>/mapper/robots/<robot>/searches/<id>``. Standing searches are leased and capped
+(:mod:`mapper.leases`).
 
 A search runs like a query (:class:`mapper.query_server.QueryServer`): under
 ``state.query_lock``, on the query snapshot of the current map generation (the map worker is
@@ -94,26 +98,75 @@ class SearchServer:
             vxyz, vs, rs = text_similarities(snap, s.space, list(texts), s.cfg, softmax)
             return vxyz, vs, snap.ray_origins.copy(), snap.ray_dirs.copy(), rs
 
-    def search_payload(self, data: bytes) -> bytes:
-        """Answer an encoded search request: an encoded reply (a cancel, or a standing search
-        registered before the map exists, gets an empty one)."""
+    def _owned(self, req: SearchRequest, asker: str) -> bool:
+        """Whether standing search ``req.id`` exists and belongs to ``asker`` (a robot id, or ""
+        for the operators' key); one held by someone else is refused in one line."""
+        held = self.standing.get(req.id)
+        if held is None:
+            return False
+        if held.owner != asker:
+            raise MessageError(f"standing search {req.id!r} belongs to "
+                               f"{('robot ' + held.owner) if held.owner else 'the operators'}, not to "
+                               f"{('robot ' + asker) if asker else 'the operators'}: use another id")
+        return True
+
+    def search_payload(self, data: bytes, asker: str = "") -> bytes:
+        """Answer an encoded search request asked on the key of robot ``asker`` ("" = the
+        operators' ``<p>/mapper/search``): an encoded reply (a cancel, a renewal, or a standing
+        search registered before the map exists, gets an empty one). Standing searches are
+        leased (:mod:`mapper.leases`) and owned by ``asker``: only it may renew or cancel them,
+        and their results go to its key (``searches_key``)."""
         req = decode_search_request(data)
+        req.owner = asker
+        leases = self.state.search_leases
         if req.cancel:
-            self.standing.pop(req.id, None)
+            if self._owned(req, asker):
+                self.standing.pop(req.id, None)
+                leases.drop(req.id)
             return encode_search_reply(SearchReply(id=req.id))
-        if req.standing and self.state.map is None:
-            # registered before any frame: answered (and published) once the map exists
-            self.standing[req.id] = req
+        if req.renew:
+            leases.renew(req.id, self._owned(req, asker))
             return encode_search_reply(SearchReply(id=req.id))
-        rep = self.run_search(req, flush=True)
+        fresh = False
+        if req.standing:
+            fresh = not self._owned(req, asker)
+            req.client = f"robot-{asker}" if asker else (req.client or "anonymous")
+            leases.admit(req.id, req.client, req.lease_s, len(self.standing))
+            if self.state.map is None:
+                # registered before any frame: answered (and published) once the map exists
+                self.standing[req.id] = req
+                return encode_search_reply(SearchReply(id=req.id))
+        try:
+            rep = self.run_search(req, flush=True)
+        except Exception:
+            if fresh:
+                leases.drop(req.id)
+            raise
         if req.standing:
             self.standing[req.id] = req
             self._last_gen[req.id] = self.state.map_gen
         return encode_search_reply(rep)
 
+    def searches_key(self, req: SearchRequest) -> str:
+        """Where standing search ``req`` is published: its robot's key, or ``<p>/mapper/searches/<id>``."""
+        keys = self.state.keys
+        return keys.robot_searches(req.owner, req.id) if req.owner else keys.mapper_searches(req.id)
+
+    def _asker(self, query) -> str:
+        """The robot a robot-scoped planner key names (its certificate may ask only its own)."""
+        robot = self.state.keys.asker_from_key(query.key_expr)
+        if robot is None:
+            raise MessageError(f"{query.key_expr}: ask on <prefix>/mapper/robots/<robot id>/... with one "
+                               "robot id (no wildcards)")
+        return robot
+
     def on_search(self, query) -> None:
         """Zenoh callback of ``<p>/mapper/search``: one reply, a search reply or an error."""
         reply_to(query, "search", self.search_payload)
+
+    def on_robot_search(self, query) -> None:
+        """Zenoh callback of ``<p>/mapper/robots/*/search``: a robot's own search."""
+        reply_to(query, "search", lambda data: self.search_payload(data, self._asker(query)))
 
     def occupancy(self, data: bytes) -> OccupancyReply:
         """Answer an encoded occupancy request (under the map lock)."""
@@ -141,21 +194,31 @@ class SearchServer:
         return rep
 
     def on_occupancy(self, query) -> None:
-        """Zenoh callback of ``<p>/mapper/occupancy``."""
-        reply_to(query, "occupancy request", lambda data: encode_occupancy_reply(self.occupancy(data)))
+        """Zenoh callback of ``<p>/mapper/occupancy`` and ``<p>/mapper/robots/*/occupancy``
+        (the same answer for a robot: occupancy is not per robot)."""
+        def answer(data: bytes) -> bytes:
+            if str(query.key_expr) != self.state.keys.mapper_occupancy:
+                self._asker(query)
+            return encode_occupancy_reply(self.occupancy(data))
+
+        reply_to(query, "occupancy request", answer)
 
     def standing_loop(self) -> None:
         """Re-runs standing searches after map changes (at most every :data:`STANDING_PERIOD_S`)
         and publishes them on ``<p>/mapper/searches/<id>``."""
         s = self.state
         while not s.stop.wait(STANDING_PERIOD_S):
+            for sid in s.search_leases.expired():
+                self._last_gen.pop(sid, None)
+                if self.standing.pop(sid, None) is not None:
+                    log.info("standing search %s ended: its lease ran out (the client is gone)", sid)
             for sid, req in list(self.standing.items()):
                 if s.map is None or self._last_gen.get(sid) == s.map_gen:
                     continue
                 self._last_gen[sid] = s.map_gen
                 try:
                     rep = self.run_search(req)
-                    s.session.put(s.keys.mapper_searches(sid), encode_search_reply(rep))
+                    s.session.put(self.searches_key(req), encode_search_reply(rep))
                 except Exception as e:
                     s.warn(f"search:{sid}", "standing search %s failed: %s", sid, e)
 
@@ -165,7 +228,9 @@ def start_search_server(state, queries, session, keys) -> tuple[SearchServer, li
     ``(server, zenoh entities, thread)``."""
     srv = SearchServer(state, queries)
     ents = [session.declare_queryable(keys.mapper_search, srv.on_search),
-            session.declare_queryable(keys.mapper_occupancy, srv.on_occupancy)]
+            session.declare_queryable(keys.mapper_occupancy, srv.on_occupancy),
+            session.declare_queryable(keys.robot_search_all, srv.on_robot_search),
+            session.declare_queryable(keys.robot_occupancy_all, srv.on_occupancy)]
     t = threading.Thread(target=srv.standing_loop, name="mapper-search", daemon=True)
     t.start()
     return srv, ents, t

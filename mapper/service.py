@@ -19,6 +19,8 @@ entities, threads, close); each job is its own module over one shared
     mapper/snapshot queryable      SnapshotStore.on_snapshot (snapshot_store)
     mapper/search, occupancy       SearchServer.on_search / on_occupancy (search_server) Zenoh callbacks
     mapper/searches/<id> put       SearchServer.standing_loop           mapper-search
+    mapper/robots/*/search, occupancy  SearchServer.on_robot_search / on_occupancy   Zenoh callbacks
+    mapper/robots/<r>/searches/<id> put  SearchServer.standing_loop     mapper-search
     mapper/layers/* put + get      LayerPublisher        (outputs.layers)
     mapper/robots/<r>/status put   Fleet.loop            (fleet_job)    mapper-fleet
     mapper/robots/*/world_from_robot queryable  Fleet.on_transform      Zenoh callback

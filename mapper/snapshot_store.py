@@ -119,9 +119,12 @@ class SnapshotStore:
                         "version": version,
                         "flushed_version": state.flushed_version,
                         "robots": {n: {"mapped": st.mapped, "last_seq": st.last_seq} for n, st in state.robots.items()},
-                        "standing": [_saved_entry(encode_query_request(r)) for r in list(state.standing.values())],
+                        # only the live ones: a lease run out = its client is gone (mapper.leases)
+                        "standing": [_saved_entry(encode_query_request(r))
+                                     for k, r in list(state.standing.items()) if state.query_leases.live(k)],
                         "standing_searches": [_saved_entry(encode_search_request(r))
-                                              for r in list(state.standing_searches.values())],
+                                              for k, r in list(state.standing_searches.items())
+                                              if state.search_leases.live(k)],
                         "instance_next_id": state.trackers.next_id, "instances": trackers,
                         "world_from_robot": fleet.transforms.runtime() if fleet is not None else {}}
             capture = capture_map(state.map)     # copies, under the lock; written after it
@@ -197,6 +200,8 @@ class SnapshotStore:
         state = self.state
         for req in _decode_saved(saved, decode_query_request, "standing query"):
             state.standing[req.id] = req
+            if req.client:                   # a client's: a fresh lease it renews (mapper.leases)
+                state.query_leases.restore(req.id, req.client, req.lease_s)
         if state.standing:
             state.standing_due.set()         # answer them once on the restored map
         if saved:
@@ -212,6 +217,8 @@ class SnapshotStore:
         state.trackers.continue_from(next_id)
         for req in _decode_saved(saved, decode_search_request, "standing search"):
             state.standing_searches[req.id] = req
+            if req.client:                   # a client's: a fresh lease it renews (mapper.leases)
+                state.search_leases.restore(req.id, req.client, req.lease_s)
         if saved:
             log.info("restored %d standing search(es): %s", len(state.standing_searches),
                      ", ".join(sorted(state.standing_searches)))

@@ -154,6 +154,12 @@ class MapperState:
         self.cpu_mapped: list[float] = []      # process CPU s at the first and the last integration
         self.standing: dict = {}               # standing query id -> QueryRequest
         self.standing_searches: dict = {}      # standing search id -> SearchRequest (mapper.search_server)
+        from mapper.leases import Leases
+
+        q, sc = cfg.query, cfg.search          # leases and caps of the standing requests clients register
+        self.query_leases = Leases("standing query", "query", q.lease_s, q.max_standing, q.max_standing_per_client)
+        self.search_leases = Leases("standing search", "search", sc.lease_s, sc.max_standing,
+                                    sc.max_standing_per_client)
         from mapper.search_answer import TrackerStore
 
         self.trackers = TrackerStore(cfg.search.max_trackers)   # identity trackers; saved in snapshots

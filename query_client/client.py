@@ -99,16 +99,30 @@ class WatchHandle(StandingHandle):
 
 class Client(PlannerCalls):
     """A Zenoh client of the mapper. ``zenoh_cfg`` (a ``ZenohConfig``) or ``connect``
-    (endpoint string or list) say where the router is; ``prefix`` the key space."""
+    (endpoint string or list) say where the router is; ``prefix`` the key space.
+
+    ``robot``: ask as robot ``<id>``'s onboard planner (search and occupancy on the robot's
+    own keys, which a ``robot-<id>`` certificate may ask; docs/key_space.md). ``lease_s``: the
+    lease of this client's standing queries and searches; a thread renews them every
+    ``lease_s / 3`` s, so the mapper ends them about ``lease_s`` after the client is gone."""
 
     _query_error = QueryError          # what the planner calls (query_client.search) raise
 
     def __init__(self, zenoh_cfg=None, *, connect: str | list[str] | None = None, prefix: str | None = None,
-                 timeout: float = 10.0, connect_timeout_ms: int = 10_000):
+                 timeout: float = 10.0, connect_timeout_ms: int = 10_000, robot: str | None = None,
+                 lease_s: float = 30.0):
         import dataclasses
 
-        from common.keys import KeySpace
+        from common.keys import KeySpace, check_id
+        from common.messages import MAX_LEASE_S
         from common.zenoh_session import ZenohConfig, open_session
+
+        self.robot = None if robot is None else check_id(robot)
+        if not 0.0 < float(lease_s) <= MAX_LEASE_S:
+            raise ValueError(f"lease_s must be seconds in (0, {MAX_LEASE_S:g}], got {lease_s!r}")
+        self.lease_s = float(lease_s)
+        self._stop = threading.Event()
+        self._renewer: threading.Thread | None = None
 
         cfg = zenoh_cfg if zenoh_cfg is not None else ZenohConfig(connect_timeout_ms=connect_timeout_ms)
         ch = {}
@@ -121,7 +135,9 @@ class Client(PlannerCalls):
         self.keys = KeySpace(cfg.prefix)
         self.timeout = timeout
         self.session = open_session(cfg, default_mode="client")
-        self._watches: set[WatchHandle] = set()
+        # who registers this client's standing requests (the mapper's per-client cap)
+        self.client_id = f"robot-{self.robot}" if self.robot else f"c{self.session.info.zid()}"[:64]
+        self._watches: set[StandingHandle] = set()
         self._lock = threading.Lock()
         self._shards_seen: set[str] = set()       # mapper shards whose liveliness token was ever seen
         self._shards_alive: set[str] = set()      # ... and whose token is there now
@@ -143,7 +159,9 @@ class Client(PlannerCalls):
             errs.append(r.err.payload.to_string() if r.err is not None else "?")
         if errs:
             raise MapperUnavailable(f"no answer on {key}: {'; '.join(errs)}")
-        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable?)")
+        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable? with access control: "
+                                f"is this certificate allowed to ask {key}? a robot may ask only "
+                                f"{self.keys.prefix}/mapper/robots/<its own id>/...)")
 
     def _get_all(self, key: str, payload: bytes | None, timeout: float | None) -> tuple[list, list[str]]:
         """Every reply to one ``get`` (all queryables on ``key``: every mapper shard):
@@ -162,6 +180,19 @@ class Client(PlannerCalls):
             else:
                 errs.append(r.err.payload.to_string() if r.err is not None else "?")
         return oks, errs
+
+    def _lease(self, handle: StandingHandle, register: bytes, renew: bytes, decode) -> None:
+        """Keep ``handle``'s lease: renew it every ``lease_s / 3`` s from this client's renewal
+        thread (started on the first standing request) until it is cancelled or the client closes."""
+        handle.lease(register, renew, decode, self.lease_s / 3.0)
+        with self._lock:
+            self._watches.add(handle)
+            if self._renewer is None:
+                from query_client.standing import renew_loop
+
+                self._renewer = threading.Thread(target=renew_loop, args=(lambda: list(self._watches), self._stop),
+                                                 name="rayfronts-renew", daemon=True)
+                self._renewer.start()
 
     # ------------------------------------------------------------------ shards
     def _on_shard_token(self, sample) -> None:
@@ -291,7 +322,8 @@ class Client(PlannerCalls):
             self._shard_listeners.append(on_shard)
         handle._on_shard = on_shard
         try:
-            req = QueryRequest(text=text, image=image, top_k=int(top_k), standing=True, id=qid)
+            req = QueryRequest(text=text, image=image, top_k=int(top_k), standing=True, id=qid, lease_s=self.lease_s,
+                               client=self.client_id)
             oks, errs = self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
             first = self._merged(oks, errs, int(top_k))
             with self._lock:  # the first answers too: a shard leaving drops its part
@@ -311,6 +343,8 @@ class Client(PlannerCalls):
             log.warning("standing query %s callback: %s", qid, e)
         handle._alive_sub = self._follow_mapper(handle, self.keys.mapper_query, encode_query_request(req),
                                                 f"standing query {qid}", timeout)
+        self._lease(handle, encode_query_request(req), encode_query_request(QueryRequest(renew=True, id=qid)),
+                    decode_query_result)
         return handle
 
     def _follow_mapper(self, handle, key: str, payload: bytes, what: str, timeout: float | None):
@@ -425,6 +459,7 @@ class Client(PlannerCalls):
 
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
+        self._stop.set()
         for h in list(self._watches):
             h.cancel()
         s, self.session = self.session, None

@@ -43,15 +43,29 @@ class SearchHandle(StandingHandle):
     """A standing search; ``cancel()`` (or leaving the ``with`` block) stops it."""
 
     def __init__(self, client, sid: str, sub):
-        super().__init__(client, sid, sub, client.keys.mapper_search,
+        super().__init__(client, sid, sub, client._search_key(),
                          encode_search_request(SearchRequest(cancel=True, id=sid)), "standing search")
 
 
 class PlannerCalls:
-    """Search and occupancy calls (a mixin of ``query_client.Client``: uses its ``keys`` and
-    ``_get_one``)."""
+    """Search and occupancy calls (a mixin of ``query_client.Client``: uses its ``keys``,
+    ``robot``, ``_get_one`` and ``_lease``). A client made with ``robot=<id>`` (a robot's
+    onboard planner, with the robot's certificate) asks on the robot's own keys
+    ``<p>/mapper/robots/<id>/{search,occupancy}`` (docs/key_space.md), the only ones the
+    site ACL lets a robot ask."""
 
     _query_error: type[Exception] = RuntimeError     # Client sets its QueryError
+    robot: str | None = None
+
+    def _search_key(self) -> str:
+        return self.keys.robot_search(self.robot) if self.robot else self.keys.mapper_search
+
+    def _occupancy_key(self) -> str:
+        return self.keys.robot_occupancy(self.robot) if self.robot else self.keys.mapper_occupancy
+
+    def _searches_key(self, sid: str) -> str:
+        """Where the mapper publishes this client's standing search ``sid``."""
+        return self.keys.robot_searches(self.robot, sid) if self.robot else self.keys.mapper_searches(sid)
 
     def _ask(self, key: str, payload: bytes, timeout: float | None, decode):
         data = self._get_one(key, payload, timeout)
@@ -88,7 +102,7 @@ class PlannerCalls:
                                       max_goals=max_goals, embeddings=embeddings)
         except MessageError as e:
             raise self._query_error(str(e)) from None
-        return self._ask(self.keys.mapper_search, encode_search_request(req), timeout, decode_search_reply)
+        return self._ask(self._search_key(), encode_search_request(req), timeout, decode_search_reply)
 
     def watch_search(self, targets: str | Sequence[str], callback: Callable[[SearchReply], None], *,
                      timeout: float | None = None, **kw) -> SearchHandle:
@@ -96,6 +110,7 @@ class PlannerCalls:
         thread); ``kw`` as :meth:`search`."""
         sid = "s" + uuid.uuid4().hex[:12]
         req = self.search_request(targets, standing=True, sid=sid, **kw)
+        req.lease_s, req.client = self.lease_s, self.client_id
 
         def on_sample(sample) -> None:
             try:
@@ -103,24 +118,33 @@ class PlannerCalls:
             except Exception as e:  # never raise out of a zenoh callback
                 log.warning("standing search %s: %s", sid, e)
 
-        sub = self.session.declare_subscriber(self.keys.mapper_searches(sid), on_sample)
+        sub = self.session.declare_subscriber(self._searches_key(sid), on_sample)
         handle = SearchHandle(self, sid, sub)
         try:
-            first = self._ask(self.keys.mapper_search, encode_search_request(req), timeout, decode_search_reply)
+            first = self._ask(self._search_key(), encode_search_request(req), timeout, decode_search_reply)
         except Exception:
             handle.cancel()
             raise
         callback(first)
-        handle._alive_sub = self._follow_mapper(handle, self.keys.mapper_search, encode_search_request(req),
+        handle._alive_sub = self._follow_mapper(handle, self._search_key(), encode_search_request(req),
                                                 f"standing search {sid}", timeout)
+        self._lease(handle, encode_search_request(req), encode_search_request(SearchRequest(renew=True, id=sid)),
+                    decode_search_reply)
         return handle
+
+    # what the Client provides (query_client.client)
+    lease_s: float
+    client_id: str
+
+    def _lease(self, handle, register: bytes, renew: bytes, decode) -> None:
+        raise NotImplementedError
 
     def _occupancy(self, req: OccupancyRequest, timeout: float | None) -> OccupancyReply:
         try:
             payload = encode_occupancy_request(req)
         except MessageError as e:
             raise self._query_error(str(e)) from None
-        return self._ask(self.keys.mapper_occupancy, payload, timeout, decode_occupancy_reply)
+        return self._ask(self._occupancy_key(), payload, timeout, decode_occupancy_reply)
 
     def occupancy_box(self, box_min: Sequence[float], box_max: Sequence[float], stride: int = 1,
                       timeout: float | None = None) -> OccupancyReply:

@@ -1,24 +1,70 @@
-"""The handle of a standing query or search (``Client.watch`` / ``Client.watch_search``)."""
+"""The handle of a standing query or search (``Client.watch`` / ``Client.watch_search``), and
+the renewal of its lease (``mapper.leases``: the mapper ends a standing request whose client
+stops renewing it)."""
 from __future__ import annotations
 
 import logging
-from typing import Any
+import threading
+import time
+from typing import Any, Callable
 
+from common.messages import MessageError
 from common.zenoh_session import undeclare_all
 
 log = logging.getLogger("rayfronts.client")
+
+#: the text of the mapper's error for a renewal it does not know (mapper.leases.Leases.renew)
+UNKNOWN_LEASE = "register it again"
 
 
 class StandingHandle:
     """A standing request registered under ``id``; ``cancel()`` (or leaving the ``with``
     block) stops receiving and asks the mapper to drop it (``cancel_key`` / ``cancel_payload``).
-    ``reregistered`` counts the times it was registered again after a mapper came back."""
+    ``reregistered`` counts the times it was registered again after a mapper came back, or
+    after the mapper said it did not know it any more (its lease had run out)."""
 
     def __init__(self, client: Any, sid: str, sub: Any, cancel_key: str, cancel_payload: bytes, what: str):
         self.client, self.id, self._sub, self.active = client, sid, sub, True
         self.reregistered = 0
+        self.renewed = 0
         self._alive_sub = None
         self._cancel = (cancel_key, cancel_payload, what)
+        self._lease: tuple[bytes, bytes, Callable[[bytes], Any], float] | None = None
+        self._next_renew = float("inf")
+
+    def lease(self, register_payload: bytes, renew_payload: bytes, decode: Callable[[bytes], Any],
+              period_s: float) -> None:
+        """Renew every ``period_s`` seconds with ``renew_payload`` (on the cancel key); a mapper
+        that no longer knows the id gets ``register_payload`` again. ``decode`` reads a reply."""
+        self._lease = (register_payload, renew_payload, decode, float(period_s))
+        self._next_renew = time.monotonic() + float(period_s)
+
+    def renew_if_due(self, now: float) -> None:
+        """Send the renewal when it is due (the client's renewal thread calls this)."""
+        if not self.active or self._lease is None or now < self._next_renew:
+            return
+        register, renew, decode, period = self._lease
+        self._next_renew = now + period
+        key, _, what = self._cancel
+        try:
+            oks, errs = self.client._get_all(key, renew, None)
+        except Exception as e:
+            log.warning("%s %s: renewal failed: %s", what, self.id, e)
+            return
+        lost = False
+        for data, _ in oks:
+            try:
+                decode(data)
+            except MessageError as e:
+                lost = lost or UNKNOWN_LEASE in str(e)
+                if UNKNOWN_LEASE not in str(e):
+                    log.warning("%s %s: renewal refused: %s", what, self.id, e)
+        if lost and self.active:
+            log.info("%s %s: the mapper had dropped it; registering it again", what, self.id)
+            self.client._get_all(key, register, None)
+            self.reregistered += 1
+        elif oks:
+            self.renewed += 1
 
     def cancel(self) -> None:
         if not self.active:
@@ -39,3 +85,15 @@ class StandingHandle:
 
     def __exit__(self, *exc: object) -> None:
         self.cancel()
+
+
+def renew_loop(watches: Callable[[], list], stop: threading.Event, every_s: float = 0.5) -> None:
+    """Until ``stop``: every ``every_s`` seconds, renew the handles ``watches()`` returns that
+    are due (a client's renewal thread)."""
+    while not stop.wait(every_s):
+        now = time.monotonic()
+        for h in watches():
+            try:
+                h.renew_if_due(now)
+            except Exception as e:  # keep renewing the others
+                log.warning("standing %s: %s", getattr(h, "id", "?"), e)

@@ -212,12 +212,23 @@ def test_make_acl_structure():
         assert set(r["flows"]) <= {"ingress", "egress"}
         assert all(k.startswith("site/") for k in r["key_exprs"])
     assert set(rules["mapper_all"]["messages"]) == set(make_acl.ALL_MESSAGES)
-    # a robot's rules mention only its own prefix (and the mapper's liveliness)
+    # what a robot sends or receives names it (its prefix, its planner keys under
+    # site/mapper/robots/<robot>/) or is shared and read-only (liveliness of mapper and shards,
+    # the map's feature space); only declarations of the mapper's subscriptions, which carry
+    # no data, may name every robot
     pol = {p["id"]: p for p in acl["policies"]}
+    shared = {"site/mapper/alive", "site/mapper/shards/*", "site/mapper/feature_space"}
     for robot in ("r1", "r2"):
+        mine = (f"site/robots/{robot}/", f"site/mapper/robots/{robot}/")
         for rid in pol[f"robot_{robot}"]["rules"]:
-            for k in rules[rid]["key_exprs"]:
-                assert k.startswith(f"site/robots/{robot}/") or k == "site/mapper/alive", (rid, k)
+            r = rules[rid]
+            for k in r["key_exprs"]:
+                if r["messages"] == ["declare_subscriber"] and r["flows"] == ["egress"]:
+                    assert k.startswith("site/robots/*/"), (rid, k)
+                    continue
+                assert k.startswith(mine) or k in shared, (rid, k)
+                if "ingress" in r["flows"] and {"put", "declare_queryable", "liveliness_token"} & set(r["messages"]):
+                    assert k.startswith(f"site/robots/{robot}/"), (rid, k)
     # nobody but the mapper may put/serve anything under site/mapper/**
     for rid, r in rules.items():
         if rid == "mapper_all" or "ingress" not in r["flows"]:

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Generate the Zenoh ``access_control`` block of a RayFronts site (Zenoh 1.10 ACL).
 
-    python3 deploy/acl/make_acl.py --robot r1 --robot r2 --operator alice -o acl.json5
+    python3 deploy/acl/make_acl.py --robot r1 --robot r2 --operator alice --operator console -o acl.json5
 
 Default deny. Subjects are identified by TLS certificate common names (the names
 ``deploy/certs/make_certs.sh`` issues: ``robot-<id>``, ``operator-<name>``, ``mapper``), or by
@@ -9,16 +9,42 @@ usernames of user/password authentication (``--auth usrpwd``), or both (``--auth
 separate subjects, either identification grants the rights). The router (``rayfronts router``
 or the mapper in router mode) applies it to every transport; its own local entities are
 not filtered. "ingress" = messages a subject sends to the router, "egress" = messages the
-router forwards to the subject.
+router forwards to the subject. A rule matches a message when one of its key expressions
+*includes* the message's key expression (Zenoh's ACL looks the key up with "nodes including
+it"), so a declaration or a query with a wider key than allowed (``rayfronts/**``, or
+``.../robots/*/...`` where one robot is allowed) is refused whole: ask on the exact keys.
+Keys: docs/key_space.md. ``<p>`` is the prefix (``--prefix``).
 
-* ``robot-<id>`` may: put ``<p>/robots/<id>/frames`` (and its tile keys ``frames/*``); declare the liveliness token
-  ``<p>/robots/<id>/alive``; declare a queryable on and reply to
-  ``<p>/robots/<id>/feature_space``; watch ``<p>/mapper/alive``. It receives the queries for
-  its feature space and the subscriptions to its frames. Nothing under another robot's
-  prefix, nothing under ``<p>/mapper/**``.
-* ``operator-*`` may: query ``<p>/mapper/{query,stats,snapshot}`` (and get the replies);
-  subscribe to ``<p>/mapper/queries/**`` and ``<p>/mapper/layers/**``; watch and query the
-  liveliness of ``<p>/robots/*/alive`` and ``<p>/mapper/alive``. It cannot publish or serve.
+* ``robot-<id>`` — an edge, and the robot's onboard planner (``Client(robot="<id>")``):
+
+  - publishes only its own data: put ``<p>/robots/<id>/frames`` (and its tile keys
+    ``frames/*``) and ``<p>/robots/<id>/edge_status``; the liveliness token
+    ``<p>/robots/<id>/alive``; serves (declare_queryable + reply) its ``feature_space`` and
+    ``edge_status``. It receives the mapper's queries of those and the subscriptions to its
+    frames and status (egress query / declare_subscriber: the mapper declares
+    ``<p>/robots/*/frames``, ``.../frames/<tile>`` and ``.../edge_status`` for all robots at
+    once; a declaration carries no data, and without it the edge's wait for a subscriber
+    (Zenoh matching status) would never end and its frames would be replaced unsent).
+  - asks the mapper for its OWN searches and occupancy: query
+    ``<p>/mapper/robots/<id>/search`` and ``<p>/mapper/robots/<id>/occupancy`` (and gets the
+    replies); subscribes to its standing searches' results ``<p>/mapper/robots/<id>/searches/*``
+    and to the mapper's status of it, ``<p>/mapper/robots/<id>/status``. Another robot's
+    searches, and the operators' ``<p>/mapper/search`` / ``query`` / ``stats``, are refused.
+  - reads ``<p>/mapper/feature_space`` (an edge adopting the map's PCA basis).
+  - watches (liveliness subscriber / query) ``<p>/mapper/alive`` and the shards'
+    ``<p>/mapper/shards/*``.
+  - nothing else: no put under another robot's prefix or under ``<p>/mapper/**``.
+* ``operator-<name>`` — a laptop, a planner off the robot, the console's process
+  (``rayfronts console`` runs with an operator certificate, e.g. ``operator-console``):
+
+  - query ``<p>/mapper/{query,stats,snapshot,search,occupancy,feature_space}`` and the
+    layers ``<p>/mapper/layers/*`` (``Client.layer``), and get the replies;
+  - subscribe to standing query results ``<p>/mapper/queries/**``, standing search results
+    ``<p>/mapper/searches/**`` and the layers ``<p>/mapper/layers/**``;
+  - watch and query the liveliness of robots ``<p>/robots/*/alive``, the mapper
+    ``<p>/mapper/alive`` and the shards ``<p>/mapper/shards/*``.
+  - It cannot publish or serve anything, so it cannot inject frames or pose as the mapper.
+    Setting a robot's ``world_from_robot`` is left to the mapper identity (an admin task).
 * ``mapper``: everything under ``<p>/**`` (it is the only one that serves/publishes
   ``<p>/mapper/**``).
 
@@ -38,6 +64,7 @@ ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declar
                 "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"]
 _ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 _PREFIX = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
+_WATCH = ["declare_liveliness_subscriber", "liveliness_query"]
 
 
 def _rule(rid: str, messages: list[str], flows: list[str], keys: list[str]) -> dict:
@@ -51,6 +78,57 @@ def _subjects(sid: str, names: list[str], auth: str) -> list[dict]:
     if auth in ("usrpwd", "both"):
         out.append({"id": sid if auth == "usrpwd" else f"{sid}_user", "usernames": names})
     return out
+
+
+def _robot_rules(p: str, r: str) -> list[dict]:
+    """The rules of robot ``r`` alone (module docstring), all confined to keys naming ``r``."""
+    root, mine = f"{p}/robots/{r}", f"{p}/mapper/robots/{r}"
+    frames = [f"{root}/frames", f"{root}/frames/*"]
+    served = [f"{root}/feature_space", f"{root}/edge_status"]
+    planner = [f"{mine}/search", f"{mine}/occupancy"]
+    results = [f"{mine}/searches/*", f"{mine}/status"]
+    return [
+        _rule(f"robot_{r}_publish", ["put"], ["ingress"], [*frames, f"{root}/edge_status"]),
+        _rule(f"robot_{r}_alive", ["liveliness_token"], ["ingress"], [f"{root}/alive"]),
+        _rule(f"robot_{r}_serve", ["declare_queryable", "reply"], ["ingress"], served),
+        _rule(f"robot_{r}_receive_query", ["query"], ["egress"], served),
+        _rule(f"robot_{r}_ask", ["query"], ["ingress"], planner),
+        _rule(f"robot_{r}_receive_answer", ["reply"], ["egress"], planner),
+        _rule(f"robot_{r}_subscribe", ["declare_subscriber"], ["ingress"], results),
+        _rule(f"robot_{r}_receive_results", ["put", "delete"], ["egress"], results),
+    ]
+
+
+def _robots_shared(p: str) -> list[dict]:
+    """Rules every robot has: watch the mapper and its shards, read the map's feature space,
+    learn of the subscriptions to robots' frames and status."""
+    watched = [f"{p}/mapper/alive", f"{p}/mapper/shards/*"]
+    space = [f"{p}/mapper/feature_space"]
+    return [
+        _rule("robots_watch_mapper_in", _WATCH, ["ingress"], watched),
+        _rule("robots_watch_mapper_out", ["liveliness_token"], ["egress"], watched),
+        _rule("robots_read_feature_space_in", ["query"], ["ingress"], space),
+        _rule("robots_read_feature_space_out", ["reply"], ["egress"], space),
+        # the mapper's (and shards') subscriptions: robots/*/frames, robots/*/frames/<tile>, robots/*/edge_status
+        _rule("robots_receive_subscriptions", ["declare_subscriber"], ["egress"],
+              [f"{p}/robots/*/frames", f"{p}/robots/*/frames/*", f"{p}/robots/*/edge_status"]),
+    ]
+
+
+def _operator_rules(p: str) -> list[dict]:
+    """The operators' rules (module docstring)."""
+    services = [f"{p}/mapper/{s}" for s in ("query", "stats", "snapshot", "search", "occupancy", "feature_space")]
+    services.append(f"{p}/mapper/layers/*")
+    results = [f"{p}/mapper/queries/**", f"{p}/mapper/searches/**", f"{p}/mapper/layers/**"]
+    alive = [f"{p}/robots/*/alive", f"{p}/mapper/alive", f"{p}/mapper/shards/*"]
+    return [
+        _rule("operator_query", ["query"], ["ingress"], services),
+        _rule("operator_receive_reply", ["reply", "declare_queryable"], ["egress"], services),
+        _rule("operator_subscribe", ["declare_subscriber"], ["ingress"], results),
+        _rule("operator_receive_results", ["put", "delete"], ["egress"], results),
+        _rule("operator_watch", _WATCH, ["ingress"], alive),
+        _rule("operator_receive_liveliness", ["liveliness_token"], ["egress"], alive),
+    ]
 
 
 def make_acl(robots: list[str], operators: list[str] | None = None, prefix: str = "rayfronts",
@@ -72,7 +150,6 @@ def make_acl(robots: list[str], operators: list[str] | None = None, prefix: str 
         if len(set(names)) != len(names):
             raise ValueError(f"duplicate {what}s in {names}")
     p = prefix
-    mapper_alive = f"{p}/mapper/alive"
     rules: list[dict] = []
     subjects: list[dict] = []
     policies: list[dict] = []
@@ -82,45 +159,24 @@ def make_acl(robots: list[str], operators: list[str] | None = None, prefix: str 
     subjects += _subjects("mapper", [mapper_name], auth)
     policies.append({"id": "mapper", "rules": ["mapper_all"], "subjects": [s["id"] for s in subjects]})
 
-    # -- robots: one set of rules per robot, confined to its own key prefix
-    if robots:
-        rules.append(_rule("robots_watch_mapper_in", ["declare_liveliness_subscriber", "liveliness_query"],
-                           ["ingress"], [mapper_alive]))
-        rules.append(_rule("robots_watch_mapper_out", ["liveliness_token"], ["egress"], [mapper_alive]))
+    # -- robots: one set of rules per robot, confined to keys that name it
+    shared = _robots_shared(p) if robots else []
+    rules += shared
     for r in robots:
-        root = f"{p}/robots/{r}"
-        ids = [f"robot_{r}_publish", f"robot_{r}_alive", f"robot_{r}_serve", f"robot_{r}_receive_query",
-               f"robot_{r}_receive_subscription"]
-        rules += [
-            _rule(ids[0], ["put"], ["ingress"], [f"{root}/frames", f"{root}/frames/*"]),
-            _rule(ids[1], ["liveliness_token"], ["ingress"], [f"{root}/alive"]),
-            _rule(ids[2], ["declare_queryable", "reply"], ["ingress"], [f"{root}/feature_space"]),
-            _rule(ids[3], ["query"], ["egress"], [f"{root}/feature_space"]),
-            _rule(ids[4], ["declare_subscriber"], ["egress"], [f"{root}/frames", f"{root}/frames/*"]),
-        ]
+        own = _robot_rules(p, r)
+        rules += own
         subs = _subjects(f"robot_{r}", [f"robot-{r}"], auth)
         subjects += subs
-        policies.append({"id": f"robot_{r}", "rules": ids + ["robots_watch_mapper_in", "robots_watch_mapper_out"],
+        policies.append({"id": f"robot_{r}", "rules": [x["id"] for x in own + shared],
                          "subjects": [s["id"] for s in subs]})
 
-    # -- operators: query the mapper, watch results, layers and liveliness
+    # -- operators (and the console): ask the mapper, watch results, layers and liveliness
     if operators:
-        services = [f"{p}/mapper/query", f"{p}/mapper/stats", f"{p}/mapper/snapshot"]
-        results = [f"{p}/mapper/queries/**", f"{p}/mapper/layers/**"]
-        alive = [f"{p}/robots/*/alive", mapper_alive]
-        ids = ["operator_query", "operator_receive_reply", "operator_subscribe", "operator_receive_results",
-               "operator_watch", "operator_receive_liveliness"]
-        rules += [
-            _rule(ids[0], ["query"], ["ingress"], services),
-            _rule(ids[1], ["reply", "declare_queryable"], ["egress"], services),
-            _rule(ids[2], ["declare_subscriber"], ["ingress"], results),
-            _rule(ids[3], ["put", "delete"], ["egress"], results),
-            _rule(ids[4], ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"], alive),
-            _rule(ids[5], ["liveliness_token"], ["egress"], alive),
-        ]
+        ops = _operator_rules(p)
+        rules += ops
         subs = _subjects("operators", [f"operator-{o}" for o in operators], auth)
         subjects += subs
-        policies.append({"id": "operators", "rules": ids, "subjects": [s["id"] for s in subs]})
+        policies.append({"id": "operators", "rules": [x["id"] for x in ops], "subjects": [s["id"] for s in subs]})
 
     return {"enabled": bool(enabled), "default_permission": "deny",
             "rules": rules, "subjects": subjects, "policies": policies}
