@@ -151,9 +151,9 @@ def test_standing_requests_end_with_their_client(tmp_path, procs, pca_file):
             # snapshots keep only the live ones (read back from the files)
             c.snapshot(save=True)
             meta = json.loads((Path(c.snapshot()["path"]) / "meta.json").read_text())
-            saved = [decode_search_request(base64.b64decode(x)).id for x in meta["standing_searches"]]
+            saved = [decode_search_request(base64.b64decode(x["request"])).id for x in meta["standing_searches"]]
             assert saved == [h.id]
-            assert [decode_query_request(base64.b64decode(x)).id for x in meta["standing"]] == [qh.id]
+            assert [decode_query_request(base64.b64decode(x["request"])).id for x in meta["standing"]] == [qh.id]
 
             # bad input, one line each, counted; the mapper keeps serving
             def refused(req: SearchRequest, match: str) -> None:

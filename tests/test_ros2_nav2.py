@@ -436,7 +436,8 @@ def test_upstream_messaging_service_drop_in(world_map):
 
     try:
         subs = [rig.client.declare_subscriber(f"0/rayfronts/msg_serv/{t}/*/*", keep)
-                for t in ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building")]
+                for t in ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building",
+                          "voxel_similarity/q0_car")]
         time.sleep(0.5)
         h = cdr.type_hash("std_msgs/msg/String", "jazzy")
         for text in ("car", "building", "car", ""):
@@ -448,13 +449,17 @@ def test_upstream_messaging_service_drop_in(world_map):
         assert ms.queries == ["car", "building"] and "empty query text" in ms.last_error
         ms.publish()                    # (also after each query) now with both queries
         wait_for(lambda: all(f"rayfronts/msg_serv/{t}" in got for t in
-                             ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building")) or None,
-                 30, what="the three subscribed clouds")
+                             ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building",
+                              "voxel_similarity/q0_car")) or None,
+                 30, what="the four subscribed clouds")
         with lock:
             car, bld, rays = (got[f"rayfronts/msg_serv/{t}"][-1] for t in
                               ("voxels_sim/q0_car", "voxels_sim/q1_building", "rays_sim/q1_building"))
         names, c0, fid = _cloud(car)
         _, c1, _ = _cloud(bld)
+        with lock:      # the name for the same cloud (ros.msg_serv.voxel_alias)
+            alias = _cloud(got["rayfronts/msg_serv/voxel_similarity/q0_car"][-1])
+        assert alias[0] == names and all(np.array_equal(alias[1][k], c0[k]) for k in names)
         assert names == ["x", "y", "z", "sim"] and fid == "map"
         # the map's voxels, all of them (threshold 0), the same order in both clouds
         m = rig.state.map
@@ -490,7 +495,7 @@ def test_upstream_messaging_service_drop_in(world_map):
         # nobody subscribes to the 'all' clouds, the car's rays or the frontiers: never published
         pub = rig.out.published
         assert pub.get("/rayfronts/msg_serv/voxels_sim/q0_car", 0) >= 1
-        for t in ("voxels_sim/all", "rays_sim/all", "rays_sim/q0_car", "frontiers"):
+        for t in ("voxels_sim/all", "rays_sim/all", "rays_sim/q0_car", "frontiers", "ray_similarity/q1_building"):
             assert pub.get(f"/rayfronts/msg_serv/{t}", 0) == 0, t
         for sub in subs:
             sub.undeclare()

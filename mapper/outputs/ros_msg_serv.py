@@ -16,6 +16,8 @@ from the mapper's search service (:meth:`mapper.search_server.SearchServer.simil
   * ``<prefix>/voxels_sim/all``: x, y, z, sim_0 … sim_{Q-1};
   * ``<prefix>/rays_sim/q<i>_<label>``: x, y, z (the ray's frontier), theta, phi (degrees:
     azimuth from +x toward +y, inclination from +z), sim; ``<prefix>/rays_sim/all`` likewise;
+  * the same clouds under ``voxel_similarity/`` and ``ray_similarity/`` (``voxel_alias``,
+    ``ray_alias``), each also published only while subscribed;
   * ``<prefix>/frontiers``: x, y, z;
 
   points whose best similarity over the queries is below ``publish_threshold`` are left out;
@@ -48,6 +50,9 @@ class MsgServSection:
     topic_prefix: str = field_("/rayfronts/msg_serv", "prefix of the similarity clouds (voxels_sim/, rays_sim/)")
     voxel_topic: str = field_("voxels_sim", "sub-namespace of the voxel clouds (upstream: voxels_sim)")
     ray_topic: str = field_("rays_sim", "sub-namespace of the ray clouds (upstream: rays_sim)")
+    voxel_alias: str = field_("voxel_similarity", "a second sub-namespace serving the same voxel clouds "
+                                                  "(\"\" = none)")
+    ray_alias: str = field_("ray_similarity", "a second sub-namespace serving the same ray clouds (\"\" = none)")
     frame_id: str = field_("map", "header.frame_id of the clouds")
     publish_threshold: float = field_(0.0, "points whose best similarity is below this are left out "
                                            "(upstream's query_publish_threshold)")
@@ -109,7 +114,7 @@ class MsgServ:
                                      f"mapper or raise the limit")
                 self.queries.append(text)
                 i = len(self.queries) - 1
-            for sub in (self.cfg.voxel_topic, self.cfg.ray_topic):   # declared now: subscribers can match
+            for sub in self.subs():                                  # declared now: subscribers can match
                 o._publisher(f"{self.prefix}/{sub}/q{i}_{label_of(text)}", POINTCLOUD2)
             log.info("ROS 2 messaging service: query q%d %r", i, text)
         except Exception as e:
@@ -120,10 +125,18 @@ class MsgServ:
             return
         threading.Thread(target=self.publish, name="mapper-ros-msgserv", daemon=True).start()
 
+    def subs(self, kind: str = "") -> list[str]:
+        """The sub-namespaces of the voxel (``kind="voxel"``), ray (``"ray"``) or all clouds:
+        upstream's names and their aliases."""
+        c = self.cfg
+        names = {"voxel": [c.voxel_topic, c.voxel_alias], "ray": [c.ray_topic, c.ray_alias]}
+        chosen = names[kind] if kind else names["voxel"] + names["ray"]
+        return [n for n in dict.fromkeys(chosen) if n]
+
     def topics(self) -> list[str]:
         """Every similarity topic of the current queries (``all`` included)."""
         out = []
-        for sub in (self.cfg.voxel_topic, self.cfg.ray_topic):
+        for sub in self.subs():
             out.append(f"{self.prefix}/{sub}/all")
             out += [f"{self.prefix}/{sub}/q{i}_{label_of(t)}" for i, t in enumerate(self.queries)]
         return out
@@ -155,8 +168,10 @@ class MsgServ:
             return out
         vxyz, vs, ro, rd, rs = self.search.similarities(texts, c.softmax)
         theta, phi = angles_deg(rd)
-        out.update(self._clouds(c.voxel_topic, vxyz, vs, {}, texts, wanted))
-        out.update(self._clouds(c.ray_topic, ro, rs, {"theta": theta, "phi": phi}, texts, wanted))
+        for sub in self.subs("voxel"):
+            out.update(self._clouds(sub, vxyz, vs, {}, texts, wanted))
+        for sub in self.subs("ray"):
+            out.update(self._clouds(sub, ro, rs, {"theta": theta, "phi": phi}, texts, wanted))
         return out
 
     def _clouds(self, sub: str, xyz: np.ndarray, sim: np.ndarray, extra: dict, texts: list[str],
