@@ -17,6 +17,7 @@ import tempfile
 import threading
 import time
 import urllib.request
+from collections import deque
 
 import numpy as np
 import pytest
@@ -105,6 +106,9 @@ class Chromium:
         page = next(t for t in pages if t.get("type") == "page")
         self.ws = WS(page["webSocketDebuggerUrl"])
         self._id = 0
+        #: DevTools events received so far (``{"method", "params"}``; e.g. ``Network.responseReceived``
+        #: once ``Network.enable`` was called), the newest 20000
+        self.events: deque = deque(maxlen=20000)
         self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
 
     def call(self, method, **params):
@@ -112,6 +116,8 @@ class Chromium:
         self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
         while True:
             m = json.loads(self.ws.recv())
+            if "method" in m and "id" not in m:
+                self.events.append(m)
             if m.get("id") == self._id:
                 if "error" in m:
                     raise RuntimeError(f"{method}: {m['error']}")
