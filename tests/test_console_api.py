@@ -234,6 +234,7 @@ def test_bad_inputs_one_line_4xx(console_world):
     body, ctype = multipart({"image": ("x.png", b"not an image at all", "image/png")})
     st, err = http(w.url("/api/query"), data=body, headers={"Content-Type": ctype}, method="POST")
     assert "image" in _one_line_error(st, err)
+    refused = http(w.url("/api/stats"))[1]["console"]["refused"]["body_too_large"]
     # a 9 MiB upload is refused from its Content-Length, before the body is read
     st, err = raw_post("127.0.0.1", w.port, "/api/query", {"Content-Type": "image/png",
                                                             "Content-Length": str(9 << 20)}, [b"\0" * 4096])
@@ -248,6 +249,7 @@ def test_bad_inputs_one_line_4xx(console_world):
                       [b'{"q": "vehi', b'cle", "top_k": 2}'])
     assert st == 200 and ok["query"] == "vehicle", ok
     assert http(w.url("/api/config"))[0] == 200          # still serving
+    assert http(w.url("/api/stats"))[1]["console"]["refused"]["body_too_large"] == refused + 2   # counted
 
 
 def test_non_loopback_needs_a_token(console_world, tmp_path):
@@ -328,6 +330,8 @@ def test_event_streams_are_capped_and_end_with_the_client(console_world, tmp_pat
                 s.close()
             wait_for(lambda: http(base + "/api/stats")[1]["console"]["open_streams"] == 0, 20, what="all closed")
             wait_for(lambda: standing() == 0, 20, what="every standing query cancelled")
+            assert http(base + "/api/stats")[1]["console"]["refused"] == {"token": 0, "rate": 0, "body_too_large": 0,
+                                                                          "streams": 2}
     finally:
         for s in opened:
             s.close()

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.browser import Chromium, chromium_exe
+from tests.support.browser import Chromium, module_browser
 from tests.support.console import VIEWER_URL, http
 from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, stop_all, wait_for, wait_log
@@ -79,16 +79,15 @@ def assert_rows_equal_api(browser: Chromium, rows: list[list[str]], api: dict, a
     assert status.startswith(f"map v{api['map_version']},") and f"{len(found)} found" in status, (status, api)
 
 
+_browser = module_browser()
+
+
 @pytest.fixture(scope="module")
-def browser():
-    """One headless chromium for the module's tests (network and console events recorded)."""
-    b = Chromium(chromium_exe())
-    try:
-        for domain in ("Page", "Network", "Runtime", "Log"):
-            b.call(f"{domain}.enable")
-        yield b
-    finally:
-        b.close()
+def browser(_browser):
+    """One headless chromium for the module's tests, network and console events recorded."""
+    for domain in ("Network", "Runtime", "Log"):
+        _browser.call(f"{domain}.enable")
+    return _browser
 
 
 @pytest.mark.timeout(300)
@@ -170,6 +169,14 @@ def test_console_over_https_with_a_token(console_world, tls_console, browser):
 
     base, ctx = tls_console
     console_world.wait_frozen()
+    bearer = {"Authorization": f"Bearer {TOKEN}"}
+
+    def refused() -> int:
+        st, stats = http(base + "/api/stats", headers=bearer, context=ctx)
+        assert st == 200, stats
+        return stats["console"]["refused"]["token"]
+
+    before = refused()
     # without the browser: no token, a wrong one -> one-line 401 saying what to set, no cookie
     for path in ("/", "/static/console.js", "/?token=wrong", "/api/config"):
         st, hdrs, body = _raw(base, ctx, path)
@@ -182,6 +189,7 @@ def test_console_over_https_with_a_token(console_world, tls_console, browser):
     assert {f"{COOKIE}={TOKEN}".lower(), "httponly", "secure", "samesite=strict", "path=/"} <= attrs, attrs
     assert _raw(base, ctx, "/static/console.js", {"Cookie": f"{COOKIE}={TOKEN}"})[0] == 200
     assert _raw(base, ctx, "/static/console.js", {"Cookie": f"{COOKIE}=wrong"})[0] == 401
+    assert refused() == before + 5, "every 401 counted"
 
     # in chromium, as an operator opens the README's URL (the certificate is the site CA's, not the
     # browser's: its errors are ignored, the connection is still TLS)
@@ -195,8 +203,7 @@ def test_console_over_https_with_a_token(console_world, tls_console, browser):
     assert cookie["httpOnly"] and cookie["secure"] and cookie["sameSite"] == "Strict", cookie
     _wait(browser, "document.querySelectorAll('#robots tr').length", 30, "robots (the page's /api/stats)")
     rows = _search_in_page(browser, "vehicle")
-    st, api = http(base + "/api/search?q=vehicle&threshold=0.5", headers={"Authorization": f"Bearer {TOKEN}"},
-                   context=ctx)
+    st, api = http(base + "/api/search?q=vehicle&threshold=0.5", headers=bearer, context=ctx)
     assert st == 200, api
     assert_rows_equal_api(browser, rows, api)
     # the network log: every request of the page got through, its script included

@@ -13,6 +13,7 @@ import asyncio
 import json
 import logging
 import threading
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
@@ -191,14 +192,17 @@ def _install_errors(app: FastAPI) -> None:
         return _err(500, f"{type(e).__name__}: {e}")
 
 
-def _install_guards(app: FastAPI, token: str | None, limiter: RateLimiter, secure_cookie: bool) -> None:
+def _install_guards(app: FastAPI, token: str | None, limiter: RateLimiter, secure_cookie: bool,
+                    refused: Counter) -> None:
     @app.middleware("http")
     async def guard(request: Request, call_next):
         q = request.query_params
         if not token_ok(token, request.headers.get("authorization"), q.get("token"), request.cookies.get(COOKIE)):
+            refused["token"] += 1
             return _err(401, TOKEN_HELP)
         addr = request.client.host if request.client else "?"
         if not limiter.allow(addr):
+            refused["rate"] += 1
             return _err(429, f"too many requests from {addr} (limit {limiter.per_minute} per minute)")
         if token and "token" in q and request.method in ("GET", "HEAD") and not request.url.path.startswith("/api/"):
             # a page opened with ?token=: keep the token in an HttpOnly cookie, go to the clean URL
@@ -296,14 +300,15 @@ def create_app(client, *, token: str | None = None, viewer_url: str | None = Non
     app = FastAPI(title="RayFronts console", version="1", docs_url=None, redoc_url=None,
                   description="Operator console and HTTP API of a RayFronts mapper (docs/messages.md).")
     _install_errors(app)
-    app.add_middleware(BodyCap, max_body=max_body)        # inside the guard: the token is checked first
-    _install_guards(app, token, RateLimiter(rate_per_minute), tls)
+    refused: Counter = Counter()        # requests refused, by reason (/api/stats "console")
+    app.add_middleware(BodyCap, max_body=max_body, refused=refused)   # inside the guard: the token is checked first
+    _install_guards(app, token, RateLimiter(rate_per_minute), tls, refused)
     _openapi_security(app, bool(token))
     _page_routes(app, viewer_url)
     slots = StreamSlots(max_streams_per_client, max_streams)  # each open stream holds one standing search/query
     _query_routes(app, client, timeout, max_body, slots)
     _search_routes(app, client, timeout, slots)
-    _map_routes(app, client, timeout, slots)
+    _map_routes(app, client, timeout, slots, refused)
     return app
 
 
@@ -406,7 +411,7 @@ def _search_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> 
 
 
 
-def _map_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> None:
+def _map_routes(app: FastAPI, client, timeout: float, slots: StreamSlots, refused: Counter) -> None:
     @app.get("/api/occupancy/box", summary="dense occupancy of a box: states 0 free, 1 occupied, -1 unknown",
              responses=_doc(OccupancyReply, 503))
     def occ_box(min: str = Query(..., description="x,y,z"), max: str = Query(..., description="x,y,z"),  # noqa: A002
@@ -431,7 +436,9 @@ def _map_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> Non
     def stats() -> dict:
         out = robot_states(client.stats_all(timeout=timeout))
         out["robots_alive"] = client.robots(timeout=1.0)
-        out["console"] = {"open_streams": slots.open}
+        out["console"] = {"open_streams": slots.open,
+                          "refused": {"token": refused["token"], "rate": refused["rate"],
+                                      "body_too_large": refused["body_too_large"], "streams": slots.refused}}
         return out
 
     @app.get("/api/snapshot", summary="describe the last snapshot", responses=_doc(SnapshotReply, 503))

@@ -111,8 +111,18 @@ class ShardState(_Open):
     robots: dict[str, RobotState]
 
 
+class Refused(BaseModel):
+    """Requests the console refused since it started, by reason: 401, 429 over --rate-limit,
+    413, event streams past the caps."""
+    token: int
+    rate: int
+    body_too_large: int
+    streams: int
+
+
 class ConsoleState(_Open):
     open_streams: int
+    refused: Refused
 
 
 class StatsReply(_Open):

@@ -9,7 +9,7 @@ import json
 import socket
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 
 ENV_TOKEN = "RAYFRONTS_CONSOLE_TOKEN"
 MAX_BODY_BYTES = 8 * 1024 * 1024
@@ -114,6 +114,7 @@ class StreamSlots:
         self.total = int(total)
         self._open: dict[str, int] = {}
         self._lock = threading.Lock()
+        self.refused = 0
 
     @property
     def open(self) -> int:
@@ -124,9 +125,11 @@ class StreamSlots:
         with self._lock:
             mine, n = self._open.get(addr, 0), sum(self._open.values())
             if self.per_client > 0 and mine >= self.per_client:
+                self.refused += 1
                 return (f"too many event streams from {addr} ({mine} open, limit {self.per_client} per client): "
                         "close one, or raise --max-streams-per-client")
             if self.total > 0 and n >= self.total:
+                self.refused += 1
                 return f"too many event streams open ({n}, limit {self.total} in total): raise --max-streams"
             self._open[addr] = mine + 1
             return None
@@ -144,13 +147,16 @@ class BodyCap:
     """ASGI middleware: a request body over ``max_body`` bytes is refused with 413 and a one-line
     JSON error — from its Content-Length before anything is read, and for a chunked upload (no
     Content-Length) as soon as the chunks read so far pass the limit: such a body is read (at
-    most ``max_body`` bytes held) before the app sees it."""
+    most ``max_body`` bytes held) before the app sees it. Refusals counted in
+    ``refused["body_too_large"]``."""
 
-    def __init__(self, app, max_body: int = MAX_BODY_BYTES):
+    def __init__(self, app, max_body: int = MAX_BODY_BYTES, refused: Counter | None = None):
         self.app = app
         self.max_body = int(max_body)
+        self.refused = Counter() if refused is None else refused
 
     async def _refuse(self, send) -> None:
+        self.refused["body_too_large"] += 1
         body = json.dumps({"error": f"request body too large (limit {self.max_body // (1024 * 1024)} MiB)"}).encode()
         await send({"type": "http.response.start", "status": 413,
                     "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),

@@ -1,6 +1,6 @@
 """Headless Debian chromium driven over the DevTools protocol with a stdlib WebSocket client
-(no extra package): the browser tests (tests/test_browser_view.py, tests/test_console_browser.py,
-tests/test_console_viewer.py), and what a screenshot of the mapper's rerun web viewer shows
+(no extra package): the browser tests (tests/test_browser_view.py, tests/test_console_browser.py),
+and what a screenshot of the mapper's rerun web viewer shows
 (:func:`analyse`, :func:`good`)."""
 from __future__ import annotations
 
@@ -138,6 +138,21 @@ class Chromium:
 
     def close(self):
         stop_process(self.p, signal.SIGTERM, 10)
+
+
+def module_browser(width: int = 1400, height: int = 900):
+    """A module-scoped pytest fixture: one headless chromium (``width`` x ``height`` CSS px) for
+    the module's tests, Page events on; assign it to a module-level name (``browser = module_browser()``)."""
+    @pytest.fixture(scope="module")
+    def browser():
+        b = Chromium(chromium_exe(), width=width, height=height)
+        try:
+            b.call("Page.enable")
+            yield b
+        finally:
+            b.close()
+
+    return browser
 
 
 def chromium_exe() -> str:
