@@ -151,6 +151,16 @@ def tls_console(console_world, tmp_path_factory):
         stop_all([p])
 
 
+def _responses(browser: Chromium, base: str) -> dict[str, set[int]]:
+    """Path -> statuses of the responses from ``base`` in the browser's network log (no redirects)."""
+    got: dict[str, set[int]] = {}
+    for ev in list(browser.events):
+        if ev["method"] == "Network.responseReceived" and ev["params"]["response"]["url"].startswith(base):
+            r = ev["params"]["response"]
+            got.setdefault(r["url"].split("?")[0].removeprefix(base), set()).add(r["status"])
+    return got
+
+
 def _raw(base: str, ctx: ssl.SSLContext, path: str, headers: dict | None = None) -> tuple[int, dict, bytes]:
     """(status, lower-cased headers, body) of one GET over TLS, no redirect followed."""
     host, port = base.split("//")[1].split(":")
@@ -197,6 +207,8 @@ def test_console_over_https_with_a_token(console_world, tls_console, browser):
     browser.events.clear()
     browser.navigate(f"{base}/?token={TOKEN}")
     _wait(browser, "document.readyState === 'complete' && !!document.getElementById('q')", 30, "the page")
+    got = _responses(browser, base)       # the page's script is loaded before 'complete'
+    assert got.get("/static/console.js") == {200} and not [p for p, st in got.items() if 401 in st], got
     assert browser.evaluate("location.href") == base + "/", "redirected to the clean URL"
     assert COOKIE not in browser.evaluate("document.cookie"), "the cookie is HttpOnly"
     cookie = next(c for c in browser.call("Network.getCookies", urls=[base + "/"])["cookies"] if c["name"] == COOKIE)
@@ -207,11 +219,7 @@ def test_console_over_https_with_a_token(console_world, tls_console, browser):
     assert st == 200, api
     assert_rows_equal_api(browser, rows, api)
     # the network log: every request of the page got through, its script included
-    got = {}
-    for ev in list(browser.events):
-        if ev["method"] == "Network.responseReceived" and ev["params"]["response"]["url"].startswith(base):
-            r = ev["params"]["response"]
-            got.setdefault(r["url"].split("?")[0].removeprefix(base), set()).add(r["status"])
+    got = _responses(browser, base)
     assert {"/", "/static/console.js", "/api/config", "/api/stats", "/api/search"} <= set(got), got
     assert all(st == {200} for path, st in got.items() if path != "/favicon.ico"), got
     assert got.get("/favicon.ico", {404}) == {404}, got                 # not served: 404, never 401
