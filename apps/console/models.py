@@ -58,6 +58,8 @@ class SearchReplyModel(_Open):
     frames_mapped: int
     map_version: int
     timings_ms: dict[str, float]
+    events: list[dict] = Field(default_factory=list, description="tracker events of this map version "
+                                                                 "{kind, id, target, ...} (docs/messages.md)")
 
 
 class QueryReply(_Open):
