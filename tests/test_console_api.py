@@ -1,19 +1,22 @@
 """``rayfronts console``'s HTTP API against real processes: a mapper and an edge on the
 synthetic world (seed 0) and the console process (tests/support/console.py). Answers are
 compared with the same calls made directly with ``query_client.Client`` and with the real
-``rayfronts search --json`` CLI on the same (frozen) map; bad input gives one-line 4xx JSON;
-the console refuses a non-loopback bind without a token and, with one, answers 401 without it."""
+``rayfronts search --json`` CLI on the same (frozen) map, and validated against the console's
+own OpenAPI document; bad input (a 9 MiB upload with or without Content-Length included) gives
+one-line 4xx JSON; event streams are capped per client and in total and end with the client; the
+console refuses a non-loopback bind without a token or without TLS (unless --insecure-http)
+and, with a token, answers 401 without it. The token in a real browser over HTTPS:
+tests/test_console_browser.py."""
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import urllib.parse
 
 import numpy as np
 import pytest
 
-from tests.support.console import EventStream, http, multipart, post_json
+from tests.support.console import EventStream, http, multipart, post_json, raw_post
 from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, cli_cmd, proc_env, stop_all, wait_for, wait_log
 from tests.support.roles import client
@@ -142,13 +145,56 @@ def test_every_endpoint_matches_the_client(console_world):
         assert st == 200 and desc == c.snapshot()
 
 
+def _matches(spec: dict, path: str, method: str, reply, status: int = 200) -> None:
+    """``reply`` validates against the schema the OpenAPI document gives for ``method path`` and ``status``."""
+    from jsonschema import Draft202012Validator
+
+    schema = spec["paths"][path][method]["responses"][str(status)]["content"]["application/json"]["schema"]
+    assert "$ref" in schema, (path, method, status, schema)
+    errors = list(Draft202012Validator({**schema, "components": spec["components"]}).iter_errors(reply))
+    assert not errors, (path, method, status, [e.message for e in errors[:3]])
+
+
 def test_openapi_and_pages_are_complete_and_local(console_world):
     from openapi_spec_validator import validate
 
     w = console_world
+    w.wait_frozen()
     st, spec = http(w.url("/openapi.json"))
     assert st == 200
     validate(spec)
+    # security: a bearer scheme (and the page's cookie); the JSON and the image bodies of POST /api/query
+    assert spec["components"]["securitySchemes"]["bearer"] == {"type": "http", "scheme": "bearer",
+                                                               "description": "Authorization: Bearer TOKEN"}
+    assert {"bearer": []} in spec["security"]
+    body = spec["paths"]["/api/query"]["post"]["requestBody"]["content"]
+    assert body["application/json"]["schema"]["required"] == ["q"]
+    assert set(body["application/json"]["schema"]["properties"]) == {"q", "top_k", "softmax"}
+    assert body["multipart/form-data"]["schema"]["properties"]["image"]["format"] == "binary"
+    # every route's reply is typed, and what the console answers is what the document says
+    for p, ops in spec["paths"].items():
+        for m, op in ops.items():
+            assert "$ref" in op["responses"]["200"]["content"]["application/json"]["schema"], (m, p)
+    gets = ["/api/config", "/api/search?q=vehicle", "/api/query?q=vehicle&top_k=3", "/api/stats", "/api/snapshot",
+            "/api/occupancy/box?min=-3,-3,0&max=3,3,2", "/api/occupancy/slice?min=-3,-3&max=3,3&z_band=0,2"]
+    for url in gets:
+        st, reply = http(w.url(url))
+        assert st == 200, (url, reply)
+        _matches(spec, url.split("?")[0], "get", reply)
+    st, found = http(w.url("/api/search?q=vehicle"))
+    assert found["found"] and found["look_next"], "something to check: instances and goals"
+    for path, obj in (("/api/query", {"q": "vehicle", "top_k": 2}), ("/api/search", {"q": ["vehicle"]}),
+                      ("/api/occupancy/points", {"points": [[0, 0, 1]], "radius": 2.0})):
+        st, reply = post_json(w.url(path), obj)
+        assert st == 200, (path, reply)
+        _matches(spec, path, "post", reply)
+    st, err = http(w.url("/api/search?q=vehicle&threshold=2"))
+    _matches(spec, "/api/search", "get", err, st)
+    s = EventStream("127.0.0.1", w.port, "/api/search/stream?q=vehicle")
+    try:
+        _matches(spec, "/api/search/stream", "get", s.next())
+    finally:
+        s.close()
     want = {("get", "/api/query"), ("post", "/api/query"), ("get", "/api/search"), ("post", "/api/search"),
             ("get", "/api/search/stream"), ("get", "/api/query/stream"), ("get", "/api/occupancy/box"),
             ("get", "/api/occupancy/slice"), ("post", "/api/occupancy/points"), ("get", "/api/stats"),
@@ -189,20 +235,22 @@ def test_bad_inputs_one_line_4xx(console_world):
     body, ctype = multipart({"image": ("x.png", b"not an image at all", "image/png")})
     st, err = http(w.url("/api/query"), data=body, headers={"Content-Type": ctype}, method="POST")
     assert "image" in _one_line_error(st, err)
+    refused = http(w.url("/api/stats"))[1]["console"]["refused"]["body_too_large"]
     # a 9 MiB upload is refused from its Content-Length, before the body is read
-    with socket.create_connection(("127.0.0.1", w.port), timeout=30) as s:
-        s.sendall(f"POST /api/query HTTP/1.1\r\nHost: x\r\nContent-Type: image/png\r\nContent-Length: {9 << 20}\r\n"
-                  "Connection: close\r\n\r\n".encode() + b"\0" * 4096)
-        raw = b""
-        while b"\r\n\r\n" not in raw or not raw.rstrip().endswith(b"}"):
-            chunk = s.recv(65536)
-            if not chunk:
-                break
-            raw += chunk
-    head, _, payload = raw.partition(b"\r\n\r\n")
-    assert head.startswith(b"HTTP/1.1 413"), raw[:300]
-    assert "too large" in _one_line_error(413, json.loads(payload))
+    st, err = raw_post("127.0.0.1", w.port, "/api/query", {"Content-Type": "image/png",
+                                                            "Content-Length": str(9 << 20)}, [b"\0" * 4096])
+    assert "too large (limit 8 MiB)" in _one_line_error(st, err) and st == 413
+    # and chunked (no Content-Length): refused once the chunks pass 8 MiB
+    body, ctype = multipart({"image": ("big.png", b"\0" * (9 << 20), "image/png")})
+    st, err = raw_post("127.0.0.1", w.port, "/api/query", {"Content-Type": ctype},
+                       [body[i:i + (1 << 20)] for i in range(0, len(body), 1 << 20)])
+    assert "too large (limit 8 MiB)" in _one_line_error(st, err) and st == 413
+    # a chunked body under the cap is read whole and answered
+    st, ok = raw_post("127.0.0.1", w.port, "/api/query", {"Content-Type": "application/json"},
+                      [b'{"q": "vehi', b'cle", "top_k": 2}'])
+    assert st == 200 and ok["query"] == "vehicle", ok
     assert http(w.url("/api/config"))[0] == 200          # still serving
+    assert http(w.url("/api/stats"))[1]["console"]["refused"]["body_too_large"] == refused + 2   # counted
 
 
 def test_non_loopback_needs_a_token(console_world, tmp_path):
@@ -211,15 +259,21 @@ def test_non_loopback_needs_a_token(console_world, tmp_path):
     r = subprocess.run(cli_cmd("console", "--connect", w.ep, "--http", f"0.0.0.0:{port}"), env=proc_env(),
                        cwd=str(ROOT), capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "--token" in r.stderr, r.stderr
-    # with a token (and a key space no mapper serves: 503), bound to every interface
+    # a token but no TLS: refused too, naming both ways out
+    r = subprocess.run(cli_cmd("console", "--connect", w.ep, "--http", f"0.0.0.0:{port}", "--token", "s3cret"),
+                       env=proc_env(), cwd=str(ROOT), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert "--tls-cert PEM --tls-key PEM" in r.stderr and "--insecure-http" in r.stderr, r.stderr
+    # with a token, plain HTTP asked for explicitly (and a key space no mapper serves: 503), every interface
     p = Proc("console-token", ["console", "--connect", w.ep, "--http", f"0.0.0.0:{port}", "--token", "s3cret",
-                               "--rate-limit", "6", "--prefix", "nobody", "--timeout", "5"], tmp_path)
+                               "--insecure-http", "--rate-limit", "6", "--prefix", "nobody", "--timeout", "5"],
+             tmp_path)
     try:
         wait_log(p.p, tmp_path / "console-token.log", "console at", 60)
         base = f"http://127.0.0.1:{port}"
         wait_for(lambda: http(base + "/api/config", timeout=5)[0] == 401, 30, what="console serving")
         st, body = http(base + "/api/config")
-        assert "token" in _one_line_error(st, body)
+        assert "?token=TOKEN" in _one_line_error(st, body) and "Bearer TOKEN" in body["error"] and st == 401
         st, body = http(base + "/api/config", headers={"Authorization": "Bearer wrong"})
         assert st == 401
         assert http(base + "/api/config", headers={"Authorization": "Bearer s3cret"}) == (200, {"viewer_url": None})
@@ -229,4 +283,57 @@ def test_non_loopback_needs_a_token(console_world, tmp_path):
         codes = [http(base + "/api/config?token=s3cret")[0] for _ in range(4)]
         assert codes[-1] == 429 and 200 in codes, codes
     finally:
+        stop_all([p])
+
+
+def test_event_streams_are_capped_and_end_with_the_client(console_world, tmp_path):
+    """2 streams per client address, 3 in all: the third from one address and the fourth in all
+    are refused (one line, naming the option), nothing starts on the mapper for them; a closed
+    stream frees its slot and its standing query."""
+    w = console_world
+    w.wait_mapped(4)
+    port = free_port()
+    p = Proc("console-caps", ["console", "--connect", w.ep, "--http", f"127.0.0.1:{port}", "--timeout", "60",
+                              "--max-streams", "3", "--max-streams-per-client", "2"], tmp_path)
+    path = "/api/query/stream?q=vehicle&top_k=2"
+    opened: list[EventStream] = []
+    try:
+        wait_log(p.p, tmp_path / "console-caps.log", "console at", 120)
+        base = f"http://127.0.0.1:{port}"
+
+        def stream(source: str) -> EventStream:
+            s = EventStream("127.0.0.1", port, path, source=source)
+            opened.append(s)
+            return s
+
+        with client(w.ep) as c:
+            def standing() -> int:
+                return len(c.stats()["standing_queries"])
+
+            wait_for(lambda: standing() == 0, 30, what="no standing query left by other tests")
+            a1, a2 = stream("127.0.0.1"), stream("127.0.0.1")
+            assert a1.status == a2.status == 200 and a1.next()["query"] == "vehicle"
+            a3 = stream("127.0.0.1")
+            assert a3.status == 429 and "--max-streams-per-client" in _one_line_error(429, a3.error())
+            b1 = stream("127.0.0.2")
+            assert b1.status == 200 and b1.next()["query"] == "vehicle"
+            c1 = stream("127.0.0.3")
+            assert c1.status == 503
+            assert "limit 3 in total" in _one_line_error(503, c1.error(), 503, 503)
+            assert http(base + "/api/stats")[1]["console"]["open_streams"] == 3
+            wait_for(lambda: standing() == 3, 20, what="3 standing queries (none for the refused streams)")
+            a1.close()
+            wait_for(lambda: http(base + "/api/stats")[1]["console"]["open_streams"] == 2, 20, what="slot freed")
+            wait_for(lambda: standing() == 2, 20, what="the closed stream's standing query cancelled")
+            c2 = stream("127.0.0.3")
+            assert c2.status == 200 and c2.next()["query"] == "vehicle"
+            for s in opened:
+                s.close()
+            wait_for(lambda: http(base + "/api/stats")[1]["console"]["open_streams"] == 0, 20, what="all closed")
+            wait_for(lambda: standing() == 0, 20, what="every standing query cancelled")
+            assert http(base + "/api/stats")[1]["console"]["refused"] == {"token": 0, "rate": 0, "body_too_large": 0,
+                                                                          "streams": 2}
+    finally:
+        for s in opened:
+            s.close()
         stop_all([p])

@@ -13,10 +13,11 @@ robots' state, the mapper's web viewer) and a JSON API (/api/query, /api/search,
 
   rayfronts console --connect tcp/BASE:7447                       # http://127.0.0.1:8080
   rayfronts console --connect tcp/BASE:7447 --http 0.0.0.0:8443 --token SECRET \\
-      --tls-cert cert.pem --tls-key key.pem
+      --tls-cert cert.pem --tls-key key.pem                       # open https://BASE:8443/?token=SECRET
 
-Binds loopback by default; any other address needs --token (or $RAYFRONTS_CONSOLE_TOKEN),
-sent as 'Authorization: Bearer TOKEN' or ?token=TOKEN."""
+Binds loopback by default; any other address needs --token (or $RAYFRONTS_CONSOLE_TOKEN) and
+HTTPS (--tls-cert/--tls-key; --insecure-http to serve plain HTTP anyway). Opening the page as
+/?token=TOKEN sets an HttpOnly cookie; programs send 'Authorization: Bearer TOKEN'."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -28,24 +29,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                       "required when --http is not a loopback address")
     parser.add_argument("--tls-cert", default=None, metavar="PEM", help="serve HTTPS with this certificate")
     parser.add_argument("--tls-key", default=None, metavar="PEM", help="the certificate's private key")
+    parser.add_argument("--insecure-http", action="store_true",
+                        help="serve plain HTTP on a non-loopback --http (refused without it: the token would "
+                             "travel in clear); a trusted network only")
     parser.add_argument("--viewer-url", default=None, metavar="URL",
                         help="the mapper's rerun web viewer (rayfronts mapper --serve-web) to embed in the page")
     parser.add_argument("--rate-limit", type=int, default=600, help="requests per minute per client address "
                                                                     "(default 600; 0 = no limit)")
+    parser.add_argument("--max-streams", type=int, default=32,
+                        help="open event streams (standing searches/queries) in all (default 32; 0 = no limit)")
+    parser.add_argument("--max-streams-per-client", type=int, default=4,
+                        help="open event streams per client address (default 4; 0 = no limit)")
     parser.add_argument("--timeout", type=float, default=20.0, help="seconds to wait for the mapper (default 20)")
     parser.add_argument("--prefix", default=None, help="key-space prefix (default rayfronts)")
     add_zenoh_arguments(parser, mode_default_help="client")
 
 
 def run(args: argparse.Namespace) -> int:
-    from apps.console.security import ENV_TOKEN, ConsoleConfigError, parse_http, require_token
+    from apps.console.security import ENV_TOKEN, ConsoleConfigError, parse_http, require_safe_listen
 
     token = args.token or os.environ.get(ENV_TOKEN) or None
     try:
         host, port = parse_http(args.http)
-        require_token(host, token)
         if bool(args.tls_cert) != bool(args.tls_key):
             raise ConsoleConfigError("give both --tls-cert and --tls-key (or neither)")
+        require_safe_listen(host, token, bool(args.tls_cert), args.insecure_http)
+        if args.max_streams < 0 or args.max_streams_per_client < 0:
+            raise ConsoleConfigError("--max-streams and --max-streams-per-client must be >= 0 (0 = no limit)")
         for f in (args.tls_cert, args.tls_key):
             if f and not os.path.isfile(f):
                 raise ConsoleConfigError(f"no such file: {f}")
@@ -68,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     with client:
         app = create_app(client, token=token, viewer_url=args.viewer_url, rate_per_minute=args.rate_limit,
-                         timeout=args.timeout)
+                         timeout=args.timeout, tls=bool(args.tls_cert), max_streams=args.max_streams,
+                         max_streams_per_client=args.max_streams_per_client)
         scheme = "https" if args.tls_cert else "http"
         shown = f"[{host}]" if ":" in host else host
         print(f"console at {scheme}://{shown}:{port}/", flush=True)

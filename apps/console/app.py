@@ -2,7 +2,10 @@
 ``query_client.Client`` (docs/commands.md, ``rayfronts console``; replies as docs/messages.md).
 
 Errors are one JSON line ``{"error": "..."}`` with a 4xx status (503 when no mapper answers);
-a standing search or query streams as server-sent events until the browser disconnects."""
+a standing search or query streams as server-sent events until the browser disconnects (at most
+``max_streams_per_client`` per address and ``max_streams`` in all). With a token, a page opened
+as ``/?token=TOKEN`` sets an HttpOnly cookie and is redirected to the clean URL, so the page's
+own requests (assets, API calls, event streams) carry the token without it in the URL."""
 from __future__ import annotations
 
 import argparse
@@ -10,17 +13,39 @@ import asyncio
 import json
 import logging
 import threading
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Any
+from urllib.parse import urlencode
 
 import numpy as np
 from fastapi import FastAPI, Query, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from apps.console.security import MAX_BODY_BYTES, RateLimiter, token_ok
+from apps.console.models import (
+    ConfigReply,
+    ErrorReply,
+    ImageQueryForm,
+    OccupancyReply,
+    QueryBody,
+    QueryReply,
+    SearchReplyModel,
+    SnapshotReply,
+    StatsReply,
+)
+from apps.console.security import (
+    COOKIE,
+    MAX_BODY_BYTES,
+    TOKEN_HELP,
+    BodyCap,
+    RateLimiter,
+    StreamSlots,
+    token_cookie,
+    token_ok,
+)
 
 log = logging.getLogger("rayfronts.console")
 STATIC = Path(__file__).with_name("static")
@@ -41,13 +66,6 @@ class SearchBody(BaseModel):
     area: list[float] | None = Field(None, description="box x0,y0,x1,y1 or polygon x0,y0,x1,y1,x2,y2,...")
     z_band: list[float] | None = None
     model_config = {"populate_by_name": True}
-
-
-class QueryBody(BaseModel):
-    """POST /api/query as JSON: a text query."""
-    q: str
-    top_k: int = 5
-    softmax: bool = False
 
 
 class PointsBody(BaseModel):
@@ -174,35 +192,44 @@ def _install_errors(app: FastAPI) -> None:
         return _err(500, f"{type(e).__name__}: {e}")
 
 
-def _install_guards(app: FastAPI, token: str | None, limiter: RateLimiter, max_body: int) -> None:
+def _install_guards(app: FastAPI, token: str | None, limiter: RateLimiter, secure_cookie: bool,
+                    refused: Counter) -> None:
     @app.middleware("http")
     async def guard(request: Request, call_next):
-        n = request.headers.get("content-length")
-        if n is not None and (not n.isdigit() or int(n) > max_body):
-            return _err(413, f"request body too large (limit {max_body // (1024 * 1024)} MiB)")
-        if not token_ok(token, request.headers.get("authorization"), request.query_params.get("token")):
-            return _err(401, "missing or wrong token: send 'Authorization: Bearer TOKEN' or ?token=TOKEN")
+        q = request.query_params
+        if not token_ok(token, request.headers.get("authorization"), q.get("token"), request.cookies.get(COOKIE)):
+            refused["token"] += 1
+            return _err(401, TOKEN_HELP)
         addr = request.client.host if request.client else "?"
         if not limiter.allow(addr):
+            refused["rate"] += 1
             return _err(429, f"too many requests from {addr} (limit {limiter.per_minute} per minute)")
+        if token and "token" in q and request.method in ("GET", "HEAD") and not request.url.path.startswith("/api/"):
+            # a page opened with ?token=: keep the token in an HttpOnly cookie, go to the clean URL
+            rest = urlencode([(k, v) for k, v in q.multi_items() if k != "token"])
+            r = RedirectResponse(request.url.path + (f"?{rest}" if rest else ""), status_code=303)
+            r.headers["set-cookie"] = token_cookie(token, secure_cookie)
+            r.headers["cache-control"] = "no-store"
+            return r
         return await call_next(request)
 
 
-_streams_lock = threading.Lock()
-
-
-def _release(handle, open_streams: list[int]) -> None:
-    """Cancel a standing search/query (the mapper drops it), then count the stream closed."""
+def _release(handle, slots: StreamSlots, addr: str) -> None:
+    """Cancel a standing search/query (the mapper drops it), then free its stream slot."""
     try:
         handle.cancel()
     finally:
-        with _streams_lock:
-            open_streams[0] -= 1
+        slots.release(addr)
 
 
-async def _sse(request: Request, start, open_streams: list[int]) -> StreamingResponse:
+async def _sse(request: Request, start, slots: StreamSlots) -> StreamingResponse:
     """Server-sent events of a standing call: ``start(callback)`` returns a handle with
-    ``cancel()``; the handle is cancelled when the client disconnects."""
+    ``cancel()``; the handle is cancelled when the client disconnects. Refused (429 per client,
+    503 in total) past the caps of ``slots``."""
+    addr = request.client.host if request.client else "?"
+    refusal = slots.acquire(addr)
+    if refusal:
+        raise ApiError(503 if "in total" in refusal else 429, refusal)
     loop = asyncio.get_running_loop()
     queue: asyncio.Queue = asyncio.Queue(maxsize=64)
 
@@ -213,9 +240,11 @@ async def _sse(request: Request, start, open_streams: list[int]) -> StreamingRes
             queue.put_nowait(obj)
         loop.call_soon_threadsafe(put)
 
-    handle = await asyncio.to_thread(start, push)
-    with _streams_lock:
-        open_streams[0] += 1
+    try:
+        handle = await asyncio.to_thread(start, push)
+    except BaseException:
+        slots.release(addr)
+        raise
 
     async def events():
         try:
@@ -232,24 +261,54 @@ async def _sse(request: Request, start, open_streams: list[int]) -> StreamingRes
                 yield f"id: {n}\nevent: update\ndata: {json.dumps(obj)}\n\n"
         finally:
             # not awaited: a cancelled task (client gone) cannot await; the cancel runs in a thread
-            threading.Thread(target=_release, args=(handle, open_streams), daemon=True).start()
+            threading.Thread(target=_release, args=(handle, slots, addr), daemon=True).start()
 
     return StreamingResponse(events(), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
+def _doc(model: type[BaseModel], *codes: int) -> dict:
+    """``responses=`` of a route: 200 is ``model``, each of ``codes`` an :class:`ErrorReply`."""
+    out: dict[int | str, dict[str, Any]] = {200: {"model": model}}
+    for c in (400, 401, 429, *codes):
+        out[c] = {"model": ErrorReply}
+    return out
+
+
+def _openapi_security(app: FastAPI, token: bool) -> None:
+    """The bearer (and cookie) security schemes in the OpenAPI document; required when a token is set."""
+    make = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            spec = make()          # the framework's document, cached in app.openapi_schema
+            spec.setdefault("components", {})["securitySchemes"] = {
+                "bearer": {"type": "http", "scheme": "bearer", "description": "Authorization: Bearer TOKEN"},
+                "cookie": {"type": "apiKey", "in": "cookie", "name": COOKIE,
+                           "description": "set by opening the page as /?token=TOKEN"}}
+            spec["security"] = [{"bearer": []}, {"cookie": []}] + ([] if token else [{}])
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 def create_app(client, *, token: str | None = None, viewer_url: str | None = None, rate_per_minute: int = 600,
-               max_body: int = MAX_BODY_BYTES, timeout: float = 20.0) -> FastAPI:
-    """The console app over a connected ``query_client.Client`` (not closed by the app)."""
+               max_body: int = MAX_BODY_BYTES, timeout: float = 20.0, tls: bool = False, max_streams: int = 32,
+               max_streams_per_client: int = 4) -> FastAPI:
+    """The console app over a connected ``query_client.Client`` (not closed by the app); ``tls``:
+    it is served over HTTPS (the token cookie is then Secure)."""
     app = FastAPI(title="RayFronts console", version="1", docs_url=None, redoc_url=None,
                   description="Operator console and HTTP API of a RayFronts mapper (docs/messages.md).")
     _install_errors(app)
-    _install_guards(app, token, RateLimiter(rate_per_minute), max_body)
+    refused: Counter = Counter()        # requests refused, by reason (/api/stats "console")
+    app.add_middleware(BodyCap, max_body=max_body, refused=refused)   # inside the guard: the token is checked first
+    _install_guards(app, token, RateLimiter(rate_per_minute), tls, refused)
+    _openapi_security(app, bool(token))
     _page_routes(app, viewer_url)
-    streams = [0]      # open server-sent-event streams (each holds one standing search/query)
-    _query_routes(app, client, timeout, max_body, streams)
-    _search_routes(app, client, timeout, streams)
-    _map_routes(app, client, timeout, streams)
+    slots = StreamSlots(max_streams_per_client, max_streams)  # each open stream holds one standing search/query
+    _query_routes(app, client, timeout, max_body, slots)
+    _search_routes(app, client, timeout, slots)
+    _map_routes(app, client, timeout, slots, refused)
     return app
 
 
@@ -269,20 +328,26 @@ def _page_routes(app: FastAPI, viewer_url: str | None) -> None:
     def docs() -> HTMLResponse:
         return HTMLResponse((STATIC / "docs.html").read_text())
 
-    @app.get("/api/config", summary="console settings for the page (viewer URL)")
+    @app.get("/api/config", summary="console settings for the page (viewer URL)", responses=_doc(ConfigReply))
     def config() -> dict:
         return {"viewer_url": viewer_url}
 
 
-def _query_routes(app: FastAPI, client, timeout: float, max_body: int, streams: list[int]) -> None:
-    @app.get("/api/query", summary="one query (text)")
+_QUERY_BODY = {"requestBody": {"required": True, "content": {
+    "application/json": {"schema": QueryBody.model_json_schema()},
+    "multipart/form-data": {"schema": ImageQueryForm.model_json_schema()}}}}
+
+
+def _query_routes(app: FastAPI, client, timeout: float, max_body: int, slots: StreamSlots) -> None:
+    @app.get("/api/query", summary="one query (text)", responses=_doc(QueryReply, 503))
     def query_get(q: str = Query(..., description="query text"), top_k: int = Query(5, ge=1, le=1000),
                   softmax: bool = False) -> dict:
         if not q.strip():
             raise ApiError(400, "the query text is empty; say what to look for: ?q=water+tower")
         return client.query(q, top_k=top_k, softmax=softmax, timeout=timeout).to_dict()
 
-    @app.post("/api/query", summary="one query: JSON {q, top_k} or multipart image upload (field 'image')")
+    @app.post("/api/query", summary="one query: JSON {q, top_k} or multipart image upload (field 'image')",
+              responses=_doc(QueryReply, 413, 503), openapi_extra=_QUERY_BODY)
     async def query_post(request: Request) -> dict:
         ctype = request.headers.get("content-type", "")
         if ctype.startswith("multipart/form-data"):
@@ -306,17 +371,19 @@ def _query_routes(app: FastAPI, client, timeout: float, max_body: int, streams: 
         res = await asyncio.to_thread(client.query, body.q, None, body.top_k, timeout, softmax=body.softmax)
         return res.to_dict()
 
-    @app.get("/api/query/stream", summary="standing query as server-sent events (event 'update')")
+    @app.get("/api/query/stream", summary="standing query as server-sent events (event 'update', data: the "
+             "/api/query reply)", responses=_doc(QueryReply, 503), response_class=StreamingResponse)
     async def query_stream(request: Request, q: str = Query(...),
                            top_k: int = Query(5, ge=1, le=1000)) -> StreamingResponse:
         if not q.strip():
             raise ApiError(400, "the query text is empty")
         return await _sse(request, lambda push: client.watch(q, lambda r: push(r.to_dict()), top_k=top_k,
-                                                             timeout=timeout), streams)
+                                                             timeout=timeout), slots)
 
 
-def _search_routes(app: FastAPI, client, timeout: float, streams: list[int]) -> None:
-    @app.get("/api/search", summary="search for planners: same object as `rayfronts search --json`")
+def _search_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> None:
+    @app.get("/api/search", summary="search for planners: same object as `rayfronts search --json`",
+             responses=_doc(SearchReplyModel, 503))
     def search_get(q: Targets, background: Background = None,
                    threshold: float = 0.5, max_instances: int = 10, max_goals: int = 5,
                    from_: str | None = Query(None, alias="from", description="x,y,z"),
@@ -325,52 +392,59 @@ def _search_routes(app: FastAPI, client, timeout: float, streams: list[int]) -> 
         kw = search_kwargs_from(q, background, threshold, max_instances, max_goals, from_, area, z_band)
         return search_json(client.search(q, timeout=timeout, **kw))
 
-    @app.post("/api/search", summary="search for planners (JSON body with the GET fields)")
+    @app.post("/api/search", summary="search for planners (JSON body with the GET fields)",
+              responses=_doc(SearchReplyModel, 422, 503))
     def search_post(body: SearchBody) -> dict:
         kw = search_kwargs_from(body.q, body.background, body.threshold, body.max_instances, body.max_goals,
                                 _join(body.from_xyz), _join(body.area), _join(body.z_band))
         return search_json(client.search(body.q, timeout=timeout, **kw))
 
-    @app.get("/api/search/stream", summary="standing search as server-sent events (event 'update')")
+    @app.get("/api/search/stream", summary="standing search as server-sent events (event 'update', data: the "
+             "/api/search reply)", responses=_doc(SearchReplyModel, 503), response_class=StreamingResponse)
     async def search_stream(request: Request, q: Targets, background: Background = None,
                             threshold: float = 0.5, max_instances: int = 10, max_goals: int = 5,
                             from_: str | None = Query(None, alias="from"), area: str | None = None,
                             z_band: str | None = None) -> StreamingResponse:
         kw = search_kwargs_from(q, background, threshold, max_instances, max_goals, from_, area, z_band)
         return await _sse(request, lambda push: client.watch_search(
-            q, lambda r: push(search_json(r)), timeout=timeout, **kw), streams)
+            q, lambda r: push(search_json(r)), timeout=timeout, **kw), slots)
 
 
 
-def _map_routes(app: FastAPI, client, timeout: float, streams: list[int]) -> None:
-    @app.get("/api/occupancy/box", summary="dense occupancy of a box: states 0 free, 1 occupied, -1 unknown")
+def _map_routes(app: FastAPI, client, timeout: float, slots: StreamSlots, refused: Counter) -> None:
+    @app.get("/api/occupancy/box", summary="dense occupancy of a box: states 0 free, 1 occupied, -1 unknown",
+             responses=_doc(OccupancyReply, 503))
     def occ_box(min: str = Query(..., description="x,y,z"), max: str = Query(..., description="x,y,z"),  # noqa: A002
                 stride: int = Query(1, ge=1)) -> dict:
         return _occ_json(client.occupancy_box(_floats(min, 3, "min"), _floats(max, 3, "max"), stride, timeout))
 
-    @app.get("/api/occupancy/slice", summary="2D costmap of a z band")
+    @app.get("/api/occupancy/slice", summary="2D costmap of a z band", responses=_doc(OccupancyReply, 503))
     def occ_slice(min: str = Query(..., description="x,y"), max: str = Query(..., description="x,y"),  # noqa: A002
                   z_band: str = Query(..., description="z0,z1"), stride: int = Query(1, ge=1)) -> dict:
         return _occ_json(client.occupancy_slice(_floats(min, 2, "min"), _floats(max, 2, "max"),
                                                 _floats(z_band, 2, "z_band"), stride, timeout))
 
-    @app.post("/api/occupancy/points", summary="state and distance to the nearest occupied voxel of points")
+    @app.post("/api/occupancy/points", summary="state and distance to the nearest occupied voxel of points",
+              responses=_doc(OccupancyReply, 422, 503))
     def occ_points(body: PointsBody) -> dict:
         if not body.points or any(len(p) != 3 for p in body.points):
             raise ApiError(400, "points must be a non-empty list of [x, y, z]")
         return _occ_json(client.occupancy_points(body.points, body.radius, timeout))
 
-    @app.get("/api/stats", summary="per shard and per robot state (frames mapped, rate, drops, edges)")
+    @app.get("/api/stats", summary="per shard and per robot state (frames mapped, rate, drops, edges)",
+             responses=_doc(StatsReply, 503))
     def stats() -> dict:
         out = robot_states(client.stats_all(timeout=timeout))
         out["robots_alive"] = client.robots(timeout=1.0)
-        out["console"] = {"open_streams": streams[0]}
+        out["console"] = {"open_streams": slots.open,
+                          "refused": {"token": refused["token"], "rate": refused["rate"],
+                                      "body_too_large": refused["body_too_large"], "streams": slots.refused}}
         return out
 
-    @app.get("/api/snapshot", summary="describe the last snapshot")
+    @app.get("/api/snapshot", summary="describe the last snapshot", responses=_doc(SnapshotReply, 503))
     def snapshot_get() -> dict:
         return client.snapshot(save=False, timeout=timeout)
 
-    @app.post("/api/snapshot", summary="make a snapshot now")
+    @app.post("/api/snapshot", summary="make a snapshot now", responses=_doc(SnapshotReply, 503))
     def snapshot_post() -> dict:
         return client.snapshot(save=True, timeout=max(timeout, 60.0))

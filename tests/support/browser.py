@@ -1,6 +1,6 @@
 """Headless Debian chromium driven over the DevTools protocol with a stdlib WebSocket client
-(no extra package): the browser tests (tests/test_browser_view.py, tests/test_console_browser.py,
-tests/test_console_viewer.py), and what a screenshot of the mapper's rerun web viewer shows
+(no extra package): the browser tests (tests/test_browser_view.py, tests/test_console_browser.py),
+and what a screenshot of the mapper's rerun web viewer shows
 (:func:`analyse`, :func:`good`)."""
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import tempfile
 import threading
 import time
 import urllib.request
+from collections import deque
 
 import numpy as np
 import pytest
@@ -105,6 +106,9 @@ class Chromium:
         page = next(t for t in pages if t.get("type") == "page")
         self.ws = WS(page["webSocketDebuggerUrl"])
         self._id = 0
+        #: DevTools events received so far (``{"method", "params"}``; e.g. ``Network.responseReceived``
+        #: once ``Network.enable`` was called), the newest 20000
+        self.events: deque = deque(maxlen=20000)
         self.call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
 
     def call(self, method, **params):
@@ -112,6 +116,8 @@ class Chromium:
         self.ws.send(json.dumps({"id": self._id, "method": method, "params": params}))
         while True:
             m = json.loads(self.ws.recv())
+            if "method" in m and "id" not in m:
+                self.events.append(m)
             if m.get("id") == self._id:
                 if "error" in m:
                     raise RuntimeError(f"{method}: {m['error']}")
@@ -132,6 +138,21 @@ class Chromium:
 
     def close(self):
         stop_process(self.p, signal.SIGTERM, 10)
+
+
+def module_browser(width: int = 1400, height: int = 900):
+    """A module-scoped pytest fixture: one headless chromium (``width`` x ``height`` CSS px) for
+    the module's tests, Page events on; assign it to a module-level name (``browser = module_browser()``)."""
+    @pytest.fixture(scope="module")
+    def browser():
+        b = Chromium(chromium_exe(), width=width, height=height)
+        try:
+            b.call("Page.enable")
+            yield b
+        finally:
+            b.close()
+
+    return browser
 
 
 def chromium_exe() -> str:

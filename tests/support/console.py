@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import signal
 import socket
+import ssl
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -21,11 +22,12 @@ RATE_HZ = 3.0
 
 
 def http(url: str, *, data: bytes | None = None, headers: dict | None = None, method: str | None = None,
-         timeout: float = 60.0) -> tuple[int, dict | str]:
-    """(status, JSON body, or the text when it is not JSON) of one HTTP request."""
+         timeout: float = 60.0, context: ssl.SSLContext | None = None) -> tuple[int, dict | str]:
+    """(status, JSON body, or the text when it is not JSON) of one HTTP(S) request (``context``:
+    the TLS context of an https URL, e.g. one trusting the site CA)."""
     req = urllib.request.Request(url, data=data, headers=headers or {}, method=method)
     try:
-        with urllib.request.urlopen(req, timeout=timeout) as r:
+        with urllib.request.urlopen(req, timeout=timeout, context=context) as r:
             status, body = r.status, r.read()
     except urllib.error.HTTPError as e:
         status, body = e.code, e.read()
@@ -53,14 +55,75 @@ def multipart(fields: dict[str, tuple[str, bytes, str] | str]) -> tuple[bytes, s
     return out + f"--{b}--\r\n".encode(), f"multipart/form-data; boundary={b}"
 
 
+def _read_head(s: socket.socket) -> tuple[int, bytes]:
+    """(status, what was read after the response head) from a socket that sent a request."""
+    buf = b""
+    while b"\r\n\r\n" not in buf:
+        chunk = s.recv(65536)
+        if not chunk:
+            raise ConnectionError(f"no response head: {buf[:300]!r}")
+        buf += chunk
+    head, _, rest = buf.partition(b"\r\n\r\n")
+    return int(head.split(b" ", 2)[1]), rest
+
+
+def raw_post(host: str, port: int, path: str, headers: dict[str, str], chunks: list[bytes],
+             timeout: float = 60.0) -> tuple[int, dict]:
+    """POST ``chunks`` over a raw HTTP/1.1 socket, chunked (``Transfer-Encoding: chunked``)
+    unless ``headers`` has a Content-Length; (status, JSON body). Stops sending when the server
+    answers or closes early (a refusal before the whole body was read)."""
+    chunked = "Content-Length" not in headers
+    hdrs = {"Host": f"{host}:{port}", "Connection": "close", **headers}
+    if chunked:
+        hdrs["Transfer-Encoding"] = "chunked"
+    with socket.create_connection((host, port), timeout=timeout) as s:
+        s.sendall((f"POST {path} HTTP/1.1\r\n" + "".join(f"{k}: {v}\r\n" for k, v in hdrs.items())
+                   + "\r\n").encode())
+        try:
+            for c in chunks:
+                s.sendall(f"{len(c):x}\r\n".encode() + c + b"\r\n" if chunked else c)
+            if chunked:
+                s.sendall(b"0\r\n\r\n")
+        except OSError:                      # the server answered and closed before the end
+            pass
+        status, rest = _read_head(s)
+        while True:
+            try:
+                chunk = s.recv(65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            rest += chunk
+    body = rest
+    if b"\r\n" in rest and not rest.lstrip().startswith(b"{"):   # a chunked reply: one or more chunks
+        body, tail = b"", rest
+        while tail:
+            n, _, tail = tail.partition(b"\r\n")
+            if not n.strip() or int(n, 16) == 0:
+                break
+            body, tail = body + tail[:int(n, 16)], tail[int(n, 16) + 2:]
+    return status, json.loads(body)
+
+
 class EventStream:
     """A server-sent-event stream read over a raw socket (HTTP/1.0: no chunked framing; closing it is an
-    immediate disconnect)."""
+    immediate disconnect). ``status``: the response's; ``source``: the local address to connect from
+    (any 127.x.y.z: another client address on loopback)."""
 
-    def __init__(self, host: str, port: int, path: str, timeout: float = 60.0):
-        self.s = socket.create_connection((host, port), timeout=timeout)
+    def __init__(self, host: str, port: int, path: str, timeout: float = 60.0, source: str | None = None):
+        self.s = socket.create_connection((host, port), timeout=timeout,
+                                          source_address=(source, 0) if source else None)
         self.s.sendall(f"GET {path} HTTP/1.0\r\nHost: {host}:{port}\r\nAccept: text/event-stream\r\n\r\n".encode())
-        self.buf = b""
+        self.status, self.buf = _read_head(self.s)
+
+    def error(self) -> dict:
+        """The JSON body of a refused stream (read to its end)."""
+        while True:
+            chunk = self.s.recv(65536)
+            if not chunk:
+                return json.loads(self.buf)
+            self.buf += chunk
 
     def next(self) -> dict:
         """The next ``update`` event's JSON (keep-alive comments skipped)."""

@@ -1,16 +1,12 @@
 // RayFronts console page: calls the console's own JSON API (docs/commands.md, rayfronts console).
+// With a token the page was opened as /?token=TOKEN: the console set an HttpOnly cookie and
+// redirected here, so every request below (assets, API calls, event streams) carries it.
 "use strict";
-const token = new URLSearchParams(location.search).get("token");
 const $ = (id) => document.getElementById(id);
 let stream = null;
 
-function withToken(url) {
-  if (!token) return url;
-  return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
-}
-
 async function api(url, opts) {
-  const r = await fetch(withToken(url), opts || {});
+  const r = await fetch(url, Object.assign({ credentials: "same-origin" }, opts || {}));
   const body = await r.json();
   if (!r.ok) throw new Error(body.error || ("HTTP " + r.status));
   return body;
@@ -51,7 +47,7 @@ async function doSearch() {
   if (stream) { stream.close(); stream = null; }
   status("searching…");
   if ($("live").checked) {
-    stream = new EventSource(withToken("/api/search/stream?" + searchParams()));
+    stream = new EventSource("/api/search/stream?" + searchParams());
     stream.addEventListener("update", (ev) => showSearch(JSON.parse(ev.data)));
     stream.onerror = () => status("stream interrupted (retrying)");
     return;
