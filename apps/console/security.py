@@ -78,9 +78,9 @@ def token_ok(token: str | None, header: str | None, query_token: str | None, coo
 
 
 def token_cookie(token: str, secure: bool) -> str:
-    """The ``Set-Cookie`` value after a valid ``?token=``: HttpOnly, SameSite=Strict, path /,
+    """The ``Set-Cookie`` value after a valid ``?token=``: HttpOnly, SameSite=Lax, path /,
     Secure when the console serves HTTPS (a browser drops Secure cookies over plain HTTP)."""
-    return f"{COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict" + ("; Secure" if secure else "")
+    return f"{COOKIE}={token}; Path=/; HttpOnly; SameSite=Lax" + ("; Secure" if secure else "")
 
 
 class RateLimiter:
