@@ -63,6 +63,8 @@ log = logging.getLogger("rayfronts.edge")
 
 #: publish.tile_m > 0: tile publishers kept declared (least recently used undeclared beyond)
 TILE_PUBLISHERS = 16
+#: a new tile- or shard-routed publisher waits at most this long (s) for a matching subscriber
+NEW_KEY_WAIT_S = 1.0
 
 
 # ------------------------------------------------------------------------- config
@@ -458,10 +460,12 @@ class EdgeRuntime:
         except Exception as e:
             log.warning("edge_status put failed: %s", e)
 
-    def _wait_matching(self, pub) -> None:
-        """Wait up to ``publish.wait_subscriber_s`` until ``pub`` has a matching subscriber
-        (asked once per session: the caller then sends, matched or not)."""
-        deadline = time.monotonic() + max(0.0, float(self.cfg.publish.wait_subscriber_s))
+    def _wait_matching(self, pub, limit_s: float | None = None) -> None:
+        """Wait up to ``publish.wait_subscriber_s`` (or ``limit_s``, if smaller) until ``pub`` has
+        a matching subscriber (asked once per session and once per new routed publisher: the
+        caller then sends, matched or not)."""
+        wait = max(0.0, float(self.cfg.publish.wait_subscriber_s))
+        deadline = time.monotonic() + (wait if limit_s is None else min(wait, limit_s))
         while True:
             try:
                 if pub.matching_status.matching:
@@ -470,7 +474,7 @@ class EdgeRuntime:
                 log.debug("matching status unavailable: %s", e)
                 return
             if time.monotonic() >= deadline or self.stop.is_set():
-                log.info("no subscriber matches %s yet; sending anyway", self.keys.frames(self.cfg.robot))
+                log.info("no subscriber matches %s yet; sending anyway", pub.key_expr)
                 return
             time.sleep(0.05)
 
@@ -532,6 +536,9 @@ class EdgeRuntime:
         if pub is None:
             pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
                                                  priority=zenoh.Priority.DATA, express=False)
+            # a put on a key declared just now may go out before the router has told this client
+            # about the subscribers of that key (the frame would reach nobody): wait a moment
+            self._wait_matching(pub, NEW_KEY_WAIT_S)
             while len(pubs) >= TILE_PUBLISHERS:
                 undeclare_all((pubs.pop(next(iter(pubs))),))
         pubs[key] = pub                     # most recently used last
