@@ -82,12 +82,10 @@ class ShardRoutes:
     def start(self) -> ShardRoutes:
         """Follow the shards' tokens, refresh now, then every ``period_s`` (and when a shard
         appears) on the thread ``edge-routes`` until ``stop``."""
+        from common.zenoh_session import follow_tokens
+
         try:
-            self._token_sub = self.session.liveliness().declare_subscriber(
-                self.keys.mapper_shards_all, self._on_token, history=True)
-            for r in self.session.liveliness().get(self.keys.mapper_shards_all, timeout=1.0):
-                if r.ok is not None:
-                    self._on_token(r.ok)
+            self._token_sub = follow_tokens(self.session, self.keys.mapper_shards_all, self._on_token)
         except Exception as e:  # without tokens: route by the announcements heard
             log.warning("cannot follow the mapper shards' liveliness: %s", e)
         self.refresh()

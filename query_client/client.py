@@ -183,12 +183,10 @@ class Client(PlannerCalls):
     def _follow_shards(self) -> None:
         """Learn the mapper shards (``<p>/mapper/shards/<name>`` liveliness tokens,
         docs/key_space.md#shards): the ones there now, then every arrival and departure."""
+        from common.zenoh_session import follow_tokens
+
         try:
-            self._shard_sub = self.session.liveliness().declare_subscriber(
-                self.keys.mapper_shards_all, self._on_shard_token, history=True)
-            for r in self.session.liveliness().get(self.keys.mapper_shards_all, timeout=1.0):
-                if r.ok is not None:
-                    self._on_shard_token(r.ok)
+            self._shard_sub = follow_tokens(self.session, self.keys.mapper_shards_all, self._on_shard_token)
         except Exception as e:  # queries still work; missing_shards stays empty
             log.warning("cannot follow the mapper shards' liveliness: %s", e)
 

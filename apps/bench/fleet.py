@@ -62,6 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--warmup", type=float, default=8.0, help="seconds after every robot is mapping (default 8)")
     parser.add_argument("--seconds", type=float, default=20.0, help="measurement window in s (default 20)")
     parser.add_argument("--no-shards", action="store_true", help="skip the two-shard routing row")
+    parser.add_argument("--only-shards", action="store_true", help="run only the two-shard routing row")
     parser.add_argument("--shard-tile-m", type=float, default=0.0,
                         help="shards row: route by tiles of this size (m) instead of the shards' announced regions")
     parser.add_argument("--fake-ids", type=int, default=0, help="memory probe: this many ids without a feature space")
@@ -327,8 +328,13 @@ def run(args: argparse.Namespace) -> dict:
                               if not k.startswith("_") and k != "json"},
                  "load_avg_1_5_15_start": [round(x, 2) for x in os.getloadavg()]}
     t = time.perf_counter()
-    recs = render_recordings(work / "recordings", max(counts), args.frames, args.resolution)
+    recs = render_recordings(work / "recordings", 1 if args.only_shards else max(counts), args.frames,
+                             args.resolution)
     out["render_s"] = round(time.perf_counter() - t, 2)
+    if args.only_shards:
+        out["shards"] = run_shards(recs[0], args, work)
+        out["workdir"] = str(work)
+        return out
     runs = {}
     for n in counts:
         runs[str(n)] = run_fleet(n, recs, args, work)
