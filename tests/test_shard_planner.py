@@ -210,3 +210,59 @@ def test_occupancy_merge_takes_each_cell_from_its_owner():
     with pytest.raises(NoShardOwns, match="search area"):
         check_owned("search area", [2000, 0], [2100, 10], [WEST, EAST])
     check_owned("search area", [-5, 0], [5, 10], [WEST, EAST])
+
+
+def test_edge_routes_only_when_every_live_shard_has_announced():
+    """Real Zenoh sessions in one process: a router, two 'shards' (a liveliness token and the
+    routing queryable each, declared one after the other) and the edge's ShardRoutes. A frame
+    goes to the shards owning it only while every live shard has been heard; otherwise (or
+    when none owns it) on the plain key."""
+    import threading
+
+    from common.keys import KeySpace
+    from common.zenoh_session import ZenohConfig, open_session
+    from edge.shard_routes import ShardRoutes
+    from tests.support.ports import free_port, open_loopback_router
+    from tests.support.processes import wait_for
+
+    port = free_port()
+    router = open_loopback_router(port)
+    keys = KeySpace("t")
+    cfg = ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"], connect_timeout_ms=10_000)
+    edge_s, east_s, west_s = (open_session(cfg) for _ in range(3))
+    stop = threading.Event()
+    ents = []
+    try:
+        routes = ShardRoutes(edge_s, keys, "r1", stop, period_s=0.2).start()
+
+        def at(x):
+            pose = np.eye(4)
+            pose[:3, 3] = [x, 0.0, 1.5]
+            return routes.targets(pose)
+
+        def announce(s, reg):
+            body = encode_shard_routing(reg)
+            return s.declare_queryable(keys.mapper_shard_routing(reg.name), lambda q: q.reply(q.key_expr, body))
+        assert at(5.0) == [] and routes.shards() == []                        # no shard: plain key
+        ents.append(east_s.liveliness().declare_token(keys.mapper_shard_alive("east")))
+        wait_for(lambda: "east" in routes._alive, 5, what="east's token")
+        assert at(5.0) == []                                                  # live but unheard
+        ents.append(announce(east_s, EAST))
+        assert wait_for(lambda: at(5.0) == ["east"], 5, what="east announced")
+        assert at(-5.0) == [] and at(-1.5) == ["east"]                        # not east's / its halo
+        ents.append(west_s.liveliness().declare_token(keys.mapper_shard_alive("west")))
+        wait_for(lambda: "west" in routes._alive, 5, what="west's token")
+        assert at(5.0) == [] and at(-1.5) == []                               # west unheard: plain
+        ents.append(announce(west_s, WEST))
+        wait_for(lambda: at(-1.5) == ["east", "west"], 5, what="west announced")
+        assert at(-5.0) == ["west"] and at(5.0) == ["east"] and at(0.5) == ["east", "west"]
+        east_s.close()                                                         # token and queryable gone
+        wait_for(lambda: routes.shards() == ["west"], 5, what="east forgotten")
+        assert at(5.0) == [] and at(-5.0) == ["west"]                          # nobody owns x = 5 now
+    finally:
+        stop.set()
+        for s in (edge_s, west_s, east_s, router):
+            try:
+                s.close()
+            except Exception:
+                pass
