@@ -6,6 +6,8 @@ experiments can share one Zenoh network::
     <p>/robots/<robot>/frames          edge publishes one frame message per processed frame
     <p>/robots/<robot>/frames/<i>_<j>  the same, routed by tile (edge publish.tile_m > 0;
                                        docs/key_space.md#shards)
+    <p>/robots/<robot>/frames/s.<a>.<b>.  the same, addressed to the shards a, b that own it
+                                       (edges learn the shards' routing announcements)
     <p>/robots/<robot>/alive           edge liveliness token
     <p>/robots/<robot>/feature_space   edge queryable (feature-space id, PCA basis, ...)
     <p>/robots/<robot>/edge_status     edge publishes (and serves) its own state: starting /
@@ -14,6 +16,7 @@ experiments can share one Zenoh network::
                                        next (edge source.kind=sim_camera; the closed loop)
     <p>/mapper/alive                   mapper liveliness token
     <p>/mapper/shards/<name>           mapper shard liveliness token (shard.name set)
+    <p>/mapper/shards/<name>/routing   shard queryable: what it owns (common.shard_routing)
     <p>/mapper/query                   mapper queryable: run a query now
     <p>/mapper/queries/<id>            mapper publishes results of a standing query
     <p>/mapper/layers/<layer>          mapper publishes voxels / frontiers / rays / ...
@@ -72,7 +75,7 @@ class KeySpace:
                              "no leading/trailing '/', no wildcards")
         self.prefix = prefix
         self._robot_re = re.compile(rf"^{re.escape(prefix)}/robots/({ID_PATTERN})/"
-                                    rf"(?:[A-Za-z0-9_-]+|frames/-?[0-9]+_-?[0-9]+)$")
+                                    rf"(?:[A-Za-z0-9_-]+|frames/-?[0-9]+_-?[0-9]+|frames/s(?:\.{ID_PATTERN})+\.)$")
         self._asker_re = re.compile(rf"^{re.escape(prefix)}/mapper/robots/({ID_PATTERN})/[A-Za-z0-9_-]+$")
 
     def __repr__(self) -> str:
@@ -103,6 +106,17 @@ class KeySpace:
     def frames_tile_all(self, tile: tuple[int, int]) -> str:
         """``<p>/robots/*/frames/<i>_<j>``: every robot's frames of one tile (a shard's subscription)."""
         return f"{self.prefix}/robots/*/frames/{int(tile[0])}_{int(tile[1])}"
+
+    def frames_routed(self, robot: str, shards: list[str] | tuple[str, ...]) -> str:
+        """``<p>/robots/<robot>/frames/s.<a>.<b>.``: a frame addressed to the shards ``a``, ``b``
+        (those owning its camera centre, learned from their routing announcements)."""
+        if not shards:
+            raise InvalidKey("a routed frame key needs at least one shard")
+        return f"{self.robot_root(robot)}/frames/s.{'.'.join(check_id(s, 'shard name') for s in shards)}."
+
+    def frames_routed_all(self, shard: str) -> str:
+        """``<p>/robots/*/frames/s$*.<shard>.$*``: every frame addressed to ``shard`` (its subscription)."""
+        return f"{self.prefix}/robots/*/frames/s$*.{check_id(shard, 'shard name')}.$*"
 
     @property
     def frames_tiled_all(self) -> str:
@@ -246,6 +260,14 @@ class KeySpace:
     @property
     def mapper_shards_all(self) -> str:
         return f"{self.prefix}/mapper/shards/*"
+
+    def mapper_shard_routing(self, name: str) -> str:
+        """``<p>/mapper/shards/<name>/routing``: queryable of shard ``name``'s routing announcement."""
+        return f"{self.mapper_shard_alive(name)}/routing"
+
+    @property
+    def mapper_shard_routing_all(self) -> str:
+        return f"{self.prefix}/mapper/shards/*/routing"
 
     def shard_from_key(self, key: object) -> str | None:
         """Shard name of a ``<p>/mapper/shards/<name>`` key, else ``None``."""

@@ -205,7 +205,11 @@ class SearchReply:
       frontier, rays}``, best first;
     * ``beyond``: ``{rays: [{origin, direction, score, target}], estimates: [{position,
       radius_m, score, target}], search_volume_m3}``;
-    * ``events``: tracker events of this update ``{kind, id, target, frame, parent?, merged?}``.
+    * ``events``: tracker events of this update ``{kind, id, target, frame, parent?, merged?}``;
+    * ``missing_shards``: set by the client on an answer merged from several mapper shards
+      (``query_client.search_merge``): shards it saw that did not answer. Merged, instance ids
+      are ``"<shard>:<n>"`` strings, instances / goals / events name their ``shard`` and an
+      instance seen by two shards lists both ids in ``parts``.
     """
 
     id: str = ""
@@ -216,11 +220,13 @@ class SearchReply:
     frames_mapped: int = 0
     map_version: int = 0
     timings_ms: dict = field(default_factory=dict)
+    missing_shards: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """JSON-ready dict (the reply's fields)."""
         return dict(found=self.found, look_next=self.look_next, beyond=self.beyond, frames_mapped=self.frames_mapped,
-                    map_version=self.map_version, timings_ms=self.timings_ms, events=self.events, id=self.id)
+                    map_version=self.map_version, timings_ms=self.timings_ms, events=self.events, id=self.id,
+                    missing_shards=[str(v) for v in self.missing_shards])
 
 
 def encode_search_reply(rep: SearchReply) -> bytes:
@@ -229,13 +235,15 @@ def encode_search_reply(rep: SearchReply) -> bytes:
 
 def decode_search_reply(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> SearchReply:
     body = _decode(data, SCHEMA_SEARCH_REPLY, limits)
-    for k, t in (("found", list), ("look_next", list), ("beyond", dict), ("events", list), ("timings_ms", dict)):
+    for k, t in (("found", list), ("look_next", list), ("beyond", dict), ("events", list), ("timings_ms", dict),
+                 ("missing_shards", list)):
         if not isinstance(body.get(k, t()), t):
             raise MessageError(f"{SCHEMA_SEARCH_REPLY}: {k!r} must be a {t.__name__}")
     return SearchReply(id=str(body.get("id", "")), found=body.get("found", []), look_next=body.get("look_next", []),
                        beyond=body.get("beyond", {}), events=body.get("events", []),
                        frames_mapped=int(body.get("frames_mapped", 0)), map_version=int(body.get("map_version", 0)),
-                       timings_ms=body.get("timings_ms", {}))
+                       timings_ms=body.get("timings_ms", {}),
+                       missing_shards=[str(v) for v in body.get("missing_shards", [])])
 
 
 # ------------------------------------------------------------------- occupancy
@@ -308,7 +316,9 @@ def decode_occupancy_request(data: bytes | bytearray | memoryview,
 class OccupancyReply:
     """``states`` int8 (0 free, 1 occupied, -1 unknown): (nx, ny, nz) for a box, (nx, ny) for
     a slice, (N,) for points; ``origin`` min corner of cell 0 (m), ``cell_m`` cell size;
-    ``dist`` (N,) float64 distance to the nearest occupied voxel (inf beyond the radius)."""
+    ``dist`` (N,) float64 distance to the nearest occupied voxel (inf beyond the radius);
+    ``missing_shards`` set by the client on an answer merged from several mapper shards
+    (``query_client.search_merge``): shards it saw that did not answer."""
 
     kind: str = "box"
     states: np.ndarray = field(default_factory=lambda: np.zeros((0,), np.int8))
@@ -317,6 +327,7 @@ class OccupancyReply:
     dist: np.ndarray | None = None
     frames_mapped: int = 0
     map_version: int = 0
+    missing_shards: list = field(default_factory=list)
 
 
 def encode_occupancy_reply(rep: OccupancyReply) -> bytes:
@@ -326,6 +337,8 @@ def encode_occupancy_reply(rep: OccupancyReply) -> bytes:
                             "map_version": int(rep.map_version)}
     if rep.dist is not None:
         body["dist"] = np.ascontiguousarray(rep.dist, np.float64)
+    if rep.missing_shards:
+        body["missing_shards"] = [str(v) for v in rep.missing_shards]
     return encode_message(SCHEMA_OCCUPANCY_REPLY, VERSION, body)
 
 
@@ -338,8 +351,11 @@ def decode_occupancy_reply(data: bytes | bytearray | memoryview, limits: WireLim
     if int(np.prod(shape)) != st.size:
         raise MessageError(f"{SCHEMA_OCCUPANCY_REPLY}: states size {st.size} does not match shape {shape}")
     dist = body.get("dist")
+    missing = body.get("missing_shards", [])
+    if not isinstance(missing, list):
+        raise MessageError(f"{SCHEMA_OCCUPANCY_REPLY}: 'missing_shards' must be a list")
     return OccupancyReply(kind=str(body.get("kind", "")), states=st.astype(np.int8).reshape(shape),
                           origin=list(body.get("origin", [])), cell_m=float(body.get("cell_m", 0.0)),
                           dist=None if dist is None else np.asarray(dist, np.float64),
                           frames_mapped=int(body.get("frames_mapped", 0)),
-                          map_version=int(body.get("map_version", 0)))
+                          map_version=int(body.get("map_version", 0)), missing_shards=[str(v) for v in missing])

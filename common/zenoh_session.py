@@ -468,6 +468,18 @@ def _quietly(call: Callable[[], Any], level: int, failed: str, *args: Any) -> No
         log.log(level, failed + ": %s", *args, e)
 
 
+def follow_tokens(session: Any, key_expr: str, on_sample: Callable[[Any], None], timeout: float = 1.0) -> Any:
+    """Follow the liveliness tokens on ``key_expr``: a subscriber (with history) calls
+    ``on_sample`` for every arrival and departure, and the tokens there now are replayed
+    through it once (a liveliness get, at most ``timeout`` s). Returns the subscriber; Zenoh
+    errors are raised."""
+    sub = session.liveliness().declare_subscriber(key_expr, on_sample, history=True)
+    for r in session.liveliness().get(key_expr, timeout=timeout):
+        if r.ok is not None:
+            on_sample(r.ok)
+    return sub
+
+
 def undeclare_all(entities: Iterable[Any]) -> None:
     """Undeclare Zenoh entities (subscribers, queryables, publishers, liveliness tokens) in the
     given order; ``None`` entries are skipped, and one already undeclared or whose session is

@@ -63,6 +63,8 @@ log = logging.getLogger("rayfronts.edge")
 
 #: publish.tile_m > 0: tile publishers kept declared (least recently used undeclared beyond)
 TILE_PUBLISHERS = 16
+#: a new tile- or shard-routed publisher waits at most this long (s) for a matching subscriber
+NEW_KEY_WAIT_S = 1.0
 
 
 # ------------------------------------------------------------------------- config
@@ -104,6 +106,10 @@ class PublishSection:
                                 "floor(y / tile_m) of the camera centre in the robot's own pose frame, so Zenoh "
                                 "routes it to the shards owning that tile (docs/key_space.md#shards); 0 = plain "
                                 "robots/<robot>/frames")
+    shard_routing: bool = field_(True, "with publish.tile_m = 0: learn the mapper shards' regions (their "
+                                       "announcements on mapper/shards/<name>/routing) and send each frame only to "
+                                       "the shards that own its camera centre (docs/key_space.md#shards); false = "
+                                       "every frame on the plain key")
     wait_subscriber_s: float = field_(5.0, "before the first frame of a session, wait up to this long for a "
                                            "subscriber (a mapper) to match the frames key (Zenoh matching "
                                            "status), so frames sent while the route forms are not lost; then "
@@ -332,7 +338,9 @@ class EdgeRuntime:
         self.slot = LatestSlot()
         self.session = None
         self._publisher = None
-        self._tile_pubs: dict[tuple[int, int], object] = {}   # publish.tile_m > 0: tile -> publisher (LRU)
+        self._tile_pubs: dict[str, object] = {}   # tile-routed / shard-routed key -> publisher (LRU)
+        self._routes = None                       # edge.shard_routes.ShardRoutes of the session
+        self._routes_stop = threading.Event()
         self._token = None
         self._queryable = None
         self._connected = threading.Event()
@@ -399,6 +407,13 @@ class EdgeRuntime:
                 raise
             self.session = s
             self._matched = False   # the first frame of this session waits for a subscriber
+            if self.cfg.publish.shard_routing and self.cfg.publish.tile_m <= 0:
+                from edge.shard_routes import ShardRoutes
+
+                self._routes_stop = threading.Event()
+                self._routes = ShardRoutes(s, self.keys, robot, self._routes_stop).start()
+                if self._routes.shards():
+                    log.info("routing frames to the shards that own them: %s", ", ".join(self._routes.shards()))
             if self.stop.is_set():  # closed while we were connecting
                 self._close_session()
                 return
@@ -445,10 +460,12 @@ class EdgeRuntime:
         except Exception as e:
             log.warning("edge_status put failed: %s", e)
 
-    def _wait_matching(self, pub) -> None:
-        """Wait up to ``publish.wait_subscriber_s`` until ``pub`` has a matching subscriber
-        (asked once per session: the caller then sends, matched or not)."""
-        deadline = time.monotonic() + max(0.0, float(self.cfg.publish.wait_subscriber_s))
+    def _wait_matching(self, pub, limit_s: float | None = None) -> None:
+        """Wait up to ``publish.wait_subscriber_s`` (or ``limit_s``, if smaller) until ``pub`` has
+        a matching subscriber (asked once per session and once per new routed publisher: the
+        caller then sends, matched or not)."""
+        wait = max(0.0, float(self.cfg.publish.wait_subscriber_s))
+        deadline = time.monotonic() + (wait if limit_s is None else min(wait, limit_s))
         while True:
             try:
                 if pub.matching_status.matching:
@@ -457,7 +474,7 @@ class EdgeRuntime:
                 log.debug("matching status unavailable: %s", e)
                 return
             if time.monotonic() >= deadline or self.stop.is_set():
-                log.info("no subscriber matches %s yet; sending anyway", self.keys.frames(self.cfg.robot))
+                log.info("no subscriber matches %s yet; sending anyway", pub.key_expr)
                 return
             time.sleep(0.05)
 
@@ -496,25 +513,35 @@ class EdgeRuntime:
                 self.on_sent(frame, len(data), t0)
 
     def _frame_publisher(self, frame: Frame):
-        """The publisher of ``frame``'s key: the plain frames key, or with ``publish.tile_m`` > 0 the
-        key of the tile of its camera centre (robot's pose frame), declared lazily and cached
-        (at most ``TILE_PUBLISHERS`` tiles; the least recently used one is undeclared)."""
+        """The publisher of ``frame``'s key: with ``publish.tile_m`` > 0 the key of the tile of its
+        camera centre (robot's pose frame); else, with ``publish.shard_routing``, the key
+        addressed to the shards owning it (:mod:`edge.shard_routes`); else (or when no shard owns
+        it) the plain frames key. Keyed publishers are declared lazily and cached (at most
+        ``TILE_PUBLISHERS``; the least recently used one is undeclared)."""
         tile_m = float(self.cfg.publish.tile_m)
-        if tile_m <= 0:
-            return self._publisher
+        robot = self.cfg.robot
+        if tile_m > 0:
+            c = np.asarray(frame.pose, np.float64)[:3, 3]
+            key = self.keys.frames_tile(robot, (math.floor(c[0] / tile_m), math.floor(c[1] / tile_m)))
+        else:
+            routes = self._routes
+            shards = routes.targets(frame.pose) if routes is not None else []
+            if not shards:
+                return self._publisher
+            key = self.keys.frames_routed(robot, shards)
         import zenoh
 
-        c = np.asarray(frame.pose, np.float64)[:3, 3]
-        tile = (math.floor(c[0] / tile_m), math.floor(c[1] / tile_m))
         pubs = self._tile_pubs
-        pub = pubs.pop(tile, None)
+        pub = pubs.pop(key, None)
         if pub is None:
-            pub = self.session.declare_publisher(
-                self.keys.frames_tile(self.cfg.robot, tile), congestion_control=zenoh.CongestionControl.BLOCK,
-                priority=zenoh.Priority.DATA, express=False)
+            pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
+                                                 priority=zenoh.Priority.DATA, express=False)
+            # a put on a key declared just now may go out before the router has told this client
+            # about the subscribers of that key (the frame would reach nobody): wait a moment
+            self._wait_matching(pub, NEW_KEY_WAIT_S)
             while len(pubs) >= TILE_PUBLISHERS:
                 undeclare_all((pubs.pop(next(iter(pubs))),))
-        pubs[tile] = pub                    # most recently used last
+        pubs[key] = pub                     # most recently used last
         return pub
 
     # -------------------------------------------------------------- pipeline side
@@ -820,6 +847,8 @@ class EdgeRuntime:
 
     def _close_session(self) -> None:
         s, self.session = self.session, None
+        self._routes_stop.set()
+        self._routes = None
         if s is not None:
             undeclare_all((self._mapper_status_sub,
                            self._token, self._queryable, self._status_q, self._status_pub, self._publisher,

@@ -282,8 +282,27 @@ class Fleet:
         except Exception as e:
             log.warning("world_from_robot query failed: %s", e)
 
+    # ------------------------------------------------------------ routing
+    def routing_bytes(self) -> bytes:
+        """This shard's routing announcement (``common.shard_routing``): what it owns, its halo
+        and the ``world_from_robot`` transforms it applies now."""
+        from common.shard_routing import encode_shard_routing
+
+        reg = replace(self.shard.region, transforms={
+            r: np.asarray(v, np.float64).reshape(4, 4) for r, v in self.transforms.as_dict().items()})
+        return encode_shard_routing(reg)
+
+    def on_routing(self, query: zenoh.Query) -> None:
+        """``get mapper/shards/<name>/routing``: the announcement (edges route frames with it)."""
+        try:
+            query.reply(query.key_expr, self.routing_bytes())
+        except Exception as e:  # never raise out of a zenoh callback
+            log.warning("routing query failed: %s", e)
+
     # ------------------------------------------------------------ queries, stats
-    def shard_info(self, res: QueryResult | None = None) -> bytes:
+    def shard_info(self, res: QueryResult | None = None, half_angle_deg: float | None = None) -> bytes:
+        """The shard info attached to query, search and occupancy replies (``common.fleet``);
+        ``half_angle_deg`` when ``res`` does not carry it (a search)."""
         from common.fleet import encode_shard_info
 
         q = self.state.cfg.query
@@ -297,6 +316,8 @@ class Fleet:
                               for v in (*sh.lo, *sh.hi)]
         if sh.tiles:
             info["tile_m"], info["tiles"] = sh.tile_m, sorted([list(t) for t in sh.tiles])
+        if half_angle_deg is not None:
+            info["half_angle_deg"] = float(half_angle_deg)
         if res is not None:
             for k in ("score_min", "half_angle_deg"):
                 v = getattr(res, k, None)

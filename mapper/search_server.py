@@ -54,6 +54,7 @@ class SearchServer:
         self.trackers = state.trackers
         self.standing: dict[str, SearchRequest] = state.standing_searches
         self._last_gen: dict[str, int] = {}
+        self.half_angle_deg: float | None = None     # the search volume's cone half-angle, for the shard info
 
     def _read_map(self, fn):
         """``fn(map)`` under the map lock (None when the lock stays busy past the timeout)."""
@@ -76,6 +77,7 @@ class SearchServer:
             timings: dict = {}
             snap = self.queries.snapshot(timings, flush=flush)
             rep = answer_search(snap, s.space, req, s.cfg, self.trackers, self._read_map, map_version=s.version)
+            self.half_angle_deg = float(snap.half_angle)
         rep.timings_ms.update({k: float(v) for k, v in timings.items()})
         rep.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
         rerun = getattr(self.queries, "rerun", None)  # the mapper's rerun output, if any
@@ -160,13 +162,19 @@ class SearchServer:
                                "robot id (no wildcards)")
         return robot
 
+    def shard_info(self) -> bytes | None:
+        """The shard info attached to search / occupancy replies and standing-search puts
+        (``common.fleet``: the client merges several shards' answers with it)."""
+        fleet = self.state.fleet
+        return None if fleet is None else fleet.shard_info(half_angle_deg=self.half_angle_deg)
+
     def on_search(self, query) -> None:
         """Zenoh callback of ``<p>/mapper/search``: one reply, a search reply or an error."""
-        reply_to(query, "search", self.search_payload)
+        reply_to(query, "search", self.search_payload, self.shard_info)
 
     def on_robot_search(self, query) -> None:
         """Zenoh callback of ``<p>/mapper/robots/*/search``: a robot's own search."""
-        reply_to(query, "search", lambda data: self.search_payload(data, self._asker(query)))
+        reply_to(query, "search", lambda data: self.search_payload(data, self._asker(query)), self.shard_info)
 
     def occupancy(self, data: bytes) -> OccupancyReply:
         """Answer an encoded occupancy request (under the map lock)."""
@@ -201,7 +209,7 @@ class SearchServer:
                 self._asker(query)
             return encode_occupancy_reply(self.occupancy(data))
 
-        reply_to(query, "occupancy request", answer)
+        reply_to(query, "occupancy request", answer, self.shard_info)
 
     def standing_loop(self) -> None:
         """Re-runs standing searches after map changes (at most every :data:`STANDING_PERIOD_S`)
@@ -218,7 +226,7 @@ class SearchServer:
                 self._last_gen[sid] = s.map_gen
                 try:
                     rep = self.run_search(req)
-                    s.session.put(self.searches_key(req), encode_search_reply(rep))
+                    s.session.put(self.searches_key(req), encode_search_reply(rep), attachment=self.shard_info())
                 except Exception as e:
                     s.warn(f"search:{sid}", "standing search %s failed: %s", sid, e)
 

@@ -19,17 +19,21 @@ Decisions: the region test is on the camera centre, half-open boxes ``[min, max)
 With ``shard.tile_m`` a shard subscribes only to the tile-routed frame keys of its tiles
 plus a halo (:meth:`ShardFilter.subscription_tiles`, docs/key_space.md#shards); edge tiles
 are in the robot's own pose frame, this filter stays in the map's world frame.
+
+Routing without flags: a named shard announces what it owns (``common.shard_routing``) on
+``<p>/mapper/shards/<name>/routing``; edges address each frame to the shards that own its
+camera centre (``frames/s.<a>.<b>.``) and a named shard subscribes to the frames addressed to
+it and to the plain frame key (edges that do not route yet, frames no shard owns).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
 from common.config import ConfigError, field_
-from common.keys import is_valid_id
+from common.shard_routing import DEFAULT_HALO_M, ShardRegion, ShardRoutingError
 
 
 @dataclass
@@ -46,6 +50,9 @@ class ShardSection:
     halo_tiles: int = field_(1, "with shard.tile_m > 0: subscribe to the tile-routed frame keys of the shard's "
                                 "tiles (shard.tiles, or the tiles shard.region covers) plus this many tiles "
                                 "around them; edges publish with publish.tile_m = shard.tile_m")
+    halo_m: float = field_(DEFAULT_HALO_M, "a named shard announces what it owns on mapper/shards/<name>/routing "
+                                           "and edges send it the frames whose camera centre lies in its region "
+                                           "or within this many metres of it (docs/key_space.md#shards)")
 
 
 #: a shard subscribing to more tile keys than this subscribes to every frame instead
@@ -53,34 +60,20 @@ MAX_TILE_SUBSCRIPTIONS = 1024
 
 
 class ShardFilter:
-    """Which frames a shard maps (see module doc); ``accepts`` is cheap (per frame)."""
+    """Which frames a shard maps (see module doc); ``accepts`` is cheap (per frame). The
+    ownership test itself is :class:`common.shard_routing.ShardRegion` (``region``), which
+    edges and clients apply to the shard's announcement."""
 
     def __init__(self, cfg: ShardSection):
+        try:
+            self.region = ShardRegion.make(cfg.name, cfg.region, cfg.tile_m, cfg.tiles, cfg.robots, cfg.halo_m)
+        except ShardRoutingError as e:
+            raise ConfigError(f"shard.{e}") from None
         self.name = cfg.name
-        if cfg.name and not is_valid_id(cfg.name):
-            raise ConfigError(f"shard.name {cfg.name!r}: use 1-64 characters from [A-Za-z0-9_-]")
-        r = [float(v) for v in cfg.region]
-        if len(r) == 4:
-            r = [r[0], r[1], -math.inf, r[2], r[3], math.inf]
-        if r and (len(r) != 6 or not all(lo < hi for lo, hi in zip(r[:3], r[3:], strict=True))):
-            raise ConfigError(f"shard.region must be [xmin, ymin, xmax, ymax] or 6 values with min < max, "
-                              f"got {list(cfg.region)}")
-        self.lo = np.array(r[:3]) if r else None
-        self.hi = np.array(r[3:]) if r else None
-        self.tile_m = float(cfg.tile_m)
-        self.tiles: set[tuple[int, int]] = set()
-        for t in cfg.tiles:
-            try:
-                i, j = (int(v) for v in str(t).split(","))
-            except ValueError:
-                raise ConfigError(f"shard.tiles: {t!r} is not 'i,j' (two integers)") from None
-            self.tiles.add((i, j))
-        if self.tiles and self.tile_m <= 0:
-            raise ConfigError("shard.tiles needs shard.tile_m > 0")
-        for rb in cfg.robots:
-            if not is_valid_id(rb):
-                raise ConfigError(f"shard.robots: invalid robot id {rb!r}")
-        self.robots = set(cfg.robots)
+        self.lo, self.hi = self.region.lo, self.region.hi
+        self.tile_m = self.region.tile_m
+        self.tiles = self.region.tiles
+        self.robots = self.region.robots
 
     @property
     def active(self) -> bool:
@@ -108,16 +101,6 @@ class ShardFilter:
         out = {(i + di, j + dj) for i, j in base for di in range(-h, h + 1) for dj in range(-h, h + 1)}
         return out if len(out) <= MAX_TILE_SUBSCRIPTIONS else None
 
-    def tile_of(self, xyz: Sequence[float] | np.ndarray) -> tuple[int, int]:
-        return (math.floor(float(xyz[0]) / self.tile_m), math.floor(float(xyz[1]) / self.tile_m))
-
     def accepts(self, robot: str, pose_world: np.ndarray) -> bool:
         """True when this shard maps a frame of ``robot`` taken at ``pose_world`` (4×4, map frame)."""
-        if self.robots and robot not in self.robots:
-            return False
-        c = np.asarray(pose_world, np.float64)[:3, 3]
-        if self.lo is not None and not (np.all(c >= self.lo) and np.all(c < self.hi)):
-            return False
-        if self.tiles and self.tile_of(c) not in self.tiles:
-            return False
-        return True
+        return self.region.accepts(robot, np.asarray(pose_world, np.float64)[:3, 3])

@@ -164,9 +164,10 @@ def watch_until_signal(start: Callable[[], Any]) -> None:
         restore()
 
 
-def _warn_missing(r) -> None:
+def warn_missing(r, command: str = "query") -> None:
+    """The warning line on stderr of an answer some shards did not contribute to."""
     if r.missing_shards:
-        print(f"rayfronts query: warning: shards that did not answer: {', '.join(r.missing_shards)} "
+        print(f"rayfronts {command}: warning: shards that did not answer: {', '.join(r.missing_shards)} "
               "(their regions are missing from this answer)", file=sys.stderr, flush=True)
 
 
@@ -186,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
                 return 0
             if args.watch:
                 def show(r):
-                    _warn_missing(r)
+                    warn_missing(r)
                     print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
 
                 watch_until_signal(lambda: client.watch(args.text, show, image=_read(args.image), top_k=args.top_k))
@@ -195,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
         except QueryError as e:
             print(f"rayfronts query: error: {' '.join(str(e).split())}", file=sys.stderr)
             return 1
-        _warn_missing(r)
+        warn_missing(r)
         if args.json:
             print(json.dumps(r.to_dict(), indent=2))
         else:

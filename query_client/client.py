@@ -16,7 +16,7 @@ import logging
 import os
 import threading
 import uuid
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -32,7 +32,7 @@ from common.messages import (
     encode_snapshot_request,
 )
 from query_client.search import PlannerCalls
-from query_client.standing import StandingHandle
+from query_client.standing import ShardLatest, StandingHandle
 
 log = logging.getLogger("rayfronts.query_client")
 
@@ -142,6 +142,7 @@ class Client(PlannerCalls):
         self._shards_seen: set[str] = set()       # mapper shards whose liveliness token was ever seen
         self._shards_alive: set[str] = set()      # ... and whose token is there now
         self._shard_listeners: list[Callable[[str, bool], None]] = []
+        self._shard_infos: dict[str, dict] = {}  # shard name -> its latest shard info (region, ...)
         self._shard_sub = None
         self._follow_shards()
 
@@ -213,12 +214,10 @@ class Client(PlannerCalls):
     def _follow_shards(self) -> None:
         """Learn the mapper shards (``<p>/mapper/shards/<name>`` liveliness tokens,
         docs/key_space.md#shards): the ones there now, then every arrival and departure."""
+        from common.zenoh_session import follow_tokens
+
         try:
-            self._shard_sub = self.session.liveliness().declare_subscriber(
-                self.keys.mapper_shards_all, self._on_shard_token, history=True)
-            for r in self.session.liveliness().get(self.keys.mapper_shards_all, timeout=1.0):
-                if r.ok is not None:
-                    self._on_shard_token(r.ok)
+            self._shard_sub = follow_tokens(self.session, self.keys.mapper_shards_all, self._on_shard_token)
         except Exception as e:  # queries still work; missing_shards stays empty
             log.warning("cannot follow the mapper shards' liveliness: %s", e)
 
@@ -243,104 +242,90 @@ class Client(PlannerCalls):
         oks, errs = self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
         return self._merged(oks, errs, int(top_k))
 
-    def _merged(self, oks: list, errs: list[str], top_k: int) -> QueryResult:
-        """One result from the replies of one or several mappers (shards: ``query_client.merge``);
-        shards answering with an error (e.g. an empty map) are left out while one answers."""
-        import dataclasses
-
+    def _collect(self, key: str, oks: list, errs: list[str], decode: Callable) -> list[tuple]:
+        """``[(decoded answer, shard info)]`` of one fan-out ``get`` (``_get_all``); shards answering
+        with an error (e.g. an empty map) are left out while one answers; none answering raises
+        ``QueryError`` (their errors) or ``MapperUnavailable``. Remembers each shard's info (its
+        region, for a later answer it misses)."""
         from common.fleet import decode_shard_info
-        from query_client.merge import merge_results
 
         got, bad = [], []
         for data, att in oks:
             try:
-                got.append((decode_query_result(data), decode_shard_info(att)))
+                got.append((decode(data), decode_shard_info(att)))
             except MessageError as e:
-                bad.append(str(e))
+                bad.append(str(e).removeprefix("remote error: "))
         if got:
-            res = merge_results(got, top_k)
-            if res is got[0][0] and len(got) == 1:
-                res = dataclasses.replace(res)
-            res.missing_shards = self._missing({str(i.get("shard", "")) for _, i in got})
-            return res
+            with self._lock:
+                for _, info in got:
+                    if info.get("shard"):
+                        self._shard_infos[str(info["shard"])] = info
+            return got
         if bad:
             raise QueryError("; ".join(dict.fromkeys(bad)))
         if errs:
-            raise MapperUnavailable(f"no answer on {self.keys.mapper_query}: {'; '.join(errs)}")
-        raise MapperUnavailable(f"no mapper answered on {self.keys.mapper_query} (is it running and reachable?)")
+            raise MapperUnavailable(f"no answer on {key}: {'; '.join(errs)}")
+        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable?)")
+
+    def _missing_infos(self, answered: set[str]) -> list[dict]:
+        """Remembered shard infos of the shards seen that are not in ``answered``."""
+        with self._lock:
+            return [i for n, i in self._shard_infos.items() if n in self._shards_seen and n not in answered]
+
+    def _merged(self, oks: list, errs: list[str], top_k: int) -> QueryResult:
+        """One result from the replies of one or several mappers (shards: ``query_client.merge``)."""
+        import dataclasses
+
+        from query_client.merge import merge_results
+
+        got = self._collect(self.keys.mapper_query, oks, errs, decode_query_result)
+        res = merge_results(got, top_k)
+        if res is got[0][0] and len(got) == 1:
+            res = dataclasses.replace(res)
+        res.missing_shards = self._missing({str(i.get("shard", "")) for _, i in got})
+        return res
+
+    def _standing(self, sid: str, key: str, decode: Callable, merge: Callable[[list], Any], what: str,
+                  callback: Callable) -> ShardLatest:
+        """The per-shard latest answers of standing request ``sid`` published on ``key``, merged
+        with ``merge`` and passed to ``callback`` on every change (``query_client.standing``)."""
+        from common.fleet import decode_shard_info
+
+        latest = ShardLatest(self, merge, callback, what)
+
+        def on_sample(sample) -> None:
+            try:
+                att = sample.attachment
+                latest.put(decode(sample.payload.to_bytes()), decode_shard_info(att.to_bytes() if att else None))
+            except Exception as e:  # never raise out of a zenoh callback
+                log.warning("%s: %s", what, e)
+
+        latest.sub = self.session.declare_subscriber(key, on_sample)
+        return latest
 
     def watch(self, text: str | None, callback: Callable[[QueryResult], None], *, image: bytes | None = None,
               top_k: int = 10, qid: str | None = None, timeout: float | None = None) -> WatchHandle:
         """Register a standing query: ``callback(QueryResult)`` runs now and on each refresh
-        (on a Zenoh thread; keep it short)."""
-        import dataclasses
-
-        from common.fleet import decode_shard_info
+        (on a Zenoh thread; keep it short). With shards, each shard's latest result is kept and
+        the merge passed on (a shard whose token goes away is dropped and named missing)."""
         from query_client.merge import merge_results
 
         qid = qid or "q" + uuid.uuid4().hex[:12]
-        ready = threading.Event()         # set once the first answer is out
-        latest: dict[str, tuple] = {}     # shard name -> its last (result, info): shards refresh separately
-
-        def publish() -> None:
-            with self._lock:
-                res = merge_results(list(latest.values()), int(top_k)) if latest else QueryResult(id=qid)
-                if len(latest) == 1:
-                    res = dataclasses.replace(res)
-                res.missing_shards = sorted(self._shards_seen - set(latest))
-            callback(res)
-
-        def on_sample(sample):
-            try:
-                att = sample.attachment
-                info = decode_shard_info(att.to_bytes() if att is not None else None)
-                with self._lock:
-                    latest[str(info.get("shard", ""))] = (decode_query_result(sample.payload.to_bytes()), info)
-                if ready.is_set():     # before the first answer, only collect
-                    publish()
-            except Exception as e:  # never raise out of a zenoh callback
-                log.warning("standing query %s: %s", qid, e)
-
-        def on_shard(name: str, alive: bool) -> None:
-            # a shard whose token went away: drop its last result, report it missing
-            if not handle.active:
-                with self._lock:
-                    if on_shard in self._shard_listeners:
-                        self._shard_listeners.remove(on_shard)
-                return
-            if not alive and ready.is_set():
-                with self._lock:
-                    latest.pop(name, None)
-                publish()
-
         if image is not None:
             image = read_query_image(image)
-        sub = self.session.declare_subscriber(self.keys.mapper_queries(qid), on_sample)
-        handle = WatchHandle(self, qid, sub)
+        latest = self._standing(qid, self.keys.mapper_queries(qid), decode_query_result,
+                                lambda items: merge_results(items, int(top_k)) if items else QueryResult(id=qid),
+                                f"standing query {qid}", callback)
+        handle = WatchHandle(self, qid, latest.sub)
         self._watches.add(handle)
-        with self._lock:
-            self._shard_listeners.append(on_shard)
-        handle._on_shard = on_shard
+        req = QueryRequest(text=text, image=image, top_k=int(top_k), standing=True, id=qid, lease_s=self.lease_s,
+                           client=self.client_id)
         try:
-            req = QueryRequest(text=text, image=image, top_k=int(top_k), standing=True, id=qid, lease_s=self.lease_s,
-                               client=self.client_id)
             oks, errs = self._get_all(self.keys.mapper_query, encode_query_request(req), timeout)
-            first = self._merged(oks, errs, int(top_k))
-            with self._lock:  # the first answers too: a shard leaving drops its part
-                for data, att in oks:
-                    try:
-                        info = decode_shard_info(att)
-                        latest.setdefault(str(info.get("shard", "")), (decode_query_result(data), info))
-                    except MessageError:
-                        pass
-            ready.set()
+            latest.first(self._collect(self.keys.mapper_query, oks, errs, decode_query_result), handle)
         except Exception:
             handle.cancel()
             raise
-        try:
-            callback(first)
-        except Exception as e:
-            log.warning("standing query %s callback: %s", qid, e)
         handle._alive_sub = self._follow_mapper(handle, self.keys.mapper_query, encode_query_request(req),
                                                 f"standing query {qid}", timeout)
         self._lease(handle, encode_query_request(req), encode_query_request(QueryRequest(renew=True, id=qid)),

@@ -31,9 +31,10 @@ from common.cones import cone_union_volume
 from common.messages import QueryResult
 
 
-def _merge_clusters(xyz, size, extent, score, shard, vox: float):
-    """Union clusters of different shards whose boxes touch (within ``vox``)."""
-    n = len(xyz)
+def touching_groups(lo: np.ndarray, hi: np.ndarray, part: np.ndarray, tol: float) -> list[list[int]]:
+    """Groups (lists of row indices, in row order) of boxes ``[lo, hi]`` (N, 3) joined where
+    boxes of different ``part`` (N,) touch within ``tol`` (union-find over pairs)."""
+    n = len(lo)
     parent = list(range(n))
 
     def find(i):
@@ -42,18 +43,23 @@ def _merge_clusters(xyz, size, extent, score, shard, vox: float):
             i = parent[i]
         return i
 
-    lo, hi = xyz - extent / 2, xyz + extent / 2
     for i in range(n):
         for j in range(i + 1, n):
-            if shard[i] != shard[j] and np.all(lo[i] <= hi[j] + vox * 0.51) and np.all(lo[j] <= hi[i] + vox * 0.51):
+            if part[i] != part[j] and np.all(lo[i] <= hi[j] + tol) and np.all(lo[j] <= hi[i] + tol):
                 a, b = find(i), find(j)
                 if a != b:
                     parent[b] = a
     groups: dict[int, list[int]] = {}
     for i in range(n):
         groups.setdefault(find(i), []).append(i)
+    return list(groups.values())
+
+
+def _merge_clusters(xyz, size, extent, score, shard, vox: float):
+    """Union clusters of different shards whose boxes touch (within ``vox``)."""
+    lo, hi = xyz - extent / 2, xyz + extent / 2
     out = []
-    for members in groups.values():
+    for members in touching_groups(lo, hi, shard, vox * 0.51):
         m = np.array(members)
         w = size[m].astype(np.float64)
         c = (xyz[m] * w[:, None]).sum(0) / max(w.sum(), 1.0)
@@ -66,14 +72,14 @@ def _merge_clusters(xyz, size, extent, score, shard, vox: float):
 RAY_DIR_BIN = 0.05
 
 
-def _voxel_key(xyz: np.ndarray, vox: float) -> np.ndarray:
+def half_voxel_key(xyz: np.ndarray, vox: float) -> np.ndarray:
     """Integer key per row of ``xyz`` (m): half-voxel bins, so voxel centres at ``(i + 0.5)·vox``
     or ``i·vox`` map to one key each despite float32 rounding; ``vox`` 0 = millimetres."""
     step = vox / 2 if vox > 0 else 1e-3
     return np.round(np.asarray(xyz, np.float64).reshape(-1, 3) / step).astype(np.int64)
 
 
-def _best_unique(scores: np.ndarray, keys: np.ndarray, k: int) -> np.ndarray:
+def best_unique(scores: np.ndarray, keys: np.ndarray, k: int) -> np.ndarray:
     """Indices of the ``k`` best rows, best first (stable), each distinct key row once."""
     order = np.argsort(-scores, kind="stable")
     if not len(order):
@@ -99,7 +105,7 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
     vs = np.concatenate([r.voxel_score for r in results]).astype(np.float32)
     vx = np.concatenate([r.voxel_xyz for r in results]).astype(np.float32).reshape(-1, 3)
     vox = float(next((i["vox_size"] for i in infos if "vox_size" in i), 0.0))
-    t = _best_unique(vs, _voxel_key(vx, vox), k)
+    t = best_unique(vs, half_voxel_key(vx, vox), k)
     out.voxel_xyz, out.voxel_score = vx[t], vs[t]
     # clusters
     cs = np.concatenate([r.cluster_score for r in results]).astype(np.float32)
@@ -125,7 +131,7 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
     ro = np.concatenate([r.ray_origin for r in results]).astype(np.float32).reshape(-1, 3)
     rd = np.concatenate([r.ray_direction for r in results]).astype(np.float32).reshape(-1, 3)
     dbin = np.round(rd.astype(np.float64) / RAY_DIR_BIN).astype(np.int64)
-    t = _best_unique(rs, np.concatenate([_voxel_key(ro, vox), dbin], axis=1), k)
+    t = best_unique(rs, np.concatenate([half_voxel_key(ro, vox), dbin], axis=1), k)
     out.ray_origin, out.ray_direction, out.ray_score = ro[t], rd[t], rs[t]
     info = next((i for i in infos if "half_angle_deg" in i and "search_range_m" in i), None)
     if info is None or not len(t):

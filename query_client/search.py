@@ -7,6 +7,7 @@ answering raises ``MapperUnavailable``. No torch: this runs on a client-only ins
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import uuid
 from typing import Callable, Sequence
@@ -49,10 +50,12 @@ class SearchHandle(StandingHandle):
 
 class PlannerCalls:
     """Search and occupancy calls (a mixin of ``query_client.Client``: uses its ``keys``,
-    ``robot``, ``_get_one`` and ``_lease``). A client made with ``robot=<id>`` (a robot's
-    onboard planner, with the robot's certificate) asks on the robot's own keys
-    ``<p>/mapper/robots/<id>/{search,occupancy}`` (docs/key_space.md), the only ones the
-    site ACL lets a robot ask."""
+    ``robot``, ``_get_all``, ``_collect``, ``_missing``, ``_missing_infos``, ``_standing`` and
+    ``_lease``). Every call asks every mapper shard and merges their answers
+    (``query_client.search_merge``); ``missing_shards`` names the shards seen that did not
+    answer. A client made with ``robot=<id>`` (a robot's onboard planner, with the robot's
+    certificate) asks on the robot's own keys ``<p>/mapper/robots/<id>/{search,occupancy}``
+    (docs/key_space.md), the only ones the site ACL lets a robot ask."""
 
     _query_error: type[Exception] = RuntimeError     # Client sets its QueryError
     robot: str | None = None
@@ -67,12 +70,35 @@ class PlannerCalls:
         """Where the mapper publishes this client's standing search ``sid``."""
         return self.keys.robot_searches(self.robot, sid) if self.robot else self.keys.mapper_searches(sid)
 
-    def _ask(self, key: str, payload: bytes, timeout: float | None, decode):
-        data = self._get_one(key, payload, timeout)
+    def _ask_all(self, key: str, payload: bytes, timeout: float | None, decode) -> list[tuple]:
+        """``[(answer, shard info)]`` of every shard answering ``key``."""
+        oks, errs = self._get_all(key, payload, timeout)
+        return self._collect(key, oks, errs, decode)
+
+    def _merge_search(self, got: list[tuple], req: SearchRequest) -> SearchReply:
+        from query_client.search_merge import merge_search_replies
+
+        rep = dataclasses.replace(merge_search_replies(got, req))
+        rep.missing_shards = self._missing({str(i.get("shard", "")) for _, i in got})
+        return rep
+
+    def _check_area(self, req: SearchRequest, got: list[tuple]) -> None:
+        """A search area that no known shard's region meets: ``QueryError`` (one line)."""
+        from common.shard_routing import ShardRegion
+        from query_client.search_merge import NoShardOwns, check_owned
+
+        poly = req.polygon()
+        if poly is None:
+            return
+        infos = [i for _, i in got] + self._missing_infos({str(i.get("shard", "")) for _, i in got})
+        regions = [ShardRegion.from_info(i) for i in infos]
+        if not all(r.bounded for r in regions):
+            return
+        a = np.asarray(poly, np.float64)
         try:
-            return decode(data)
-        except MessageError as e:
-            raise self._query_error(str(e).removeprefix("remote error: ")) from None
+            check_owned("search area", a.min(0).tolist(), a.max(0).tolist(), regions)
+        except NoShardOwns as e:
+            raise self._query_error(str(e)) from None
 
     @staticmethod
     def search_request(targets: str | Sequence[str], background: Sequence[str] | None = None, area=None,
@@ -93,39 +119,40 @@ class PlannerCalls:
                from_xyz: Sequence[float] | None = None, *, max_goals: int = 5, embeddings: np.ndarray | None = None,
                timeout: float | None = None) -> SearchReply:
         """Search the map for ``targets`` (softmax probability over targets + ``background``,
-        default the mapper's ``search.background``): found instances (stable ids), look-next
-        goals, rays and triangulated estimates beyond the map. ``area``: polygon [[x, y], ...]
-        or box [x0, y0, x1, y1]; ``z_band`` [z0, z1]; ``threshold`` in (0, 1); ``from_xyz`` the
-        robot's position (goal distances)."""
+        default the mapper's ``search.background``): found instances (stable ids; with shards
+        ``"<shard>:<n>"``), look-next goals, rays and triangulated estimates beyond the map.
+        ``area``: polygon [[x, y], ...] or box [x0, y0, x1, y1]; ``z_band`` [z0, z1];
+        ``threshold`` in (0, 1); ``from_xyz`` the robot's position (goal distances)."""
         try:
             req = self.search_request(targets, background, area, z_band, threshold, max_instances, from_xyz,
                                       max_goals=max_goals, embeddings=embeddings)
         except MessageError as e:
             raise self._query_error(str(e)) from None
-        return self._ask(self._search_key(), encode_search_request(req), timeout, decode_search_reply)
+        got = self._ask_all(self._search_key(), encode_search_request(req), timeout, decode_search_reply)
+        self._check_area(req, got)
+        return self._merge_search(got, req)
 
     def watch_search(self, targets: str | Sequence[str], callback: Callable[[SearchReply], None], *,
                      timeout: float | None = None, **kw) -> SearchHandle:
         """Standing search: ``callback(SearchReply)`` now and after map changes (on a Zenoh
-        thread); ``kw`` as :meth:`search`."""
+        thread); ``kw`` as :meth:`search`. Every shard runs it and publishes its own answers;
+        the client keeps each shard's latest and passes on their merge."""
+        from query_client.search_merge import merge_search_replies
+
         sid = "s" + uuid.uuid4().hex[:12]
         req = self.search_request(targets, standing=True, sid=sid, **kw)
         req.lease_s, req.client = self.lease_s, self.client_id
-
-        def on_sample(sample) -> None:
-            try:
-                callback(decode_search_reply(sample.payload.to_bytes()))
-            except Exception as e:  # never raise out of a zenoh callback
-                log.warning("standing search %s: %s", sid, e)
-
-        sub = self.session.declare_subscriber(self._searches_key(sid), on_sample)
-        handle = SearchHandle(self, sid, sub)
+        latest = self._standing(sid, self._searches_key(sid), decode_search_reply,
+                                lambda items: merge_search_replies(items, req) if items else SearchReply(id=sid),
+                                f"standing search {sid}", callback)
+        handle = SearchHandle(self, sid, latest.sub)
         try:
-            first = self._ask(self._search_key(), encode_search_request(req), timeout, decode_search_reply)
+            got = self._ask_all(self._search_key(), encode_search_request(req), timeout, decode_search_reply)
+            self._check_area(req, got)
+            latest.first(got, handle)
         except Exception:
             handle.cancel()
             raise
-        callback(first)
         handle._alive_sub = self._follow_mapper(handle, self._search_key(), encode_search_request(req),
                                                 f"standing search {sid}", timeout)
         self._lease(handle, encode_search_request(req), encode_search_request(SearchRequest(renew=True, id=sid)),
@@ -140,11 +167,20 @@ class PlannerCalls:
         raise NotImplementedError
 
     def _occupancy(self, req: OccupancyRequest, timeout: float | None) -> OccupancyReply:
+        from query_client.search_merge import NoShardOwns, merge_occupancy
+
         try:
             payload = encode_occupancy_request(req)
         except MessageError as e:
             raise self._query_error(str(e)) from None
-        return self._ask(self._occupancy_key(), payload, timeout, decode_occupancy_reply)
+        got = self._ask_all(self._occupancy_key(), payload, timeout, decode_occupancy_reply)
+        answered = {str(i.get("shard", "")) for _, i in got}
+        try:
+            rep = merge_occupancy(got, req, self._missing_infos(answered))
+        except (NoShardOwns, ValueError) as e:
+            raise self._query_error(str(e)) from None
+        rep.missing_shards = self._missing(answered)
+        return rep
 
     def occupancy_box(self, box_min: Sequence[float], box_max: Sequence[float], stride: int = 1,
                       timeout: float | None = None) -> OccupancyReply:

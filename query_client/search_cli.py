@@ -85,7 +85,7 @@ def format_reply(r) -> str:
     lines.append(f"  found: {len(r.found)}")
     for i in r.found:
         c = i["centroid"]
-        lines.append(f"    #{i['id']:<4d} {i['target']:<16s} p={i['confidence']:.3f} ({c[0]:7.2f}, {c[1]:7.2f}, "
+        lines.append(f"    #{i['id']!s:<4} {i['target']:<16s} p={i['confidence']:.3f} ({c[0]:7.2f}, {c[1]:7.2f}, "
                      f"{c[2]:5.2f})  {i['voxels']} voxels, seen {i['observations']}x")
     lines.append(f"  look next: {len(r.look_next)}")
     for g in r.look_next:
@@ -106,11 +106,11 @@ def format_reply(r) -> str:
 def _as_json(r) -> str:
     d = r.to_dict()
     return json.dumps({k: d[k] for k in ("found", "look_next", "beyond", "events", "frames_mapped", "map_version",
-                                         "timings_ms")})
+                                         "timings_ms", "missing_shards")})
 
 
 def run(args: argparse.Namespace) -> int:
-    from query_client.cli import connect_client, watch_until_signal
+    from query_client.cli import connect_client, warn_missing, watch_until_signal
     from query_client.client import QueryError
 
     kw = search_kwargs(args)
@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             if args.watch:
                 def show(r) -> None:
+                    warn_missing(r, "search")
                     print(_as_json(r) if args.json else format_reply(r) + "\n", flush=True)
 
                 watch_until_signal(lambda: client.watch_search(args.targets, show, timeout=args.timeout, **kw))
@@ -129,5 +130,6 @@ def run(args: argparse.Namespace) -> int:
         except QueryError as e:
             print(f"rayfronts search: error: {' '.join(str(e).split())}", file=sys.stderr)
             return 1
+    warn_missing(r, "search")
     print(_as_json(r) if args.json else format_reply(r))
     return 0

@@ -42,7 +42,7 @@ def test_stream_delivers_updates_and_cancels_on_disconnect(console_world):
         second = s.next()
     finally:
         s.close()
-    keys = {"found", "look_next", "beyond", "events", "frames_mapped", "map_version", "timings_ms"}
+    keys = {"found", "look_next", "beyond", "events", "frames_mapped", "map_version", "timings_ms", "missing_shards"}
     assert set(first) == keys and set(second) == keys
     assert second["map_version"] > first["map_version"], (first["map_version"], second["map_version"])
     # the console cancels the standing search when the client goes away

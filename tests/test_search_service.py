@@ -103,7 +103,7 @@ def test_search_service_with_real_processes(tmp_path, procs, pca_file):
         assert q.returncode == 0, q.stderr[-2000:]
         first = json.loads(q.stdout)            # exactly one JSON object
         assert set(first) == {"found", "look_next", "beyond", "events", "frames_mapped", "map_version",
-                              "timings_ms"}
+                              "timings_ms", "missing_shards"}
         assert warm_s > 0
         # the first search found the text model loaded: the warm-up thread loaded it, not the search
         loads = c.stats()["text_models"]

@@ -214,10 +214,10 @@ def test_make_acl_structure():
     assert set(rules["mapper_all"]["messages"]) == set(make_acl.ALL_MESSAGES)
     # what a robot sends or receives names it (its prefix, its planner keys under
     # site/mapper/robots/<robot>/) or is shared and read-only (liveliness of mapper and shards,
-    # the map's feature space); only declarations of the mapper's subscriptions, which carry
-    # no data, may name every robot
+    # the map's feature space, the shards' routing announcements); only declarations of the
+    # mapper's subscriptions, which carry no data, may name every robot
     pol = {p["id"]: p for p in acl["policies"]}
-    shared = {"site/mapper/alive", "site/mapper/shards/*", "site/mapper/feature_space"}
+    shared = {"site/mapper/alive", "site/mapper/shards/*", "site/mapper/feature_space", "site/mapper/shards/*/routing"}
     for robot in ("r1", "r2"):
         mine = (f"site/robots/{robot}/", f"site/mapper/robots/{robot}/")
         for rid in pol[f"robot_{robot}"]["rules"]:

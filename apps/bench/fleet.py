@@ -20,12 +20,14 @@ The mappers run with ``search.warm_up=false``: the text model's one-time load wh
 created (seconds of CPU on a background thread) would otherwise fall in the measured
 window on a 2-core machine.
 
-The ``shards`` row (skip with ``--no-shards``): two shard mappers split at x = 0 (10 m
-tiles, docs/key_space.md#shards) and one robot lapping across the border, its edge
-publishing tile-routed frames; over the window, ``deliveries_per_frame`` = the shards' own
-``frames.received`` summed / the frames the edge sent (counted by a passive subscriber of
-this bench on every frame key), goal <= 1.3 (without routing every shard receives every
-frame: 2.0), and each shard's received / mapped rates.
+The ``shards`` row (skip with ``--no-shards``): the README's first shard example, two shard
+mappers split at x = 0 by ``shard.region`` alone (the edge learns their regions and sends each
+frame to its owner, docs/key_space.md#shards; ``--shard-tile-m M`` routes by M-metre tiles
+instead, ``publish.tile_m`` = ``shard.tile_m`` = M) and one robot lapping across the border;
+over the window, ``deliveries_per_frame`` = the shards' own ``frames.received`` summed / the
+frames the edge sent (counted by a passive subscriber of this bench on every frame key), goal
+<= 1.3 (without routing every shard receives every frame: 2.0), and each shard's received /
+mapped rates.
 
 ``--fake-ids K`` adds the memory probe: K robot ids that send frames but never serve a
 feature space (one Zenoh session publishing on K keys), mapper RSS before, after and once
@@ -59,7 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="throughput", help="mapper preset (default throughput)")
     parser.add_argument("--warmup", type=float, default=8.0, help="seconds after every robot is mapping (default 8)")
     parser.add_argument("--seconds", type=float, default=20.0, help="measurement window in s (default 20)")
-    parser.add_argument("--no-shards", action="store_true", help="skip the two-shard tile-routing row")
+    parser.add_argument("--no-shards", action="store_true", help="skip the two-shard routing row")
+    parser.add_argument("--only-shards", action="store_true", help="run only the two-shard routing row")
+    parser.add_argument("--shard-tile-m", type=float, default=0.0,
+                        help="shards row: route by tiles of this size (m) instead of the shards' announced regions")
     parser.add_argument("--fake-ids", type=int, default=0, help="memory probe: this many ids without a feature space")
     parser.add_argument("--mapper-set", action="append", default=[], metavar="KEY=VALUE",
                         help="extra mapper config override (repeatable)")
@@ -187,13 +192,18 @@ def run_fleet(n: int, recs: list[Path], args: argparse.Namespace, work: Path) ->
             "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()]}
 
 
-#: the shards row: two shards split at x = 0 (the synthetic lap spans x in +-41 m), 10 m tiles
-SHARD_REGIONS = {"west": "[-100, -100, 0, 100]", "east": "[0, -100, 100, 100]"}
-SHARD_TILE_M = 10.0
+#: the shards row: the README's first example, two shards split at x = 0 (the synthetic lap
+#: spans x in +-41 m)
+SHARD_REGIONS = {"west": "[-1000, -1000, 0, 1000]", "east": "[0, -1000, 1000, 1000]"}
+
+
+def tile_set(tile_m: float, section: str) -> list[str]:
+    """``<section>.tile_m=M`` for explicit tile routing (M > 0), else nothing (routing by regions)."""
+    return [f"{section}.tile_m={tile_m:g}"] if tile_m > 0 else []
 
 
 def run_shards(rec: Path, args: argparse.Namespace, work: Path) -> dict:
-    """Two tile-routed shards and one robot lapping across their border (see module doc)."""
+    """Two shards and one robot lapping across their border (see module doc)."""
     from common.zenoh_session import ZenohConfig, free_tcp_port
     from query_client.client import Client
 
@@ -206,7 +216,7 @@ def run_shards(rec: Path, args: argparse.Namespace, work: Path) -> dict:
         for name, region in SHARD_REGIONS.items():
             procs.start(f"mapper-{name}", "mapper", "--mode", "client", "--connect", ep, "--zenoh-set", zs,
                         f"preset={args.preset}", "map.depth_limit=20", "layers.rate_hz=0", "snapshots.on_exit=false",
-                        f"shard.name={name}", f"shard.region={region}", f"shard.tile_m={SHARD_TILE_M}",
+                        f"shard.name={name}", f"shard.region={region}", *tile_set(args.shard_tile_m, "shard"),
                         "search.warm_up=false", *args.mapper_set)
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0) as c:
             def count(_sample) -> None:
@@ -214,7 +224,7 @@ def run_shards(rec: Path, args: argparse.Namespace, work: Path) -> dict:
             subs = [c.session.declare_subscriber(k, count) for k in (c.keys.frames_all, c.keys.frames_tiled_all)]
             procs.start("edge-shards", "edge", "--connect", ep, "--zenoh-set", zs, "robot=r0", "source.kind=recording",
                         f"source.path={rec}", "publish.loop=true", f"publish.rate_hz={args.rate}",
-                        f"pca.out_dim={args.pca_dim}", "pca.fit_frames=4", f"publish.tile_m={SHARD_TILE_M}",
+                        f"pca.out_dim={args.pca_dim}", "pca.fit_frames=4", *tile_set(args.shard_tile_m, "publish"),
                         *args.edge_set)
             end = time.monotonic() + 180
             while True:
@@ -238,7 +248,8 @@ def run_shards(rec: Path, args: argparse.Namespace, work: Path) -> dict:
     dt, frames = t1 - t0, n1 - n0
     got = {k: s1[k]["frames"]["received"] - s0[k]["frames"]["received"] for k in SHARD_REGIONS}
     mapped = {k: s1[k]["frames"]["mapped"] - s0[k]["frames"]["mapped"] for k in SHARD_REGIONS}
-    return {"shards": len(SHARD_REGIONS), "robots": 1, "tile_m": SHARD_TILE_M, "window_s": round(dt, 2),
+    return {"shards": len(SHARD_REGIONS), "robots": 1, "routing": "tiles" if args.shard_tile_m > 0 else "regions",
+            "tile_m": args.shard_tile_m, "window_s": round(dt, 2),
             "frames_sent": frames, "received": got,
             "deliveries_per_frame": (sum(got.values()) / frames) if frames else None, "goal_max": 1.3,
             "received_hz": {k: v / dt for k, v in got.items()}, "mapped_hz": {k: v / dt for k, v in mapped.items()},
@@ -317,8 +328,13 @@ def run(args: argparse.Namespace) -> dict:
                               if not k.startswith("_") and k != "json"},
                  "load_avg_1_5_15_start": [round(x, 2) for x in os.getloadavg()]}
     t = time.perf_counter()
-    recs = render_recordings(work / "recordings", max(counts), args.frames, args.resolution)
+    recs = render_recordings(work / "recordings", 1 if args.only_shards else max(counts), args.frames,
+                             args.resolution)
     out["render_s"] = round(time.perf_counter() - t, 2)
+    if args.only_shards:
+        out["shards"] = run_shards(recs[0], args, work)
+        out["workdir"] = str(work)
+        return out
     runs = {}
     for n in counts:
         runs[str(n)] = run_fleet(n, recs, args, work)

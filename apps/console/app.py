@@ -123,7 +123,7 @@ def search_json(reply) -> dict:
 def _occ_json(rep) -> dict:
     d = {"kind": rep.kind, "shape": list(rep.states.shape), "states": rep.states.tolist(),
          "origin": list(rep.origin), "cell_m": rep.cell_m, "frames_mapped": rep.frames_mapped,
-         "map_version": rep.map_version}
+         "map_version": rep.map_version, "missing_shards": list(rep.missing_shards)}
     if rep.dist is not None:    # metres; null: no occupied voxel within the radius
         d["dist"] = [float(v) if np.isfinite(v) else None for v in np.asarray(rep.dist, float).ravel()]
     return d

@@ -30,7 +30,10 @@ Keys: docs/key_space.md. ``<p>`` is the prefix (``--prefix``).
     replies); subscribes to its standing searches' results ``<p>/mapper/robots/<id>/searches/*``
     and to the mapper's status of it, ``<p>/mapper/robots/<id>/status``. Another robot's
     searches, and the operators' ``<p>/mapper/search`` / ``query`` / ``stats``, are refused.
-  - reads ``<p>/mapper/feature_space`` (an edge adopting the map's PCA basis).
+  - reads ``<p>/mapper/feature_space`` (an edge adopting the map's PCA basis) and the
+    shards' routing announcements ``<p>/mapper/shards/*/routing`` (an edge sends each frame
+    only to the shards that own it, on ``<p>/robots/<id>/frames/s.<a>.<b>.``, covered by
+    ``frames/*``; docs/key_space.md#shards).
   - watches (liveliness subscriber / query) ``<p>/mapper/alive`` and the shards'
     ``<p>/mapper/shards/*``.
   - nothing else: no put under another robot's prefix or under ``<p>/mapper/**``.
@@ -100,10 +103,10 @@ def _robot_rules(p: str, r: str) -> list[dict]:
 
 
 def _robots_shared(p: str) -> list[dict]:
-    """Rules every robot has: watch the mapper and its shards, read the map's feature space,
-    learn of the subscriptions to robots' frames and status."""
+    """Rules every robot has: watch the mapper and its shards, read the map's feature space and
+    the shards' routing announcements, learn of the subscriptions to robots' frames and status."""
     watched = [f"{p}/mapper/alive", f"{p}/mapper/shards/*"]
-    space = [f"{p}/mapper/feature_space"]
+    space = [f"{p}/mapper/feature_space", f"{p}/mapper/shards/*/routing"]   # read-only, shared
     return [
         _rule("robots_watch_mapper_in", _WATCH, ["ingress"], watched),
         _rule("robots_watch_mapper_out", ["liveliness_token"], ["egress"], watched),
