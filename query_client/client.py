@@ -160,9 +160,13 @@ class Client(PlannerCalls):
             errs.append(r.err.payload.to_string() if r.err is not None else "?")
         if errs:
             raise MapperUnavailable(f"no answer on {key}: {'; '.join(errs)}")
-        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable? with access control: "
-                                f"is this certificate allowed to ask {key}? a robot may ask only "
-                                f"{self.keys.prefix}/mapper/robots/<its own id>/...)")
+        raise self._no_answer(key)
+
+    def _no_answer(self, key: str) -> MapperUnavailable:
+        """The one-line error of a ``get`` on ``key`` that nobody answered."""
+        return MapperUnavailable(f"no mapper answered on {key} (is it running and reachable? with access control: "
+                                 f"is this certificate allowed to ask {key}? a robot may ask only "
+                                 f"{self.keys.prefix}/mapper/robots/<its own id>/...)")
 
     def _get_all(self, key: str, payload: bytes | None, timeout: float | None) -> tuple[list, list[str]]:
         """Every reply to one ``get`` (all queryables on ``key``: every mapper shard):
@@ -265,7 +269,7 @@ class Client(PlannerCalls):
             raise QueryError("; ".join(dict.fromkeys(bad)))
         if errs:
             raise MapperUnavailable(f"no answer on {key}: {'; '.join(errs)}")
-        raise MapperUnavailable(f"no mapper answered on {key} (is it running and reachable?)")
+        raise self._no_answer(key)
 
     def _missing_infos(self, answered: set[str]) -> list[dict]:
         """Remembered shard infos of the shards seen that are not in ``answered``."""
