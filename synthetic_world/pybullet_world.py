@@ -21,24 +21,34 @@ ground, no roof), each with a random yaw; the landmarks (tall assets scaled up) 
 Rendering: ``p.getCameraImage`` with ``ER_TINY_RENDERER`` in a ``p.DIRECT`` connection (no
 display, no GPU): RGB, the OpenGL depth buffer turned into metric planar depth
 (``far·near / (far − (far − near)·d)``; ``d = 1``, no surface, → +inf) and the segmentation
-mask (body unique id per pixel, −1 none) mapped to class ids (``labels``) and instance ids.
+mask (body unique id per pixel, −1 none) mapped to class ids (``labels``) and instance ids. The
+tiny renderer culls back faces and the monastery's mesh is one-sided in places: a
+visual-only twin with every triangle turned round makes its walls visible from both sides,
+as the ray test (and the robot) meet them.
 Intrinsics must have square pixels and the principal point at the image centre (what
-:meth:`camera` gives).
+:meth:`camera` gives). The tiny renderer samples each pixel half a pixel off its centre; the
+projection is shifted by half a pixel so that pixel (u, v) looks through (u + ½, v + ½) as
+docs/conventions.md says (checked against ``rayTestBatch`` in tests/test_pybullet_world.py).
 
 Free space (``labels_at``): pybullet has no point-in-solid test for concave meshes, so the
 collision shapes are voxelised lazily in cubic tiles (``tile`` voxels of ``vox_m``) with
 ``p.rayTestBatch``: rays along x, y and z through every row of voxel centres of a tile,
-marched from hit to hit; a voxel holding a hit point is solid with the hit body's class.
-That marks the surfaces (a shell), not closed interiors — a body cannot get inside one
-without crossing its shell. A point's label is its voxel's or, failing that, the voxel's
-above or below (the robot's body points sit 0.32 m apart vertically, so a one-voxel-thick
-horizontal surface is still felt). Below z = 0 is ground. World frame z up, metres.
+marched from hit to hit; a voxel holding a hit point is a surface voxel with the hit body's
+class, and every voxel within one voxel of a surface voxel (26-neighbourhood) is solid: the
+surfaces are inflated by up to one voxel (0.25 m), so a surface crossing a voxel between the
+rows of rays is still solid and the robot's body points (0.32 m apart vertically) feel a thin
+table top; free space is conservative by that much. It marks surfaces (a shell), not closed
+interiors — a body cannot get inside one without crossing its shell. Below z = 0 is ground.
+World frame z up, metres.
 """
 from __future__ import annotations
 
 import math
 import os
+import re
+import shutil
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 
@@ -73,6 +83,31 @@ def _quiet():
         os.dup2(saved[1], 2)
         for fd in saved:
             os.close(fd)
+
+
+def _flipped_obj(path: Path) -> Path:
+    """A copy of Wavefront OBJ ``path`` (with its material library) whose faces list their
+    vertices in reverse order (the other side of every triangle), cached in the temp dir."""
+    import tempfile
+
+    out_dir = Path(tempfile.gettempdir()) / f"rayfronts_pybullet_{os.getuid()}"
+    out = out_dir / f"{path.stem}_flipped_{path.stat().st_size}.obj"
+    if out.exists():
+        return out
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lines = []
+    for line in path.read_text().splitlines():
+        if line.startswith("f "):
+            line = "f " + " ".join(reversed(line.split()[1:]))
+        lines.append(line)
+        if line.startswith("mtllib "):
+            mtl = path.parent / line.split(maxsplit=1)[1].strip()
+            if mtl.exists():
+                shutil.copyfile(mtl, out_dir / mtl.name)
+    tmp = out.with_suffix(f".tmp{os.getpid()}")
+    tmp.write_text("\n".join(lines) + "\n")
+    os.replace(tmp, out)
+    return out
 
 
 class PybulletWorld:
@@ -152,6 +187,29 @@ class PybulletWorld:
         self._body_class[uid], self._body_inst[uid] = cid, iid
         self.instances.append(Instance(iid, cid, name, (lo + hi) / 2, lo, hi))
 
+    def _add_back_faces(self, uid: int, a: Asset, yaw: float) -> None:
+        """A visual-only twin of body ``uid`` whose mesh has every triangle turned round, at the
+        same pose: the tiny renderer culls back faces, and the monastery's mesh is one-sided
+        in places, so without it the camera would see through walls the ray test (and the
+        robot) hit. The twin's pixels read as ``uid``'s class and instance."""
+        import pybullet_data
+
+        p = self._p
+        root = Path(pybullet_data.getDataPath())
+        src = root / a.file
+        urdf = src.read_text()
+        mesh = re.search(r'<visual>.*?<mesh filename="([^"]+)"', urdf, re.S)
+        origin = re.search(r'<visual>\s*<origin rpy="([^"]+)"', urdf, re.S)
+        if mesh is None:
+            return
+        obj = _flipped_obj(root / mesh.group(1))
+        rpy = [float(x) for x in origin.group(1).split()] if origin else [0.0, 0.0, 0.0]
+        vis = p.createVisualShape(p.GEOM_MESH, fileName=str(obj), meshScale=[a.scale] * 3,
+                                  visualFrameOrientation=p.getQuaternionFromEuler(rpy), physicsClientId=self.cid)
+        pos, q = p.getBasePositionAndOrientation(uid, physicsClientId=self.cid)
+        twin = p.createMultiBody(0.0, -1, vis, pos, q, physicsClientId=self.cid)
+        self._body_class[twin], self._body_inst[twin] = self._body_class[uid], self._body_inst[uid]
+
     def _open_ground(self, xy: np.ndarray, radius: float) -> bool:
         """Whether vertical rays from 40 m down over a circle of ``radius`` around ``xy`` all
         reach the ground plane first (open ground, no roof, nothing placed)."""
@@ -170,9 +228,11 @@ class PybulletWorld:
                 self._register(self.ground_uid, a.class_name, a.class_name)
         for a in assets:
             if a.role == "site":
-                uid = self._load(a, float(rng.uniform(0, 2 * math.pi)))
+                yaw = float(rng.uniform(0, 2 * math.pi))
+                uid = self._load(a, yaw)
                 self._move_to(uid, np.zeros(2), on_ground=False)
                 self._register(uid, a.class_name, a.class_name)
+                self._add_back_faces(uid, a, yaw)
         for a in assets:
             for k in range(a.count if a.role == "object" else 0):
                 uid = self._load(a, float(rng.uniform(0, 2 * math.pi)))
@@ -229,8 +289,12 @@ class PybulletWorld:
         gl = np.asarray(pose, np.float64) @ np.diag([1.0, -1.0, -1.0, 1.0])   # RDF → OpenGL camera axes
         view = np.linalg.inv(gl)
         vfov = math.degrees(2 * math.atan(0.5 * H / K[1, 1]))
-        proj = self._p.computeProjectionMatrixFOV(vfov, W / H, NEAR_M, FAR_M)
-        return view.T.reshape(-1).tolist(), list(proj)
+        proj = list(self._p.computeProjectionMatrixFOV(vfov, W / H, NEAR_M, FAR_M))
+        # the tiny renderer samples pixel (u, v) half a pixel off the centre (u + ½, v + ½) of
+        # the conventions; shift the image plane by half a pixel (one NDC pixel is 2 / W)
+        proj[8] += 1.0 / W
+        proj[9] += 1.0 / H
+        return view.T.reshape(-1).tolist(), proj
 
     def render(self, pose: np.ndarray, K: np.ndarray, hw: tuple[int, int]) -> Render:
         """RGB, planar depth (+inf = no surface), labels (0 = sky) and instance ids (−1 =
@@ -274,13 +338,10 @@ class PybulletWorld:
         out = np.zeros(len(pts), np.int32)
         if len(pts) == 0:
             return out
-        out[pts[:, 2] < 0.0] = self.class_id("ground")
-        ijk = np.floor(pts / self.vox).astype(np.int64)
-        for dz in (0, -1, 1):
-            todo = np.flatnonzero(out == 0)
-            if len(todo) == 0:
-                break
-            out[todo] = self._voxel_labels(ijk[todo] + [0, 0, dz])
+        below = pts[:, 2] < 0.0
+        out[below] = self.class_id("ground")
+        above = np.flatnonzero(~below)
+        out[above] = self._voxel_labels(np.floor(pts[above] / self.vox).astype(np.int64))
         return out
 
     def _voxel_labels(self, ijk: np.ndarray) -> np.ndarray:
@@ -302,12 +363,12 @@ class PybulletWorld:
         if grid is not None:
             return grid
         t, v = self.tile, self.vox
-        grid = np.zeros((t, t, t), np.uint8)
-        lo = np.asarray(key, np.float64) * t * v
-        hi = lo + t * v
+        lo = np.asarray(key, np.float64) * t * v - v          # the tile plus a one-voxel margin
+        hi = lo + (t + 2) * v
+        grid = np.zeros((t + 2, t + 2, t + 2), np.uint8)
         near = self._p.getOverlappingObjects(lo.tolist(), hi.tolist(), physicsClientId=self.cid) or []
         if hi[2] > 0.0 and any(u != self.ground_uid for u, _ in near):
-            c = (np.arange(t) + 0.5) * v
+            c = (np.arange(t + 2) + 0.5) * v
             for axis in range(3):
                 a, b = [x for x in range(3) if x != axis]
                 ua, ub = np.meshgrid(lo[a] + c, lo[b] + c, indexing="ij")
@@ -316,13 +377,18 @@ class PybulletWorld:
                 end = start.copy()
                 end[:, axis] = hi[axis] + 1e-3
                 self._march(grid, start, end, axis, lo)
-        self._tiles[key] = grid
-        return grid
+        out = np.zeros((t, t, t), np.uint8)       # dilate by one voxel (26-neighbourhood), crop the margin
+        for dx in range(3):
+            for dy in range(3):
+                for dz in range(3):
+                    np.maximum(out, grid[dx:dx + t, dy:dy + t, dz:dz + t], out=out)
+        self._tiles[key] = out
+        return out
 
     def _march(self, grid: np.ndarray, start: np.ndarray, end: np.ndarray, axis: int, lo: np.ndarray,
                max_hits: int = 64) -> None:
         """Cast rows ``start`` → ``end`` along ``axis``, hit after hit; mark each hit's voxel."""
-        t, v = self.tile, self.vox
+        t, v = grid.shape[0], self.vox
         frm = start.copy()
         live = np.arange(len(frm))
         for _ in range(max_hits):
