@@ -187,7 +187,7 @@ class PybulletWorld:
         self._body_class[uid], self._body_inst[uid] = cid, iid
         self.instances.append(Instance(iid, cid, name, (lo + hi) / 2, lo, hi))
 
-    def _add_back_faces(self, uid: int, a: Asset, yaw: float) -> None:
+    def _add_back_faces(self, uid: int, a: Asset) -> None:
         """A visual-only twin of body ``uid`` whose mesh has every triangle turned round, at the
         same pose: the tiny renderer culls back faces, and the monastery's mesh is one-sided
         in places, so without it the camera would see through walls the ray test (and the
@@ -222,17 +222,17 @@ class PybulletWorld:
 
     def _assemble(self, rng: np.random.Generator, assets: tuple[Asset, ...], half: float,
                   landmark_m: tuple[float, float]) -> None:
+        site: tuple[int, Asset] | None = None
         for a in assets:
             if a.role == "ground":
                 self.ground_uid = self._load(a, 0.0)
                 self._register(self.ground_uid, a.class_name, a.class_name)
         for a in assets:
             if a.role == "site":
-                yaw = float(rng.uniform(0, 2 * math.pi))
-                uid = self._load(a, yaw)
+                uid = self._load(a, float(rng.uniform(0, 2 * math.pi)))
                 self._move_to(uid, np.zeros(2), on_ground=False)
                 self._register(uid, a.class_name, a.class_name)
-                self._add_back_faces(uid, a, yaw)
+                site = (uid, a)
         for a in assets:
             for k in range(a.count if a.role == "object" else 0):
                 uid = self._load(a, float(rng.uniform(0, 2 * math.pi)))
@@ -258,6 +258,8 @@ class PybulletWorld:
             uid = self._load(a, float(rng.uniform(0, 2 * math.pi)))
             self._move_to(uid, float(rng.uniform(*landmark_m)) * np.array([math.cos(b), math.sin(b)]))
             self._register(uid, a.class_name, a.class_name)
+        if site is not None:        # last, so that body i is instance i
+            self._add_back_faces(*site)
 
     # ------------------------------------------------------------------ metadata
 
