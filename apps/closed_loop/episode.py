@@ -177,6 +177,8 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
                chain: EdgeChain, mapper, run: _Run, trace: Trace | None) -> None:
     """The map-based loop: sense, map, search, decide, move (module docstring)."""
     semantic = POLICIES[policy][1]
+    if hasattr(chain, "start_episode"):
+        chain.start_episode()
     state = PolicyState()
     if settings.sem_poses_min_z is not None:
         state.pose_min_z = float(settings.sem_poses_min_z)

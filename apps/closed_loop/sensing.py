@@ -122,6 +122,14 @@ class EdgeChain:
         self.space = FeatureSpace.for_encoder(self.encoder, self.pca)
         self.seq = 0
 
+    def start_episode(self) -> None:
+        """Restart the random draws (depth sensor, sim encoder) from ``sensor_seed``, so every
+        policy's episode from the same start meets the same noise for the same views."""
+        self.rng = np.random.default_rng(self.cfg.sensor_seed)
+        gen = getattr(self.encoder, "generator", None)
+        if gen is not None:
+            gen.manual_seed(int(getattr(self.encoder, "seed", 0)))
+
     def class_cells(self, side_px: int = 32) -> torch.Tensor:
         """(K, C): the encoder's feature of an image showing only class k (``side_px`` square,
         its cells averaged), for each of the world's K classes."""
