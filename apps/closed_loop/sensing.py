@@ -24,7 +24,9 @@ those beyond it into rays), the sky returns nothing (NaN, ignored by the map).
 Semantics (``encoder``): ``sim`` the simulated ViT-like encoder (class confusions,
 blur, noise: :mod:`encoders.sim`), ``label`` the exact labels. PCA basis
 (``pca_fit``): ``first_views`` fitted on the robot's own first views — the
-encoder's output for views rendered all around the first mission's start — ``classes`` on views around the world centre plus one cell of each of the world's classes.
+encoder's output for views rendered all around the first mission's start —,
+``classes`` on views around the world centre plus one cell of each of the world's
+classes.
 
 World frame z up, metres; poses camera-to-world, RDF camera axes.
 """

@@ -43,7 +43,8 @@ class SourceConfig:
     preset: str = field_("default", "synthetic / sim_camera: world preset name")
     trajectory: str = field_("ground", "synthetic: camera trajectory kind, 'ground' or 'drone'")
     hfov: float = field_(90.0, "synthetic / sim_camera / pybullet: horizontal field of view in degrees")
-    sky_depth: str = field_("inf", "sim_camera / pybullet: depth of sky pixels, 'inf' (beyond range) or 'nan' (no return)")
+    sky_depth: str = field_("inf", "sim_camera / pybullet: depth of sky pixels, 'inf' (beyond range) or 'nan' "
+                                   "(no return)")
     n_frames: int = field_(100, "synthetic: number of trajectory frames")
     trajectory_seed: int | None = field_(
         None, "synthetic: seed of the lap (start point, direction); null = source.seed. Several robots in one "
