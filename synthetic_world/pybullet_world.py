@@ -393,20 +393,21 @@ class PybulletWorld:
         t, v = grid.shape[0], self.vox
         frm = start.copy()
         live = np.arange(len(frm))
+        cls_of = np.zeros(max(self._body_class) + 1, np.uint8)
+        for uid, c in self._body_class.items():
+            cls_of[uid] = c
         for _ in range(max_hits):
             if len(live) == 0:
                 return
             res = self._p.rayTestBatch(frm[live].tolist(), end[live].tolist(), physicsClientId=self.cid)
-            keep = []
-            for i, h in zip(live, res, strict=True):
-                if h[0] < 0:
-                    continue
-                hp = np.asarray(h[3], np.float64)
-                if h[0] != self.ground_uid:
-                    ijk = np.clip(np.floor((hp - lo) / v).astype(int), 0, t - 1)
-                    grid[ijk[0], ijk[1], ijk[2]] = self._body_class.get(h[0], 0)
-                step = 1e-3 if hp[axis] - frm[i, axis] > 1e-6 else 0.5 * v   # stuck at the start: jump on
-                frm[i, axis] = hp[axis] + step
-                if frm[i, axis] < end[i, axis]:
-                    keep.append(i)
-            live = np.asarray(keep, np.int64)
+            uid = np.fromiter((h[0] for h in res), np.int64, len(res))
+            hit = uid >= 0
+            live, uid = live[hit], uid[hit]
+            hp = np.array([h[3] for h, ok in zip(res, hit, strict=True) if ok], np.float64).reshape(-1, 3)
+            body = (uid != self.ground_uid) & (uid < len(cls_of))
+            ijk = np.clip(np.floor((hp[body] - lo) / v).astype(np.int64), 0, t - 1)
+            grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = np.maximum(grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]],
+                                                             cls_of[uid[body]])
+            moved = hp[:, axis] - frm[live, axis] > 1e-6
+            frm[live, axis] = hp[:, axis] + np.where(moved, 1e-3, 0.5 * v)   # stuck at the start: jump on
+            live = live[frm[live, axis] < end[live, axis]]
