@@ -33,10 +33,10 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
     """Run the procedure (module docstring) on ``cfg``'s seeds and missions; returns the JSON."""
     held = set(HELD_OUT_SEEDS.get(cfg.world, [])) & set(cfg.seeds)
     if held:
-        raise ValueError(f"tune-sem-poses: seeds {sorted(held)} are held-out seeds; tune on development seeds "
+        raise ValueError(f"seeds {sorted(held)} are held-out seeds; tune on development seeds "
                          f"(--seeds dev)")
     if not cuts:
-        raise ValueError("tune-sem-poses: give at least one cut with --cuts")
+        raise ValueError("give at least one cut with --cuts")
     per_cut, docs = {}, {}
     for c in cuts:
         doc = run_search_eval(dataclasses.replace(cfg, policies=["sem-poses"], sem_poses_min_z=float(c)), argv=argv)
