@@ -68,6 +68,23 @@ def loadavg() -> list[float]:
         return []
 
 
+def git_commit(path: str | None = None) -> dict:
+    """``{"commit": sha or None, "dirty": bool or None}`` of the git checkout holding ``path``
+    (default: this source tree); None values when it is not a git checkout."""
+    import subprocess
+    from pathlib import Path
+
+    where = str(Path(path or __file__).resolve().parent)
+    try:
+        sha = subprocess.run(["git", "-C", where, "rev-parse", "HEAD"], capture_output=True, text=True,
+                             timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", where, "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip() != ""
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+    return {"commit": sha, "dirty": dirty}
+
+
 def cpu_seconds(children: bool = False) -> float:
     """User + system CPU seconds of this process (all threads), or of its waited-for children."""
     r = resource.getrusage(resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF)

@@ -34,7 +34,10 @@ from apps.closed_loop.sensing import EdgeChain
 from synthetic_world import World
 
 #: the values of :attr:`LoopSettings.background`
-BACKGROUNDS = ("world", "default")
+BACKGROUNDS = ("generic", "world", "default")
+#: ``background="generic"``: a fixed list of things found anywhere outdoors, the same for every
+#: world (never the world's class list); docs/pybullet_world.md#semantics
+GENERIC_BACKGROUND = ("ground", "road", "grass", "wall", "building", "tree", "sky")
 
 
 @dataclass
@@ -48,7 +51,13 @@ class LoopSettings:
     window_m: float = 30.0
     preset: str = "online"
     min_score: float = 0.3
-    #: the searches' background phrases: "world" = every class of the world but the target
+    #: sem-poses: a pose's target margin must stand out this much (modified z-score among the
+    #: episode's poses) to lead when no pose's probability reaches ``min_score``
+    #: (:data:`apps.closed_loop.policies.SEM_POSES_MIN_Z`; chosen on development seeds by
+    #: ``rayfronts eval tune-sem-poses``)
+    sem_poses_min_z: float | None = None
+    #: the searches' background phrases: "generic" = :data:`GENERIC_BACKGROUND` (what
+    #: ``rayfronts eval search`` uses by default), "world" = every class of the world but the target
     #: (what the paper's querying softmaxes over: all class names), "default" = the mapper's
     #: ``search.background`` (building, road, ground, tree, sky: a radio tower then reads as a
     #: water tower, nothing else in the softmax being closer)
@@ -58,6 +67,8 @@ class LoopSettings:
         """The phrases :attr:`background` names for ``world`` (None: the mapper's default)."""
         if self.background not in BACKGROUNDS:
             raise ValueError(f"background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
+        if self.background == "generic":
+            return list(GENERIC_BACKGROUND)
         return list(world.classes) if self.background == "world" else None
 
 
@@ -166,7 +177,11 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
                chain: EdgeChain, mapper, run: _Run, trace: Trace | None) -> None:
     """The map-based loop: sense, map, search, decide, move (module docstring)."""
     semantic = POLICIES[policy][1]
+    if hasattr(chain, "start_episode"):
+        chain.start_episode()
     state = PolicyState()
+    if settings.sem_poses_min_z is not None:
+        state.pose_min_z = float(settings.sem_poses_min_z)
     stuck = 0
     for step in range(mission.budget_steps):
         c0 = run.start_step(step, trace)

@@ -1,6 +1,15 @@
 """``rayfronts eval search``: closed-loop search episodes for every policy on the same worlds,
 starts and targets, and their summary (success, SPL, path, false finds, CPU per step).
 
+Worlds (``world``): ``synthetic`` (the procedural town, ``synthetic_world``) or ``pybullet``
+(scenes of pybullet_data assets: :mod:`synthetic_world.pybullet_world`). Defaults are the
+conditions a robot has (docs/pybullet_world.md): the realistic depth sensor, the simulated
+ViT-like encoder, a PCA basis fitted on the robot's first views and the generic background
+phrases; ``--sensor exact``, ``--encoder label``, ``--pca-fit classes`` and ``--background
+world`` give the exact ablations. The JSON's ``meta`` block says which commit, command line,
+machine and load it ran with (:mod:`apps.bench.meta`), ``seeds`` which seeds and whether they
+are development or held-out seeds (:mod:`apps.closed_loop.seeds`).
+
 Episodes: for each seed (a world) and each mission kind, ``episodes`` missions are drawn
 (targets cycle through the kind's classes; starts random in the town, seeded by the seed and
 the episode index), and every policy runs each mission at each depth limit. Outputs:
@@ -24,12 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.closed_loop.episode import BACKGROUNDS, LoopSettings, Trace, run_episode
+from apps.closed_loop.episode import BACKGROUNDS, GENERIC_BACKGROUND, LoopSettings, Trace, run_episode
 from apps.closed_loop.metrics import summarize
-from apps.closed_loop.missions import LANDMARK_TARGETS, OBJECT_TARGETS, make_mission
+from apps.closed_loop.missions import LANDMARK_TARGETS, OBJECT_TARGETS, TARGETS, make_mission
 from apps.closed_loop.policies import MIN_RAY_Z, POLICIES
 from apps.closed_loop.robot import Platform
-from apps.closed_loop.sensing import EdgeChain, SensorConfig
+from apps.closed_loop.sensing import PCA_FITS, SENSORS, EdgeChain, SensorConfig
 
 log = logging.getLogger("rayfronts.eval.search")
 
@@ -40,6 +49,23 @@ MISSIONS = {"object": (OBJECT_TARGETS, 40, 1), "landmark": (LANDMARK_TARGETS, 12
 #: at twice the oracle's steps RayFronts ended 49-61 m short of the tower on all three
 #: development seeds (frontier exploration 190-309 m away), so the budget is three times.
 BUDGET_VS_ORACLE = {"landmark": 3.0}
+
+
+#: the world families of ``--world``
+WORLDS = ("synthetic", "pybullet")
+
+
+def make_world(world: str, seed: int):
+    """The world of family ``world`` (:data:`WORLDS`) for ``seed``."""
+    if world == "pybullet":
+        from synthetic_world.pybullet_world import PybulletWorld
+
+        return PybulletWorld.generate(seed)
+    if world == "synthetic":
+        from synthetic_world import World
+
+        return World.generate(seed)
+    raise ValueError(f"unknown world {world!r}; one of {', '.join(WORLDS)}")
 
 
 def budget_steps(kind: str, shortest_m: float, step_m: float, scale: float = 1.0) -> int:
@@ -67,7 +93,17 @@ class SearchEvalConfig:
     step_m: float = 2.0
     distributed: bool = False      # real mapper and edge processes over Zenoh per episode (LiveMapper)
     work_dir: str = ""             # --distributed: the processes' config files and logs ('' = a temp dir)
-    background: str = "world"      # the searches' background phrases (LoopSettings.background)
+    background: str = "generic"    # the searches' background phrases (LoopSettings.background)
+    world: str = "synthetic"       # the world family (WORLDS)
+    sensor: str = "realistic"      # the depth sensor (SensorConfig.sensor)
+    encoder: str = "sim"           # the image encoder (SensorConfig.encoder)
+    pca_fit: str = "first_views"   # where the PCA basis comes from (SensorConfig.pca_fit)
+    sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
+
+    def sensor_config(self, seed: int = 0) -> SensorConfig:
+        """The closed loop's camera and edge settings of this run (sensor draws seeded by ``seed``)."""
+        return SensorConfig(resolution=self.resolution, encoder=self.encoder, sensor=self.sensor,
+                            pca_fit=self.pca_fit, sensor_seed=int(seed))
 
     def validate(self) -> "SearchEvalConfig":
         bad = [p for p in self.policies if p not in POLICIES]
@@ -82,6 +118,14 @@ class SearchEvalConfig:
         Platform.make(self.platform)
         if self.background not in BACKGROUNDS:
             raise ValueError(f"--background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
+        if self.world not in WORLDS:
+            raise ValueError(f"--world must be one of {', '.join(WORLDS)}, not {self.world!r}")
+        if self.sensor not in SENSORS or self.pca_fit not in PCA_FITS or self.encoder not in ("sim", "label"):
+            raise ValueError(f"--sensor must be one of {', '.join(SENSORS)}, --pca-fit one of {', '.join(PCA_FITS)}, "
+                             f"--encoder sim or label; got {self.sensor!r}, {self.pca_fit!r}, {self.encoder!r}")
+        if self.distributed and (self.world != "synthetic" or self.sensor != "exact"):
+            raise ValueError("--distributed: the edge process renders the synthetic world with the exact sensor only; "
+                             "add --world synthetic --sensor exact")
         if self.episodes < 1 or self.budget_scale <= 0:
             raise ValueError("--episodes must be >= 1 and the budget scale > 0")
         if self.distributed and "sem-poses" in self.policies:
@@ -145,7 +189,8 @@ def seed_missions(cfg: SearchEvalConfig, world, robot: Platform, seed: int) -> l
     wanted = [k for k in MISSIONS if k in cfg.missions]
     out = []
     for kind in list(MISSIONS)[:list(MISSIONS).index(wanted[-1]) + 1] if wanted else []:
-        targets, budget, k = MISSIONS[kind]
+        _, budget, k = MISSIONS[kind]
+        targets = TARGETS[cfg.world][kind]
         for e in range(cfg.episodes):
             target = targets[e % len(targets)]
             try:
@@ -160,47 +205,68 @@ def seed_missions(cfg: SearchEvalConfig, world, robot: Platform, seed: int) -> l
     return out
 
 
-def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None) -> dict:
-    """Run every episode (module docstring); returns the JSON document."""
-    from synthetic_world import World
+def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: list[str] | None = None) -> dict:
+    """Run every episode (module docstring); returns the JSON document. ``argv``: the command
+    line to record (``meta.argv``)."""
+    from apps.bench.meta import git_commit, run_meta
+    from apps.closed_loop.seeds import seed_sets
 
     cfg.validate()
-    settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background)
+    settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background,
+                             sem_poses_min_z=cfg.sem_poses_min_z)
     robot = Platform.make(cfg.platform)
     rows: list[dict] = []
     t0, c0 = time.perf_counter(), time.process_time()
     load0 = os.getloadavg()
     recorded = False
-    for seed in cfg.seeds:
-        world = World.generate(seed)
-        chain = EdgeChain(world, SensorConfig(resolution=cfg.resolution))
-        for kind, e, mission in seed_missions(cfg, world, robot, seed):
-            for depth in cfg.depth_limits:
-                settings = dataclasses.replace(settings0, depth_limit_m=float(depth))
-                for p in cfg.policies:
-                    trace = Trace() if rerun_path and not recorded and p == "rayfronts" else None
-                    r = _episode(cfg, world, seed, mission, p, settings, chain, trace)
-                    r.update(seed=seed, episode=e, depth_limit_m=float(depth), platform=cfg.platform)
-                    rows.append(r)
-                    log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",
-                             seed, kind, mission.target, depth, p, r["success"], r["spl"], r["path_m"], r["steps"])
-                    if trace is not None:
-                        from apps.closed_loop.recording import record_episode
+    with run_meta(argv) as meta:
+        for seed in cfg.seeds:
+            world = make_world(cfg.world, seed)
+            missions = seed_missions(cfg, world, robot, seed)
+            if not missions:
+                continue
+            chain = EdgeChain(world, cfg.sensor_config(seed), fit_at=missions[0][2].start)
+            for kind, e, mission in missions:
+                for depth in cfg.depth_limits:
+                    settings = dataclasses.replace(settings0, depth_limit_m=float(depth))
+                    for p in cfg.policies:
+                        trace = Trace() if rerun_path and not recorded and p == "rayfronts" else None
+                        r = _episode(cfg, world, seed, mission, p, settings, chain, trace)
+                        r.update(seed=seed, episode=e, depth_limit_m=float(depth), platform=cfg.platform,
+                                 world=cfg.world)
+                        rows.append(r)
+                        log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",
+                                 seed, kind, mission.target, depth, p, r["success"], r["spl"], r["path_m"],
+                                 r["steps"])
+                        if trace is not None:
+                            from apps.closed_loop.recording import record_episode
 
-                        record_episode(rerun_path, world, mission, trace, r)
-                        recorded = True
+                            record_episode(rerun_path, world, mission, trace, r)
+                            recorded = True
+    sensor = cfg.sensor_config()
     return {"policies": summarize_policies(rows, cfg.policies),
             "settings": {**dataclasses.asdict(cfg), "vox_m": settings0.vox_m, "preset": settings0.preset,
-                         "min_ray_z": MIN_RAY_Z,
-                         "sensor": dataclasses.asdict(SensorConfig(resolution=cfg.resolution)),
-                         "missions_defined": {k: {"targets": v[0], "budget_steps": v[1], "k": v[2],
+                         "min_ray_z": MIN_RAY_Z, "background_phrases": _phrases(settings0),
+                         "sensor": dataclasses.asdict(sensor),
+                         "missions_defined": {k: {"targets": TARGETS[cfg.world][k], "budget_steps": v[1], "k": v[2],
                                                   "budget_vs_oracle": BUDGET_VS_ORACLE.get(k, 0.0)}
                                               for k, v in MISSIONS.items()}},
             "episodes": rows,
+            "seeds": seed_sets(cfg.world, list(cfg.seeds)),
+            "meta": {**meta, **git_commit()},
             "machine": {"python": _platform.python_version(), "cpu": _platform.processor() or _platform.machine(),
                         "cores": os.cpu_count(), "load_avg_1_5_15_start": [round(x, 2) for x in load0],
                         "load_avg_1_5_15_end": [round(x, 2) for x in os.getloadavg()]},
             "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+
+
+def _phrases(settings: LoopSettings) -> list[str] | str:
+    """The background phrases of the run for the JSON (``world``: they depend on the world)."""
+    if settings.background == "world":
+        return "every class of the world but the target"
+    if settings.background == "default":
+        return "the mapper's search.background"
+    return list(GENERIC_BACKGROUND)
 
 
 def table_markdown(doc: dict) -> str:

@@ -8,8 +8,9 @@ start (camera centre, m) on free ground, and the distances that define success:
 * ``declare_m``: a declared instance is correct when its centroid lies within this 3D
   distance of a true instance's box (else it is a false find).
 
-Kinds: ``object`` (nearest in-range object of the class: car, bench, street lamp...),
-``landmark`` (a far landmark: water tower, radio tower — beyond any depth limit at the start)
+Kinds: ``object`` (nearest in-range object of the class: car, bench, street lamp...; in the
+pybullet world teddy bear, shelf, r2d2), ``landmark`` (a far landmark: water tower, radio
+tower; in the pybullet world the statues — beyond any depth limit at the start)
 and ``all`` (find ``k`` instances of a class). The shortest path (SPL's reference) is computed
 on the TRUE world (:func:`apps.closed_loop.robot.true_free_grid`) with scipy's Dijkstra; for
 ``all`` it is the greedy nearest-first tour over true shortest paths (what ``oracle`` drives;
@@ -26,9 +27,13 @@ from apps.closed_loop.planner import distance_field, path_to
 from apps.closed_loop.robot import Platform, true_free_grid
 from synthetic_world import World
 
-#: mission kinds and their default target classes
+#: mission kinds and their default target classes (synthetic world)
 OBJECT_TARGETS = ["car", "bench", "street lamp"]
 LANDMARK_TARGETS = ["water tower", "radio tower"]
+#: world family -> mission kind -> target classes (the pybullet world's: docs/pybullet_world.md)
+TARGETS = {"synthetic": {"object": OBJECT_TARGETS, "landmark": LANDMARK_TARGETS, "all": ["car"]},
+           "pybullet": {"object": ["teddy bear", "shelf", "r2d2"], "landmark": ["teddy bear statue", "robot statue"],
+                        "all": ["teddy bear"]}}
 #: success distances (m) per kind: (reach_m, declare_m)
 DISTANCES = {"object": (3.0, 2.0), "landmark": (10.0, 5.0), "all": (3.0, 2.0)}
 

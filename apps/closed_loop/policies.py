@@ -29,9 +29,15 @@ until then:
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
   ``gain_m3 / (1 + path_m)`` (information-gain exploration, no semantics);
-* ``sem-poses``: toward the direction of the best-scoring camera pose (image-level features):
-  the goal whose bearing from that pose is closest to its heading (cosine ≥ 0.8), nearest
-  first; without evidence like ``frontier``;
+* ``sem-poses`` (the paper's Semantic Poses, after EPG: one image-level feature per camera
+  pose, a ray along the camera's heading): toward the heading of the camera pose whose
+  image-level feature scores best — its probability (softmax over target + background) when
+  one reaches ``min_score``, else the pose whose target margin (cosine to the target minus
+  the best background cosine) stands out among the episode's poses (modified z-score ≥
+  ``PolicyState.pose_min_z``: a far target fills a small share of an image, so its
+  probability stays low, but the image that shows it scores above the others). Goal: the
+  look-next goal whose bearing from that pose lies within 37° of its heading (cosine ≥ 0.8),
+  nearest first; without evidence like ``frontier``;
 * ``oracle``: the true shortest tour (:func:`apps.closed_loop.missions.oracle_tour`) —
   SPL's reference; it does not use the map.
 
@@ -59,6 +65,11 @@ POLICIES: dict[str, tuple[str | None, bool, bool]] = {
 }
 
 
+#: sem-poses' default outlier cut for a pose's target margin (the same cut as MIN_RAY_Z until
+#: ``rayfronts eval tune-sem-poses`` on the development seeds says otherwise)
+SEM_POSES_MIN_Z = 3.5
+
+
 @dataclass
 class Decision:
     """``goal_cell`` to drive toward (None: nowhere to go), ``declare`` a found instance dict
@@ -80,6 +91,7 @@ class PolicyState:
     stalled: dict = field(default_factory=dict)       # instance id -> [(xy, m from its box)]: approach stalled
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
     bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
+    pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
 
 
 def _progress(nav: NavField, cell: np.ndarray) -> bool:
@@ -183,7 +195,7 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     far = [x for x in goals if x[2] >= min_goal_m] or goals
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
     passed = _passed(goals, at) if _semantic(name) else []
-    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing)
+    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z)
     evidence = not d.why.startswith("frontier")
     held = _held(state, nav, _without(far, passed) or far, evidence)
     if held is not None:
@@ -218,7 +230,7 @@ def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False
 
 def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_z: float = MIN_RAY_Z,
             every: list | None = None, at: np.ndarray | None = None, passed: list | None = None,
-            bearing: tuple | None = None) -> Decision:
+            bearing: tuple | None = None, pose_min_z: float = SEM_POSES_MIN_Z) -> Decision:
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
     outlier ray may be attached next to the robot; ``passed``: those of them the robot has
     passed, :func:`_passed`; ``bearing``: the episode's strongest outlier ray,
@@ -247,17 +259,31 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             if d is not None:
                 return d
     if name == "sem-poses" and obs.poses:
-        o, d, s = max(obs.poses, key=lambda p: p[2])
-        h = np.asarray(d[:2], np.float64)
-        if s >= min_score and np.linalg.norm(h) > 1e-6:
-            h = h / np.linalg.norm(h)
-            pool = _ahead(goals, o, h, 0.8)
-            if pool:
-                g, cell, _ = min(pool, key=lambda x: x[2])
-                return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"pose {s:.2f}",
-                                score=float(s))
+        d = _pose_goal(obs, goals, min_score, pose_min_z)
+        if d is not None:
+            return d
     g, cell, _ = max(goals, key=lambda x: (x[0].get("gain_m3", 0.0) / (1.0 + x[2]), -x[2]))
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="frontier gain/path")
+
+
+def _pose_goal(obs: Observation, goals: list, min_score: float, min_z: float) -> Decision | None:
+    """Semantic Poses' goal (module docstring): toward the heading of the best pose by
+    probability (≥ ``min_score``), else by margin z-score (≥ ``min_z``); None without one."""
+    o, d, s, z = max(obs.poses, key=lambda p: p[2])
+    why = f"pose {s:.2f}"
+    if s < min_score:
+        o, d, s, z = max(obs.poses, key=lambda p: p[3])
+        why = f"pose z {z:.1f}"
+        if z < min_z:
+            return None
+    h = np.asarray(d[:2], np.float64)
+    if np.linalg.norm(h) <= 1e-6:
+        return None
+    pool = _ahead(goals, o, h / np.linalg.norm(h), 0.8)
+    if not pool:
+        return None
+    g, cell, _ = min(pool, key=lambda x: x[2])
+    return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=why, score=float(s))
 
 
 def _best_by(goals: list, key: str) -> tuple[float, list]:

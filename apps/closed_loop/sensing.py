@@ -10,11 +10,23 @@ tilted 10°, so they see the voxel layer just above its body from ~0.7 m out (it
 know the space at its own height) and the ground from ~4 m out at its 5.5 m cruise height.
 Camera: square images of ``resolution`` pixels.
 
-Depth sensor model (``sky_no_return``, default on): surfaces at any distance return their
-depth (the map's depth limit turns those beyond it into rays), the sky returns nothing (NaN,
-ignored by the map). The world renders the sky at +inf ("beyond range"), which would fill
-every upward ray bin with sky and drown a far tower's few pixels in the bin's mean feature;
-a range sensor or a metric depth network has no surface to report there.
+The defaults of this dataclass are the exact building blocks (the unit tests' setting);
+``rayfronts eval search`` runs with ``sensor=realistic``, ``encoder=sim`` and
+``pca_fit=first_views`` unless told otherwise (:class:`apps.closed_loop.evaluate.SearchEvalConfig`).
+
+Depth (``sensor``): ``realistic`` is a depth camera like a real one
+(:class:`synthetic_world.depth_sensor.DepthSensorModel`: no return beyond its range for every
+surface, far building and sky alike, noise σ = k·z², dropouts at grazing angles and depth
+edges; draws seeded by ``sensor_seed``); ``exact`` is the world's exact depth with
+``sky_no_return``: surfaces at any distance return their depth (the map's depth limit turns
+those beyond it into rays), the sky returns nothing (NaN, ignored by the map).
+
+Semantics (``encoder``): ``sim`` the simulated ViT-like encoder (class confusions,
+blur, noise: :mod:`encoders.sim`), ``label`` the exact labels. PCA basis
+(``pca_fit``): ``first_views`` fitted on the robot's own first views — the
+encoder's output for views rendered all around the first mission's start —,
+``classes`` on views around the world centre plus one cell of each of the world's
+classes.
 
 World frame z up, metres; poses camera-to-world, RDF camera axes.
 """
@@ -22,7 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -30,6 +42,7 @@ import torch
 from apps.closed_loop.robot import Platform, camera_pose
 from common.frame import Frame
 from synthetic_world import World
+from synthetic_world.depth_sensor import DepthSensorModel
 
 
 @dataclass(frozen=True)
@@ -45,43 +58,79 @@ class SensorConfig:
     pca_dim: int = 32
     feature_codec: str = "q16z"
     sky_no_return: bool = True
+    sensor: str = "exact"
+    depth_model: DepthSensorModel = field(default_factory=DepthSensorModel)
+    sensor_seed: int = 0
+    pca_fit: str = "classes"
+
+    def validate(self) -> "SensorConfig":
+        """Raise ``ValueError`` naming a bad choice."""
+        if self.sensor not in SENSORS:
+            raise ValueError(f"sensor must be one of {', '.join(SENSORS)}, not {self.sensor!r}")
+        if self.encoder not in ("sim", "label"):
+            raise ValueError(f"encoder must be 'sim' or 'label', not {self.encoder!r}")
+        if self.pca_fit not in PCA_FITS:
+            raise ValueError(f"pca_fit must be one of {', '.join(PCA_FITS)}, not {self.pca_fit!r}")
+        self.depth_model.validate()
+        return self
+
+
+#: the depth sensors of the loop (module docstring)
+SENSORS = ("realistic", "exact")
+#: where the PCA basis comes from (module docstring)
+PCA_FITS = ("first_views", "classes")
 
 
 class EdgeChain:
     """The edge's per-frame work in process: encoder → PCA → wire encode → decode.
 
-    The PCA basis is fitted once per world, as an operator fits a basis offline before a
-    mission on data of the site, so every policy and every episode of a world see the same
-    feature space: ``fit_views`` renders around the world centre plus one cell of each of the
-    world's classes (the label encoder's feature of a cell showing only that class). Without
-    the class cells a class that no fitting view shows (a far tower, a small bench) is left to
-    the arbitrary basis directions of zero variance, and its compressed feature can read as
-    another class (dev world 3: the water tower as the radio tower)."""
+    The PCA basis is fitted once per world, so every policy and every episode of a world see
+    the same feature space. ``pca_fit="first_views"``: on the encoder's output for
+    ``fit_views`` views all around ``fit_at`` (the first mission's start: the robot's own
+    first views; yaws evenly spaced, tilted down 0 and 0.3 rad in turn) — nothing of the
+    world's class list. ``"classes"``: views around the
+    world centre plus one cell of each of the world's classes (:meth:`class_cells`), as an
+    operator who knew every class of the site would fit it."""
 
-    def __init__(self, world: World, cfg: SensorConfig, fit_views: int = 8):
+    def __init__(self, world: World, cfg: SensorConfig, fit_views: int = 8, fit_at: np.ndarray | None = None):
         from common.feature_space import FeatureSpace
         from common.pca import OnlinePCAFitter
         from edge.runtime import EdgeConfig
         from encoders import make_encoder
 
+        cfg.validate()
         ecfg = EdgeConfig()
         ecfg = dataclasses.replace(ecfg, encoder=dataclasses.replace(ecfg.encoder, kind=cfg.encoder,
                                                                      label_stride=cfg.label_stride))
         self.world, self.cfg = world, cfg
+        # the simulated camera + encoder: the sim encoder turns the rendered scene's labels into
+        # degraded features (it stands in for the image a ViT would see)
         self.encoder = make_encoder(ecfg.encoder, class_names=world.classes)
         hw = (cfg.resolution, cfg.resolution)
         self.hw = hw
         self.K = world.camera(hw, 90.0)
+        self.rng = np.random.default_rng(cfg.sensor_seed)
+        classes = cfg.pca_fit == "classes"
+        centre = np.array([0.0, 0.0, 1.5]) if classes or fit_at is None else np.asarray(fit_at, np.float64)
         fit = OnlinePCAFitter(cfg.pca_dim, max_frames=fit_views + 1)
         with torch.inference_mode():
             for k in range(fit_views):
-                pose = camera_pose(np.array([0.0, 0.0, 1.5]), 2 * math.pi * k / fit_views, 0.3 * (k % 2))
-                r = world.render(pose, self.K, hw)
+                pose = camera_pose(centre, 2 * math.pi * k / fit_views, 0.3 * (k % 2))
+                r = self.render(pose)
                 fit.add(self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")[0])
-            fit.add(self.class_cells())
+            if classes:
+                fit.add(self.class_cells())
         self.pca = fit.fit()
         self.space = FeatureSpace.for_encoder(self.encoder, self.pca)
         self.seq = 0
+
+    def start_episode(self) -> None:
+        """Restart the random draws (depth sensor, sim encoder) from ``sensor_seed``, so every
+        policy's episode from the same start meets the same noise for the same views."""
+        self.rng = np.random.default_rng(self.cfg.sensor_seed)
+        gen = getattr(self.encoder, "generator", None)
+        if gen is not None:
+            gen.manual_seed(int(getattr(self.encoder, "seed", 0)))
 
     def class_cells(self, side_px: int = 32) -> torch.Tensor:
         """(K, C): the encoder's feature of an image showing only class k (``side_px`` square,
@@ -109,6 +158,15 @@ class EdgeChain:
         """The simulated camera: the world rendered at camera pose ``pose`` (4×4 camera-to-world)."""
         return self.world.render(pose, self.K, self.hw)
 
+    def sense_depth(self, depth: np.ndarray) -> np.ndarray:
+        """The depth sensor's reading of a view's exact planar ``depth`` (m; module docstring)."""
+        if self.cfg.sensor == "realistic":
+            return self.cfg.depth_model.apply(depth, self.K, self.rng)
+        out = np.asarray(depth, np.float32).copy()
+        if self.cfg.sky_no_return:      # no surface, no return: the map ignores these pixels
+            out[np.isinf(out)] = np.nan
+        return out
+
     def encode(self, r, pose: np.ndarray, robot: str = "sim") -> Frame:
         """What the robot's edge does with a camera image ``r`` (:meth:`render`) taken at
         ``pose``: encoder → PCA → wire, and the mapper's decode."""
@@ -117,9 +175,7 @@ class EdgeChain:
 
         with torch.inference_mode():
             x, g = self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")
-        depth = r.depth.astype(np.float32)
-        if self.cfg.sky_no_return:      # no surface, no return: the map ignores these pixels
-            depth[np.isinf(depth)] = np.nan
+        depth = self.sense_depth(r.depth)
         f = Frame(robot=robot, seq=self.seq, stamp=float(self.seq), pose=pose, intrinsics=self.K, depth=depth,
                   rgb=r.rgb, features=compress_features(self.pca, x), feature_space=self.space.id,
                   global_feature=compress_features(self.pca, g.reshape(-1, 1, 1)).reshape(-1))

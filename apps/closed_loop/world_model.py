@@ -25,14 +25,15 @@ class Observation:
     ``look_next`` and, for the ray policies, ``estimates`` from ``beyond``), the 2D
     costmap of the body band (``states`` int8 FREE/OCCUPIED/UNKNOWN indexed [x, y],
     ``origin`` (2,) m of cell 0's min corner, ``cell`` m) and, for Semantic Poses, the
-    scored camera poses ``(position (3,), unit heading (3,), score)``."""
+    scored camera poses ``(position (3,), unit heading (3,), probability, margin z-score)``
+    (:meth:`LocalMapper._scored_poses`)."""
 
     found: list[dict]
     look_next: list[dict]
     states: np.ndarray
     origin: np.ndarray
     cell: float
-    poses: list[tuple[np.ndarray, np.ndarray, float]] = field(default_factory=list)
+    poses: list[tuple[np.ndarray, np.ndarray, float, float]] = field(default_factory=list)
     search_ms: float = 0.0
     estimates: list[dict] = field(default_factory=list)   # the search's beyond.estimates (semantic only)
 
@@ -125,11 +126,16 @@ class LocalMapper:
         # geometry only: look-next candidates by distance (no ray may attach to a frontier)
         return dataclasses.replace(self.cfg, search=dataclasses.replace(self.cfg.search, ray_radius_m=1e-9))
 
-    def _scored_poses(self, targets: list[str]) -> list[tuple[np.ndarray, np.ndarray, float]]:
-        """Each mapped view's image-level feature scored like a search (softmax of the targets
-        over targets + background at the search temperature): the best target's probability."""
+    def _scored_poses(self, targets: list[str]) -> list[tuple[np.ndarray, np.ndarray, float, float]]:
+        """Each mapped view's image-level feature scored like a search: ``(position, heading,
+        probability, z)`` with the best target's probability (softmax over targets +
+        background at the search temperature) and ``z``, the modified z-score of the pose's
+        target margin (best target cosine minus best background cosine) among all poses so
+        far, as the rays' ``ray_z`` (:func:`semantic_map.look_next.ray_outlier_z`: 0 with
+        fewer than 10 poses)."""
         from common.search_messages import SearchRequest
         from mapper.search_answer import embed_phrases
+        from semantic_map.look_next import ray_outlier_z
 
         if not self._poses:
             return []
@@ -140,4 +146,7 @@ class LocalMapper:
         feats = torch.as_tensor(np.stack([p[2] for p in self._poses]))
         sim = self.space.similarity(feats, q)           # (T + B, N)
         p = torch.softmax(sim * scfg.temperature, dim=0)[:len(targets)].max(0).values.numpy()
-        return [(o, d, float(s)) for (o, d, _), s in zip(self._poses, p, strict=True)]
+        t = len(targets)
+        margin = (sim[:t].max(0).values - (sim[t:].max(0).values if len(bg) else 0.0)).double().numpy()
+        z = ray_outlier_z(margin)[0]
+        return [(o, d, float(s), float(zz)) for (o, d, _), s, zz in zip(self._poses, p, z, strict=True)]

@@ -28,6 +28,8 @@ DESCRIPTION = """Benchmarks of the paper, run on this machine:
   search   closed-loop search: a simulated robot finds targets guided by each policy
            (rayfronts, frontier, unidirectional, spherical, sem-poses, oracle); success,
            SPL, path, false finds; writes --json FILE plus .md, .csv and plots beside it.
+  tune-sem-poses  choose sem-poses' margin z cut on the development seeds (best far-target
+           SPL); writes --json FILE.
 
 srchvol/semseg take --config FILE and trailing key=value overrides of their config (keys
 listed with 'rayfronts eval srchvol --help')."""
@@ -92,39 +94,66 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _search_parser(sub) -> None:
-    from apps.closed_loop.episode import BACKGROUNDS
-    from apps.closed_loop.evaluate import MISSIONS
-    from apps.closed_loop.policies import POLICIES
-
     se = sub.add_parser("search", help="closed-loop search episodes per policy (success, SPL)",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.evaluate", fromlist=["x"]).__doc__)
-    se.add_argument("--platform", choices=["ground", "drone"], default="ground", help="robot (default ground)")
-    se.add_argument("--depth-limit", action="append", default=None, metavar="D",
-                    help="depth limit(s) in metres, repeatable or comma list (default 20)")
-    se.add_argument("--seeds", default="0", help="world seeds, comma list or A-B range (default 0)")
-    se.add_argument("--episodes", type=int, default=1, help="missions per seed and mission kind (default 1)")
-    se.add_argument("--policies", default=None,
-                    help=f"comma list (default all: {','.join(POLICIES)}; with --distributed all but sem-poses)")
-    se.add_argument("--missions", default="object,landmark",
-                    help=f"comma list of mission kinds: {', '.join(MISSIONS)} (default object,landmark)")
-    se.add_argument("--budget-scale", type=float, default=1.0, help="scale the step budgets (default 1)")
-    se.add_argument("--background", choices=list(BACKGROUNDS), default="world",
-                    help="the searches' background phrases: every class of the world but the target (default; the "
-                         "paper's querying softmaxes over all class names) or the mapper's search.background")
-    se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
-    se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
+    _loop_options(se, "0", "object,landmark")
     se.add_argument("--json", required=True, metavar="FILE", help="summary + episode rows (.md/.csv/.png beside)")
     se.add_argument("--rerun", default=None, metavar="FILE.rrd", help="record the first rayfronts episode")
     se.add_argument("--distributed", action="store_true",
                     help="run each map-based episode with real mapper and edge processes over loopback Zenoh (the "
                          "edge renders the robot's views; this process plans through Client.search and the "
-                         "occupancy queries); slower, same maps")
+                         "occupancy queries); slower, same maps; needs --sensor exact (synthetic world)")
     se.add_argument("--work-dir", default="", metavar="DIR",
                     help="--distributed: where the processes' configs and logs go (default: a temp dir, removed)")
+    tu = sub.add_parser("tune-sem-poses", help="choose sem-poses' margin z cut on the development seeds",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description=__import__("apps.closed_loop.tuning", fromlist=["x"]).__doc__)
+    _loop_options(tu, "dev", "landmark,object")
+    tu.add_argument("--cuts", default="2,2.5,3,3.5,4,5", help="candidate z cuts, comma list (default 2,2.5,3,3.5,4,5)")
+    tu.add_argument("--json", required=True, metavar="FILE", help="per-cut summaries and the choice")
 
 
-def _seeds(text: str) -> list[int]:
+def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> None:
+    """The closed loop's options shared by ``search`` and ``tune-sem-poses``."""
+    from apps.closed_loop.episode import BACKGROUNDS
+    from apps.closed_loop.evaluate import MISSIONS, WORLDS
+    from apps.closed_loop.policies import POLICIES
+    from apps.closed_loop.sensing import PCA_FITS, SENSORS
+
+    se.add_argument("--world", choices=list(WORLDS), default="synthetic",
+                    help="world family: the procedural town or scenes of pybullet_data assets (default synthetic)")
+    se.add_argument("--platform", choices=["ground", "drone"], default="ground", help="robot (default ground)")
+    se.add_argument("--depth-limit", action="append", default=None, metavar="D",
+                    help="depth limit(s) in metres, repeatable or comma list (default 20)")
+    se.add_argument("--seeds", default=seeds,
+                    help=f"world seeds, comma list or A-B range, or dev / held-out (default {seeds})")
+    se.add_argument("--episodes", type=int, default=1, help="missions per seed and mission kind (default 1)")
+    se.add_argument("--policies", default=None,
+                    help=f"comma list (default all: {','.join(POLICIES)}; with --distributed all but sem-poses)")
+    se.add_argument("--missions", default=missions,
+                    help=f"comma list of mission kinds: {', '.join(MISSIONS)} (default {missions})")
+    se.add_argument("--budget-scale", type=float, default=1.0, help="scale the step budgets (default 1)")
+    se.add_argument("--background", choices=list(BACKGROUNDS), default="generic",
+                    help="the searches' background phrases: a fixed generic list (default), every class of the world "
+                         "but the target, or the mapper's search.background")
+    se.add_argument("--sensor", choices=list(SENSORS), default="realistic",
+                    help="depth sensor: range, noise and dropouts like a real one (default) or the exact depth")
+    se.add_argument("--encoder", choices=["sim", "label"], default="sim",
+                    help="image encoder: simulated ViT-like features (default) or the exact labels")
+    se.add_argument("--pca-fit", choices=list(PCA_FITS), default="first_views",
+                    help="PCA basis: the robot's first views (default) or views plus one cell per world class")
+    se.add_argument("--sem-poses-min-z", type=float, default=None, metavar="Z",
+                    help="sem-poses' margin z cut (default: policies.SEM_POSES_MIN_Z)")
+    se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
+    se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
+
+
+def _seeds(text: str, world: str = "synthetic") -> list[int]:
+    from apps.closed_loop.seeds import DEVELOPMENT_SEEDS, HELD_OUT_SEEDS
+
+    if text.strip() in ("dev", "held-out"):
+        return list((DEVELOPMENT_SEEDS if text.strip() == "dev" else HELD_OUT_SEEDS)[world])
     out: list[int] = []
     for part in text.split(","):
         part = part.strip()
@@ -136,25 +165,49 @@ def _seeds(text: str) -> list[int]:
     return out
 
 
-def _run_search(args: argparse.Namespace) -> int:
-    from apps.closed_loop.evaluate import SearchEvalConfig, run_search_eval, table_markdown, write_outputs
+def _search_config(args: argparse.Namespace):
+    from apps.closed_loop.evaluate import SearchEvalConfig
     from apps.closed_loop.policies import POLICIES
 
+    distributed = bool(getattr(args, "distributed", False))
     depths = [float(x) for a in (args.depth_limit or ["20"]) for x in a.split(",") if x.strip()]
     if args.policies is None:
-        policies = [p for p in POLICIES if not (args.distributed and p == "sem-poses")]
+        policies = [p for p in POLICIES if not (distributed and p == "sem-poses")]
     else:
         policies = [p.strip() for p in args.policies.split(",") if p.strip()]
-    cfg = SearchEvalConfig(platform=args.platform, depth_limits=depths, seeds=_seeds(args.seeds),
-                           episodes=args.episodes, policies=policies,
-                           missions=[m.strip() for m in args.missions.split(",") if m.strip()],
-                           budget_scale=args.budget_scale, resolution=args.resolution, step_m=args.step,
-                           distributed=args.distributed, work_dir=args.work_dir,
-                           background=args.background).validate()
-    doc = run_search_eval(cfg, args.rerun)
+    return SearchEvalConfig(platform=args.platform, depth_limits=depths, seeds=_seeds(args.seeds, args.world),
+                            episodes=args.episodes, policies=policies,
+                            missions=[m.strip() for m in args.missions.split(",") if m.strip()],
+                            budget_scale=args.budget_scale, resolution=args.resolution, step_m=args.step,
+                            distributed=distributed, work_dir=getattr(args, "work_dir", ""),
+                            background=args.background, world=args.world, sensor=args.sensor,
+                            encoder=args.encoder, pca_fit=args.pca_fit,
+                            sem_poses_min_z=args.sem_poses_min_z).validate()
+
+
+def _run_search(args: argparse.Namespace) -> int:
+    from apps.closed_loop.evaluate import run_search_eval, table_markdown, write_outputs
+
+    cfg = _search_config(args)
+    doc = run_search_eval(cfg, args.rerun, argv=["rayfronts", *sys.argv[1:]])
     paths = write_outputs(doc, args.json)
     print(table_markdown(doc))
     print("wrote " + ", ".join(str(p) for p in paths) + (f", {args.rerun}" if args.rerun else ""))
+    return 0
+
+
+def _run_tune(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from apps.closed_loop.tuning import tune_sem_poses
+
+    cfg = _search_config(args)
+    cuts = [float(x) for x in args.cuts.split(",") if x.strip()]
+    doc = tune_sem_poses(cfg, cuts, argv=["rayfronts", *sys.argv[1:]])
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(doc, indent=2, default=float))
+    print(f"chosen sem-poses cut: {doc['chosen']} (far-target SPL {doc['chosen_spl']:.3f}); wrote {args.json}")
     return 0
 
 
@@ -223,6 +276,8 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.action == "search":
             return _run_search(args)
+        if args.action == "tune-sem-poses":
+            return _run_tune(args)
         cfg = build_config(args)
         if args.action == "srchvol":
             from apps.evaluation.srchvol import run_srchvol

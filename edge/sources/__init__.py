@@ -18,6 +18,8 @@ World frame per kind (``src.world_frame`` says it in one sentence):
 * ``recording`` — whatever frame the recording was written in (its ``info``).
 * ``rosbag`` — the bag's world (``world_frame`` tf frame or the pose topic's frame),
   axes ``world_axes`` (REP-103 ENU by default) re-expressed as ENU.
+* ``sim_camera`` / ``pybullet`` — the synthetic / pybullet world's frame (z up), rendered at
+  poses a simulator sends over Zenoh.
 * ``ros2`` — live topics over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds keys): the same
   world as ``rosbag`` would give for the same messages.
 """
@@ -40,6 +42,7 @@ KINDS = {
     "rosbag": "edge.sources.rosbag:RosbagSource",
     "ros2": "edge.sources.ros2:Ros2Source",
     "sim_camera": "edge.sources.sim_camera:SimCameraSource",
+    "pybullet": "edge.sources.pybullet_sim:PybulletSource",
 }
 
 

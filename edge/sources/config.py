@@ -9,7 +9,8 @@ from typing import Literal
 
 from common.config import field_
 
-SourceKind = Literal["synthetic", "replica", "scannet", "tartanair", "recording", "rosbag", "ros2", "sim_camera"]
+SourceKind = Literal["synthetic", "replica", "scannet", "tartanair", "recording", "rosbag", "ros2", "sim_camera",
+                     "pybullet"]
 
 
 @dataclass
@@ -18,7 +19,8 @@ class SourceConfig:
 
     kind: SourceKind = field_("synthetic", "frame source: synthetic | replica | scannet | tartanair | recording | "
                                            "rosbag | ros2 (live ROS 2 topics over Zenoh) | sim_camera (the synthetic "
-                                           "world rendered at poses a simulator sends over Zenoh)")
+                                           "world rendered at poses a simulator sends over Zenoh) | pybullet (the "
+                                           "pybullet world, the same way)")
     path: str = field_("", "dataset root / scene directory / recording directory / bag directory (unused by synthetic)")
     robot: str = field_("robot1", "robot id stamped on every frame")
     resolution: str | None = field_(
@@ -37,11 +39,12 @@ class SourceConfig:
                "(z up). Read by replica, scannet and rosbag; 'ENU' keeps the source's world as it is")
 
     # synthetic
-    seed: int = field_(0, "synthetic / sim_camera: world seed")
+    seed: int = field_(0, "synthetic / sim_camera / pybullet: world seed")
     preset: str = field_("default", "synthetic / sim_camera: world preset name")
     trajectory: str = field_("ground", "synthetic: camera trajectory kind, 'ground' or 'drone'")
-    hfov: float = field_(90.0, "synthetic / sim_camera: horizontal field of view in degrees")
-    sky_depth: str = field_("inf", "sim_camera: depth of sky pixels, 'inf' (beyond range) or 'nan' (no return)")
+    hfov: float = field_(90.0, "synthetic / sim_camera / pybullet: horizontal field of view in degrees")
+    sky_depth: str = field_("inf", "sim_camera / pybullet: depth of sky pixels, 'inf' (beyond range) or 'nan' "
+                                   "(no return)")
     n_frames: int = field_(100, "synthetic: number of trajectory frames")
     trajectory_seed: int | None = field_(
         None, "synthetic: seed of the lap (start point, direction); null = source.seed. Several robots in one "

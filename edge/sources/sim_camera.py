@@ -47,20 +47,16 @@ class SimCameraSource(FrameSource):
         from common.zenoh_session import ZenohConfig
 
         if not 0 < cfg.hfov < 180:
-            raise SourceError(f"sim_camera: hfov must be in (0, 180) degrees, got {cfg.hfov}")
+            raise SourceError(f"{self.kind}: hfov must be in (0, 180) degrees, got {cfg.hfov}")
         if cfg.sky_depth not in ("inf", "nan"):
-            raise SourceError(f"sim_camera: sky_depth must be 'inf' or 'nan', got {cfg.sky_depth!r}")
-        try:
-            from synthetic_world import World
-
-            self.world = World.generate(cfg.seed, cfg.preset)
-        except (ImportError, ValueError, KeyError) as e:
-            raise SourceError(f"sim_camera: cannot generate world seed={cfg.seed} preset={cfg.preset!r}: {e}") from None
+            raise SourceError(f"{self.kind}: sky_depth must be 'inf' or 'nan', got {cfg.sky_depth!r}")
+        self.world = self._make_world(cfg)
         self.native_hw = self.out_hw or DEFAULT_HW
         self.native_K = np.asarray(self.world.camera(self.native_hw, cfg.hfov), dtype=np.float64)
         self.class_names = list(self.world.classes)
-        self.name = f"sim_camera:seed{cfg.seed}:{cfg.preset}"
-        self.world_frame = "synthetic world frame, z up (x east, y north), ground at z = 0"
+        self.name = f"{self.kind}:seed{cfg.seed}:{cfg.preset}"
+        self.world_frame = getattr(self, "world_frame_text",
+                                   "synthetic world frame, z up (x east, y north), ground at z = 0")
         self._zcfg = zenoh if zenoh is not None else ZenohConfig(mode="client", connect=["tcp/127.0.0.1:7447"])
         self.key = KeySpace(self._zcfg.prefix).sim_views(cfg.robot)
         self._stop = stop or threading.Event()
@@ -69,6 +65,15 @@ class SimCameraSource(FrameSource):
         self.counts: Counter = Counter()
         self.frames_out = 0
         self._rlog = RateLimitedLog(5.0, log)
+
+    def _make_world(self, cfg: SourceConfig):
+        """The world rendered at the poses (``source.seed``, ``source.preset``)."""
+        try:
+            from synthetic_world import World
+
+            return World.generate(cfg.seed, cfg.preset)
+        except (ImportError, ValueError, KeyError) as e:
+            raise SourceError(f"sim_camera: cannot generate world seed={cfg.seed} preset={cfg.preset!r}: {e}") from None
 
     def _on_sample(self, sample) -> None:
         from common.messages import MessageError, decode_sim_views

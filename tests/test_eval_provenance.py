@@ -1,0 +1,50 @@
+"""Every ``rayfronts eval search`` JSON says where it came from: the commit (checked against
+git itself), the command line, the machine, the load before and after, and the seeds with
+the development / held-out lists they belong to (apps/closed_loop/seeds.py)."""
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_eval_json_records_commit_command_machine_load_and_seeds(tmp_path, monkeypatch):
+    """(The run's missions are left out — provenance does not depend on them — so the test
+    needs no episode.)"""
+    import json
+
+    import apps.closed_loop.evaluate as ev
+    from apps.closed_loop.evaluate import SearchEvalConfig, run_search_eval, write_outputs
+    from apps.closed_loop.seeds import DEVELOPMENT_SEEDS, HELD_OUT_SEEDS
+
+    assert not set(DEVELOPMENT_SEEDS["synthetic"]) & set(HELD_OUT_SEEDS["synthetic"])
+    assert not set(DEVELOPMENT_SEEDS["pybullet"]) & set(HELD_OUT_SEEDS["pybullet"])
+    argv = ["rayfronts", "eval", "search", "--policies", "oracle", "--missions", "object", "--json", "x.json"]
+    cfg = SearchEvalConfig(policies=["oracle"], missions=["object"], resolution=32, seeds=[0])
+    monkeypatch.setattr(ev, "seed_missions", lambda *a: [])
+    doc = run_search_eval(cfg, argv=argv)
+    p = tmp_path / "x.json"
+    write_outputs(doc, p)
+    back = json.loads(p.read_text())
+    meta = back["meta"]
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    assert meta["commit"] == head and isinstance(meta["dirty"], bool)
+    assert meta["argv"] == argv
+    assert meta["machine"]["logical_cores"] == os.cpu_count() and meta["machine"]["cpu_model"]
+    assert len(meta["load_before"]) == 3 and len(meta["load_after"]) == 3
+    assert meta["utc"].endswith("Z") and meta["process"]["wall_s"] > 0
+    assert back["seeds"] == {"run": [0], "set": "development", "development": DEVELOPMENT_SEEDS["synthetic"],
+                             "held_out": HELD_OUT_SEEDS["synthetic"]}
+    assert back["episodes"] == [] and back["settings"]["world"] == "synthetic"
+    assert back["settings"]["background_phrases"] == ["ground", "road", "grass", "wall", "building", "tree", "sky"]
+
+
+def test_seed_sets_name_the_set():
+    from apps.closed_loop.seeds import seed_sets
+
+    assert seed_sets("pybullet", [100, 101])["set"] == "held-out"
+    assert seed_sets("pybullet", [1, 100])["set"] == "mixed"
+    assert seed_sets("synthetic", [500])["set"] == "other"
