@@ -195,13 +195,14 @@ def test_site_rehearsal(tmp_path, procs, closer, pca_file, browser):
 
         # -- east restarted with the same name and snapshots: the same site
         procs.append(shard("east", "east-again"))
+        wait_for(lambda: op.stats_all(5.0).get("east", {}).get("snapshot", {}).get("restored"), 120, every=0.3,
+                 what="east restored from its snapshot")
+        east_stats = op.stats_all(5.0)["east"]
 
         def east_back():
             r = op.search(TARGETS, max_instances=60, max_goals=5, from_xyz=[0.0, 23.6, 1.5], timeout=10.0)
             return r if not r.missing_shards else None
-        after = wait_for(east_back, 120, every=0.5, what="east answering again")
-        east_stats = op.stats_all(5.0)["east"]
-        assert east_stats["snapshot"].get("restored") is True
+        after = wait_for(east_back, 30, every=0.3, what="east answering searches again")
         # frames: nothing lost beyond those mapped since the snapshot (none: the map was settled)
         assert snap_meta["frames_mapped"] == mapped["east"] == east_stats["frames"]["mapped"], (
             snap_meta["frames_mapped"], mapped, east_stats["frames"])
