@@ -53,7 +53,7 @@ REGIONS = {"west": "[-1000, -1000, 0, 1000]", "east": "[0, -1000, 1000, 1000]"}
 
 def _positions(found: list[dict]) -> dict[tuple, str]:
     """``{(target, centroid rounded to 1 mm): id}`` of a search's instances."""
-    return {(f["target"], *np.round(f["centroid"], 3)): f["id"] for f in found}
+    return {(f["target"], *(float(x) for x in np.round(f["centroid"], 3))): f["id"] for f in found}
 
 
 def _settled(op, frames: int):
@@ -137,9 +137,9 @@ def test_site_rehearsal(tmp_path, procs, closer, pca_file, browser):
 
         # -- search -> occupancy -> goal, the operator's and the robot's planner, complete answers
         (r_op, near_op, box_op), (r_bot, near_bot, box_bot) = _loop(op), _loop(bot)
+        _check_complete(r_op, world)
         assert answer_of(r_op) == answer_of(r_bot) and r_op.missing_shards == [] == r_bot.missing_shards
         assert np.array_equal(box_op.states, box_bot.states) and np.array_equal(near_op.states, near_bot.states)
-        _check_complete(r_op, world)
         assert r_op.frames_mapped == FRAMES
         cx = box_op.origin[0] + (np.arange(box_op.states.shape[0]) + 0.5) * box_op.cell_m
         known = box_op.states != -1
