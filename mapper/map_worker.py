@@ -99,7 +99,7 @@ class MapWorker:
                 self.layers.publish()
             scfg = cfg.snapshots
             if (scfg.dir and scfg.period_s > 0 and now - last_snap >= scfg.period_s
-                    and state.version != state.snap_version):
+                    and (state.version != state.snap_version or state.trackers.generation != state.snap_trackers)):
                 last_snap = now
                 if self._pipe is not None:
                     self._account_all(self._pipe.drain())

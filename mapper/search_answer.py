@@ -76,6 +76,7 @@ class TrackerStore:
         self._lock = threading.Lock()
         self.mutex = threading.RLock()
         self._events: dict[tuple, tuple[tuple, list[dict]]] = {}   # key -> (update token, its events)
+        self.generation = 0              # +1 per tracker update with a new input (a snapshot is due)
 
     def new_id(self) -> int:
         """The next instance id (thread-safe)."""
@@ -119,6 +120,8 @@ class TrackerStore:
         t = self._t[key]
         ev = [e.as_dict() for e in t.update(str(key[1]), ijk, conf, frame)]
         last = self._events.get(key)
+        if last is None or last[0] != token:
+            self.generation += 1
         if not ev and last is not None and last[0] == token:
             return list(last[1])
         self._events[key] = (token, ev)

@@ -69,7 +69,8 @@ class QuerySection:
 @dataclass
 class SnapshotSection:
     dir: str = field_("", "snapshot directory (empty = no snapshots)")
-    period_s: float = field_(0.0, "save a snapshot this often (s), when the map changed; 0 = only on request")
+    period_s: float = field_(0.0, "save a snapshot this often (s), when the map or the instance trackers changed; "
+                                  "0 = only on request")
     restore: bool = field_(True, "restore the latest snapshot in dir on start")
     keep: int = field_(2, "snapshots kept (older ones are deleted)")
     on_exit: bool = field_(True, "save a snapshot on clean shutdown")

@@ -108,6 +108,7 @@ class SnapshotStore:
         root = Path(state.cfg.snapshots.dir)
         root.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
+        generation = state.trackers.generation                # read first: a later update is saved next time
         trackers, tracker_keys = state.trackers.state()      # whole updates (the trackers' mutex)
         fleet = getattr(state, "fleet", None)
         with state.lock:
@@ -130,7 +131,7 @@ class SnapshotStore:
             capture = capture_map(state.map)     # copies, under the lock; written after it
         path = write_snapshot(root, capture, state.space_reply, meta, state.cfg.snapshots.keep,
                               arrays={INSTANCE_KEYS: tracker_keys})
-        state.snap_version = version
+        state.snap_version, state.snap_trackers = version, generation
         state.last_snapshot = {"path": str(path), "frames_mapped": meta["frames_mapped"], "stamp": meta["stamp"],
                            "seconds": time.perf_counter() - t0}
         log.info("snapshot %s (%d frames)", path, meta["frames_mapped"])
@@ -179,6 +180,7 @@ class SnapshotStore:
         state.version = max(1, int(meta.get("version", 1)))
         state.flushed_version = int(meta.get("flushed_version", state.version - 1))
         state.snap_version = state.version
+        state.snap_trackers = state.trackers.generation
         for name, r in meta.get("robots", {}).items():
             st = state.robot(name)
             st.mapped, st.last_seq = int(r.get("mapped", 0)), int(r.get("last_seq", -1))

@@ -149,6 +149,7 @@ class MapperState:
         self.version = 0                       # bumps on every integrate
         self.flushed_version = 0               # version at the last map.flush()
         self.snap_version = -1                 # version at the last snapshot
+        self.snap_trackers = 0                 # trackers.generation at the last snapshot
         self.first_mapped_at: float | None = None
         self.last_mapped_at: float | None = None
         self.cpu_mapped: list[float] = []      # process CPU s at the first and the last integration

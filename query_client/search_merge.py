@@ -16,7 +16,8 @@ would answer:
   and the parts' voxels summed; ranked as a mapper ranks (confidence to 3 decimals, size), cut
   to ``max_instances``;
 * **look_next**: every shard's goals ranked by score, goals within one voxel of a better one
-  dropped, cut to ``max_goals``; each names its ``shard``;
+  dropped, cut to ``max_goals``; each names its ``shard``; equal scores rank by shard name
+  (the same order whatever order the replies arrived in);
 * **beyond**: rays de-duplicated by (target, origin voxel, direction bin) keeping the best,
   estimates ranked, the search volume recomputed as one union of the best rays' cones;
 * **occupancy** (box, slice, points on the same grid): each cell from the shards whose region
@@ -98,7 +99,7 @@ def _found(parts: list[tuple[list[dict], str, ShardRegion, float]], limit: int) 
 
 
 def _goals(parts: list[tuple[list[dict], str, ShardRegion, float]], limit: int) -> list[dict]:
-    goals = [dict(g, shard=name) for gs, name, _, _ in parts for g in gs]
+    goals = sorted((dict(g, shard=name) for gs, name, _, _ in parts for g in gs), key=lambda g: g["shard"])
     if not goals:
         return []
     vox = max((p[3] for p in parts), default=0.0)

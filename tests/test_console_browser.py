@@ -19,66 +19,17 @@ import http.client as httpc
 import os
 import ssl
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.support.browser import Chromium, module_browser
-from tests.support.console import VIEWER_URL, http
+from tests.support.console import VIEWER_URL, assert_rows_equal_api, http, search_in_page, wait_page
 from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, stop_all, wait_for, wait_log
 
 TOKEN = "t0k3n-for-the-browser-test"
 COOKIE = "rayfronts_console_token"
-ROWS = "[...document.querySelectorAll('#instances tr')].map(r => [...r.cells].map(c => c.textContent))"
-
-
-def _wait(browser: Chromium, expr: str, timeout: float, what: str):
-    end = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < end:
-        last = browser.evaluate(expr)
-        if last:
-            return last
-        time.sleep(0.3)
-    status = browser.evaluate("(document.getElementById('status') || {}).textContent")
-    raise AssertionError(f"{what} not shown after {timeout} s (last {last!r}, status {status!r})")
-
-
-def _click(browser: Chromium, element_id: str) -> None:
-    """A real mouse click at the element's centre."""
-    x, y = browser.evaluate(f"(() => {{ const r = document.getElementById('{element_id}').getBoundingClientRect();"
-                            " return [r.x + r.width / 2, r.y + r.height / 2]; })()")
-    for kind in ("mousePressed", "mouseReleased"):
-        browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
-
-
-def _search_in_page(browser: Chromium, text: str) -> list[list[str]]:
-    """Type ``text`` in the query box, click Search; the found-instance rows once shown."""
-    browser.evaluate("document.getElementById('instances').replaceChildren()")
-    browser.evaluate("document.getElementById('q').value = ''; document.getElementById('q').focus()")
-    browser.call("Input.insertText", text=text)
-    _click(browser, "search")
-    return _wait(browser, ROWS + ".length && " + ROWS, 60, "found instances")
-
-
-def assert_rows_equal_api(browser: Chromium, rows: list[list[str]], api: dict, at_least: int = 2) -> None:
-    """The page's instance rows are the API's found list: same ids and targets in the same order,
-    confidences (3 decimals) and centroids (2 decimals) as shown; the same map version."""
-    found = api["found"]
-    assert len(found) >= at_least, f"something to check: >= {at_least} instances found, got {found}"
-    assert [r[0] for r in rows] == [str(f["id"]) for f in found], (rows, found)
-    assert [r[1] for r in rows] == [f["target"] for f in found], (rows, found)
-    for r, f in zip(rows, found, strict=True):
-        assert abs(float(r[2]) - f["confidence"]) <= 5e-4 + 1e-9, (r, f)
-        shown = [float(x) for x in r[3].split(",")]
-        assert len(shown) == 3, (r, f)
-        assert all(abs(a - b) <= 5e-3 + 1e-9 for a, b in zip(shown, f["centroid"], strict=True)), (r, f)
-    status = browser.evaluate("document.getElementById('status').textContent")
-    assert status.startswith(f"map v{api['map_version']},") and f"{len(found)} found" in status, (status, api)
-
-
 _browser = module_browser()
 
 
@@ -103,23 +54,23 @@ def test_console_page_search_and_image_query(console_world, browser, tmp_path):
     img = tmp_path / "car.png"
     img.write_bytes(_car_png(World.generate(0)))
     browser.navigate(w.url("/"))
-    _wait(browser, "document.readyState === 'complete' && !!document.getElementById('q')", 30, "the page")
+    wait_page(browser, "document.readyState === 'complete' && !!document.getElementById('q')", 30, "the page")
     # the mapper's web viewer embedded beside the panel (--viewer-url)
-    src = _wait(browser, "(document.querySelector('#viewer iframe') || {}).src", 30, "the viewer frame")
+    src = wait_page(browser, "(document.querySelector('#viewer iframe') || {}).src", 30, "the viewer frame")
     assert src == VIEWER_URL, src
-    rows = _search_in_page(browser, "vehicle")
+    rows = search_in_page(browser, "vehicle")
     st, api = http(w.url("/api/search?q=vehicle&threshold=0.5"))
     assert st == 200, api
     assert_rows_equal_api(browser, rows, api)
     # robots' state from the stats
-    robots = _wait(browser, "[...document.querySelectorAll('#robots tr')].map(r => r.cells[1].textContent)",
+    robots = wait_page(browser, "[...document.querySelectorAll('#robots tr')].map(r => r.cells[1].textContent)",
                    30, "robots")
     assert "r1" in robots
     # an image query through the file input
     doc = browser.call("DOM.getDocument")["root"]["nodeId"]
     node = browser.call("DOM.querySelector", nodeId=doc, selector="#image")["nodeId"]
     browser.call("DOM.setFileInputFiles", files=[str(img)], nodeId=node)
-    answers = _wait(browser, "document.querySelectorAll('#answers tr').length", 60, "image query answers")
+    answers = wait_page(browser, "document.querySelectorAll('#answers tr').length", 60, "image query answers")
     assert answers > 0
     assert "<image>" in browser.evaluate("document.getElementById('status').textContent")
     shot.write_bytes(browser.screenshot())
@@ -206,15 +157,15 @@ def test_console_over_https_with_a_token(console_world, tls_console, browser):
     browser.call("Security.setIgnoreCertificateErrors", ignore=True)
     browser.events.clear()
     browser.navigate(f"{base}/?token={TOKEN}")
-    _wait(browser, "document.readyState === 'complete' && !!document.getElementById('q')", 30, "the page")
+    wait_page(browser, "document.readyState === 'complete' && !!document.getElementById('q')", 30, "the page")
     got = _responses(browser, base)       # the page's script is loaded before 'complete'
     assert got.get("/static/console.js") == {200} and not [p for p, st in got.items() if 401 in st], got
     assert browser.evaluate("location.href") == base + "/", "redirected to the clean URL"
     assert COOKIE not in browser.evaluate("document.cookie"), "the cookie is HttpOnly"
     cookie = next(c for c in browser.call("Network.getCookies", urls=[base + "/"])["cookies"] if c["name"] == COOKIE)
     assert cookie["httpOnly"] and cookie["secure"] and cookie["sameSite"] == "Lax", cookie
-    _wait(browser, "document.querySelectorAll('#robots tr').length", 30, "robots (the page's /api/stats)")
-    rows = _search_in_page(browser, "vehicle")
+    wait_page(browser, "document.querySelectorAll('#robots tr').length", 30, "robots (the page's /api/stats)")
+    rows = search_in_page(browser, "vehicle")
     st, api = http(base + "/api/search?q=vehicle&threshold=0.5", headers=bearer, context=ctx)
     assert st == 200, api
     assert_rows_equal_api(browser, rows, api)
@@ -228,7 +179,7 @@ def test_console_over_https_with_a_token(console_world, tls_console, browser):
     assert not [m for m in logged if "401" in json.dumps(m)], logged
     # a wrong token in the browser: refused although the cookie is valid; the cookie is unchanged
     browser.navigate(f"{base}/?token=wrong")
-    text = _wait(browser, "document.readyState === 'complete' && document.body.innerText", 30, "the 401 page")
+    text = wait_page(browser, "document.readyState === 'complete' && document.body.innerText", 30, "the 401 page")
     assert "missing or wrong token" in text and "?token=TOKEN" in text, text
     after = [c for c in browser.call("Network.getCookies", urls=[base + "/"])["cookies"] if c["name"] == COOKIE]
     assert after == [cookie], after

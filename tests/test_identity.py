@@ -392,6 +392,22 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
     assert m2.stop() == 0
 
 
+
+def test_a_tracker_update_makes_a_periodic_snapshot_due():
+    """``TrackerStore.generation`` moves on a tracker update with a new input (the map worker
+    then saves a periodic snapshot although the map did not change), not on a repeat."""
+    from mapper.search_answer import TrackerStore
+
+    ts, key = TrackerStore(), ("text", "car")
+    ts.get(key, VOX, 1)
+    ijk, conf = np.array([[0, 0, 0], [0, 0, 1]]), np.array([0.9, 0.8])
+    g0 = ts.generation
+    assert ts.update(key, ijk, conf, 1, (1, 1)) and ts.generation == g0 + 1      # "new"
+    ts.update(key, ijk, conf, 1, (1, 1))                 # the same map version searched again
+    assert ts.generation == g0 + 1
+    ts.update(key, ijk[:1], conf[:1], 2, (2, 2))
+    assert ts.generation == g0 + 2
+
 def test_identity_settings_refused_with_one_line():
     from common.config import ConfigError
     from mapper.service_config import load_mapper_config

@@ -169,6 +169,18 @@ def test_search_merge_ids_border_instances_goals_and_beyond():
     assert [f["id"] for f in one.found] == ["east:1", "east:4"]
 
 
+
+def test_search_merge_ranks_equal_goals_the_same_whatever_the_reply_order():
+    # equal scores on both shards (the site rehearsal's look-next goals all scored 1.0): every
+    # planner must get the same goals in the same order, whichever shard answered first
+    w = SearchReply(id="s", look_next=[_goal([-5, 0, 1], 1.0), _goal([-9, 0, 1], 1.0)], frames_mapped=1)
+    e = SearchReply(id="s", look_next=[_goal([5, 0, 1], 1.0), _goal([9, 0, 1], 0.5)], frames_mapped=1)
+    req = SearchRequest(targets=["car"], max_goals=3).validate()
+    iw, ie = dict(INFO, shard="west"), dict(INFO, shard="east")
+    a = merge_search_replies([(w, iw), (e, ie)], req).look_next
+    b = merge_search_replies([(e, ie), (w, iw)], req).look_next
+    assert a == b and [(g["shard"], g["position"][0]) for g in a] == [("east", 5), ("west", -5), ("west", -9)]
+
 def _grid(lo, shape, cell, fill):
     return OccupancyReply(kind="box", states=fill.astype(np.int8).reshape(shape), origin=list(lo), cell_m=cell)
 

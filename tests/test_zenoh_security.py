@@ -19,16 +19,15 @@ import zenoh  # noqa: F401,E402  (core dependency: a missing one fails)
 
 from common.keys import KeySpace  # noqa: E402
 from common.zenoh_session import free_tcp_port  # noqa: E402
+from tests.support.site import MAKE_CERTS, ZDIR, tls_agent  # noqa: E402
 from tests.support.zenoh_agent import Agent, Router, await_route, get_replies, lget_keys  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-ZDIR = ROOT / "deploy" / "zenoh"
 sys.path.insert(0, str(ROOT / "deploy" / "acl"))
 import make_acl  # noqa: E402
 
 K = KeySpace()
 pytestmark = pytest.mark.timeout(180)
-MAKE_CERTS = ROOT / "deploy" / "certs" / "make_certs.sh"
 
 
 @pytest.fixture(scope="module")
@@ -47,34 +46,27 @@ def other_ca(tmp_path_factory) -> Path:
     return out
 
 
-def _tls_client(closer, port, name, certs_dir, cfg="edge-tls.json5", **kw) -> Agent:
-    a = Agent(name, config_file=str(ZDIR / cfg), certs_dir=str(certs_dir),
-              connect=kw.pop("connect", [f"tls/localhost:{port}"]), connect_timeout_ms=0, **kw)
-    closer.append(a)
-    return a
-
-
 def test_mutual_tls(closer, certs, other_ca):
     port = free_tcp_port()
     router = Router("--zenoh-config", str(ZDIR / "router-tls.json5"), "--certs", str(certs / "router"),
                     "--listen", f"tls/127.0.0.1:{port}")
     closer.append(router)
     assert f"tls/127.0.0.1:{port}" in router.banner
-    mapper = _tls_client(closer, port, "mapper", certs / "mapper")
-    edge = _tls_client(closer, port, "edge", certs / "robot-r1")
+    mapper = tls_agent(closer, port, "mapper", certs / "mapper")
+    edge = tls_agent(closer, port, "edge", certs / "robot-r1")
     assert mapper.connected and edge.connected, (mapper.hello, edge.hello)
     mapper.cmd("sub", name="f", key=K.frames_all)
 
     # no client certificate: the handshake is refused
-    nocert = _tls_client(closer, port, "nocert", certs / "robot-r1",
+    nocert = tls_agent(closer, port, "nocert", certs / "robot-r1",
                          extra={"transport/link/tls/connect_certificate": None,
                                 "transport/link/tls/connect_private_key": None})
     # a certificate from another CA (trusting our router's CA, so only the client cert differs)
-    foreign = _tls_client(closer, port, "foreign", certs / "robot-r1",
+    foreign = tls_agent(closer, port, "foreign", certs / "robot-r1",
                           extra={"transport/link/tls/connect_certificate": str(other_ca / "robot-r1/cert.pem"),
                                  "transport/link/tls/connect_private_key": str(other_ca / "robot-r1/key.pem")})
     # a client that trusts another CA does not accept our router
-    untrusting = _tls_client(closer, port, "untrusting", other_ca / "robot-r1")
+    untrusting = tls_agent(closer, port, "untrusting", other_ca / "robot-r1")
     # plain TCP to the TLS port
     plain = Agent("plain", config_file=str(ZDIR / "edge.json5"), connect=[f"tcp/127.0.0.1:{port}"],
                   connect_timeout_ms=0)
@@ -98,10 +90,10 @@ def test_access_control(closer, certs):
                    listen=[f"tls/127.0.0.1:{port}"], acl_file=str(certs / "acl.json5"), default_mode="router")
     closer.append(router)
     assert router.connected, router.hello
-    mapper = _tls_client(closer, port, "mapper", certs / "mapper")
-    r1 = _tls_client(closer, port, "r1", certs / "robot-r1")
-    r2 = _tls_client(closer, port, "r2", certs / "robot-r2")
-    op = _tls_client(closer, port, "op", certs / "operator-alice", cfg="laptop-tls.json5")
+    mapper = tls_agent(closer, port, "mapper", certs / "mapper")
+    r1 = tls_agent(closer, port, "r1", certs / "robot-r1")
+    r2 = tls_agent(closer, port, "r2", certs / "robot-r2")
+    op = tls_agent(closer, port, "op", certs / "operator-alice", cfg="laptop-tls.json5")
     for a in (mapper, r1, r2, op):
         assert a.connected, a.hello
 
@@ -200,105 +192,3 @@ def test_usrpwd_with_username_acl(closer, tmp_path):
     r1.cmd("put", key=K.frames("r1"), payload="allowed")
     assert [s["payload"] for s in mapper.received("f", n=1, timeout=10)] == ["allowed"]
     assert [s["payload"] for s in mapper.received("f")] == ["allowed"]
-
-
-# ----------------------------------------------------------------------------- site rehearsal
-def _planner(certs_dir: Path, port: int, **kw):
-    """A planner ``Client`` with the identity in ``certs_dir`` (shipped laptop-tls.json5)."""
-    from common.zenoh_session import ZenohConfig
-    from query_client import Client
-
-    zc = ZenohConfig(config_file=str(ZDIR / "laptop-tls.json5"), certs_dir=str(certs_dir),
-                     connect=[f"tls/localhost:{port}"], connect_timeout_ms=kw.pop("connect_timeout_ms", 60_000),
-                     connect_retry_s=0.2)
-    return Client(zc, timeout=20.0, **kw)
-
-
-def _goal_of(reply) -> list[float]:
-    """The README planner loop's choice: the best instance, else the best look-next goal."""
-    return list(reply.found[0]["centroid"]) if reply.found else list(reply.look_next[0]["position"])
-
-
-def _answer(reply) -> tuple:
-    """What a planner acts on, for comparing two answers of the same map (no timings/events)."""
-    return (reply.map_version, reply.frames_mapped,
-            [(i["id"], i["target"], tuple(i["centroid"]), i["voxels"]) for i in reply.found],
-            [(tuple(g["position"]), g["heading_rad"], g["score"]) for g in reply.look_next])
-
-
-@pytest.mark.timeout(120)
-def test_site_rehearsal_planners_through_acl(closer, procs, certs, other_ca, pca_file, tmp_path):
-    """The field site of deploy/README.md on loopback: shipped certificates, configs and ACL, a
-    router with mutual TLS + ACL, the mapper and a robot edge as TLS clients, and two planners
-    (an operator's and robot r1's onboard one) running search -> occupancy -> goal. Both get
-    complete, identical answers; what the ACL refused before is still refused."""
-    import numpy as np
-
-    from query_client import MapperUnavailable
-    from synthetic_world import World
-    from tests.support.processes import Proc, wait_for
-    from tests.support.roles import FAST_MAP, edge_args
-
-    port = free_tcp_port()
-    ep = f"tls/localhost:{port}"
-    router = Agent("router", config_file=str(ZDIR / "router-tls.json5"), certs_dir=str(certs / "router"),
-                   listen=[f"tls/127.0.0.1:{port}"], acl_file=str(certs / "acl.json5"), default_mode="router")
-    closer.append(router)
-    assert router.connected, router.hello
-    tls = ["--zenoh-config", str(ZDIR / "edge-tls.json5")]
-    procs.append(Proc("mapper", ["mapper", "--mode", "client", "--connect", ep, *tls, "--certs", str(certs / "mapper"),
-                                 *FAST_MAP, "queues.idle_flush_s=0.3"], tmp_path))
-    procs.append(Proc("edge", [*edge_args(ep, pca_file, robot="r1", frames=6, rate=4.0), *tls,
-                               "--certs", str(certs / "robot-r1")], tmp_path))
-    world = World.generate(0)
-    with _planner(certs / "operator-alice", port) as op, _planner(certs / "robot-r1", port, robot="r1") as bot:
-        # the operator's stats get through; the edge sends its frames and exits; the map settles
-        assert procs[1].p.wait(timeout=90) == 0, (tmp_path / "edge.log").read_text()[-2000:]
-        wait_for(lambda: (lambda s: s["frames"]["mapped"] >= 3 and s["flushed_version"] == s["map_version"])(
-            op.stats(timeout=5.0)), 60, what="3 frames mapped and flushed")
-        n = op.stats()["robots"]["r1"]["mapped"]
-        # search -> occupancy -> goal, once per planner identity, on the same (settled) map
-        answers, goals = [], []
-        for c in (op, bot):
-            r = c.search(["car"], from_xyz=[0.0, 0.0, 1.5], area=[-60, -60, 60, 60])
-            assert r.found or r.look_next, "nothing to act on"
-            goal = _goal_of(r)
-            near = c.occupancy_points([goal], radius=2.0)
-            assert near.states.shape == (1,) and near.dist.shape == (1,)
-            box = c.occupancy_box([-4.0, -4.0, 0.0], [4.0, 4.0, 2.0])
-            answers.append((_answer(r), int(near.states[0]), float(near.dist[0]), box.states.tobytes()))
-            goals.append((r, goal))
-        assert answers[0] == answers[1]          # the robot's planner gets the operator's answer
-        r, goal = goals[1]
-        assert r.frames_mapped == n and len(r.look_next) >= 1
-        # the look-next goals are free in the true world and in the map
-        free = [g["position"] for g in r.look_next]
-        assert np.all(world.labels_at(np.array(free)) == 0)
-        assert np.all(bot.occupancy_points(free, radius=1.0).states == 0)
-        # the robot's standing search: first answer now, on its own key
-        got: list = []
-        with bot.watch_search(["car"], got.append, threshold=0.5):
-            assert len(got) == 1 and _answer(got[0])[:2] == _answer(r)[:2]
-            assert op.stats()["search"]["standing"] == 1
-
-        # -- refused, as before: another CA's certificate, r1 forging r2's frames, an operator publishing
-        with pytest.raises(Exception, match="ZenohConnectError|TLS|connect"):
-            _planner(other_ca / "robot-r1", port, connect_timeout_ms=0)
-        with _planner(certs / "robot-r1", port, robot="r2") as spoof:   # r1's certificate, r2's searches
-            with pytest.raises(MapperUnavailable, match="allowed to ask") as e:
-                spoof.search(["car"], timeout=2.0)
-            assert "\n" not in str(e.value)
-        r1 = _tls_client(closer, port, "r1", certs / "robot-r1")
-        opa = _tls_client(closer, port, "op", certs / "operator-alice", cfg="laptop-tls.json5")
-        router.cmd("sub", name="r2", key="rayfronts/robots/r2/**")
-        router.cmd("sub", name="r1_status", key=K.edge_status("r1"))
-        router.cmd("sub", name="r1_frames", key=K.frames("r1"))
-        await_route(r1, router, "r1_status", K.edge_status("r1"))
-        r1.cmd("put", key=K.frames("r2"), payload="r1-as-r2")
-        r1.cmd("put", key=K.edge_status("r1"), payload="r1-own")      # allowed, after it on the same link
-        assert [s["payload"] for s in router.received("r1_status", n=1, timeout=10)] == ["r1-own"]
-        assert router.received("r2") == []
-        opa.cmd("put", key=K.frames("r1"), payload="forged-by-operator")
-        assert lget_keys(opa, K.mapper_alive) == [K.mapper_alive]       # allowed, after it on the same link
-        assert router.received("r1_frames") == []
-        assert set(op.stats()["robots"]) == {"r1"}

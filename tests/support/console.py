@@ -7,6 +7,7 @@ import json
 import signal
 import socket
 import ssl
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -194,3 +195,53 @@ class ConsoleWorld:
 
     def close(self) -> None:
         stop_all(reversed(self.procs), signal.SIGINT, 30)
+
+
+# ------------------------------------------------------------ the page in a browser (tests/support/browser.py)
+ROWS = "[...document.querySelectorAll('#instances tr')].map(r => [...r.cells].map(c => c.textContent))"
+
+
+def wait_page(browser, expr: str, timeout: float, what: str):
+    """The truthy value of the JavaScript ``expr`` in the page, polled every 0.3 s up to ``timeout`` s."""
+    end = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < end:
+        last = browser.evaluate(expr)
+        if last:
+            return last
+        time.sleep(0.3)
+    status = browser.evaluate("(document.getElementById('status') || {}).textContent")
+    raise AssertionError(f"{what} not shown after {timeout} s (last {last!r}, status {status!r})")
+
+
+def click(browser, element_id: str) -> None:
+    """A real mouse click at the element's centre."""
+    x, y = browser.evaluate(f"(() => {{ const r = document.getElementById('{element_id}').getBoundingClientRect();"
+                            " return [r.x + r.width / 2, r.y + r.height / 2]; })()")
+    for kind in ("mousePressed", "mouseReleased"):
+        browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+
+
+def search_in_page(browser, text: str) -> list[list[str]]:
+    """Type ``text`` in the query box, click Search; the found-instance rows once shown."""
+    browser.evaluate("document.getElementById('instances').replaceChildren()")
+    browser.evaluate("document.getElementById('q').value = ''; document.getElementById('q').focus()")
+    browser.call("Input.insertText", text=text)
+    click(browser, "search")
+    return wait_page(browser, ROWS + ".length && " + ROWS, 60, "found instances")
+
+
+def assert_rows_equal_api(browser, rows: list[list[str]], api: dict, at_least: int = 2) -> None:
+    """The page's instance rows are the API's found list: same ids and targets in the same order,
+    confidences (3 decimals) and centroids (2 decimals) as shown; the same map version."""
+    found = api["found"]
+    assert len(found) >= at_least, f"something to check: >= {at_least} instances found, got {found}"
+    assert [r[0] for r in rows] == [str(f["id"]) for f in found], (rows, found)
+    assert [r[1] for r in rows] == [f["target"] for f in found], (rows, found)
+    for r, f in zip(rows, found, strict=True):
+        assert abs(float(r[2]) - f["confidence"]) <= 5e-4 + 1e-9, (r, f)
+        shown = [float(x) for x in r[3].split(",")]
+        assert len(shown) == 3, (r, f)
+        assert all(abs(a - b) <= 5e-3 + 1e-9 for a, b in zip(shown, f["centroid"], strict=True)), (r, f)
+    status = browser.evaluate("document.getElementById('status').textContent")
+    assert status.startswith(f"map v{api['map_version']},") and f"{len(found)} found" in status, (status, api)
