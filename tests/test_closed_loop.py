@@ -91,7 +91,9 @@ def test_oracle_path_on_true_world_is_collision_free_and_spl_one():
     pts = [np.r_[origin + (np.asarray(p) + 0.5) * 0.5, 1.5] for p in path]
     assert not any(robot.collides(w, a, b) for a, b in zip(pts[:-1], pts[1:], strict=True))
     length = path_length(path, 0.5)
+    assert length == pytest.approx(_brute(states, start, goal) * 0.5, rel=1e-9)   # the shortest, by brute force
     assert spl(True, length, length) == 1.0 and spl(False, length, length) == 0.0
+    assert spl(True, length, 1.25 * length) == pytest.approx(0.8) and spl(True, length, 0.5 * length) == 1.0
 
 
 # ----------------------------------------------------------------- the closed loop itself
