@@ -125,10 +125,15 @@ def test_readme_walkthrough_runs_literally(tmp_path):
         r = subprocess.run([sys.executable, "-c", loop], cwd=ROOT, env=env, capture_output=True, text=True,
                            timeout=180)
         assert r.returncode == 0, r.stderr[-2000:]
-        assert re.search(r"^(found vehicle #\d+ at|look next at) ", r.stdout, re.M), r.stdout
         assert re.search(r"^goal cell state -?\d", r.stdout, re.M), r.stdout
-        ids = {int(i) for i in re.findall(r"found vehicle #(\d+)", r.stdout)}
-        assert ids <= {i["id"] for i in found["found"]}, (ids, found["found"])   # the same ids as the CLI's
+        # the loop finds a vehicle (the CLI found some on the same map, at the same threshold),
+        # and every instance it prints is the CLI's instance of that id, at the same centroid
+        printed = re.findall(r"^found vehicle #(\d+) at (\[[^]]*\]) p=", r.stdout, re.M)
+        assert printed, f"the planner loop printed no 'found vehicle #...' line:\n{r.stdout}"
+        cli_found = {i["id"]: i for i in found["found"]}
+        for i, at in printed:
+            assert int(i) in cli_found, f"#{i} is not among the CLI's ids {sorted(cli_found)}"
+            assert json.loads(at) == pytest.approx(cli_found[int(i)]["centroid"], abs=1e-6), (i, at, cli_found[int(i)])
         # the web viewer the mapper serves (rendering is tests/test_browser_view.py)
         web = 9090 if "--web-port" not in extra_mapper else int(extra_mapper[extra_mapper.index("--web-port") + 1])
         with urllib.request.urlopen(f"http://127.0.0.1:{web}/", timeout=10) as resp:

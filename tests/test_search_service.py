@@ -12,6 +12,7 @@ import pytest
 
 from common.messages import MessageError
 from common.search_messages import (
+    MAX_INSTANCES,
     SCHEMA_SEARCH_REQUEST,
     VERSION,
     OccupancyRequest,
@@ -26,10 +27,14 @@ from common.search_messages import (
 )
 from common.wire import encode_message
 from common.zenoh_session import free_tcp_port
+from tests.support.instances import describe, match_by_position
 from tests.support.processes import ROOT, Proc, cli_cmd, stop_all, wait_for, zenoh_env
 from tests.support.roles import client, edge_args, mapped, mapper_args
 
 VOX = 0.5     # tests.support.roles.FAST_MAP
+#: an instance found again when a later answer has one whose centroid is this near (m): 3
+#: voxels, what more views of the same car move its centroid by (a car is ~4.5 m long)
+MATCH_M = 3 * VOX
 
 
 # ----------------------------------------------------------------------------- schemas
@@ -128,11 +133,16 @@ def test_search_service_with_real_processes(tmp_path, procs, pca_file):
         assert procs[1].p.wait(timeout=180) == 0              # the edge sent its 40 frames
         wait_for(lambda: mapped(c) > first["frames_mapped"], 60, what="more frames mapped")
         wait_for(lambda: (lambda s: s["flushed_version"] == s["map_version"])(c.stats()), 60, what="flush")
-        later = c.search("car")
+        later = c.search("car", max_instances=MAX_INSTANCES)      # all of them: none pushed out of the top 10
         assert later.frames_mapped > first["frames_mapped"]
+        # every object-sized instance of the first answer is found again at its place (its
+        # centroid within MATCH_M of a later instance's) under the same id
+        pairs, lost = match_by_position(big, later.found, MATCH_M)
+        assert not lost, f"not found again near their place: {[describe(i) for i in lost]}"
+        renamed = [f"{describe(a)} is now #{b['id']}" for a, b in pairs if a["id"] != b["id"]]
+        assert not renamed, f"{len(renamed)} of {len(big)} instances changed id: {renamed}"
         ids_then = {i["id"]: i for i in first["found"]}
         kept = [i for i in later.found if i["id"] in ids_then]
-        assert kept, (first["found"], later.found)
         for i in kept:
             a = ids_then[i["id"]]
             assert i["first_seen"] == a["first_seen"] and i["observations"] >= a["observations"] + 1
@@ -141,7 +151,7 @@ def test_search_service_with_real_processes(tmp_path, procs, pca_file):
                     for x in (a, i)]
             assert near[0] == near[1]
         # asking again without new frames: same ids, same instances
-        again = c.search("car")
+        again = c.search("car", max_instances=MAX_INSTANCES)
         assert [i["id"] for i in again.found] == [i["id"] for i in later.found]
         # an area that excludes every found instance finds none of them
         far = c.search("car", area=[1000, 1000, 1010, 1010])
