@@ -34,11 +34,12 @@ from types import SimpleNamespace
 import pytest
 
 from tests.support.browser import Chromium, analyse, decode_png, good, heat_shown, module_browser, start_viewer_stack
-from tests.support.console import http
+from tests.support.console import ROWS, assert_rows_equal_api, http
+from tests.support.console import click as _click
+from tests.support.console import wait_page as _wait
 from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, proc_env, stop_all, wait_for, wait_log
 from tests.support.roles import client
-from tests.test_console_browser import ROWS, _click, _wait, assert_rows_equal_api
 
 TARGET = "car"
 WIDTH, HEIGHT = 1800, 1000   # console test's window (CSS px = screenshot px): the frame is WIDTH - 430 px wide
