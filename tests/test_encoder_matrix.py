@@ -217,7 +217,8 @@ def test_edge_failure_after_start_is_reported_not_raised():
     import dataclasses
 
     from common.config import load_config
-    from edge.runtime import EdgeConfig, EdgeRuntime
+    from edge.config import EdgeConfig
+    from edge.runtime import EdgeRuntime
     from edge.sources import SourceConfig, open_source
 
     src = open_source(SourceConfig(kind="synthetic", n_frames=3, resolution="32x40"))
@@ -232,7 +233,7 @@ def test_edge_failure_after_start_is_reported_not_raised():
                                          "publish.linger_s=0", "zenoh.connect=[tcp/127.0.0.1:9]"])
     rt = EdgeRuntime(cfg, frames=frames(), class_names=list(src.class_names))
     assert rt.run() == 1
-    assert rt._state == ("failed", "RuntimeError: camera unplugged") and rt.stats.frames_encoded == 2
+    assert rt.connection.state == ("failed", "RuntimeError: camera unplugged") and rt.stats.frames_encoded == 2
     bad = dataclasses.replace(cfg, pca=dataclasses.replace(cfg.pca, out_dim=400))
     rt2 = EdgeRuntime(bad, frames=iter(good), class_names=list(src.class_names))
     assert rt2.run() == 2 and rt2._state[0] == "refused" and "exceeds" in rt2._state[1]

@@ -86,7 +86,7 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     from common.feature_space import FeatureSpace
     from common.recording import RecordingReader
     from common.wire import decode_frame, encode_frame
-    from edge.runtime import compress_features
+    from edge.encoding import compress_features
     from encoders import EncoderConfig, make_encoder
     from mapper.service_config import load_mapper_config
     from mapper.service_map import create_map, flush, integrate, layer_arrays
@@ -143,7 +143,7 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     sent = [decode_frame(reader.read_bytes(i)) for i in range(len(reader))]
     assert len(sent) == N
     from common.config import load_config
-    from edge.runtime import EdgeConfig
+    from edge.config import EdgeConfig
 
     pub = load_config(EdgeConfig, None, []).publish  # the edge's wire settings (defaults)
     local = []
