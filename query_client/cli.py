@@ -93,37 +93,24 @@ def log_result_rerun(r: QueryResult, file: str | None = None, url: str | None = 
     rec.disconnect()
 
 
-def check_inputs(args: argparse.Namespace) -> None:
-    """The user's mistakes that need no mapper, found before connecting (ConfigError, one line)."""
+def check_inputs(args: argparse.Namespace) -> dict:
+    """The user's mistakes that need no mapper, found before connecting (ConfigError, one line);
+    returns the ``Client.query`` keywords (``query_client.vocabulary.query_fields``)."""
     from common.config import ConfigError
+    from query_client.vocabulary import query_fields
 
     if args.text is None and args.image is None and not args.stats:
         raise ConfigError('give a query text, --image PATH or --stats, e.g. rayfronts query "water tower"')
-    if args.text is not None and not args.text.strip():
-        raise ConfigError('the query text is empty; say what to look for, e.g. rayfronts query "water tower"')
-    if args.top_k < 1:
-        raise ConfigError(f"--top-k must be >= 1 (got {args.top_k})")
+    kw = query_fields(args.text, args.image, args.top_k)
     if args.timeout <= 0:
         raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
-    if args.text is not None and args.image is not None:
-        raise ConfigError("give either a query text or --image PATH, not both")
     if args.rerun or args.rerun_connect:
         import importlib.util
 
         if importlib.util.find_spec("rerun") is None:  # the [client] install has no rerun
             raise ConfigError("--rerun / --rerun-connect need the rerun SDK, which this install lacks: "
                               "pip install rerun-sdk (or install the [mapper] extra)")
-    if args.image is not None:
-        import os
-
-        from query_client.client import QueryError, read_query_image
-
-        if not os.path.isfile(args.image):
-            raise ConfigError(f"image file not found: {args.image}")
-        try:  # size and file type here (no image library needed); the mapper decodes the pixels
-            read_query_image(args.image)
-        except QueryError as e:
-            raise ConfigError(str(e)) from None
+    return kw
 
 
 def connect_client(args: argparse.Namespace, command: str) -> Client | None:
@@ -174,7 +161,7 @@ def warn_missing(r, command: str = "query") -> None:
 def run(args: argparse.Namespace) -> int:
     from query_client.client import QueryError
 
-    check_inputs(args)
+    kw = check_inputs(args)
     client = connect_client(args, "query")
     if client is None:
         return 1
@@ -190,9 +177,9 @@ def run(args: argparse.Namespace) -> int:
                     warn_missing(r)
                     print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
 
-                watch_until_signal(lambda: client.watch(args.text, show, image=_read(args.image), top_k=args.top_k))
+                watch_until_signal(lambda: client.watch(kw["text"], show, image=kw["image"], top_k=kw["top_k"]))
                 return 0
-            r = client.query(args.text, image=_read(args.image), top_k=args.top_k, softmax=args.softmax)
+            r = client.query(**kw, softmax=args.softmax)
         except QueryError as e:
             print(f"rayfronts query: error: {' '.join(str(e).split())}", file=sys.stderr)
             return 1
@@ -210,9 +197,3 @@ def run(args: argparse.Namespace) -> int:
             log_result_rerun(r, args.rerun, args.rerun_connect, layers)
     return 0
 
-
-def _read(path):
-    if path is None:
-        return None
-    with open(path, "rb") as f:
-        return f.read()

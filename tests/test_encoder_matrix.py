@@ -65,6 +65,7 @@ def _edge_items(kind: str, mdir: Path, output: str = "radio", pca: bool = True, 
 def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
     """Mapper + edge for one combination: frames mapped, the map's space, one query."""
     from query_client import Client
+    from query_client.vocabulary import settled
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = proc_env()   # the session's text cache: label edges and maps embed names once
@@ -87,8 +88,7 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
                 s = c.stats(timeout=10.0)
                 seen[:] = [s]
                 # voxels become visible at the map's voxel block / idle flush: wait for it
-                return s if ed.poll() is not None and s["frames"]["mapped"] >= FRAMES \
-                    and not sum(s["queues"].values()) and s["map_version"] == s["flushed_version"] else None
+                return s if ed.poll() is not None and settled(s, mapped=FRAMES) else None
 
             try:
                 st = wait_for(done, 600, every=0.5, what=f"{name}: {FRAMES} frames mapped")

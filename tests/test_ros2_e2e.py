@@ -113,9 +113,8 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
                                           stdout=logs[2], stderr=subprocess.STDOUT, env=zenoh_env(), cwd=str(ROOT)))
             assert procs[2].wait(90) == 0
             assert procs[1].wait(90) == 0, (tmp_path / "edge.log").read_text()[-3000:]
-            st = wait_for(lambda: (lambda s: s if s["frames"]["mapped"] == N
-                                   and s["flushed_version"] == s["map_version"] else None)(c.stats()),
-                          90, what=f"{N} frames mapped")
+            st = c.wait_settled(mapped=N, timeout=90)
+            assert st["frames"]["mapped"] == N, st["frames"]
             vox_remote, _ = c.layer("voxels")
             n_rays = st["map"]["n_rays"]
     finally:

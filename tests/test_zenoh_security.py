@@ -236,7 +236,7 @@ def test_site_rehearsal_planners_through_acl(closer, procs, certs, other_ca, pca
 
     from query_client import MapperUnavailable
     from synthetic_world import World
-    from tests.support.processes import Proc, wait_for
+    from tests.support.processes import Proc
     from tests.support.roles import FAST_MAP, edge_args
 
     port = free_tcp_port()
@@ -254,8 +254,7 @@ def test_site_rehearsal_planners_through_acl(closer, procs, certs, other_ca, pca
     with _planner(certs / "operator-alice", port) as op, _planner(certs / "robot-r1", port, robot="r1") as bot:
         # the operator's stats get through; the edge sends its frames and exits; the map settles
         assert procs[1].p.wait(timeout=90) == 0, (tmp_path / "edge.log").read_text()[-2000:]
-        wait_for(lambda: (lambda s: s["frames"]["mapped"] >= 3 and s["flushed_version"] == s["map_version"])(
-            op.stats(timeout=5.0)), 60, what="3 frames mapped and flushed")
+        op.wait_settled(mapped=3, timeout=60)
         n = op.stats()["robots"]["r1"]["mapped"]
         # search -> occupancy -> goal, once per planner identity, on the same (settled) map
         answers, goals = [], []
