@@ -14,6 +14,8 @@ from encoders.config import EncoderConfig
 
 @dataclass
 class PcaSection:
+    """``pca.*``: how the dense features are compressed before they go on the wire."""
+
     basis: str = field_("", "PCA basis: a file (from `rayfronts edge fit-pca`); 'map' = adopt the map's basis (the "
                             "mapper's feature space; refused if it has none of this encoder family); empty = "
                             "adopt the map's basis when it has one of this encoder family and pca.out_dim, else "
@@ -28,6 +30,8 @@ class PcaSection:
 
 @dataclass
 class PublishSection:
+    """``publish.*``: pacing (Hz), the wire format, the keys a frame goes on, waits (s)."""
+
     rate_hz: float | Literal["auto"] = field_(
         -1.0, "frames per second to pace the source; 0 = as fast as possible; -1 = per source (10 Hz for the "
               "synthetic world, as fast as possible for datasets); auto = the rate the mapper advises on "
@@ -65,6 +69,8 @@ class PublishSection:
 
 @dataclass
 class RecordingSection:
+    """``recording.*``: a copy of exactly what was sent (``common.recording``)."""
+
     dir: str = field_("", "record exactly what is sent to this directory (common.recording); empty = off")
     overwrite: bool = field_(False, "replace an existing recording in dir")
 

@@ -158,42 +158,52 @@ def warn_missing(r, command: str = "query") -> None:
               "(their regions are missing from this answer)", file=sys.stderr, flush=True)
 
 
-def run(args: argparse.Namespace) -> int:
+def with_client(args: argparse.Namespace, command: str, body: Callable[[Client], int]) -> int:
+    """Connect (:func:`connect_client`), return ``body(client)`` and close the client; a
+    ``QueryError`` is the one-line ``rayfronts COMMAND: error: ...`` and exit code 1."""
     from query_client.client import QueryError
 
-    kw = check_inputs(args)
-    client = connect_client(args, "query")
+    client = connect_client(args, command)
     if client is None:
         return 1
     with client:
         try:
-            if args.stats:  # shards: every shard's stats by shard name
-                every = client.stats_all()
-                one = list(every.values())[0] if list(every) == [""] else every
-                print(json.dumps(one, indent=2, default=str))
-                return 0
-            if args.watch:
-                def show(r):
-                    warn_missing(r)
-                    print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
-
-                watch_until_signal(lambda: client.watch(kw["text"], show, image=kw["image"], top_k=kw["top_k"]))
-                return 0
-            r = client.query(**kw, softmax=args.softmax)
+            return body(client)
         except QueryError as e:
-            print(f"rayfronts query: error: {' '.join(str(e).split())}", file=sys.stderr)
-            return 1
-        warn_missing(r)
-        if args.json:
-            print(json.dumps(r.to_dict(), indent=2))
-        else:
-            print(format_result(r, args.top_k))
-        if args.rerun or args.rerun_connect:
-            layers = {}
-            try:
-                layers["voxels"] = client.layer("voxels")[0]
-            except Exception:
-                pass
-            log_result_rerun(r, args.rerun, args.rerun_connect, layers)
-    return 0
+            error = " ".join(str(e).split())
+    print(f"rayfronts {command}: error: {error}", file=sys.stderr)
+    return 1
 
+
+def run(args: argparse.Namespace) -> int:
+    kw = check_inputs(args)
+    return with_client(args, "query", lambda client: _query(args, client, kw))
+
+
+def _query(args: argparse.Namespace, client: Client, kw: dict) -> int:
+    if args.stats:  # shards: every shard's stats by shard name
+        every = client.stats_all()
+        one = list(every.values())[0] if list(every) == [""] else every
+        print(json.dumps(one, indent=2, default=str))
+        return 0
+    if args.watch:
+        def show(r):
+            warn_missing(r)
+            print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
+
+        watch_until_signal(lambda: client.watch(kw["text"], show, image=kw["image"], top_k=kw["top_k"]))
+        return 0
+    r = client.query(**kw, softmax=args.softmax)
+    warn_missing(r)
+    if args.json:
+        print(json.dumps(r.to_dict(), indent=2))
+    else:
+        print(format_result(r, args.top_k))
+    if args.rerun or args.rerun_connect:
+        layers = {}
+        try:
+            layers["voxels"] = client.layer("voxels")[0]
+        except Exception:
+            pass
+        log_result_rerun(r, args.rerun, args.rerun_connect, layers)
+    return 0

@@ -3,7 +3,6 @@ lies beyond the map). World frame, metres, z up; headings in radians from +x."""
 from __future__ import annotations
 
 import argparse
-import sys
 
 HELP = "search for planners: found instances, look-next goals, rays beyond the map"
 DESCRIPTION = """Ask the mapper where TARGETs are: instances found in the map (stable ids,
@@ -75,27 +74,24 @@ def format_reply(r) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from query_client.cli import connect_client, warn_missing, watch_until_signal
-    from query_client.client import QueryError
-    from query_client.vocabulary import search_reply_text
+    from query_client.cli import with_client
 
     kw = search_kwargs(args)
-    client = connect_client(args, "search")
-    if client is None:
-        return 1
-    with client:
-        try:
-            if args.watch:
-                def show(r) -> None:
-                    warn_missing(r, "search")
-                    print(search_reply_text(r) if args.json else format_reply(r) + "\n", flush=True)
+    return with_client(args, "search", lambda client: _search(args, client, kw))
 
-                watch_until_signal(lambda: client.watch_search(args.targets, show, timeout=args.timeout, **kw))
-                return 0
-            r = client.search(args.targets, timeout=args.timeout, **kw)
-        except QueryError as e:
-            print(f"rayfronts search: error: {' '.join(str(e).split())}", file=sys.stderr)
-            return 1
-    warn_missing(r, "search")
+
+def _search(args: argparse.Namespace, client, kw: dict) -> int:
+    from query_client.cli import warn_missing, watch_until_signal
+    from query_client.vocabulary import search_reply_text
+
+    if args.watch:
+        def show(r) -> None:
+            warn_missing(r, "search")
+            print(search_reply_text(r) if args.json else format_reply(r) + "\n", flush=True)
+
+        watch_until_signal(lambda: client.watch_search(args.targets, show, timeout=args.timeout, **kw))
+        return 0
+    r = client.search(args.targets, timeout=args.timeout, **kw)
+    warn_missing(r)
     print(search_reply_text(r) if args.json else format_reply(r))
     return 0
