@@ -110,6 +110,17 @@ def check_inputs(args: argparse.Namespace) -> dict:
         if importlib.util.find_spec("rerun") is None:  # the [client] install has no rerun
             raise ConfigError("--rerun / --rerun-connect need the rerun SDK, which this install lacks: "
                               "pip install rerun-sdk (or install the [mapper] extra)")
+    if args.image is not None:
+        import os
+
+        from query_client.client import QueryError, read_query_image
+
+        if not os.path.isfile(args.image):
+            raise ConfigError(f"image file not found: {args.image}")
+        try:  # size and file type here (no image library needed); the mapper decodes the pixels
+            read_query_image(args.image)
+        except QueryError as e:
+            raise ConfigError(str(e)) from None
     return kw
 
 

@@ -75,7 +75,8 @@ def search_fields(targets: Sequence[str], *, background: Sequence[str] | None = 
 def query_fields(text: str | None, image: str | None = None, top_k: int = 5, *,
                  example: str = ', e.g. rayfronts query "water tower"') -> dict[str, Any]:
     """``Client.query`` / ``Client.watch`` keywords from plain fields: a query ``text`` or an
-    ``image`` file path (not both; neither is for the caller to refuse), ``top_k`` >= 1 answers
+    ``image`` file path (not both; neither is for the caller to refuse; the file itself is
+    checked by ``Client.query`` or the caller's ``read_query_image``), ``top_k`` >= 1 answers
     per kind; ``example`` ends the message of an empty text (how to give one)."""
     if text is not None and not text.strip():
         raise ConfigError(f"the query text is empty; say what to look for{example}")
@@ -83,17 +84,6 @@ def query_fields(text: str | None, image: str | None = None, top_k: int = 5, *,
         raise ConfigError(f"--top-k must be >= 1 (got {top_k})")
     if text is not None and image is not None:
         raise ConfigError("give either a query text or --image PATH, not both")
-    if image is not None:
-        import os
-
-        from query_client.client import QueryError, read_query_image
-
-        if not os.path.isfile(image):
-            raise ConfigError(f"image file not found: {image}")
-        try:  # size and file type here (no image library needed); the mapper decodes the pixels
-            read_query_image(image)
-        except QueryError as e:
-            raise ConfigError(str(e)) from None
     return {"text": text, "image": image, "top_k": int(top_k)}
 
 
