@@ -92,6 +92,6 @@ def _search(args: argparse.Namespace, client, kw: dict) -> int:
         watch_until_signal(lambda: client.watch_search(args.targets, show, timeout=args.timeout, **kw))
         return 0
     r = client.search(args.targets, timeout=args.timeout, **kw)
-    warn_missing(r)
+    warn_missing(r, "search")
     print(search_reply_text(r) if args.json else format_reply(r))
     return 0

@@ -102,10 +102,11 @@ def settled(stats: dict, mapped: int = 1, received: int = 0) -> bool:
     """Whether a mapper's ``stats`` (``Client.stats``) say it has settled: every frame it received
     mapped, dropped or rejected, no robot queue holding a frame, the map flushed
     (``flushed_version == map_version``), at least ``mapped`` frames mapped and ``received``
-    received."""
+    received. ``mapped`` counts the frames of a restored snapshot too, ``received`` only this
+    process's: the accounting is ``mapped + dropped + rejected >= received``."""
     f = stats["frames"]
     return (f["mapped"] >= mapped and f["received"] >= received
-            and f["received"] == f["mapped"] + f["dropped"] + f["rejected_total"]
+            and f["mapped"] + f["dropped"] + f["rejected_total"] >= f["received"]
             and not any(r["queue"] for r in stats["robots"].values())
             and stats["flushed_version"] == stats["map_version"])
 

@@ -69,3 +69,9 @@ def test_settled_needs_every_condition(change):
     t = copy.deepcopy(s)
     change(t)
     assert not settled(t)
+
+
+def test_settled_after_a_restore_counts_the_snapshot_frames_as_mapped():
+    s = _stats()
+    s["frames"].update(received=16, mapped=32, dropped=0, rejected_total=0)   # 16 restored + 16 new
+    assert settled(s, mapped=32) and not settled(s, mapped=33)
