@@ -236,4 +236,4 @@ def test_edge_failure_after_start_is_reported_not_raised():
     assert rt.connection.state == ("failed", "RuntimeError: camera unplugged") and rt.stats.frames_encoded == 2
     bad = dataclasses.replace(cfg, pca=dataclasses.replace(cfg.pca, out_dim=400))
     rt2 = EdgeRuntime(bad, frames=iter(good), class_names=list(src.class_names))
-    assert rt2.run() == 2 and rt2._state[0] == "refused" and "exceeds" in rt2._state[1]
+    assert rt2.run() == 2 and rt2.connection.state[0] == "refused" and "exceeds" in rt2.connection.state[1]
