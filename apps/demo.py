@@ -210,6 +210,8 @@ def wait_mapped(client: Client, edge: subprocess.Popen, deadline: float, progres
     """Poll the mapper's stats until the edge has exited and every frame it sent is mapped,
     dropped or rejected, and the map is flushed. With ``stall_s`` the deadline moves on
     whenever the counts change (a slow, loaded machine gets time; a stuck one does not)."""
+    from query_client.vocabulary import settled
+
     last = None
     stable_since = None
     line = Progress() if progress else None
@@ -227,7 +229,6 @@ def wait_mapped(client: Client, edge: subprocess.Popen, deadline: float, progres
             continue
         fr = st["frames"]
         done_edge = edge.poll() is not None
-        settled = sum(st.get("queues", {}).values()) == 0
         key = (fr["received"], fr["mapped"], st.get("map_version"), st.get("flushed_version"))
         if stall_s is not None and key != last:
             deadline = max(deadline, time.monotonic() + stall_s)
@@ -236,7 +237,7 @@ def wait_mapped(client: Client, edge: subprocess.Popen, deadline: float, progres
                         f"  rejected {fr['rejected_total']}  edge {'done' if done_edge else 'running'}",
                         force=done_edge and not was_done)
         was_done = done_edge
-        if done_edge and settled and st.get("flushed_version") == st.get("map_version"):
+        if done_edge and settled(st, mapped=0):
             if key == last:
                 if stable_since is None:  # the final state may be reached before the edge exits
                     stable_since = time.monotonic()

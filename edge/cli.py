@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 from common.cli_options import split_trailing_options
 
 if TYPE_CHECKING:
-    from edge.runtime import EdgeConfig
+    from edge.config import EdgeConfig
 
 HELP = "the onboard process: source -> encoder -> PCA -> Zenoh (and `edge fit-pca`)"
 DESCRIPTION = """The onboard process: reads posed RGB-D frames from a source, encodes them,
@@ -41,7 +41,7 @@ log = logging.getLogger("rayfronts.edge")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from common.config import describe
-    from edge.runtime import edge_config_schema
+    from edge.config import edge_config_schema
 
     parser.add_argument("items", nargs=argparse.REMAINDER, metavar="[fit-pca] KEY=VALUE",
                         help="optional action 'fit-pca', then config overrides (keys below); "
@@ -133,7 +133,7 @@ def build_config(args: argparse.Namespace, overrides: list[str]) -> EdgeConfig:
     """The edge's config: schema defaults, ``--config`` YAML, ``key=value`` ``overrides``, then the options."""
     from common.config import load_config
     from common.zenoh_session import zenoh_config_from_args
-    from edge.runtime import edge_config_schema
+    from edge.config import edge_config_schema
 
     cfg = load_config(edge_config_schema(), args.config, overrides)
     ch: dict[str, Any] = {"zenoh": zenoh_config_from_args(args, cfg.zenoh)}

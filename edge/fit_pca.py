@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Iterable
 if TYPE_CHECKING:
     from common.frame import Frame
     from common.pca import PCA
-    from edge.runtime import EdgeConfig
+    from edge.config import EdgeConfig
 
 log = logging.getLogger("rayfronts.edge.fit_pca")
 

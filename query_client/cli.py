@@ -93,20 +93,17 @@ def log_result_rerun(r: QueryResult, file: str | None = None, url: str | None = 
     rec.disconnect()
 
 
-def check_inputs(args: argparse.Namespace) -> None:
-    """The user's mistakes that need no mapper, found before connecting (ConfigError, one line)."""
+def check_inputs(args: argparse.Namespace) -> dict:
+    """The user's mistakes that need no mapper, found before connecting (ConfigError, one line);
+    returns the ``Client.query`` keywords (``query_client.vocabulary.query_fields``)."""
     from common.config import ConfigError
+    from query_client.vocabulary import query_fields
 
     if args.text is None and args.image is None and not args.stats:
         raise ConfigError('give a query text, --image PATH or --stats, e.g. rayfronts query "water tower"')
-    if args.text is not None and not args.text.strip():
-        raise ConfigError('the query text is empty; say what to look for, e.g. rayfronts query "water tower"')
-    if args.top_k < 1:
-        raise ConfigError(f"--top-k must be >= 1 (got {args.top_k})")
+    kw = query_fields(args.text, args.image, args.top_k)
     if args.timeout <= 0:
         raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
-    if args.text is not None and args.image is not None:
-        raise ConfigError("give either a query text or --image PATH, not both")
     if args.rerun or args.rerun_connect:
         import importlib.util
 
@@ -124,6 +121,7 @@ def check_inputs(args: argparse.Namespace) -> None:
             read_query_image(args.image)
         except QueryError as e:
             raise ConfigError(str(e)) from None
+    return kw
 
 
 def connect_client(args: argparse.Namespace, command: str) -> Client | None:
@@ -171,48 +169,52 @@ def warn_missing(r, command: str = "query") -> None:
               "(their regions are missing from this answer)", file=sys.stderr, flush=True)
 
 
-def run(args: argparse.Namespace) -> int:
+def with_client(args: argparse.Namespace, command: str, body: Callable[[Client], int]) -> int:
+    """Connect (:func:`connect_client`), return ``body(client)`` and close the client; a
+    ``QueryError`` is the one-line ``rayfronts COMMAND: error: ...`` and exit code 1."""
     from query_client.client import QueryError
 
-    check_inputs(args)
-    client = connect_client(args, "query")
+    client = connect_client(args, command)
     if client is None:
         return 1
     with client:
         try:
-            if args.stats:  # shards: every shard's stats by shard name
-                every = client.stats_all()
-                one = list(every.values())[0] if list(every) == [""] else every
-                print(json.dumps(one, indent=2, default=str))
-                return 0
-            if args.watch:
-                def show(r):
-                    warn_missing(r)
-                    print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
-
-                watch_until_signal(lambda: client.watch(args.text, show, image=_read(args.image), top_k=args.top_k))
-                return 0
-            r = client.query(args.text, image=_read(args.image), top_k=args.top_k, softmax=args.softmax)
+            return body(client)
         except QueryError as e:
-            print(f"rayfronts query: error: {' '.join(str(e).split())}", file=sys.stderr)
-            return 1
-        warn_missing(r)
-        if args.json:
-            print(json.dumps(r.to_dict(), indent=2))
-        else:
-            print(format_result(r, args.top_k))
-        if args.rerun or args.rerun_connect:
-            layers = {}
-            try:
-                layers["voxels"] = client.layer("voxels")[0]
-            except Exception:
-                pass
-            log_result_rerun(r, args.rerun, args.rerun_connect, layers)
+            error = " ".join(str(e).split())
+    print(f"rayfronts {command}: error: {error}", file=sys.stderr)
+    return 1
+
+
+def run(args: argparse.Namespace) -> int:
+    kw = check_inputs(args)
+    return with_client(args, "query", lambda client: _query(args, client, kw))
+
+
+def _query(args: argparse.Namespace, client: Client, kw: dict) -> int:
+    if args.stats:  # shards: every shard's stats by shard name
+        every = client.stats_all()
+        one = list(every.values())[0] if list(every) == [""] else every
+        print(json.dumps(one, indent=2, default=str))
+        return 0
+    if args.watch:
+        def show(r):
+            warn_missing(r)
+            print(json.dumps(r.to_dict()) if args.json else format_result(r, args.top_k) + "\n", flush=True)
+
+        watch_until_signal(lambda: client.watch(kw["text"], show, image=kw["image"], top_k=kw["top_k"]))
+        return 0
+    r = client.query(**kw, softmax=args.softmax)
+    warn_missing(r)
+    if args.json:
+        print(json.dumps(r.to_dict(), indent=2))
+    else:
+        print(format_result(r, args.top_k))
+    if args.rerun or args.rerun_connect:
+        layers = {}
+        try:
+            layers["voxels"] = client.layer("voxels")[0]
+        except Exception:
+            pass
+        log_result_rerun(r, args.rerun, args.rerun_connect, layers)
     return 0
-
-
-def _read(path):
-    if path is None:
-        return None
-    with open(path, "rb") as f:
-        return f.read()

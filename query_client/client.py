@@ -307,7 +307,7 @@ class Client(PlannerCalls):
         latest.sub = self.session.declare_subscriber(key, on_sample)
         return latest
 
-    def watch(self, text: str | None, callback: Callable[[QueryResult], None], *, image: bytes | None = None,
+    def watch(self, text: str | None, callback: Callable[[QueryResult], None], *, image: bytes | str | None = None,
               top_k: int = 10, qid: str | None = None, timeout: float | None = None) -> WatchHandle:
         """Register a standing query: ``callback(QueryResult)`` runs now and on each refresh
         (on a Zenoh thread; keep it short). With shards, each shard's latest result is kept and
@@ -364,6 +364,31 @@ class Client(PlannerCalls):
     # ------------------------------------------------------------------ map state
     def stats(self, timeout: float | None = None) -> dict:
         return decode_stats(self._get_one(self.keys.stats, None, timeout))
+
+    def wait_settled(self, mapped: int = 1, received: int = 0, timeout: float = 60.0, every: float = 0.5) -> dict:
+        """Poll :meth:`stats` until the mapper has settled (``query_client.vocabulary.settled``:
+        every frame it received mapped, dropped or rejected, no queue holding one, the map
+        flushed; at least ``mapped`` frames mapped and ``received`` received) and return those
+        stats. No answer counts as not yet; after ``timeout`` s raise ``TimeoutError`` with the
+        last counts."""
+        import time
+
+        from query_client.vocabulary import settled, settled_line
+
+        end = time.monotonic() + timeout
+        last: str = "no stats yet"
+        while True:
+            try:
+                st = self.stats(timeout=min(5.0, max(0.5, end - time.monotonic())))
+                if settled(st, mapped, received):
+                    return st
+                last = settled_line(st)
+            except QueryError as e:
+                last = str(e)
+            if time.monotonic() + every > end:
+                raise TimeoutError(f"the mapper did not settle within {timeout:g} s (wanted >= {mapped} frames "
+                                   f"mapped, >= {received} received; last: {last})")
+            time.sleep(every)
 
     def stats_all(self, timeout: float | None = None) -> dict[str, dict]:
         """Every mapper's stats by shard name (``stats["fleet"]["shard"]``; ``""`` for an

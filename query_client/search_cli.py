@@ -3,8 +3,6 @@ lies beyond the map). World frame, metres, z up; headings in radians from +x."""
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 
 HELP = "search for planners: found instances, look-next goals, rays beyond the map"
 DESCRIPTION = """Ask the mapper where TARGETs are: instances found in the map (stable ids,
@@ -15,18 +13,6 @@ beyond the mapped range. Scores are softmax probabilities over targets + backgro
   rayfronts search car --json
   rayfronts search car bench --area 0,0,40,40 --z-band 0,3 --from 1,2,1.5
   rayfronts search "street lamp" --background road building --threshold 0.6 --watch"""
-
-
-def _floats(text: str, n: int | None, what: str) -> list[float]:
-    from common.config import ConfigError
-
-    try:
-        v = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise ConfigError(f"{what} must be comma-separated numbers, got {text!r}") from None
-    if n is not None and len(v) != n:
-        raise ConfigError(f"{what} needs {n} comma-separated numbers, got {text!r}")
-    return v
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,32 +35,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser, mode_default_help="client")
 
 
-def search_kwargs(args) -> dict:
+def search_kwargs(args: argparse.Namespace) -> dict:
     """Client.search keyword arguments from the command line (ConfigError for bad input)."""
     from common.config import ConfigError
-    from common.messages import MessageError
-    from query_client.search import PlannerCalls
+    from query_client.vocabulary import search_fields
 
-    kw: dict = dict(background=args.background, threshold=args.threshold, max_instances=args.max_instances,
-                    max_goals=args.max_goals)
-    if args.area is not None:
-        a = _floats(args.area, None, "--area")
-        if len(a) == 4:
-            kw["area"] = a
-        elif len(a) >= 6 and len(a) % 2 == 0:
-            kw["area"] = [a[i:i + 2] for i in range(0, len(a), 2)]
-        else:
-            raise ConfigError(f"--area needs x0,y0,x1,y1 (a box) or >= 3 x,y vertices, got {args.area!r}")
-    if args.z_band is not None:
-        kw["z_band"] = _floats(args.z_band, 2, "--z-band")
-    if args.from_xyz is not None:
-        kw["from_xyz"] = _floats(args.from_xyz, 3, "--from")
+    kw = search_fields(args.targets, background=args.background, threshold=args.threshold,
+                       max_instances=args.max_instances, max_goals=args.max_goals, area=args.area,
+                       z_band=args.z_band, from_xyz=args.from_xyz)
     if args.timeout <= 0:
         raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
-    try:
-        PlannerCalls.search_request(args.targets, **kw)
-    except MessageError as e:
-        raise ConfigError(str(e)) from None
     return kw
 
 
@@ -103,33 +73,25 @@ def format_reply(r) -> str:
     return "\n".join(lines)
 
 
-def _as_json(r) -> str:
-    d = r.to_dict()
-    return json.dumps({k: d[k] for k in ("found", "look_next", "beyond", "events", "frames_mapped", "map_version",
-                                         "timings_ms", "missing_shards")})
-
-
 def run(args: argparse.Namespace) -> int:
-    from query_client.cli import connect_client, warn_missing, watch_until_signal
-    from query_client.client import QueryError
+    from query_client.cli import with_client
 
     kw = search_kwargs(args)
-    client = connect_client(args, "search")
-    if client is None:
-        return 1
-    with client:
-        try:
-            if args.watch:
-                def show(r) -> None:
-                    warn_missing(r, "search")
-                    print(_as_json(r) if args.json else format_reply(r) + "\n", flush=True)
+    return with_client(args, "search", lambda client: _search(args, client, kw))
 
-                watch_until_signal(lambda: client.watch_search(args.targets, show, timeout=args.timeout, **kw))
-                return 0
-            r = client.search(args.targets, timeout=args.timeout, **kw)
-        except QueryError as e:
-            print(f"rayfronts search: error: {' '.join(str(e).split())}", file=sys.stderr)
-            return 1
+
+def _search(args: argparse.Namespace, client, kw: dict) -> int:
+    from query_client.cli import warn_missing, watch_until_signal
+    from query_client.vocabulary import search_reply_text
+
+    if args.watch:
+        def show(r) -> None:
+            warn_missing(r, "search")
+            print(search_reply_text(r) if args.json else format_reply(r) + "\n", flush=True)
+
+        watch_until_signal(lambda: client.watch_search(args.targets, show, timeout=args.timeout, **kw))
+        return 0
+    r = client.search(args.targets, timeout=args.timeout, **kw)
     warn_missing(r, "search")
-    print(_as_json(r) if args.json else format_reply(r))
+    print(search_reply_text(r) if args.json else format_reply(r))
     return 0

@@ -38,7 +38,7 @@ from tests.support.console import ROWS, assert_rows_equal_api, http
 from tests.support.console import click as _click
 from tests.support.console import wait_page as _wait
 from tests.support.ports import free_port
-from tests.support.processes import ROOT, Proc, proc_env, stop_all, wait_for, wait_log
+from tests.support.processes import ROOT, Proc, proc_env, stop_all, wait_log
 from tests.support.roles import client
 
 TARGET = "car"
@@ -70,20 +70,7 @@ def stack(tmp_path_factory):
         base = wait_log(c, clog, r"console at (http://\S+)", 120).group(1).rstrip("/")
         assert e.wait(240) == 0, elog.read_text()[-3000:]
         with client(ep) as cl:
-            last: list[dict] = [{}]
-
-            def settled() -> bool:
-                s = last[0] = cl.stats(timeout=5.0)
-                f = s["frames"]   # every frame mapped or dropped (a busy mapper drops), the map flushed
-                return (f["received"] == 30 and f["mapped"] >= 5 and f["received"] == f["mapped"] + f["dropped"]
-                        + f["rejected_total"] and s.get("flushed_version") == s.get("map_version"))
-
-            try:
-                wait_for(settled, 120, what="the 30 frames mapped (>= 5) or dropped, the map flushed")
-            except AssertionError as err:
-                s = last[0]
-                raise AssertionError(f"{err}: frames {s.get('frames')}, map version {s.get('map_version')}, "
-                                     f"flushed {s.get('flushed_version')}") from None
+            cl.wait_settled(mapped=5, received=30, timeout=120)   # a busy mapper drops some of the 30
         yield SimpleNamespace(ep=ep, viewer=viewer, base=base)
     finally:
         stop_all(reversed(procs), signal.SIGINT, 60)

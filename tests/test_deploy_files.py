@@ -178,7 +178,7 @@ def test_dockerfiles():
 
 def test_example_configs_use_existing_keys():
     from common.config import load_config
-    from edge.runtime import edge_config_schema
+    from edge.config import edge_config_schema
     from mapper.service_config import MapperConfig
     edge = load_config(edge_config_schema(), DEPLOY / "examples" / "edge.yaml")
     assert edge.zenoh.connect and edge.robot == "r1"

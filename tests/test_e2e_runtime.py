@@ -76,7 +76,7 @@ def test_mapping_and_query_threads_are_per_thread():
 
 def test_edge_threads_config_and_auto():
     from common.config import load_config
-    from edge.runtime import EdgeConfig, resolve_threads
+    from edge.config import EdgeConfig, resolve_threads
 
     assert resolve_threads(load_config(EdgeConfig, None, [])) == 1                # label encoder (default)
     assert resolve_threads(load_config(EdgeConfig, None, ["threads=2"])) == 2

@@ -65,6 +65,7 @@ def _edge_items(kind: str, mdir: Path, output: str = "radio", pca: bool = True, 
 def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
     """Mapper + edge for one combination: frames mapped, the map's space, one query."""
     from query_client import Client
+    from query_client.vocabulary import settled
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     env = proc_env()   # the session's text cache: label edges and maps embed names once
@@ -87,8 +88,7 @@ def _run_combo(name: str, items: list[str], mdir: Path, logdir: Path) -> dict:
                 s = c.stats(timeout=10.0)
                 seen[:] = [s]
                 # voxels become visible at the map's voxel block / idle flush: wait for it
-                return s if ed.poll() is not None and s["frames"]["mapped"] >= FRAMES \
-                    and not sum(s["queues"].values()) and s["map_version"] == s["flushed_version"] else None
+                return s if ed.poll() is not None and settled(s, mapped=FRAMES) else None
 
             try:
                 st = wait_for(done, 600, every=0.5, what=f"{name}: {FRAMES} frames mapped")
@@ -217,7 +217,8 @@ def test_edge_failure_after_start_is_reported_not_raised():
     import dataclasses
 
     from common.config import load_config
-    from edge.runtime import EdgeConfig, EdgeRuntime
+    from edge.config import EdgeConfig
+    from edge.runtime import EdgeRuntime
     from edge.sources import SourceConfig, open_source
 
     src = open_source(SourceConfig(kind="synthetic", n_frames=3, resolution="32x40"))
@@ -232,7 +233,7 @@ def test_edge_failure_after_start_is_reported_not_raised():
                                          "publish.linger_s=0", "zenoh.connect=[tcp/127.0.0.1:9]"])
     rt = EdgeRuntime(cfg, frames=frames(), class_names=list(src.class_names))
     assert rt.run() == 1
-    assert rt._state == ("failed", "RuntimeError: camera unplugged") and rt.stats.frames_encoded == 2
+    assert rt.connection.state == ("failed", "RuntimeError: camera unplugged") and rt.stats.frames_encoded == 2
     bad = dataclasses.replace(cfg, pca=dataclasses.replace(cfg.pca, out_dim=400))
     rt2 = EdgeRuntime(bad, frames=iter(good), class_names=list(src.class_names))
-    assert rt2.run() == 2 and rt2._state[0] == "refused" and "exceeds" in rt2._state[1]
+    assert rt2.run() == 2 and rt2.connection.state[0] == "refused" and "exceeds" in rt2.connection.state[1]

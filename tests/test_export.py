@@ -103,7 +103,6 @@ def test_export_from_a_live_mapper_over_zenoh(procs, pca_file, tmp_path):
     query scores), and the mapper keeps running throughout."""
     from apps.processes import wait_for
     from semantic_map.query_snapshot import SCORE_ATOL
-    from tests.support.console import ConsoleWorld
     from tests.support.ports import free_port
     from tests.support.processes import Proc
     from tests.support.roles import client, edge_args, mapper_args
@@ -119,7 +118,7 @@ def test_export_from_a_live_mapper_over_zenoh(procs, pca_file, tmp_path):
         assert mapper.p.poll() is None
         procs.append(Proc("edge", edge_args(ep, pca_file, frames=4, rate=8.0), tmp_path))
         assert procs[-1].p.wait(timeout=180) == 0, (tmp_path / "edge.log").read_text()[-2000:]
-        wait_for(lambda: ConsoleWorld._settled(c.stats()), 60, what="every frame mapped and flushed")
+        c.wait_settled(timeout=60)
         band = (0.2, 1.5)
         yml = tmp_path / "live.yaml"
         _export("--connect", ep, "--format", "map_server", "--out", str(yml), "--z-min", str(band[0]),

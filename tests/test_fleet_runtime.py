@@ -79,9 +79,11 @@ def _all_mapped(c, robots, n=FRAMES):
     """Stats once every robot's ``n`` frames are mapped. The edges run with
     ``publish.lossless=true``: a loaded host's edge would otherwise replace an unsent frame in
     its one-slot queue, and two runs compared voxel by voxel would map different frames."""
+    from query_client.vocabulary import settled
+
     st = c.stats(timeout=5.0)
     ok = all(st["robots"].get(r, {}).get("mapped", 0) >= n for r in robots)
-    return st if ok and st["flushed_version"] == st["map_version"] else None
+    return st if ok and settled(st) else None
 
 
 def _same_frames(st, robots=("r0", "r1", "r2"), n=FRAMES):

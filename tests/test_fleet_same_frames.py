@@ -23,7 +23,8 @@ import pytest
 import torch
 
 from common.frame import Frame
-from edge.runtime import EdgeConfig, EdgeRuntime, PublishSection, _RunState
+from edge.config import EdgeConfig, PublishSection
+from edge.runtime import EdgeRuntime, _RunState
 
 N = 8
 
@@ -39,7 +40,7 @@ def _runtime(lossless: bool) -> tuple[EdgeRuntime, _RunState]:
     pub = dataclasses.replace(PublishSection(), rate_hz=0, lossless=lossless, feature_codec="f16")
     rt = EdgeRuntime(EdgeConfig(robot="r0", publish=pub))
     st = _RunState(rate=0.0, next_t=time.monotonic())
-    st.fs = type("Space", (), {"id": "label-minilm-l6.1-000000000000-4"})()
+    rt.chain.fs = type("Space", (), {"id": "label-minilm-l6.1-000000000000-4"})()
     return rt, st
 
 

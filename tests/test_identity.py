@@ -341,10 +341,6 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
     T[:3, 3] = [300.0, 100.0, 0.0]
     Tinv = np.linalg.inv(T)
 
-    def settled(c, frames: int) -> bool:
-        s = c.stats()
-        return s["frames"]["mapped"] >= frames and s["flushed_version"] == s["map_version"]
-
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     args = mapper_args(ep, [f"snapshots.dir={tmp_path / 'snaps'}", "snapshots.period_s=0", "queues.idle_flush_s=0.3"])
     m1 = Proc("mapper1", args, tmp_path)
@@ -355,7 +351,7 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
         edge = Proc("edge1", edge_args(ep, pca_file, frames=16, rate=8.0), tmp_path)
         procs.append(edge)
         assert edge.p.wait(timeout=180) == 0
-        wait_for(lambda: settled(c, 16), 120, what="16 frames mapped and flushed")
+        c.wait_settled(mapped=16, timeout=120)
         first = _search_json(ep)
         assert first["frames_mapped"] == 16
         objects = {car_of(cars, f, Tinv): f["id"] for f in first["found"] if car_of(cars, f, Tinv)}
@@ -382,7 +378,7 @@ def test_sigkilled_mapper_restarts_as_the_same_site(tmp_path, procs, pca_file):
         edge = Proc("edge2", edge_args(ep, pca_file, frames=16, rate=8.0), tmp_path)
         procs.append(edge)
         assert edge.p.wait(timeout=180) == 0
-        wait_for(lambda: settled(c, 32), 120, what="16 more frames mapped and flushed")
+        c.wait_settled(mapped=32, timeout=120)           # 16 more
         later = c.search("car", max_instances=200, max_goals=0)
     assert later.frames_mapped == 32
     now = {car_of(cars, f, Tinv): f["id"] for f in later.found if car_of(cars, f, Tinv)}

@@ -86,7 +86,7 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     from common.feature_space import FeatureSpace
     from common.recording import RecordingReader
     from common.wire import decode_frame, encode_frame
-    from edge.runtime import compress_features
+    from edge.encoding import compress_features
     from encoders import EncoderConfig, make_encoder
     from mapper.service_config import load_mapper_config
     from mapper.service_map import create_map, flush, integrate, layer_arrays
@@ -113,9 +113,8 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
                                           stdout=logs[2], stderr=subprocess.STDOUT, env=zenoh_env(), cwd=str(ROOT)))
             assert procs[2].wait(90) == 0
             assert procs[1].wait(90) == 0, (tmp_path / "edge.log").read_text()[-3000:]
-            st = wait_for(lambda: (lambda s: s if s["frames"]["mapped"] == N
-                                   and s["flushed_version"] == s["map_version"] else None)(c.stats()),
-                          90, what=f"{N} frames mapped")
+            st = c.wait_settled(mapped=N, timeout=90)
+            assert st["frames"]["mapped"] == N, st["frames"]
             vox_remote, _ = c.layer("voxels")
             n_rays = st["map"]["n_rays"]
     finally:
@@ -143,7 +142,7 @@ def test_edge_ros2_to_mapper_equals_bag(tmp_path, world_bag, radio, layout):
     sent = [decode_frame(reader.read_bytes(i)) for i in range(len(reader))]
     assert len(sent) == N
     from common.config import load_config
-    from edge.runtime import EdgeConfig
+    from edge.config import EdgeConfig
 
     pub = load_config(EdgeConfig, None, []).publish  # the edge's wire settings (defaults)
     local = []

@@ -79,9 +79,8 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
                  "publish.lossless=true"],      # exactly 12 mapped: no frame replaced at the edge
                 logs[1], env=env))
             assert procs[1].wait(120) == 0
-            st = wait_for(lambda: (lambda x: x if x["frames"]["mapped"] == 12
-                                   and x["flushed_version"] == x["map_version"] else None)(c.stats()),
-                          60, what="12 frames mapped and flushed")
+            st = c.wait_settled(mapped=12, timeout=60)
+            assert st["frames"]["mapped"] == 12, st["frames"]
             vox_l, _ = c.layer("voxels")
             fr_l, _ = c.layer("frontiers")
             rays_l, _ = c.layer("rays")

@@ -27,7 +27,7 @@ from common.ros2 import cdr
 from common.zenoh_session import free_tcp_port
 from tests.support.ports import open_loopback_router
 from tests.support.processes import Proc, stop_all, wait_for
-from tests.support.roles import client, edge_args, mapped, mapper_args, zenoh_client_config
+from tests.support.roles import client, edge_args, mapper_args, zenoh_client_config
 
 STRING_KEY = "std_msgs::msg::dds_::String_"
 
@@ -99,8 +99,7 @@ def test_mapper_ros_outputs_decode_with_rclpy(tmp_path, procs, pca_file):
             time.sleep(0.5)
             procs.append(Proc("edge", edge_args(ep, pca_file, frames=24, rate=6.0), tmp_path))
             assert procs[1].p.wait(timeout=150) == 0
-            wait_for(lambda: mapped(c) == 24 and (lambda x: x["flushed_version"] == x["map_version"])(c.stats()),
-                     60, what="24 frames mapped and flushed")
+            assert c.wait_settled(mapped=24, timeout=60)["frames"]["mapped"] == 24
             vox_l, _ = c.layer("voxels")
             rays_l, _ = c.layer("rays")
 

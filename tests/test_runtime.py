@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from common.cones import cone_union_volume
-from edge.runtime import LatestSlot
+from edge.publisher import LatestSlot
 from mapper.query_answer import cluster_voxels
 from tests.support.data import bfs_components
 
@@ -66,7 +66,7 @@ def test_reject_reason_codes():
 def test_cli_help_lists_every_config_key(capsys):
     from apps.cli import main
     from common.config import all_keys
-    from edge.runtime import EdgeConfig
+    from edge.config import EdgeConfig
     from mapper.service_config import MapperConfig
 
     for cmd, schema in (("edge", EdgeConfig), ("mapper", MapperConfig)):

@@ -113,7 +113,7 @@ def test_640x480_label_frames_under_100kb_and_the_map_answers_the_same():
     from apps.demo import DEFAULT_QUERIES
     from common.feature_space import FeatureSpace
     from common.pca import OnlinePCAFitter
-    from edge.runtime import compress_features
+    from edge.encoding import compress_features
     from edge.sources import SourceConfig, open_source
     from encoders import EncoderConfig, make_encoder
     from encoders.text import MiniLMText

@@ -124,7 +124,7 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, items=(), edg
     from apps.bench.encoder import edge_encoder
     from common.pca import OnlinePCAFitter
     from common.wire import decode_frame, encode_frame
-    from edge.runtime import check_setup, compress_features
+    from edge.encoding import check_setup, compress_features
     from edge.sources import SourceConfig, open_source
 
     old_threads = torch.get_num_threads()

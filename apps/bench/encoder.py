@@ -4,7 +4,7 @@ NARADIO: the model is built exactly as ``rayfronts edge`` builds it — :func:`e
 on an ``EncoderConfig`` (``--output``, ``--dtype``, ``--device``) reading a checkpoint from a
 model directory (``--model-dir``; default: random weights of the real architecture written to
 a temporary model directory as ``<model>.safetensors``, i.e. the file a user gets from
-``rayfronts models convert``), the torch thread count the edge uses (``edge.runtime.resolve_threads``,
+``rayfronts models convert``), the torch thread count the edge uses (``edge.config.resolve_threads``,
 or ``--threads``), and one timed call per frame of what the edge calls per frame,
 ``encode_with_global(rgb, global_space="features")`` (one forward pass: dense map + image
 vector). Reported beside it, timed in alternation in the same process (``apps.bench.meta.interleaved``):
@@ -36,7 +36,7 @@ import torch
 from apps.bench.meta import resolution_arg
 
 if TYPE_CHECKING:
-    from edge.runtime import EdgeConfig
+    from edge.config import EdgeConfig
     from encoders import ImageEncoder
 
 HELP = "image-encoder throughput (NARADIO with random weights, or the label encoder)"
@@ -107,9 +107,9 @@ def random_model_dir(model: str, root: Path, dtype: torch.dtype | None = None) -
 def edge_encoder(cfg_items: list[str], class_names: Sequence[str] | None = None
                  ) -> tuple[ImageEncoder, EdgeConfig, int]:
     """``(encoder, edge config, torch threads)`` built exactly as ``rayfronts edge`` builds them
-    from the config overrides ``cfg_items`` (thread count: ``edge.runtime.resolve_threads``)."""
+    from the config overrides ``cfg_items`` (thread count: ``edge.config.resolve_threads``)."""
     from common.config import load_config
-    from edge.runtime import EdgeConfig, resolve_threads
+    from edge.config import EdgeConfig, resolve_threads
     from encoders import make_encoder
 
     ecfg = load_config(EdgeConfig, None, list(cfg_items))

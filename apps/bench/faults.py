@@ -217,8 +217,7 @@ def run(args: argparse.Namespace) -> dict:
                 _wait(c.mapper_alive, 120, "the mapper")
                 e0 = ps.start("edge0", edge(ep, "r0", args.frames, 10.0))
                 e0.wait(300)
-                _wait(lambda: (lambda s: s["frames"]["mapped"] >= args.frames
-                               and s["flushed_version"] == s["map_version"])(c.stats()), 120, "the first frames")
+                c.wait_settled(mapped=args.frames, timeout=120)                # the first frames
                 timed_queries(c, 1)                                   # the text model / first copy
                 with timed("unloaded queries"):
                     unloaded = timed_queries(c, args.queries)

@@ -8,7 +8,6 @@ as ``/?token=TOKEN`` sets an HttpOnly cookie and is redirected to the clean URL,
 own requests (assets, API calls, event streams) carry the token without it in the URL."""
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import logging
@@ -46,6 +45,7 @@ from apps.console.security import (
     token_cookie,
     token_ok,
 )
+from query_client.vocabulary import query_fields, search_reply_json
 
 log = logging.getLogger("rayfronts.console")
 STATIC = Path(__file__).with_name("static")
@@ -91,33 +91,17 @@ def _err(status: int, msg: Any) -> JSONResponse:
     return JSONResponse({"error": _one_line(msg)}, status_code=status)
 
 
-def _csv(text: str | None) -> str | None:
-    return None if text is None or text == "" else text
-
-
 def search_kwargs_from(q: list[str], background: list[str] | None, threshold: float, max_instances: int,
-                       max_goals: int, from_xyz: str | None, area: str | None, z_band: str | None) -> dict:
-    """``Client.search`` keywords from HTTP fields, parsed by the CLI's own ``search_kwargs``
-    (same checks and messages as ``rayfronts search``)."""
-    from query_client.search_cli import search_kwargs
+                       max_goals: int, from_xyz: str | list[float] | None, area: str | list[float] | None,
+                       z_band: str | list[float] | None) -> dict:
+    """``Client.search`` keywords from HTTP fields (``query_client.vocabulary.search_fields``: the
+    checks and messages of ``rayfronts search``)."""
+    from query_client.vocabulary import search_fields
 
     if not q or not all(t.strip() for t in q):
         raise ApiError(400, "give at least one non-empty target: ?q=vehicle")
-    ns = argparse.Namespace(targets=q, background=background or None, threshold=threshold,
-                            max_instances=max_instances, max_goals=max_goals, area=_csv(area), z_band=_csv(z_band),
-                            from_xyz=_csv(from_xyz), timeout=20.0)
-    return search_kwargs(ns)
-
-
-def _join(v: list[float] | None) -> str | None:
-    return None if v is None else ",".join(repr(float(x)) for x in v)
-
-
-def search_json(reply) -> dict:
-    """A SearchReply as the object ``rayfronts search --json`` prints (the CLI's own renderer)."""
-    from query_client.search_cli import _as_json
-
-    return json.loads(_as_json(reply))
+    return search_fields(q, background=background, threshold=threshold, max_instances=max_instances,
+                         max_goals=max_goals, area=area, z_band=z_band, from_xyz=from_xyz)
 
 
 def _occ_json(rep) -> dict:
@@ -338,13 +322,15 @@ _QUERY_BODY = {"requestBody": {"required": True, "content": {
     "multipart/form-data": {"schema": ImageQueryForm.model_json_schema()}}}}
 
 
+_QUERY_EXAMPLE = ": ?q=water+tower"    # how to give a query text, in an error line
+
+
 def _query_routes(app: FastAPI, client, timeout: float, max_body: int, slots: StreamSlots) -> None:
     @app.get("/api/query", summary="one query (text)", responses=_doc(QueryReply, 503))
     def query_get(q: str = Query(..., description="query text"), top_k: int = Query(5, ge=1, le=1000),
                   softmax: bool = False) -> dict:
-        if not q.strip():
-            raise ApiError(400, "the query text is empty; say what to look for: ?q=water+tower")
-        return client.query(q, top_k=top_k, softmax=softmax, timeout=timeout).to_dict()
+        kw = query_fields(q, top_k=top_k, example=_QUERY_EXAMPLE)
+        return client.query(**kw, softmax=softmax, timeout=timeout).to_dict()
 
     @app.post("/api/query", summary="one query: JSON {q, top_k} or multipart image upload (field 'image')",
               responses=_doc(QueryReply, 413, 503), openapi_extra=_QUERY_BODY)
@@ -366,19 +352,17 @@ def _query_routes(app: FastAPI, client, timeout: float, max_body: int, slots: St
         except (ValueError, TypeError) as e:
             raise ApiError(400, f"POST /api/query needs JSON {{\"q\": TEXT, \"top_k\": N}} or an image upload: {e}") \
                 from None
-        if not body.q.strip() or body.top_k < 1:
-            raise ApiError(400, "the query text is empty or top_k < 1")
-        res = await asyncio.to_thread(client.query, body.q, None, body.top_k, timeout, softmax=body.softmax)
+        kw = query_fields(body.q, top_k=body.top_k, example=': {"q": "water tower"}')
+        res = await asyncio.to_thread(client.query, kw["text"], None, kw["top_k"], timeout, softmax=body.softmax)
         return res.to_dict()
 
     @app.get("/api/query/stream", summary="standing query as server-sent events (event 'update', data: the "
              "/api/query reply)", responses=_doc(QueryReply, 503), response_class=StreamingResponse)
     async def query_stream(request: Request, q: str = Query(...),
                            top_k: int = Query(5, ge=1, le=1000)) -> StreamingResponse:
-        if not q.strip():
-            raise ApiError(400, "the query text is empty")
-        return await _sse(request, lambda push: client.watch(q, lambda r: push(r.to_dict()), top_k=top_k,
-                                                             timeout=timeout), slots)
+        kw = query_fields(q, top_k=top_k, example=_QUERY_EXAMPLE)
+        return await _sse(request, lambda push: client.watch(kw["text"], lambda r: push(r.to_dict()),
+                                                             top_k=kw["top_k"], timeout=timeout), slots)
 
 
 def _search_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> None:
@@ -390,14 +374,14 @@ def _search_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> 
                    area: str | None = Query(None, description="x0,y0,x1,y1 or polygon"),
                    z_band: str | None = Query(None, description="z0,z1")) -> dict:
         kw = search_kwargs_from(q, background, threshold, max_instances, max_goals, from_, area, z_band)
-        return search_json(client.search(q, timeout=timeout, **kw))
+        return search_reply_json(client.search(q, timeout=timeout, **kw))
 
     @app.post("/api/search", summary="search for planners (JSON body with the GET fields)",
               responses=_doc(SearchReplyModel, 422, 503))
     def search_post(body: SearchBody) -> dict:
         kw = search_kwargs_from(body.q, body.background, body.threshold, body.max_instances, body.max_goals,
-                                _join(body.from_xyz), _join(body.area), _join(body.z_band))
-        return search_json(client.search(body.q, timeout=timeout, **kw))
+                                body.from_xyz, body.area, body.z_band)
+        return search_reply_json(client.search(body.q, timeout=timeout, **kw))
 
     @app.get("/api/search/stream", summary="standing search as server-sent events (event 'update', data: the "
              "/api/search reply)", responses=_doc(SearchReplyModel, 503), response_class=StreamingResponse)
@@ -407,7 +391,7 @@ def _search_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> 
                             z_band: str | None = None) -> StreamingResponse:
         kw = search_kwargs_from(q, background, threshold, max_instances, max_goals, from_, area, z_band)
         return await _sse(request, lambda push: client.watch_search(
-            q, lambda r: push(search_json(r)), timeout=timeout, **kw), slots)
+            q, lambda r: push(search_reply_json(r)), timeout=timeout, **kw), slots)
 
 
 

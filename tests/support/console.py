@@ -185,13 +185,7 @@ class ConsoleWorld:
         for e in self.edges:
             assert e.p.wait(timeout=timeout) == 0, (self.logdir / f"{e.name}.log").read_text()[-2000:]
         with client(self.ep) as c:
-            wait_for(lambda: self._settled(c.stats()), 60, what="every received frame mapped or dropped, flushed")
-
-    @staticmethod
-    def _settled(s: dict) -> bool:
-        f = s["frames"]
-        return (f["mapped"] > 0 and f["received"] == f["mapped"] + f["dropped"] + f["rejected_total"]
-                and not any(r["queue"] for r in s["robots"].values()) and s["flushed_version"] == s["map_version"])
+            c.wait_settled(timeout=60)
 
     def close(self) -> None:
         stop_all(reversed(self.procs), signal.SIGINT, 30)
