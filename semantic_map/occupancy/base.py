@@ -28,6 +28,9 @@ class OccupancyGrid(Protocol):
     vox: float
     lo: int  # clamp lower bound (e.g. -5); the paper's -max_empty_cnt
     hi: int  # clamp upper bound (e.g. 30); the paper's max_occ_cnt (<= 127)
+    #: grows with every call that may change values (update, prune, load_state): a reader's
+    #: cache of values is valid while it is unchanged
+    revision: int
 
     def update(self, ijk: GridInput, inc: GridInput | int) -> None:
         """``value = clamp(value + inc, lo, hi)`` per row, activating the voxel.

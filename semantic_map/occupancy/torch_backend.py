@@ -51,6 +51,7 @@ class TorchOccupancy:
         self.device = torch.device(device)
         self._keys = torch.empty(0, dtype=torch.int64, device=self.device)  # sorted, unique
         self._vals = torch.empty(0, dtype=torch.int8, device=self.device)
+        self.revision = 0  # counts calls that may change values (update, prune, load_state)
 
     # ------------------------------------------------------------------ basic access
     @property
@@ -103,9 +104,11 @@ class TorchOccupancy:
             raise ValueError("state: duplicate voxel indices")
         self._keys = keys.contiguous()
         self._vals = vals.to(torch.int8)[order].contiguous()
+        self.revision += 1
 
     # ------------------------------------------------------------------ update
     def update(self, ijk: GridInput, inc: GridInput | int) -> None:
+        self.revision += 1
         dev = self.device
         ijk = as_ijk(ijk).to(dev)
         n = ijk.shape[0]
@@ -162,6 +165,7 @@ class TorchOccupancy:
     # ------------------------------------------------------------------ prune
     def prune(self, tolerance: int) -> None:
         tol = check_tolerance(tolerance)
+        self.revision += 1
         if self._keys.numel() == 0:
             return
         ijk = unpack(self._keys)

@@ -54,6 +54,7 @@ class VdbOccupancy:
         torch.device(device)  # validates the name; the OpenVDB grid always lives on the CPU
         self.device = torch.device("cpu")
         self._g = _grid if _grid is not None else _vdbocc.Grid(self.vox, self.lo, self.hi)
+        self.revision = 0  # counts calls that may change values (update, prune, load_state)
 
     @property
     def num_active(self) -> int:
@@ -75,6 +76,7 @@ class VdbOccupancy:
         ijk = as_ijk(ijk)
         inc = as_inc(inc, ijk.shape[0])
         if ijk.shape[0]:
+            self.revision += 1
             self._g.update(_np_i32(ijk), _np_i32(inc))
 
     def query(self, ijk: GridInput) -> torch.Tensor:
@@ -94,6 +96,7 @@ class VdbOccupancy:
         return _sorted(out)[0]
 
     def prune(self, tolerance: int) -> None:
+        self.revision += 1
         self._g.prune(check_tolerance(tolerance))
 
     def active(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -127,6 +130,7 @@ class VdbOccupancy:
         if ijk.shape[0]:
             g.set_values(_np_i32(ijk), np.ascontiguousarray(vals.numpy().astype(np.int8)))
         self._g = g
+        self.revision += 1
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the grid (tiles included) to an OpenVDB ``.vdb`` file."""
