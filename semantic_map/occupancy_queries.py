@@ -134,27 +134,69 @@ def costmap_slice(grid, vox: float, xy_min, xy_max, z_band, stride: int = 1,
     return out, np.array([rx[0], ry[0]], np.float64) * vox, float(vox * s)
 
 
-#: the occupied cells of a grid at one revision: (revision, sorted occupied ijk (M, 3) int64,
-#: ``scipy.spatial.cKDTree`` of their centres or None when M == 0), per grid
-_OCCUPIED: "weakref.WeakKeyDictionary[object, tuple[int, np.ndarray, object]]" = weakref.WeakKeyDictionary()
+class _Occupied:
+    """The occupied cells of one grid at ``revision``: sorted packed keys, ijk (M, 3) int64 in
+    key order, a ``cKDTree`` of their centres (None when M == 0); ``debt``: map voxels read by
+    window reads since it went stale (:func:`point_states`)."""
+
+    def __init__(self) -> None:
+        self.revision = -1
+        self.keys = np.zeros(0, np.int64)
+        self.ijk = np.zeros((0, 3), np.int64)
+        self.tree: object = None
+        self.debt = 0
+        self.based = False                   # keys hold a base the grid's change log follows
 
 
-def occupied_cells(grid) -> tuple[np.ndarray, object]:
-    """(sorted occupied ijk (M, 3) int64, a ``cKDTree`` of their centres or None) of ``grid``,
-    kept per grid while its ``revision`` is unchanged (one pass over the active voxels after
-    each change)."""
+#: per grid (:class:`_Occupied`)
+_OCCUPIED: "weakref.WeakKeyDictionary[object, _Occupied]" = weakref.WeakKeyDictionary()
+#: a stale index is rebuilt from all occupied voxels once the window reads since it went stale
+#: have read this share of the grid's active voxels (so neither path costs more than about
+#: twice the cheaper one)
+REBUILD_SHARE = 0.25
+
+
+def _pack(ijk: np.ndarray) -> np.ndarray:
+    b = np.int64(1 << 20)
+    return ((ijk[:, 0] + b) << 42) | ((ijk[:, 1] + b) << 21) | (ijk[:, 2] + b)
+
+
+def occupied_cells(grid, rebuild: bool = True) -> _Occupied | None:
+    """The grid's occupied cells at its current ``revision`` (:class:`_Occupied`), kept per
+    grid: after writes, only the written voxels are read again (the grid's ``changes`` log);
+    after a prune or a reload, or with no log, all occupied voxels are read (``rebuild``;
+    None when that is needed and ``rebuild`` is False)."""
     from scipy.spatial import cKDTree
 
-    rev = int(getattr(grid, "revision", -1))
-    got = _OCCUPIED.get(grid) if rev >= 0 else None
-    if got is not None and got[0] == rev:
-        return got[1], got[2]
-    ijk, val = grid.active()
-    occ = np.ascontiguousarray(np.asarray(ijk, np.int64).reshape(-1, 3)[np.asarray(val) > 0])
-    tree = cKDTree((occ + 0.5) * float(grid.vox)) if len(occ) else None
-    if rev >= 0:
-        _OCCUPIED[grid] = (rev, occ, tree)
-    return occ, tree
+    idx = _OCCUPIED.get(grid)
+    if idx is None:
+        idx = _OCCUPIED[grid] = _Occupied()
+    rev = int(grid.revision)
+    if idx.revision == rev:
+        return idx
+    changed = grid.changes.take() if idx.based else None
+    if changed is None:
+        if not rebuild:
+            idx.based = False
+            return None
+        grid.changes.take()                                          # the log starts from this base
+        ijk = np.asarray(grid.occupied(), np.int64).reshape(-1, 3)
+        keys = _pack(ijk)
+    else:
+        ck = np.unique(_pack(changed))
+        now = ck[_values(grid, _unpack(ck)) > 0] if len(ck) else ck
+        keys = np.union1d(idx.keys[~np.isin(idx.keys, ck, assume_unique=True)], now)
+        ijk = _unpack(keys)
+    order = np.argsort(keys, kind="stable")
+    idx.keys, idx.ijk = keys[order], ijk[order]
+    idx.tree = cKDTree((idx.ijk + 0.5) * float(grid.vox)) if len(keys) else None
+    idx.revision, idx.debt, idx.based = rev, 0, True
+    return idx
+
+
+def _unpack(keys: np.ndarray) -> np.ndarray:
+    b, m = 1 << 20, (1 << 21) - 1
+    return np.stack([(keys >> 42) - b, ((keys >> 21) & m) - b, (keys & m) - b], 1).astype(np.int64)
 
 
 def _clearance_brute(grid, vox: float, p: np.ndarray, ijk: np.ndarray, r: int, radius: float) -> np.ndarray:
@@ -208,10 +250,10 @@ def point_states(grid, vox: float, points, radius: float,
     ``inf`` when there is none within ``radius``. Returns ``(states (N,) int8, dist (N,)
     float64)``.
 
-    The distances come from the grid's occupied cells (:func:`occupied_cells`, kept while the
-    grid's ``revision`` is unchanged) when the grid has fewer active voxels than the request
-    would read cells, else from reading each point's window: the same cells, the same
-    float operations, the same answer."""
+    The distances come from the grid's occupied cells (:func:`occupied_cells`, kept per grid
+    and brought up to date from the voxels written since) or, while that index would need a
+    full rebuild not yet worth its cost (:data:`REBUILD_SHARE`), from reading each point's
+    window: the same cells, the same float operations, the same answer."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     if len(p) > MAX_POINTS:
         raise ValueError(f"{len(p)} points exceed the limit of {MAX_POINTS} points")
@@ -226,9 +268,12 @@ def point_states(grid, vox: float, points, radius: float,
     states = _state_of(_values(grid, ijk))
     if len(p) == 0:
         return states, np.full(0, np.inf)
-    got = _OCCUPIED.get(grid)
-    cached = got is not None and got[0] == getattr(grid, "revision", -1)
-    if float(grid.vox) == float(vox) and (cached or int(grid.num_active) < len(p) * w ** 3):
-        occ, tree = occupied_cells(grid)
-        return states, _clearance_indexed(occ, tree, vox, p, ijk, r, radius)
+    if float(grid.vox) == float(vox) and hasattr(grid, "changes"):
+        idx = _OCCUPIED.setdefault(grid, _Occupied())
+        cells = len(p) * w ** 3
+        rebuild = idx.debt + cells >= REBUILD_SHARE * int(grid.num_active)
+        got = occupied_cells(grid, rebuild)
+        if got is not None:
+            return states, _clearance_indexed(got.ijk, got.tree, vox, p, ijk, r, radius)
+        _OCCUPIED[grid].debt += cells
     return states, _clearance_brute(grid, vox, p, ijk, r, radius)

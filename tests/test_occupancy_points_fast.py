@@ -40,7 +40,11 @@ def test_clearance_equals_the_window_read_across_updates(backend):
         pts = rng.uniform(-5, 5, (300, 3))
         pts[:20] = (rng.integers(-15, 15, (20, 3)) + rng.choice([0.0, 0.5, 1.0], (20, 3))) * VOX  # on faces
         st, dist = point_states(g, VOX, pts, radius)
-        assert occupied_cells(g)[0].shape[0] > 0 and np.isfinite(dist).sum() > 50   # the index path ran
+        idx = occupied_cells(g, rebuild=False)
+        assert idx is not None and idx.revision == g.revision and len(idx.ijk) > 0   # the index path ran
+        assert np.isfinite(dist).sum() > 50
+        full = g.occupied()                                     # the kept cells are the grid's
+        assert np.array_equal(idx.ijk, full[np.lexsort(full.T[::-1])])
         brute = _clearance_brute(g, VOX, pts, np.floor(pts / VOX).astype(np.int64), r, radius)
         assert np.array_equal(dist, brute)                     # bit for bit, inf where none
         assert np.allclose(np.where(np.isfinite(dist), dist, -1),
@@ -50,7 +54,7 @@ def test_clearance_equals_the_window_read_across_updates(backend):
         ijk = rng.integers(-15, 15, (400, 3))
         g.update(ijk, rng.choice([-20, 20], len(ijk)))
         if step == 2:
-            g.prune(0)
+            g.prune(2)
 
 
 def test_clearance_of_a_changed_cell_is_seen_at_once():
@@ -62,3 +66,25 @@ def test_clearance_of_a_changed_cell_is_seen_at_once():
     assert point_states(g, VOX, p, 1.0)[1][0] == pytest.approx(0.15)
     g.update(np.array([[0, 0, 0], [1, 0, 0]]), -30)             # both freed
     assert point_states(g, VOX, p, 1.0)[1][0] == np.inf
+
+
+def test_a_large_stale_index_waits_until_window_reads_cost_as_much():
+    """Many active voxels (free space) and an index that needs a full rebuild: window reads
+    answer first (the same answer), the rebuild comes once they have read a share of the
+    grid's active voxels, and later writes are followed from the change log."""
+    from semantic_map import occupancy_queries as oq
+
+    g = make_occupancy(VOX, -5, 30, backend="vdb")
+    ax = np.arange(-40, 40)
+    g.update(np.stack(np.meshgrid(ax, ax, ax[:20], indexing="ij"), -1).reshape(-1, 3), -2)   # 128k free
+    g.update(np.array([[0, 0, 0], [5, 5, 5]]), 9)
+    pts = np.array([[0.75, 0.1, 0.1], [1.4, 1.4, 1.4]])          # windows of 2 * 9^3 cells
+    rounds = 0
+    while oq.occupied_cells(g, rebuild=False) is None:
+        st, d = point_states(g, VOX, pts, 1.0)
+        assert d[0] == pytest.approx(0.45) and d[1] == pytest.approx(np.sqrt(3) * 0.1)
+        rounds += 1
+    assert 15 < rounds < 30                               # 0.25 * 128k / 1458 cells per request: 22
+    g.update(np.array([[1, 0, 0]]), 9)                    # written: followed without a rebuild
+    assert point_states(g, VOX, pts, 1.0)[1][0] == pytest.approx(0.15)
+    assert oq._OCCUPIED[g].based and len(oq._OCCUPIED[g].ijk) == 3
