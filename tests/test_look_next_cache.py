@@ -119,25 +119,41 @@ def test_standing_searches_of_three_robots_equal_their_one_by_one_answers():
     on one map version, sharing the copy's score caches and the map's look-next cache, equal
     each robot's search answered alone from a fresh copy and an empty look-next cache."""
     from apps.bench.query import _space, build_map
-    from apps.bench.search import ROBOTS, _add_frames
+    from apps.bench.search import ROBOTS
+    from synthetic_world import World
     from common.search_messages import SearchRequest
     from mapper import search_answer as sa
     from semantic_map.query_snapshot import QuerySnapshot
 
     fs = _space(24)
     cfg, m = build_map(3000, 24, 60, fs)
-    _add_frames(m, 24, 2, 0, 4)
+    cfg.search.background = []                  # embeddings only: no text model to load
+    m.cfg.depth_limit = 8.0                     # small frames: a few frontiers and rays
+    w = World.generate(0)
+    hw = (24, 32)
+    K = w.camera(hw, 90.0)
+    poses = w.trajectory("ground", 6, seed=0)
+    g = torch.Generator().manual_seed(2)
+
+    def frames(a: int, b: int) -> None:
+        for p in poses[a:b]:
+            r = w.render(p, K, hw)
+            m.integrate(p, K, r.depth.astype(np.float32), r.rgb, torch.randn((24, 6, 8), generator=g))
+        m.flush()
+
+    frames(0, 2)
+    emb = np.random.default_rng(1).standard_normal((2, fs.lang_dim)).astype(np.float32)
     snap = QuerySnapshot()
     snap.sync(m, 1, 1)
     trackers = sa.TrackerStore(cfg.search.max_trackers)
 
     def ask(s, xyz, version):
-        req = SearchRequest(targets=["car"], from_xyz=xyz).validate()
+        req = SearchRequest(targets=["a", "b"], embeddings=emb, background=[], from_xyz=xyz).validate()
         rep = sa.answer_search(s, fs, req, cfg, trackers, lambda fn: fn(m), map_version=version)
         return dict(found=rep.found, look_next=rep.look_next, beyond=rep.beyond, events=rep.events)
 
     ask(snap, ROBOTS[0], 1)                                     # warm: the caches hold version 1
-    _add_frames(m, 24, 1, 2, 4)                                 # a map update
+    frames(2, 3)                                                # a map update
     snap.sync(m, 2, 2)
     hits = sa.look_next_cache(m).hits
     standing = [ask(snap, xyz, 2) for xyz in ROBOTS]
