@@ -374,8 +374,9 @@ def _instances(snap, fs, vprep, q: torch.Tensor, vs: np.ndarray, req: SearchRequ
             rijk = _voxel_ijk(snap, rrows)
             rk = pack_ijk(rijk)
             o = np.argsort(rk, kind="stable")
+            rk, rijk, rconf = rk[o], rijk[o], vs[ti, rrows][o]        # once, not per instance
             for inst in current:
-                d = _request_view(inst, rk[o], rijk[o], vs[ti, rrows][o], snap.vox, scfg.min_instance_voxels)
+                d = _request_view(inst, rk, rijk, rconf, snap.vox, scfg.min_instance_voxels)
                 if d is not None:
                     d["target"] = name
                     views.append(d)

@@ -150,7 +150,7 @@ def search_latency(cfg, m, fs, queries: int, dim: int = 0, frames: int = 0) -> d
         t = time.perf_counter()
         answer_search(snap, fs, req, cfg, trackers, lambda fn: fn(m), map_version=1)
         cold.append((time.perf_counter() - t) * 1e3)
-    standing = standing_latency(cfg, m, fs, snap, trackers, dim, frames, max(3, queries // 3)) if dim else {}
+    standing = standing_latency(cfg, m, fs, snap, trackers, dim, frames, max(1, queries // 3)) if dim else {}
     return {"standing_ms": standing,"first_search_ms": first_ms, "search_ms": _pct(wall), "search_cold_ms": _pct(cold),
             "search_cpu_ms": _pct(cpu),
             "stage_p50_ms": {k: float(np.median([s.get(k, 0.0) for s in stages])) for k in names},
