@@ -146,6 +146,13 @@ class _Occupied:
         self.tree: object = None
         self.debt = 0
         self.based = False                   # keys hold a base the grid's change log follows
+        self._active = (-1, 0)               # (revision, grid.num_active at it)
+
+    def active_count(self, grid) -> int:
+        """``grid.num_active`` (a walk over the whole tree), asked once per revision."""
+        if self._active[0] != grid.revision:
+            self._active = (int(grid.revision), int(grid.num_active))
+        return self._active[1]
 
 
 #: per grid (:class:`_Occupied`)
@@ -271,7 +278,9 @@ def point_states(grid, vox: float, points, radius: float,
     if float(grid.vox) == float(vox) and hasattr(grid, "changes"):
         idx = _OCCUPIED.setdefault(grid, _Occupied())
         cells = len(p) * w ** 3
-        rebuild = idx.debt + cells >= REBUILD_SHARE * int(grid.num_active)
+        # (num_active walks the whole tree: only asked when a rebuild is the question)
+        rebuild = idx.revision == grid.revision or (idx.based and grid.changes.complete) or \
+            idx.debt + cells >= REBUILD_SHARE * idx.active_count(grid)
         got = occupied_cells(grid, rebuild)
         if got is not None:
             return states, _clearance_indexed(got.ijk, got.tree, vox, p, ijk, r, radius)

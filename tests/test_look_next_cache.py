@@ -120,10 +120,10 @@ def test_standing_searches_of_three_robots_equal_their_one_by_one_answers():
     each robot's search answered alone from a fresh copy and an empty look-next cache."""
     from apps.bench.query import _space, build_map
     from apps.bench.search import ROBOTS
-    from synthetic_world import World
     from common.search_messages import SearchRequest
     from mapper import search_answer as sa
     from semantic_map.query_snapshot import QuerySnapshot
+    from synthetic_world import World
 
     fs = _space(24)
     cfg, m = build_map(3000, 24, 60, fs)

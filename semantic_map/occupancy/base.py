@@ -47,6 +47,11 @@ class ChangeLog:
         else:
             self._parts.append(ijk.detach().cpu().numpy().astype(np.int64, copy=True))
 
+    @property
+    def complete(self) -> bool:
+        """Whether :meth:`take` would list the written voxels (not "anything may have changed")."""
+        return not self._all
+
     def everything(self) -> None:
         """Any voxel may have changed."""
         self._all, self._parts, self._n = True, [], 0
