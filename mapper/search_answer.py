@@ -30,6 +30,7 @@ import hashlib
 import logging
 import threading
 import time
+import weakref
 from collections import OrderedDict
 from typing import Callable
 
@@ -41,11 +42,23 @@ from common.conventions import voxel_center, voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from semantic_map.beyond import triangulate
 from semantic_map.instances import Instance, InstanceTracker, pack_ijk
-from semantic_map.look_next import look_next, points_in_polygon, ray_outlier_z
+from semantic_map.look_next import LookNextCache, look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import score_rows, softmax_share
 from semantic_map.query_snapshot import one_thread
 
 log = logging.getLogger("rayfronts.mapper")
+
+#: look-next's target-free work per map (:class:`semantic_map.look_next.LookNextCache`), used
+#: under the map lock (``read_map``), so by one search at a time
+_LOOK_NEXT: "weakref.WeakKeyDictionary[object, LookNextCache]" = weakref.WeakKeyDictionary()
+
+
+def look_next_cache(m) -> LookNextCache:
+    """The look-next cache of map ``m`` (created on first use)."""
+    c = _LOOK_NEXT.get(m)
+    if c is None:
+        c = _LOOK_NEXT[m] = LookNextCache()
+    return c
 
 
 class TrackerStore:
@@ -364,8 +377,9 @@ def _instances(snap, fs, vprep, q: torch.Tensor, vs: np.ndarray, req: SearchRequ
             rijk = _voxel_ijk(snap, rrows)
             rk = pack_ijk(rijk)
             o = np.argsort(rk, kind="stable")
+            rk, rijk, rconf = rk[o], rijk[o], vs[ti, rrows][o]        # once, not per instance
             for inst in current:
-                d = _request_view(inst, rk[o], rijk[o], vs[ti, rrows][o], snap.vox, scfg.min_instance_voxels)
+                d = _request_view(inst, rk, rijk, rconf, snap.vox, scfg.min_instance_voxels)
                 if d is not None:
                     d["target"] = name
                     views.append(d)
@@ -440,7 +454,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
                 return look_next(m.occupancy, float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
                                  snap.ray_dirs[rkeep], rs[:, rkeep].T, list(req.targets), req.from_xyz,
                                  ray_z=rz.T, ray_radius_m=radius, standoff_m=scfg.standoff_m,
-                                 sensing_radius_m=scfg.sensing_radius_m, max_goals=req.max_goals)
+                                 sensing_radius_m=scfg.sensing_radius_m, max_goals=req.max_goals,
+                                 cache=look_next_cache(m))
         got = read_map(run)
         if got is None:
             tm["stale"] = 1.0

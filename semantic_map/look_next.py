@@ -41,6 +41,7 @@ distance), the ``max_candidates`` best by ``ray_z`` and, with ``from_xyz``, the
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -129,32 +130,109 @@ def _near_cells(points: np.ndarray, origins: np.ndarray, radius: float) -> np.nd
 NEAR_DENSE_CELLS = 1 << 25
 
 
-def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.ndarray,
-                radius: float, rays_tree: Any = None) -> np.ndarray:
-    """(F, T) best score per target of the rays whose origin lies within ``radius`` (m) of each
-    frontier centre (F, 3); 0 where none. One sparse neighbour search, no per-frontier loop.
+def ray_pairs(frontiers: np.ndarray, ray_origins: np.ndarray, radius: float,
+              rays_tree: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """(frontier index, ray index) int64 of every pair whose ray origin lies within ``radius``
+    (m) of the frontier centre: one sparse neighbour search, no per-frontier loop.
     ``rays_tree``: a ``scipy.spatial.cKDTree`` of ``ray_origins`` when the caller has one."""
     f = np.asarray(frontiers, np.float64).reshape(-1, 3)
     o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
-    s = np.asarray(ray_scores, np.float64)
-    s = s.reshape(len(o), s.shape[-1] if s.ndim == 2 else 1)
-    best = np.zeros((len(f), s.shape[1]))
+    none = np.zeros(0, np.int64)
     if len(f) == 0 or len(o) == 0:
-        return best
+        return none, none
     from scipy.spatial import cKDTree
 
     # exact pre-filter: a frontier can have a ray within ``radius`` only if one lies in the 27
     # cells (side ``radius``) around its own cell; only those frontiers go to the tree search
     sub = np.flatnonzero(_near_cells(f, o, radius))
     if not len(sub):
-        return best
+        return none, none
     pairs = cKDTree(f[sub]).sparse_distance_matrix(rays_tree if rays_tree is not None else cKDTree(o), radius,
                                                     output_type="ndarray")
-    if len(pairs):
-        fi, ri = sub[pairs["i"].astype(np.int64)], pairs["j"].astype(np.int64)
+    return sub[pairs["i"].astype(np.int64)], pairs["j"].astype(np.int64)
+
+
+def _support_from_pairs(n_frontiers: int, pairs: tuple[np.ndarray, np.ndarray], s: np.ndarray) -> np.ndarray:
+    best = np.zeros((n_frontiers, s.shape[1]))
+    fi, ri = pairs
+    if len(fi):
         for t in range(s.shape[1]):
             np.maximum.at(best[:, t], fi, s[ri, t])
     return best
+
+
+def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.ndarray,
+                radius: float, rays_tree: Any = None) -> np.ndarray:
+    """(F, T) best score per target of the rays whose origin lies within ``radius`` (m) of each
+    frontier centre (F, 3); 0 where none (pairs from :func:`ray_pairs`)."""
+    f = np.asarray(frontiers, np.float64).reshape(-1, 3)
+    o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
+    s = np.asarray(ray_scores, np.float64)
+    s = s.reshape(len(o), s.shape[-1] if s.ndim == 2 else 1)
+    return _support_from_pairs(len(f), ray_pairs(f, o, radius, rays_tree), s)
+
+
+class LookNextCache:
+    """What :func:`look_next` computes without the targets, kept between calls: the rays'
+    KD-tree, the frontier–ray pairs within the ray radius, each examined frontier's viewpoint
+    and each viewpoint's gain. Valid while the frontiers, the ray origins, the parameters and
+    the grid (its object and ``revision``) are those it was filled with; otherwise
+    :meth:`bind` empties what changed: the pairs and tree when the frontiers or rays changed,
+    the viewpoints when the frontiers or the grid changed, the gains when the grid changed.
+    Results are exactly those of a call without a cache (each is a function of its own
+    inputs only). Not thread-safe: one caller at a time."""
+
+    def __init__(self) -> None:
+        self.f: np.ndarray | None = None
+        self.o: np.ndarray | None = None
+        self.geo: tuple = ()
+        self.grid: tuple = ()
+        self.tree: Any = None
+        self.pairs: tuple[np.ndarray, np.ndarray] | None = None
+        self.views: dict[int, np.ndarray | None] = {}
+        self.gains: dict[tuple, float] = {}
+        self.hits = 0                        # calls that reused the pairs (for tests and timings)
+
+    def bind(self, grid, f: np.ndarray, o: np.ndarray, geo: tuple[float, float, float, float]) -> None:
+        """Keep what is still valid for this call's inputs (class docstring); ``geo`` is
+        ``(ray radius, standoff, voxel size, sensing radius)``."""
+        same_f = self.f is not None and self.f.shape == f.shape and np.array_equal(self.f, f)
+        same_o = self.o is not None and self.o.shape == o.shape and np.array_equal(self.o, o)
+        rev = int(getattr(grid, "revision", -1))
+        same_grid = self.grid != () and self.grid[0]() is grid and self.grid[1] == rev and rev >= 0
+        old = self.geo if self.geo else (None,) * 4
+        if not same_o:
+            self.tree = None
+        if not (same_f and same_o and old[0] == geo[0]):
+            self.pairs = None
+        else:
+            self.hits += 1
+        if not (same_f and same_grid and old[1:3] == geo[1:3]):
+            self.views = {}
+        if not (same_grid and old[2:] == geo[2:]):
+            self.gains = {}
+        self.f = self.f if same_f else f.copy()
+        self.o = self.o if same_o else o.copy()
+        self.geo, self.grid = geo, (weakref.ref(grid), rev)
+
+    def fill_views(self, grid, vox: float, f: np.ndarray, order: np.ndarray, standoff: float) -> None:
+        """Viewpoints of frontiers ``f[order]`` not kept yet (one grid read for them)."""
+        todo = [int(i) for i in order if int(i) not in self.views]
+        if todo:
+            self.views.update(zip(todo, _viewpoints(grid, vox, f[todo], standoff), strict=True))
+
+    def fill_gains(self, grid, vox: float, goals: list[Goal], radius: float) -> None:
+        """Set each goal's ``gain_m3``: a function of its viewpoint's voxel only
+        (:func:`unknown_volume`), kept per voxel."""
+        if not goals:
+            return
+        keys = [tuple(np.floor(g.position / vox).astype(np.int64).tolist()) for g in goals]
+        new = list(dict.fromkeys(key for key in keys if key not in self.gains))
+        if new:
+            got = unknown_volume(grid, vox, (np.asarray(new, np.float64) + 0.5) * vox, radius)
+            self.gains.update(zip(new, got.tolist(), strict=True))
+        for g, key in zip(goals, keys, strict=True):
+            g.gain_m3 = float(self.gains[key])
 
 
 #: fewer rays than this in the area: no ray_z (a median and spread of a handful say nothing)
@@ -269,11 +347,12 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
               ray_scores: np.ndarray, targets: list[str], from_xyz=None, *, ray_z: np.ndarray | None = None,
               ray_radius_m: float = 1.0, standoff_m: float = 1.0, sensing_radius_m: float = 3.0,
               max_goals: int = 10, max_candidates: int = 64, max_rays: int = 5,
-              explore_share: float = 0.25) -> list[Goal]:
+              explore_share: float = 0.25, cache: LookNextCache | None = None) -> list[Goal]:
     """Ranked exploration goals (module docstring). ``frontiers`` (F, 3) frontier centres
     (already filtered to the area of interest), rays ``(R, 3)`` origins and unit directions,
     ``ray_scores`` (R, T) per target in [0, 1], ``targets`` the T names, ``ray_z`` (R, T)
-    :func:`ray_outlier_z` of the rays (None: every goal's ``ray_z`` is 0)."""
+    :func:`ray_outlier_z` of the rays (None: every goal's ``ray_z`` is 0). ``cache``: the
+    target-free work of earlier calls (:class:`LookNextCache`; the same goals either way)."""
     f = np.asarray(frontiers, np.float64).reshape(-1, 3)
     dirs = np.asarray(ray_dirs, np.float64).reshape(-1, 3)
     scores = np.asarray(ray_scores, np.float64)
@@ -285,8 +364,14 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
     from scipy.spatial import cKDTree
 
     o = np.asarray(ray_origins, np.float64).reshape(-1, 3)
-    rays_tree = cKDTree(o) if len(o) else None
-    best = ray_support(f, o, scores, ray_radius_m, rays_tree)
+    c = cache if cache is not None else LookNextCache()
+    c.bind(grid, f, o, (float(ray_radius_m), float(standoff_m), float(vox), float(sensing_radius_m)))
+    if c.tree is None and len(o):
+        c.tree = cKDTree(o)
+    rays_tree = c.tree
+    if c.pairs is None:
+        c.pairs = ray_pairs(f, o, ray_radius_m, rays_tree)
+    best = _support_from_pairs(len(f), c.pairs, scores)
     fscore = best.max(1) if best.shape[1] else np.zeros(len(f))
     fz, bz, zs = np.zeros(len(f)), np.zeros((len(f), len(targets))), np.zeros((len(dirs), len(targets)))
     if ray_z is not None and len(o) and len(targets):
@@ -294,7 +379,7 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
         if zs.size != len(dirs) * len(targets):
             raise ValueError(f"ray_z has shape {zs.shape}, expected ({len(dirs)}, {len(targets)})")
         zs = zs.reshape(len(dirs), len(targets))
-        bz = ray_support(f, o, zs, ray_radius_m, rays_tree)
+        bz = _support_from_pairs(len(f), c.pairs, zs)
         fz = bz.max(1)
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
     fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
@@ -307,8 +392,9 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
         order = np.asarray(list(dict.fromkeys(np.concatenate([order, *extra]).tolist())), np.int64)
     goals: list[Goal] = []
     seen: set = set()
-    views = _viewpoints(grid, vox, f[order], standoff_m)
-    for i, v in zip(order, views, strict=True):
+    c.fill_views(grid, vox, f, order, standoff_m)
+    for i in order:
+        v = c.views[int(i)]
         if v is None:
             continue
         key = tuple(np.floor(v / vox).astype(np.int64))
@@ -328,10 +414,7 @@ def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, 
         goals.append(Goal(v, _heading(v, f[i], sd, sw), float(fscore[i]), 0.0,
                           0.0 if start is None else float(np.linalg.norm(v - start)),
                           targets[t] if t >= 0 else None, f[i], sd.astype(np.float32), float(fz[i])))
-    if goals:
-        gains = unknown_volume(grid, vox, np.stack([g.position for g in goals]), sensing_radius_m)
-        for g, gain in zip(goals, gains, strict=True):
-            g.gain_m3 = float(gain)
+    c.fill_gains(grid, vox, goals, sensing_radius_m)
     return _ranked(goals, max_goals, int(max_goals * explore_share) if start is not None else 0)
 
 

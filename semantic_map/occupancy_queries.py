@@ -20,6 +20,7 @@ limit (ask for a coarser ``stride`` or a smaller box).
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 import torch
@@ -133,27 +134,82 @@ def costmap_slice(grid, vox: float, xy_min, xy_max, z_band, stride: int = 1,
     return out, np.array([rx[0], ry[0]], np.float64) * vox, float(vox * s)
 
 
-def point_states(grid, vox: float, points, radius: float,
-                 max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray]:
-    """State of the map voxel holding each point (N, 3) (m) and the distance (m) from the
-    point to the nearest occupied voxel (its cube, so 0 inside one) within ``radius``;
-    ``inf`` when there is none within ``radius``. Returns ``(states (N,) int8, dist (N,)
-    float64)``."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    if len(p) > MAX_POINTS:
-        raise ValueError(f"{len(p)} points exceed the limit of {MAX_POINTS} points")
-    if not np.isfinite(p).all():
-        raise ValueError("points must be finite")
-    if not (radius >= 0 and math.isfinite(radius)):
-        raise ValueError(f"radius must be finite and >= 0, got {radius}")
-    r = int(math.ceil(radius / vox))
-    w = 2 * r + 1
-    _check_size(len(p) * w ** 3, len(p) * w ** 3, max_cells)
-    ijk = np.floor(p / vox).astype(np.int64)
-    states = _state_of(_values(grid, ijk))
+class _Occupied:
+    """The occupied cells of one grid at ``revision``: sorted packed keys, ijk (M, 3) int64 in
+    key order, a ``cKDTree`` of their centres (None when M == 0); ``debt``: map voxels read by
+    window reads since it went stale (:func:`point_states`)."""
+
+    def __init__(self) -> None:
+        self.revision = -1
+        self.keys = np.zeros(0, np.int64)
+        self.ijk = np.zeros((0, 3), np.int64)
+        self.tree: object = None
+        self.debt = 0
+        self.based = False                   # keys hold a base the grid's change log follows
+        self._active = (-1, 0)               # (revision, grid.num_active at it)
+
+    def active_count(self, grid) -> int:
+        """``grid.num_active`` (a walk over the whole tree), asked once per revision."""
+        if self._active[0] != grid.revision:
+            self._active = (int(grid.revision), int(grid.num_active))
+        return self._active[1]
+
+
+#: per grid (:class:`_Occupied`)
+_OCCUPIED: "weakref.WeakKeyDictionary[object, _Occupied]" = weakref.WeakKeyDictionary()
+#: a stale index is rebuilt from all occupied voxels once the window reads since it went stale
+#: have read this share of the grid's active voxels (so neither path costs more than about
+#: twice the cheaper one)
+REBUILD_SHARE = 0.25
+
+
+def _pack(ijk: np.ndarray) -> np.ndarray:
+    b = np.int64(1 << 20)
+    return ((ijk[:, 0] + b) << 42) | ((ijk[:, 1] + b) << 21) | (ijk[:, 2] + b)
+
+
+def occupied_cells(grid, rebuild: bool = True) -> _Occupied | None:
+    """The grid's occupied cells at its current ``revision`` (:class:`_Occupied`), kept per
+    grid: after writes, only the written voxels are read again (the grid's ``changes`` log);
+    after a prune or a reload, or with no log, all occupied voxels are read (``rebuild``;
+    None when that is needed and ``rebuild`` is False)."""
+    from scipy.spatial import cKDTree
+
+    idx = _OCCUPIED.get(grid)
+    if idx is None:
+        idx = _OCCUPIED[grid] = _Occupied()
+    rev = int(grid.revision)
+    if idx.revision == rev:
+        return idx
+    changed = grid.changes.take() if idx.based else None
+    if changed is None:
+        if not rebuild:
+            idx.based = False
+            return None
+        grid.changes.take()                                          # the log starts from this base
+        ijk = np.asarray(grid.occupied(), np.int64).reshape(-1, 3)
+        keys = _pack(ijk)
+    else:
+        ck = np.unique(_pack(changed))
+        now = ck[_values(grid, _unpack(ck)) > 0] if len(ck) else ck
+        keys = np.union1d(idx.keys[~np.isin(idx.keys, ck, assume_unique=True)], now)
+        ijk = _unpack(keys)
+    order = np.argsort(keys, kind="stable")
+    idx.keys, idx.ijk = keys[order], ijk[order]
+    idx.tree = cKDTree((idx.ijk + 0.5) * float(grid.vox)) if len(keys) else None
+    idx.revision, idx.debt, idx.based = rev, 0, True
+    return idx
+
+
+def _unpack(keys: np.ndarray) -> np.ndarray:
+    b, m = 1 << 20, (1 << 21) - 1
+    return np.stack([(keys >> 42) - b, ((keys >> 21) & m) - b, (keys & m) - b], 1).astype(np.int64)
+
+
+def _clearance_brute(grid, vox: float, p: np.ndarray, ijk: np.ndarray, r: int, radius: float) -> np.ndarray:
+    """Distance (m) to the nearest occupied cube within ``radius``, else inf: every cell of the
+    ``(2r+1)^3`` window around each point's voxel read from the grid."""
     dist = np.full(len(p), np.inf)
-    if len(p) == 0:
-        return states, dist
     off = np.stack(np.meshgrid(*(np.arange(-r, r + 1),) * 3, indexing="ij"), -1).reshape(-1, 3)
     per = max(1, CHUNK // len(off))
     for s in range(0, len(p), per):
@@ -166,4 +222,67 @@ def point_states(grid, vox: float, points, radius: float,
         d = np.maximum(np.maximum(lo - p[s:e, None, :], p[s:e, None, :] - (lo + vox)), 0.0)
         dd = np.where(occ, np.sqrt((d * d).sum(-1)), np.inf).min(1)
         dist[s:e] = np.where(dd <= radius, dd, np.inf)
-    return states, dist
+    return dist
+
+
+def _clearance_indexed(occ: np.ndarray, tree, vox: float, p: np.ndarray, ijk: np.ndarray, r: int,
+                       radius: float) -> np.ndarray:
+    """As :func:`_clearance_brute`, from the grid's occupied cells: the cells whose centre lies
+    within ``radius`` + half a voxel diagonal of a point (a superset of those whose cube lies
+    within ``radius``) and inside the point's window, each cube's distance computed as there."""
+    from scipy.spatial import cKDTree
+
+    dist = np.full(len(p), np.inf)
+    if tree is None or len(p) == 0:
+        return dist
+    pairs = cKDTree(p).sparse_distance_matrix(tree, radius + vox * math.sqrt(3.0) / 2 + 1e-9 * (1 + radius),
+                                              output_type="ndarray")
+    if not len(pairs):
+        return dist
+    pi, ci = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    cells = occ[ci]
+    win = (np.abs(cells - ijk[pi]) <= r).all(1)
+    pi, cells = pi[win], cells[win]
+    lo = cells * vox
+    d = np.maximum(np.maximum(lo - p[pi], p[pi] - (lo + vox)), 0.0)
+    dd = np.sqrt((d * d).sum(-1))
+    np.minimum.at(dist, pi, dd)
+    return np.where(dist <= radius, dist, np.inf)
+
+
+def point_states(grid, vox: float, points, radius: float,
+                 max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray]:
+    """State of the map voxel holding each point (N, 3) (m) and the distance (m) from the
+    point to the nearest occupied voxel (its cube, so 0 inside one) within ``radius``;
+    ``inf`` when there is none within ``radius``. Returns ``(states (N,) int8, dist (N,)
+    float64)``.
+
+    The distances come from the grid's occupied cells (:func:`occupied_cells`, kept per grid
+    and brought up to date from the voxels written since) or, while that index would need a
+    full rebuild not yet worth its cost (:data:`REBUILD_SHARE`), from reading each point's
+    window: the same cells, the same float operations, the same answer."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(p) > MAX_POINTS:
+        raise ValueError(f"{len(p)} points exceed the limit of {MAX_POINTS} points")
+    if not np.isfinite(p).all():
+        raise ValueError("points must be finite")
+    if not (radius >= 0 and math.isfinite(radius)):
+        raise ValueError(f"radius must be finite and >= 0, got {radius}")
+    r = int(math.ceil(radius / vox))
+    w = 2 * r + 1
+    _check_size(len(p) * w ** 3, len(p) * w ** 3, max_cells)
+    ijk = np.floor(p / vox).astype(np.int64)
+    states = _state_of(_values(grid, ijk))
+    if len(p) == 0:
+        return states, np.full(0, np.inf)
+    if float(grid.vox) == float(vox) and hasattr(grid, "changes"):
+        idx = _OCCUPIED.setdefault(grid, _Occupied())
+        cells = len(p) * w ** 3
+        # (num_active walks the whole tree: only asked when a rebuild is the question)
+        rebuild = idx.revision == grid.revision or (idx.based and grid.changes.complete) or \
+            idx.debt + cells >= REBUILD_SHARE * idx.active_count(grid)
+        got = occupied_cells(grid, rebuild)
+        if got is not None:
+            return states, _clearance_indexed(got.ijk, got.tree, vox, p, ijk, r, radius)
+        _OCCUPIED[grid].debt += cells
+    return states, _clearance_brute(grid, vox, p, ijk, r, radius)

@@ -1,8 +1,11 @@
 """Benchmark metadata (apps.bench.meta via the dispatcher), `bench all`, the README table."""
 import json
 import os
+import subprocess
 import sys
 import time
+
+import pytest
 
 from apps.bench import meta, report
 from apps.cli import main
@@ -113,7 +116,12 @@ def test_bench_search_quick(tmp_path):
     assert row["voxels"] >= 5000 and row["frontiers"] > 0 and row["look_next"] > 0
     assert {"encode", "similarity", "instances", "look_next", "beyond", "total"} <= set(row["stage_p50_ms"])
     assert row["search_ms"]["n"] == 2 and row["search_ms"]["p50"] > 0
-    assert set(row["occupancy_ms"]) == {"box_40x40x6m", "slice_80x80m", "points_1000_r1m"}
+    assert set(row["occupancy_ms"]) == {"box_40x40x6m", "slice_80x80m", "points_1000_r1m", "points_1000_r1m_first"}
+    sm = row["standing_ms"]
+    assert sm["one"]["n"] == sm["three"]["n"] == 1 and sm["ratio"] == pytest.approx(
+        sm["three"]["p50"] / sm["one"]["p50"])
+    head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    assert d["meta"]["commit"].split("+")[0] == head
     assert d["meta"]["process"]["cpu_s"] > 0 and "search_5k" in [s["name"] for s in d["meta"]["sections"]]
 
 

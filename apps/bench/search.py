@@ -15,9 +15,15 @@ look-next):
   (``encode``, ``similarity``, ``instances``, ``look_next``, ``beyond``);
   ``search_cold_ms``: searches for a target vector never searched before (its scores a
   full pass over the copy, a new tracker);
+* ``standing_ms``: standing searches refreshed after a map update (one more synthetic frame
+  integrated and the copy synced, not timed), as the mapper's standing loop answers them:
+  ``one`` the search of one robot, ``three`` those of three robots (the same target from
+  three places) on one map version, ``ratio`` three / one (p50s);
 * ``occupancy_ms``: the three occupancy queries the planners use (a 40 m × 40 m × 6 m box at
   the map's voxel size, a 2D costmap slice over 80 m × 80 m, 1000 points with a 1 m
-  distance radius).
+  distance radius, after :data:`WARM_POINT_QUERIES` such queries whose latencies are
+  ``points_1000_r1m_first``: the occupied-cell index is built once they have read a share
+  of the grid, :func:`semantic_map.occupancy_queries.point_states`).
 
 Random features make the found instances a stress case (about one voxel in six above the
 threshold, in one dense block), not a typical map.
@@ -34,6 +40,8 @@ from apps.bench.query import _count, _pct, _space, build_map, map_size_arguments
 HELP = "search (found / look-next / beyond) and occupancy-query latency on 100k..5M-voxel maps, in process"
 
 TARGETS = ("car", "tree", "bench", "person", "window")
+#: untimed point queries before the timed ones (``points_1000_r1m_first``: their latencies)
+WARM_POINT_QUERIES = 10
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,8 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--queries", type=int, default=10, help="searches per map size")
 
 
-def _add_frames(m, dim: int, n_frames: int) -> None:
-    """Integrate ``n_frames`` ground frames of synthetic world 0 (random ``dim`` features)."""
+def _add_frames(m, dim: int, n_frames: int, first: int = 0, total: int = 0) -> None:
+    """Integrate ground frames ``first .. first + n_frames`` of a ``total``-pose (default
+    ``n_frames``) trajectory of synthetic world 0 (random ``dim`` features)."""
     import torch
 
     from synthetic_world import World
@@ -51,8 +60,8 @@ def _add_frames(m, dim: int, n_frames: int) -> None:
     w = World.generate(0)
     hw = (60, 80)
     K = w.camera(hw, 90.0)
-    g = torch.Generator().manual_seed(2)
-    for p in w.trajectory("ground", max(n_frames, 1), seed=0)[:n_frames]:
+    g = torch.Generator().manual_seed(2 + first)
+    for p in w.trajectory("ground", max(total, n_frames, 1), seed=0)[first:first + n_frames]:
         r = w.render(p, K, hw)
         m.integrate(p, K, r.depth.astype(np.float32), r.rgb, torch.randn((dim, 15, 20), generator=g))
     m.flush()
@@ -63,7 +72,12 @@ def _occupancy_latency(m, n: int) -> dict:
 
     vox = float(m.cfg.vox_size)
     rng = np.random.default_rng(0)
-    box, sl, pts = [], [], []
+    box, sl, pts, first = [], [], [], []
+    for _ in range(WARM_POINT_QUERIES):          # a planner's first steps: the index is built on the way
+        q = rng.uniform([-30, -30, 0], [30, 30, 4], (1000, 3))
+        t = time.perf_counter()
+        point_states(m.occupancy, vox, q, 1.0)
+        first.append((time.perf_counter() - t) * 1e3)
     for _ in range(n):
         t = time.perf_counter()
         state_grid(m.occupancy, vox, [-20, -20, 0], [20, 20, 6])
@@ -75,10 +89,32 @@ def _occupancy_latency(m, n: int) -> dict:
         t = time.perf_counter()
         point_states(m.occupancy, vox, q, 1.0)
         pts.append((time.perf_counter() - t) * 1e3)
-    return {"box_40x40x6m": _pct(box), "slice_80x80m": _pct(sl), "points_1000_r1m": _pct(pts)}
+    return {"box_40x40x6m": _pct(box), "slice_80x80m": _pct(sl), "points_1000_r1m": _pct(pts),
+            "points_1000_r1m_first": _pct(first)}
 
 
-def search_latency(cfg, m, fs, queries: int) -> dict:
+ROBOTS = ([0.0, 0.0, 1.5], [6.0, -4.0, 1.5], [-8.0, 5.0, 1.5])
+
+
+def standing_latency(cfg, m, fs, snap, trackers, dim: int, frames: int, rounds: int) -> dict:
+    """Standing searches after map updates: one robot's, then three robots' (module docstring)."""
+    from common.search_messages import SearchRequest
+    from mapper.search_answer import answer_search
+
+    one_ms, three_ms = [], []
+    for i in range(2 * rounds):
+        _add_frames(m, dim, 1, frames + i, frames + 2 * rounds)
+        snap.sync(m, 2 + i, 2 + i)
+        reqs = [SearchRequest(targets=[TARGETS[0]], from_xyz=xyz).validate() for xyz in ROBOTS[:1 + 2 * (i % 2)]]
+        t = time.perf_counter()
+        for req in reqs:                              # as the standing loop: one after the other
+            answer_search(snap, fs, req, cfg, trackers, lambda fn: fn(m), map_version=2 + i)
+        (three_ms if i % 2 else one_ms).append((time.perf_counter() - t) * 1e3)
+    return {"one": _pct(one_ms), "three": _pct(three_ms),
+            "ratio": float(np.median(three_ms) / max(1e-9, np.median(one_ms)))}
+
+
+def search_latency(cfg, m, fs, queries: int, dim: int = 0, frames: int = 0) -> dict:
     """Searches answered as the mapper does (query snapshot, cached embeddings)."""
     from common.search_messages import SearchRequest
     from mapper.search_answer import TrackerStore, answer_search
@@ -114,7 +150,8 @@ def search_latency(cfg, m, fs, queries: int) -> dict:
         t = time.perf_counter()
         answer_search(snap, fs, req, cfg, trackers, lambda fn: fn(m), map_version=1)
         cold.append((time.perf_counter() - t) * 1e3)
-    return {"first_search_ms": first_ms, "search_ms": _pct(wall), "search_cold_ms": _pct(cold),
+    standing = standing_latency(cfg, m, fs, snap, trackers, dim, frames, max(1, queries // 3)) if dim else {}
+    return {"standing_ms": standing,"first_search_ms": first_ms, "search_ms": _pct(wall), "search_cold_ms": _pct(cold),
             "search_cpu_ms": _pct(cpu),
             "stage_p50_ms": {k: float(np.median([s.get(k, 0.0) for s in stages])) for k in names},
             "found": len(first.found), "look_next": len(first.look_next),
@@ -139,8 +176,8 @@ def run(args: argparse.Namespace) -> dict:
         row: dict = {"build_s": time.perf_counter() - t, "voxels": len(m.sem), "rays": len(m.ray_store),
                      "frontiers": int(m.frontiers().centres.shape[0])}
         with meta.timed(f"search_{spec}"):
-            row.update(search_latency(cfg, m, fs, args.queries))
-        with meta.timed(f"occupancy_{spec}"):
+            row.update(search_latency(cfg, m, fs, args.queries, args.dim, args.frames))
+        with meta.timed(f"occupancy_{spec}"):          # after the standing searches' updates
             row["occupancy_ms"] = _occupancy_latency(m, max(3, args.queries // 2))
         out["sizes"][spec] = row
         del m

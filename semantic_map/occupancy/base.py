@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Protocol, Union
 
+import numpy as np
 import numpy.typing as npt
 import torch
 
@@ -24,10 +25,54 @@ GridInput = Union[torch.Tensor, npt.ArrayLike]
 BBox = tuple[GridInput, GridInput]
 
 
+class ChangeLog:
+    """The voxels written since its last :meth:`take`, for one reader's cache of the grid's
+    values (:func:`semantic_map.occupancy_queries.occupied_cells`). Bounded: past ``cap``
+    voxels, and after a call that may change values anywhere (prune, load_state), it only
+    says "anything may have changed" (:meth:`take` returns None) until taken again."""
+
+    def __init__(self, cap: int = 1 << 20) -> None:
+        self.cap = int(cap)
+        self._parts: list[np.ndarray] = []
+        self._n = 0
+        self._all = True                     # no reader has a base yet
+
+    def add(self, ijk: torch.Tensor) -> None:
+        """Record the (N, 3) voxels of a write."""
+        if self._all:
+            return
+        self._n += int(ijk.shape[0])
+        if self._n > self.cap:
+            self.everything()
+        else:
+            self._parts.append(ijk.detach().cpu().numpy().astype(np.int64, copy=True))
+
+    @property
+    def complete(self) -> bool:
+        """Whether :meth:`take` would list the written voxels (not "anything may have changed")."""
+        return not self._all
+
+    def everything(self) -> None:
+        """Any voxel may have changed."""
+        self._all, self._parts, self._n = True, [], 0
+
+    def take(self) -> np.ndarray | None:
+        """(M, 3) int64 voxels written since the last take (repeats possible), or None when
+        anything may have changed; starts a new log."""
+        out = None if self._all else (np.concatenate(self._parts) if self._parts else np.zeros((0, 3), np.int64))
+        self._all, self._parts, self._n = False, [], 0
+        return out
+
+
 class OccupancyGrid(Protocol):
     vox: float
     lo: int  # clamp lower bound (e.g. -5); the paper's -max_empty_cnt
     hi: int  # clamp upper bound (e.g. 30); the paper's max_occ_cnt (<= 127)
+    #: grows with every call that may change values (update, prune, load_state): a reader's
+    #: cache of values is valid while it is unchanged
+    revision: int
+    #: the voxels written since a reader last looked (:class:`ChangeLog`)
+    changes: ChangeLog
 
     def update(self, ijk: GridInput, inc: GridInput | int) -> None:
         """``value = clamp(value + inc, lo, hi)`` per row, activating the voxel.
@@ -58,6 +103,10 @@ class OccupancyGrid(Protocol):
 
     def active(self) -> tuple[torch.Tensor, torch.Tensor]:
         """All active voxels expanded from tiles: ((M, 3) int64 ijk sorted, (M,) int8)."""
+
+    def occupied(self) -> np.ndarray:
+        """(M, 3) int64 indices of the voxels with value > 0, in no particular order (tiles
+        expanded); cheaper than :meth:`active` on maps of mostly free space."""
 
     def first_blocked(self, origins: GridInput, directions: GridInput, max_dist: float) -> torch.Tensor:
         """For each ray (world origins (N, 3), unit directions (N, 3), metres), the distance

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from ._inputs import (
@@ -31,7 +32,7 @@ from ._inputs import (
     prepare_rays,
     unpack,
 )
-from .base import BBox, GridInput
+from .base import BBox, ChangeLog, GridInput
 
 _BRICK_LOG2 = 4
 _BRICK = 1 << _BRICK_LOG2   # frontier brick edge (voxels); must exceed 2 * max radius
@@ -51,6 +52,8 @@ class TorchOccupancy:
         self.device = torch.device(device)
         self._keys = torch.empty(0, dtype=torch.int64, device=self.device)  # sorted, unique
         self._vals = torch.empty(0, dtype=torch.int8, device=self.device)
+        self.revision = 0  # counts calls that may change values (update, prune, load_state)
+        self.changes = ChangeLog()
 
     # ------------------------------------------------------------------ basic access
     @property
@@ -84,6 +87,9 @@ class TorchOccupancy:
     def active(self) -> tuple[torch.Tensor, torch.Tensor]:
         return unpack(self._keys).cpu(), self._vals.clone().cpu()
 
+    def occupied(self) -> np.ndarray:
+        return unpack(self._keys[self._vals > 0]).cpu().numpy().astype(np.int64)
+
     def state(self) -> dict:
         ijk, vals = self.active()
         return {"vox": self.vox, "lo": self.lo, "hi": self.hi,
@@ -103,11 +109,15 @@ class TorchOccupancy:
             raise ValueError("state: duplicate voxel indices")
         self._keys = keys.contiguous()
         self._vals = vals.to(torch.int8)[order].contiguous()
+        self.revision += 1
+        self.changes.everything()
 
     # ------------------------------------------------------------------ update
     def update(self, ijk: GridInput, inc: GridInput | int) -> None:
+        self.revision += 1
         dev = self.device
         ijk = as_ijk(ijk).to(dev)
+        self.changes.add(ijk)
         n = ijk.shape[0]
         inc = as_inc(inc, n).to(dev)
         if n == 0:
@@ -162,6 +172,8 @@ class TorchOccupancy:
     # ------------------------------------------------------------------ prune
     def prune(self, tolerance: int) -> None:
         tol = check_tolerance(tolerance)
+        self.revision += 1
+        self.changes.everything()
         if self._keys.numel() == 0:
             return
         ijk = unpack(self._keys)

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ._inputs import as_ijk, as_inc, check_bounds, check_frontier_args, check_tolerance, pack, prepare_rays
-from .base import BBox, GridInput
+from .base import BBox, ChangeLog, GridInput
 
 try:  # the extension is optional (built only where OpenVDB was found)
     from semantic_map import _vdbocc  # type: ignore[attr-defined]
@@ -54,6 +54,8 @@ class VdbOccupancy:
         torch.device(device)  # validates the name; the OpenVDB grid always lives on the CPU
         self.device = torch.device("cpu")
         self._g = _grid if _grid is not None else _vdbocc.Grid(self.vox, self.lo, self.hi)
+        self.revision = 0  # counts calls that may change values (update, prune, load_state)
+        self.changes = ChangeLog()
 
     @property
     def num_active(self) -> int:
@@ -75,6 +77,8 @@ class VdbOccupancy:
         ijk = as_ijk(ijk)
         inc = as_inc(inc, ijk.shape[0])
         if ijk.shape[0]:
+            self.revision += 1
+            self.changes.add(ijk)
             self._g.update(_np_i32(ijk), _np_i32(inc))
 
     def query(self, ijk: GridInput) -> torch.Tensor:
@@ -94,11 +98,18 @@ class VdbOccupancy:
         return _sorted(out)[0]
 
     def prune(self, tolerance: int) -> None:
-        self._g.prune(check_tolerance(tolerance))
+        tol = check_tolerance(tolerance)
+        self.revision += 1
+        self.changes.everything()
+        self._g.prune(tol)
 
     def active(self) -> tuple[torch.Tensor, torch.Tensor]:
         ijk, vals = self._g.active()
         return _sorted(ijk, vals)
+
+    def occupied(self) -> np.ndarray:
+        ijk, vals = self._g.active()
+        return np.asarray(ijk)[np.asarray(vals) > 0].astype(np.int64)
 
     def first_blocked(self, origins: GridInput, directions: GridInput, max_dist: float) -> torch.Tensor:
         o, d, v, max_dist = prepare_rays(origins, directions, max_dist, self.vox)
@@ -127,6 +138,8 @@ class VdbOccupancy:
         if ijk.shape[0]:
             g.set_values(_np_i32(ijk), np.ascontiguousarray(vals.numpy().astype(np.int8)))
         self._g = g
+        self.revision += 1
+        self.changes.everything()
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the grid (tiles included) to an OpenVDB ``.vdb`` file."""
