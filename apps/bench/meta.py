@@ -47,22 +47,6 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
-def commit() -> str | None:
-    """The source's git commit (``+dirty`` with uncommitted changes to tracked files), None
-    outside a git checkout."""
-    import subprocess
-
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    try:
-        head = subprocess.run(["git", "-C", root, "rev-parse", "HEAD"], capture_output=True, text=True,
-                              timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", root, "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return head + ("+dirty" if dirty else "")
-
-
 def usable_cores() -> int:
     try:
         return len(os.sched_getaffinity(0))
@@ -194,7 +178,7 @@ def run_meta(argv: list[str] | None = None) -> Iterator[dict]:
     finally:
         b = _point()
         span = _span(a, b)
-        out.update({"machine": machine(), "commit": commit(), "argv": list(argv) if argv is not None else None,
+        out.update({"machine": machine(), **git_commit(), "argv": list(argv) if argv is not None else None,
                     "load_before": span.pop("load_before"), "load_after": span.pop("load_after"),
                     "process": span, "torch_threads": torch_threads(), "os_threads_at_end": os_threads(),
                     "sections": sections(),

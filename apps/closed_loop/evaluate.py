@@ -208,7 +208,7 @@ def seed_missions(cfg: SearchEvalConfig, world, robot: Platform, seed: int) -> l
 def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: list[str] | None = None) -> dict:
     """Run every episode (module docstring); returns the JSON document. ``argv``: the command
     line to record (``meta.argv``)."""
-    from apps.bench.meta import git_commit, run_meta
+    from apps.bench.meta import run_meta
     from apps.closed_loop.seeds import seed_sets
 
     cfg.validate()
@@ -253,7 +253,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                                               for k, v in MISSIONS.items()}},
             "episodes": rows,
             "seeds": seed_sets(cfg.world, list(cfg.seeds)),
-            "meta": {**meta, **git_commit()},
+            "meta": meta,
             "machine": {"python": _platform.python_version(), "cpu": _platform.processor() or _platform.machine(),
                         "cores": os.cpu_count(), "load_avg_1_5_15_start": [round(x, 2) for x in load0],
                         "load_avg_1_5_15_end": [round(x, 2) for x in os.getloadavg()]},
