@@ -192,6 +192,9 @@ def test_site_rehearsal(tmp_path, procs, closer, pca_file, browser):
         assert op.occupancy_box(*BOX).missing_shards == ["east"]
         st, api_down = http(base + "/api/search?q=car&threshold=0.5", headers=bearer, context=ctx)
         assert st == 200 and api_down["missing_shards"] == ["east"], api_down
+        search_in_page(browser, "car")       # the page warns as the CLI does
+        shown = browser.evaluate("document.getElementById('status').textContent")
+        assert "shards that did not answer: east" in shown, shown
 
         # -- east restarted with the same name and snapshots: the same site
         procs.append(shard("east", "east-again"))

@@ -20,19 +20,21 @@ function rows(id, items, cols) {
   items.forEach((it, i) => { const tr = document.createElement("tr"); cols(it, i).forEach((c) => cell(tr, c)); tb.appendChild(tr); });
 }
 function status(text) { $("status").textContent = text || ""; }
+// a reply's missing_shards as a warning after the status line (shards that did not answer)
+function missing(r) { const m = r.missing_shards || []; return m.length ? ` — shards that did not answer: ${m.join(", ")}` : ""; }
 function split(text) { return text.split(",").map((s) => s.trim()).filter((s) => s); }
 
 function showSearch(r) {
   rows("instances", r.found || [], (f) => [f.id, f.target ?? "", Number(f.confidence ?? f.score ?? 0).toFixed(3), fmt(f.centroid)]);
   rows("goals", r.look_next || [], (g, i) => [i + 1, fmt(g.position), Number(g.score ?? 0).toFixed(3), Number(g.gain_m3 ?? 0).toFixed(1)]);
-  status(`map v${r.map_version}, ${r.frames_mapped} frames mapped, ${(r.found || []).length} found`);
+  status(`map v${r.map_version}, ${r.frames_mapped} frames mapped, ${(r.found || []).length} found` + missing(r));
 }
 
 function showQuery(r) {
   const a = (r.cluster_xyz || []).map((p, i) => [i + 1, Number(r.cluster_score[i]).toFixed(3), "voxels " + fmt(p)]);
   const b = (r.ray_origin || []).map((p, i) => [a.length + i + 1, Number(r.ray_score[i]).toFixed(3), "ray " + fmt(p)]);
   rows("answers", a.concat(b), (x) => x);
-  status(`query ${JSON.stringify(r.query)}: ${a.length} clusters, ${b.length} rays`);
+  status(`query ${JSON.stringify(r.query)}: ${a.length} clusters, ${b.length} rays` + missing(r));
 }
 
 function searchParams() {
