@@ -6,7 +6,7 @@ Kept apart from :mod:`common.messages` (same envelope, same :class:`MessageError
 world frame, metres, z up; yaw in radians counter-clockwise from +x; volumes in m³;
 timings in milliseconds; probabilities in (0, 1). Every validation error is one line.
 
-Occupancy states (int8): 0 free, 1 occupied, -1 unknown (``semantic_map.occupancy_queries``).
+Occupancy states (int8): 0 free, 1 occupied, -1 unknown (``planning.occupancy_queries``).
 """
 from __future__ import annotations
 

@@ -6,21 +6,21 @@ target over targets + background phrases at ``search.temperature`` (the paper's 
 text embedded as :func:`mapper.query_answer.embed_text` does), then:
 
 * ``found``: objects with stable ids (docs/identity.md): one identity tracker per target
-  (:class:`semantic_map.instances.InstanceTracker`, :func:`identity_key`) follows the voxels
+  (:class:`planning.instances.InstanceTracker`, :func:`identity_key`) follows the voxels
   whose probability over the target + the configured background is above
   ``search.identity_threshold``, whatever the request; the request's threshold, background
   and other targets then choose which of each object's voxels it sees (:func:`_request_view`).
   Filtered to the request's area / z band, best first: confidence (to 3 decimals: softmax at
   temperature 100 saturates), then size;
-* ``look_next``: :func:`semantic_map.look_next.look_next` on the map's occupancy and frontiers
+* ``look_next``: :func:`planning.look_next.look_next` on the map's occupancy and frontiers
   (read under the map lock by the caller through ``read_map``), with each ray's ``ray_z``
-  (:func:`semantic_map.look_next.ray_outlier_z` of :func:`distinct_cosines`: how far its
+  (:func:`planning.look_next.ray_outlier_z` of :func:`distinct_cosines`: how far its
   cosine to what sets a target apart from the other phrases stands out among all the map's
   rays — evidence for far targets whose probabilities are ~0; a ray toward a similar class,
   a radio tower for a water tower, reads ~0 where its raw cosine would stand out; 0 within
   ``search.ray_cosine_resolution`` of the median, the features' float16 rounding on the wire);
 * ``beyond``: best rays per target, triangulated estimates
-  (:func:`semantic_map.beyond.triangulate`) and the search volume of the best rays' cones.
+  (:func:`planning.beyond.triangulate`) and the search volume of the best rays' cones.
 
 World frame, metres, z up; timings in milliseconds.
 """
@@ -40,15 +40,15 @@ import torch
 from common.cones import cone_union_volume
 from common.conventions import voxel_center, voxel_index
 from common.search_messages import SearchReply, SearchRequest
-from semantic_map.beyond import triangulate
-from semantic_map.instances import Instance, InstanceTracker, pack_ijk
-from semantic_map.look_next import LookNextCache, look_next, points_in_polygon, ray_outlier_z
+from planning.beyond import triangulate
+from planning.instances import Instance, InstanceTracker, pack_ijk
+from planning.look_next import LookNextCache, look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import score_rows, softmax_share
 from semantic_map.query_snapshot import one_thread
 
 log = logging.getLogger("rayfronts.mapper")
 
-#: look-next's target-free work per map (:class:`semantic_map.look_next.LookNextCache`), used
+#: look-next's target-free work per map (:class:`planning.look_next.LookNextCache`), used
 #: under the map lock (``read_map``), so by one search at a time
 _LOOK_NEXT: "weakref.WeakKeyDictionary[object, LookNextCache]" = weakref.WeakKeyDictionary()
 

@@ -14,7 +14,7 @@ again only to read occupancy and frontiers for look-next goals (at most
 The identity trackers (one per target, docs/identity.md) live in ``state.trackers``, so ids
 stay stable across searches.
 Scoring and answering: :mod:`mapper.search_answer`. Occupancy read-outs:
-:mod:`semantic_map.occupancy_queries`, under the map lock, bounded by
+:mod:`planning.occupancy_queries`, under the map lock, bounded by
 ``search.max_occupancy_cells``.
 """
 from __future__ import annotations
@@ -178,7 +178,7 @@ class SearchServer:
 
     def occupancy(self, data: bytes) -> OccupancyReply:
         """Answer an encoded occupancy request (under the map lock)."""
-        from semantic_map.occupancy_queries import costmap_slice, point_states, state_grid
+        from planning.occupancy_queries import costmap_slice, point_states, state_grid
 
         req = decode_occupancy_request(data)
         s = self.state

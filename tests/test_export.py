@@ -250,7 +250,7 @@ def _load_map_server(yaml_path: Path) -> tuple[np.ndarray, dict]:
 def test_map_server_files_reload_to_the_slice(snap, tmp_path):
     from mapper.snapshot import load_map
     from semantic_map.map import RayFrontsMap
-    from semantic_map.occupancy_queries import costmap_slice
+    from planning.occupancy_queries import costmap_slice
 
     out = tmp_path / "room.yaml"
     band = (0.2, 1.5)

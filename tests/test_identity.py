@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from common.search_messages import SearchRequest, encode_search_request
-from semantic_map.instances import InstanceTracker
+from planning.instances import InstanceTracker
 
 VOX = 0.5
 BIG = 15          # voxels: an object-sized instance (smaller ones are fragments at car edges)

@@ -1,6 +1,6 @@
 """Import layers (ARCHITECTURE.md, ``ALLOWED`` below): ``common`` imports only itself; the
 libraries ``semantic_map``, ``synthetic_world`` and ``encoders`` import ``common`` (``encoders``
-also ``synthetic_world``); the roles ``edge``, ``mapper`` and ``query_client`` import
+also ``synthetic_world``); ``planning`` imports ``common`` and ``semantic_map``; the roles ``edge``, ``mapper`` and ``query_client`` import
 ``common``, the libraries they need and themselves, never another role; ``apps`` may import
 anything. And no import cycles between our modules.
 
@@ -15,14 +15,16 @@ import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("common", "semantic_map", "synthetic_world", "encoders", "edge", "mapper", "query_client", "apps")
+PACKAGES = ("common", "semantic_map", "planning", "synthetic_world", "encoders", "edge", "mapper", "query_client",
+            "apps")
 ALLOWED = {
     "common": {"common"},
     "semantic_map": {"common", "semantic_map"},
+    "planning": {"common", "semantic_map", "planning"},
     "synthetic_world": {"common", "synthetic_world"},
     "encoders": {"common", "synthetic_world", "encoders"},
     "edge": {"common", "synthetic_world", "encoders", "edge"},
-    "mapper": {"common", "semantic_map", "encoders", "mapper"},
+    "mapper": {"common", "semantic_map", "planning", "encoders", "mapper"},
     "query_client": {"common", "query_client"},
     "apps": set(PACKAGES),
 }
@@ -170,6 +172,16 @@ def test_no_import_cycles():
     assert not cycles, "import cycles (module-level or lazy):\n" + "\n".join(lines)
 
 
+def test_planning_sees_the_map_only_through_its_package_api():
+    """``planning`` imports the map as ``semantic_map`` (``RayFrontsMap``, ``MapConfig``), never
+    one of the map's modules: the map's parts stay the map's business."""
+    modules, edges = _graph()
+    bad = [f"{modules[m].relative_to(ROOT)}:{line}: {text.splitlines()[0]}"
+           for m, imps in edges.items() if m.split(".")[0] == "planning"
+           for target, line, text in imps if target.startswith("semantic_map.")]
+    assert not bad, "planning reaches into the map's modules:\n" + "\n".join(bad)
+
+
 def test_checker_sees_lazy_forbidden_imports_and_cycles(tmp_path):
     """The checker itself: a lazy forbidden import and a two-module lazy cycle are found."""
     modules = {"common.a": tmp_path / "a.py", "common.b": tmp_path / "b.py", "mapper.x": tmp_path / "x.py"}
@@ -185,6 +197,7 @@ def test_checker_sees_lazy_forbidden_imports_and_cycles(tmp_path):
 
 # The pure map: computation only. Its own modules, and every module of ours they reach, import
 # none of these (ARCHITECTURE.md, "The pure map").
+PURE_PACKAGES = ("semantic_map", "planning")
 PURE_MAP_FORBIDDEN = {"zenoh", "msgpack", "rerun", "threading", "concurrent", "multiprocessing", "socket",
                       "asyncio", "subprocess", "json", "pickle", "shutil", "psutil", "cv2"}
 
@@ -203,7 +216,7 @@ def _external_imports(path: Path) -> set[str]:
 
 def test_pure_map_imports_no_io_transport_or_threads():
     modules, edges = _graph()
-    reach = [m for m in modules if m.split(".")[0] == "semantic_map"]
+    reach = [m for m in modules if m.split(".")[0] in PURE_PACKAGES]
     seen = set(reach)
     while reach:  # every module of ours the pure map reaches, lazily or not
         m = reach.pop()
@@ -211,7 +224,7 @@ def test_pure_map_imports_no_io_transport_or_threads():
             if target not in seen:
                 seen.add(target)
                 reach.append(target)
-    assert {m.split(".")[0] for m in seen} <= {"semantic_map", "common"}
+    assert {m.split(".")[0] for m in seen} <= {*PURE_PACKAGES, "common"}
     bad = {m: sorted(_external_imports(modules[m]) & PURE_MAP_FORBIDDEN) for m in sorted(seen) if m not in EXTENSIONS}
     bad = {m: v for m, v in bad.items() if v}
     assert not bad, f"the pure map reaches I/O, transport or threads: {bad}"
@@ -223,7 +236,7 @@ def test_pure_map_loads_without_transport():
     import subprocess
     import sys
 
-    mods = [m for m in _modules() if m.split(".")[0] == "semantic_map" and m not in EXTENSIONS]
+    mods = [m for m in _modules() if m.split(".")[0] in PURE_PACKAGES and m not in EXTENSIONS]
     code = ("import importlib, sys\n"
             f"for m in {mods!r}: importlib.import_module(m)\n"
             "print(sorted(n for n in ('zenoh', 'msgpack', 'rerun') if n in sys.modules))\n")

@@ -1,4 +1,4 @@
-"""Look-next's kept work (issue 46): :class:`semantic_map.look_next.LookNextCache` reuses the
+"""Look-next's kept work (issue 46): :class:`planning.look_next.LookNextCache` reuses the
 frontier–ray pairs, viewpoints and gains between calls; every answer is held equal to a call
 without a cache, over random map-update sequences (hypothesis) and on the synthetic world,
 and standing searches of several robots on one map version equal their one-by-one answers."""
@@ -9,7 +9,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from semantic_map.look_next import LookNextCache, look_next
+from planning.look_next import LookNextCache, look_next
 from semantic_map.occupancy import make_occupancy
 
 VOX = 0.5

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from semantic_map.occupancy import make_occupancy
-from semantic_map.occupancy_queries import _clearance_brute, occupied_cells, point_states
+from planning.occupancy_queries import _clearance_brute, occupied_cells, point_states
 
 VOX = 0.3
 
@@ -72,7 +72,7 @@ def test_a_large_stale_index_waits_until_window_reads_cost_as_much():
     """Many active voxels (free space) and an index that needs a full rebuild: window reads
     answer first (the same answer), the rebuild comes once they have read a share of the
     grid's active voxels, and later writes are followed from the change log."""
-    from semantic_map import occupancy_queries as oq
+    from planning import occupancy_queries as oq
 
     g = make_occupancy(VOX, -5, 30, backend="vdb")
     ax = np.arange(-40, 40)

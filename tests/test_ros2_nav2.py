@@ -274,7 +274,7 @@ def test_costmap_fixed_origin_transient_local_equals_slice(world_map):
     from rclpy.serialization import deserialize_message
 
     from common.ros2.keys import parse_liveliness, parse_qos
-    from semantic_map.occupancy_queries import costmap_slice
+    from planning.occupancy_queries import costmap_slice
 
     rig = Rig(world_map, {"r1": {"costmap_window_m": 24.0, "costmap_resolution_m": 1.0},
                           "r2": {"costmap_window_m": 24.0, "costmap_resolution_m": 1.0,

@@ -1,4 +1,4 @@
-"""Search-for-planners computation (semantic_map.instances / look_next / beyond /
+"""Search-for-planners computation (planning.instances / look_next / beyond /
 occupancy_queries) against the synthetic world's ground truth and brute force.
 
 The map is built from rendered frames of ``World.generate(3)`` whose features are the
@@ -11,12 +11,12 @@ import pytest
 import torch
 
 from common.conventions import voxel_center
-from semantic_map.beyond import best_rays, closest_approach, triangulate
+from planning.beyond import best_rays, closest_approach, triangulate
 from semantic_map.config import map_config
-from semantic_map.instances import InstanceTracker, connected_26
-from semantic_map.look_next import MIN_RAYS_FOR_Z, look_next, points_in_polygon, ray_outlier_z, unknown_volume
+from planning.instances import InstanceTracker, connected_26
+from planning.look_next import MIN_RAYS_FOR_Z, look_next, points_in_polygon, ray_outlier_z, unknown_volume
 from semantic_map.map import RayFrontsMap
-from semantic_map.occupancy_queries import FREE, OCCUPIED, UNKNOWN, costmap_slice, point_states, state_grid
+from planning.occupancy_queries import FREE, OCCUPIED, UNKNOWN, costmap_slice, point_states, state_grid
 from synthetic_world import World
 from tests.support.data import bfs_components
 
@@ -176,7 +176,7 @@ def test_connected_26_matches_brute_force():
     lab_far = connected_26(far)
     assert np.array_equal(lab_far[:, None] == lab_far[None], ref_far[:, None] == ref_far[None])
     # both paths number components by their lowest voxel key
-    from semantic_map.instances import pack_ijk
+    from planning.instances import pack_ijk
 
     keys = pack_ijk(far)
     firsts = [keys[lab_far == k].min() for k in range(lab_far.max() + 1)]

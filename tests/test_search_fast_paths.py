@@ -8,8 +8,8 @@ import itertools
 import numpy as np
 import pytest
 
-import semantic_map.instances as inst
-import semantic_map.look_next as ln
+import planning.instances as inst
+import planning.look_next as ln
 from common.conventions import voxel_center
 
 
@@ -64,7 +64,7 @@ def test_connected_26_no_edge_across_the_packable_range():
 
 
 class _ReferenceTracker:
-    """The tracking rules (module docstring of semantic_map.instances) with dense (P, C)
+    """The tracking rules (module docstring of planning.instances) with dense (P, C)
     overlaps, per-group loops and brute-force components."""
 
     def __init__(self, vox: float, min_voxels: int):

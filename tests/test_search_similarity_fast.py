@@ -143,7 +143,7 @@ def test_tracker_repeat_of_the_same_input_matches_reference():
     """An update with the same voxels, confidences and frame as the last one (answered at
     once) and its neighbours (another frame, other confidences: the full update) equal the
     brute-force reference tracker."""
-    import semantic_map.instances as inst
+    import planning.instances as inst
     from tests.test_search_fast_paths import _random_voxels, _ReferenceTracker
 
     rng = np.random.default_rng(3)
@@ -256,7 +256,7 @@ def test_distinct_cosines_against_the_projection_and_a_similar_class_reads_zero(
     a small share of the target, the target's rays stand out while by raw cosine the similar
     class's do."""
     from mapper.search_answer import _ray_scores, distinct_cosines
-    from semantic_map.look_next import ray_outlier_z
+    from planning.look_next import ray_outlier_z
 
     rng = np.random.default_rng(3)
     D = 32

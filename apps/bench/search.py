@@ -23,7 +23,7 @@ look-next):
   the map's voxel size, a 2D costmap slice over 80 m × 80 m, 1000 points with a 1 m
   distance radius, after :data:`WARM_POINT_QUERIES` such queries whose latencies are
   ``points_1000_r1m_first``: the occupied-cell index is built once they have read a share
-  of the grid, :func:`semantic_map.occupancy_queries.point_states`).
+  of the grid, :func:`planning.occupancy_queries.point_states`).
 
 Random features make the found instances a stress case (about one voxel in six above the
 threshold, in one dense block), not a typical map.
@@ -68,7 +68,7 @@ def _add_frames(m, dim: int, n_frames: int, first: int = 0, total: int = 0) -> N
 
 
 def _occupancy_latency(m, n: int) -> dict:
-    from semantic_map.occupancy_queries import costmap_slice, point_states, state_grid
+    from planning.occupancy_queries import costmap_slice, point_states, state_grid
 
     vox = float(m.cfg.vox_size)
     rng = np.random.default_rng(0)

@@ -1,6 +1,6 @@
 """Shortest paths through known free space of an occupancy state grid (2D or 3D).
 
-States follow :mod:`semantic_map.occupancy_queries`: FREE = 0, OCCUPIED = 1, UNKNOWN = -1,
+States follow :mod:`planning.occupancy_queries`: FREE = 0, OCCUPIED = 1, UNKNOWN = -1,
 arrays indexed ``[x, y(, z)]``; cell ``c`` has its centre at ``origin + (c + 0.5)·cell`` (metres,
 world frame z up). The path may only pass through FREE cells; the goal cell alone may be
 UNKNOWN (a frontier being explored), never OCCUPIED. Moves go to the 8 (2D) or 26 (3D)

@@ -99,7 +99,7 @@ class LocalMapper:
 
         from common.search_messages import SearchRequest
         from mapper.search_answer import answer_search
-        from semantic_map.occupancy_queries import costmap_slice
+        from planning.occupancy_queries import costmap_slice
 
         t = time.perf_counter()
         self.snap.reserve(self.map)
@@ -131,11 +131,11 @@ class LocalMapper:
         probability, z)`` with the best target's probability (softmax over targets +
         background at the search temperature) and ``z``, the modified z-score of the pose's
         target margin (best target cosine minus best background cosine) among all poses so
-        far, as the rays' ``ray_z`` (:func:`semantic_map.look_next.ray_outlier_z`: 0 with
+        far, as the rays' ``ray_z`` (:func:`planning.look_next.ray_outlier_z`: 0 with
         fewer than 10 poses)."""
         from common.search_messages import SearchRequest
         from mapper.search_answer import embed_phrases
-        from semantic_map.look_next import ray_outlier_z
+        from planning.look_next import ray_outlier_z
 
         if not self._poses:
             return []

@@ -164,7 +164,7 @@ def export_vdb(m: RayFrontsMap, src: Source, out: Path, args: argparse.Namespace
 def export_map_server(m: RayFrontsMap, src: Source, out: Path, args: argparse.Namespace) -> str:
     """PGM + YAML of the slice over the xy extent of the observed voxels."""
     from apps.export.formats import map_server_yaml, pgm_bytes, pgm_pixels, write_atomically
-    from semantic_map.occupancy_queries import costmap_slice
+    from planning.occupancy_queries import costmap_slice
 
     st = _observed(m, src)
     ijk = np.asarray(st["ijk"])[np.asarray(st["values"]) != 0]

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from semantic_map.occupancy_queries import FREE, OCCUPIED
+from planning.occupancy_queries import FREE, OCCUPIED
 
 #: map_server trinary pixel values (negate 0): occupied black, free white, unknown grey
 PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205

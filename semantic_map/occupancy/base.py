@@ -27,7 +27,7 @@ BBox = tuple[GridInput, GridInput]
 
 class ChangeLog:
     """The voxels written since its last :meth:`take`, for one reader's cache of the grid's
-    values (:func:`semantic_map.occupancy_queries.occupied_cells`). Bounded: past ``cap``
+    values (:func:`planning.occupancy_queries.occupied_cells`). Bounded: past ``cap``
     voxels, and after a call that may change values anywhere (prune, load_state), it only
     says "anything may have changed" (:meth:`take` returns None) until taken again."""
 
