@@ -104,7 +104,7 @@ class ShardRegion:
 
     @classmethod
     def from_info(cls, info: dict) -> "ShardRegion":
-        """From a shard info dict (``common.fleet``) or a decoded announcement."""
+        """From a shard info dict (``common.robot_messages``) or a decoded announcement."""
         return cls.make(str(info.get("shard", "")), info.get("region"), float(info.get("tile_m", 0.0) or 0.0),
                         info.get("tiles") or (), info.get("robots") or (), float(info.get("halo_m", 0.0) or 0.0))
 

@@ -3,7 +3,7 @@ the base station answers, so the start order is free; Zenoh re-establishes a los
 itself), the liveliness token ``robots/<robot>/alive``, the ``robots/<robot>/feature_space``
 queryable, the edge's state on ``robots/<robot>/edge_status`` (put and queryable:
 starting / running / done / refused / failed + the reason), the mapper's per-robot status
-(``edge.fleet_status``) and asking the mapper for the map's feature space
+(``edge.mapper_status``) and asking the mapper for the map's feature space
 (docs/key_space.md)."""
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from common.feature_space import FeatureSpace
     from common.keys import KeySpace
     from edge.config import EdgeConfig
-    from edge.fleet_status import StatusWatcher
+    from edge.mapper_status import StatusWatcher
 
 log = logging.getLogger("rayfronts.edge")
 
@@ -82,7 +82,7 @@ class EdgeConnection:
             return
 
     def _declare(self, s: Any, keys: KeySpace) -> None:
-        from common.fleet import robot_status_key
+        from common.robot_messages import robot_status_key
 
         robot = self.cfg.robot
         queryable = s.declare_queryable(keys.feature_space(robot), self._on_feature_space)

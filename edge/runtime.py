@@ -81,7 +81,7 @@ class EdgeRuntime:
                  on_sent: Callable[[Any, int, float], None] | None = None):
         import dataclasses
 
-        from edge.fleet_status import AutoRate, StatusWatcher
+        from edge.mapper_status import AutoRate, StatusWatcher
 
         if not cfg.robot:
             cfg = dataclasses.replace(cfg, robot=cfg.source.robot)

@@ -122,7 +122,7 @@ class Ingest:
 
     def _count_raw_drops(self, keys: list[str]) -> None:
         state = self.state
-        with state.qlock:
+        with state.robots_lock:
             self.raw_dropped += len(keys)
             state.dropped += len(keys)
             for key in keys:
@@ -170,7 +170,7 @@ class Ingest:
             if frame.features is None:
                 state.reject(key_robot, "no_features", "frame carries no features")
                 return
-            with state.qlock:
+            with state.robots_lock:
                 st = state.robot(key_robot)
                 st.received += 1
                 if st.feature_space and frame.feature_space != st.feature_space:
@@ -189,7 +189,7 @@ class Ingest:
                 state.warn(f"{key_robot}:feature_space_mismatch", "rejected frame from %s (feature_space_mismatch): "
                        "space %r, the robot announced %r", key_robot, frame.feature_space[:80], st.feature_space)
                 return
-            with state.qlock:
+            with state.robots_lock:
                 if not st.space_ok and not st.space_error:
                     # frames flow, so the edge's space is ready: fetch now rather than at the
                     # retry period (at most every 0.2 s), else frames pile up meanwhile
@@ -209,7 +209,7 @@ class Ingest:
             robot = state.keys.robot_from_key(str(sample.key_expr))
             if robot is None:
                 return
-            with state.qlock:
+            with state.robots_lock:
                 st = state.robot(robot)
                 if sample.kind == zenoh.SampleKind.PUT:
                     st.present, st.seen_at, st.gone_at = True, time.time(), None
@@ -245,7 +245,7 @@ class Ingest:
                 return
             if msg["robot"] != robot:
                 return
-            with state.qlock:
+            with state.robots_lock:
                 st = state.robot(robot)
                 changed = (st.edge_state, st.edge_reason) != (msg["state"], msg["reason"])
                 st.edge_state, st.edge_reason = msg["state"], msg["reason"]
@@ -267,7 +267,7 @@ class Ingest:
             state.space_wake.wait(0.5)
             state.space_wake.clear()
             now = time.monotonic()
-            with state.qlock:
+            with state.robots_lock:
                 todo = [st.name for st in state.robots.values()
                         if not st.space_ok and not st.space_error and st.fetch_after <= now
                         and st.edge_state not in ("refused", "failed")]
@@ -318,7 +318,7 @@ class Ingest:
                 why = "" if fs_id == state.space_id else f"robot space {fs_id} differs from the map's {state.space_id}"
             map_id = state.space_id
         ok = not why
-        with state.qlock:
+        with state.robots_lock:
             st.feature_space = fs_id
             st.space_ok = ok
             st.space_error = why
@@ -333,7 +333,7 @@ class Ingest:
     def next_frame(self) -> tuple[RobotState, Frame, float] | None:
         """Round-robin over robots whose space matches the map; rejects frames of mismatched ones."""
         state = self.state
-        with state.qlock:
+        with state.robots_lock:
             names = sorted(state.robots)
             if not names:
                 return None

@@ -201,7 +201,7 @@ class MapWorker:
         cpu = time.process_time()
         state.cpu_mapped = [state.cpu_mapped[0] if state.cpu_mapped else cpu, cpu]
         e_cpu = frame.meta.get("cpu_s") if isinstance(frame.meta, dict) else None
-        with state.qlock:
+        with state.robots_lock:
             st.mapped += 1
             if frame.seq <= st.last_seq:
                 st.seq_regressions += 1

@@ -5,7 +5,7 @@ map's language space, score voxels and rays, take the top k, cluster the best vo
 
 Where to change a query's scoring: :func:`scores_for` (cosine / softmax at
 :data:`SOFTMAX_TEMPERATURE` against the softmax set of :func:`softmax_set`),
-:func:`answer_snapshot` (top k, clusters, search volume, timings), :class:`QuerySnapshot`
+:func:`answer_snapshot` (top k, clusters, search volume, timings), :class:`QueryCopy`
 (what a query copies from the map). World frame, metres, z up.
 
 Query defaults are the paper's (``query.*`` config keys):
@@ -35,7 +35,7 @@ from common.cones import cone_union_volume
 from common.conventions import voxel_center, voxel_index
 from common.messages import MessageError, QueryRequest, QueryResult
 from semantic_map.query import PreparedRows, score_rows
-from semantic_map.query_snapshot import QuerySnapshot
+from semantic_map.query_copy import QueryCopy
 
 if TYPE_CHECKING:
     from common.feature_space import FeatureSpace
@@ -264,11 +264,11 @@ def softmax_set(fs: FeatureSpace, req: QueryRequest, qcfg: QuerySettings, standi
 def answer_query(m: RayFrontsMap, fs: FeatureSpace, req: QueryRequest, qcfg: QuerySettings,
                  device: str | torch.device = "cpu", model_dir: str = "") -> QueryResult:
     """Run ``req`` on map ``m`` (the caller holds its lock throughout): a one-off
-    :class:`QuerySnapshot` + :func:`answer_snapshot`."""
-    return answer_snapshot(QuerySnapshot().take(m, 0), fs, req, qcfg, device, model_dir)
+    :class:`QueryCopy` + :func:`answer_snapshot`."""
+    return answer_snapshot(QueryCopy().take(m, 0), fs, req, qcfg, device, model_dir)
 
 
-def answer_snapshot(snap: QuerySnapshot, fs: FeatureSpace, req: QueryRequest, qcfg: QuerySettings,
+def answer_snapshot(snap: QueryCopy, fs: FeatureSpace, req: QueryRequest, qcfg: QuerySettings,
                     device: str | torch.device = "cpu", model_dir: str = "",
                     standing: Iterable[QueryRequest] = ()) -> QueryResult:
     """Run ``req`` on a map snapshot: voxel clusters, top voxels, top rays, search volume.

@@ -2,7 +2,7 @@
 (module map: :mod:`mapper.state`; ARCHITECTURE.md).
 
 A query holds the map lock only to bring its copy of the map
-(:class:`mapper.query_answer.QuerySnapshot`) up to date: the copy is maintained
+(:class:`mapper.query_answer.QueryCopy`) up to date: the copy is maintained
 incrementally (only the voxel rows the map changed since the last query are copied, and
 their prepared norms recomputed outside the lock), so the lock is held for O(changed rows),
 not O(N·dim), and the first query after a change costs about what a later one does. It
@@ -54,7 +54,7 @@ if TYPE_CHECKING:
     import zenoh
 
     from mapper.outputs.rerun import RerunOutput
-    from semantic_map.query_snapshot import QuerySnapshot
+    from semantic_map.query_copy import QueryCopy
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -65,12 +65,12 @@ class QueryServer:
     def __init__(self, state: MapperState, rerun: RerunOutput | None = None) -> None:
         self.state = state
         self.rerun = rerun
-        self.qsnap: QuerySnapshot | None = None   # QuerySnapshot of the last query
+        self.qsnap: QueryCopy | None = None   # QueryCopy of the last query
 
-    def snapshot(self, timings: dict[str, float], flush: bool = False) -> QuerySnapshot:
-        """The QuerySnapshot of the current map generation (caller holds ``query_lock``);
+    def query_copy(self, timings: dict[str, float], flush: bool = False) -> QueryCopy:
+        """The QueryCopy of the current map generation (caller holds ``query_lock``);
         with ``flush`` the map worker first integrates the frames the map buffers."""
-        from semantic_map.query_snapshot import QuerySnapshot
+        from semantic_map.query_copy import QueryCopy
 
         state = self.state
         budget = max(0.0, float(state.cfg.query.lock_timeout_s))
@@ -84,7 +84,7 @@ class QueryServer:
         snap = self.qsnap
         if snap is not None and snap.gen == state.map_gen:
             return snap
-        fresh = QuerySnapshot() if snap is None else snap
+        fresh = QueryCopy() if snap is None else snap
         m = state.map
         if m is not None:
             fresh.reserve(m)                      # allocations outside the lock (size hint)
@@ -121,7 +121,7 @@ class QueryServer:
         with state.query_lock:
             set_torch_threads(state.cfg, query=True)
             timings: dict = {}
-            snap = self.snapshot(timings, flush=flush)
+            snap = self.query_copy(timings, flush=flush)
             res = answer_snapshot(snap, state.space, req, state.cfg.query, device=state.cfg.device,
                                   model_dir=state.cfg.text_model_dir, standing=list(state.standing.values()))
             res.frames_mapped = snap.frames_mapped
@@ -168,7 +168,7 @@ class QueryServer:
                 self.rerun.query_answered(res, req)
             return payload
 
-        fleet = state.fleet                   # shard info for the client-side merge (common.fleet)
+        fleet = state.fleet                   # shard info for the client-side merge (common.robot_messages)
         reply_to(query, "query", answer,
                  None if fleet is None else lambda: fleet.shard_info(answered[0] if answered else None))
 
@@ -206,7 +206,7 @@ class QueryServer:
         from mapper.query_answer import TEXT_MODEL_LOADS
 
         state = self.state
-        with state.qlock:
+        with state.robots_lock:
             robots = {n: st.as_dict() for n, st in state.robots.items()}
             frames = {"received": state.received, "mapped": state.mapped, "dropped": state.dropped,
                       "rejected": dict(state.rejected), "rejected_total": int(sum(state.rejected.values()))}
@@ -239,7 +239,7 @@ class QueryServer:
         except Exception:
             pass
         if state.fleet is not None:
-            with state.qlock:
+            with state.robots_lock:
                 out["fleet"] = state.fleet.stats()
         if state.map is not None:
             from mapper.service_map import map_stats

@@ -1,7 +1,7 @@
 """Search answering for planners, free of Zenoh (the queryable is :mod:`mapper.search_server`).
 
-A search scores every voxel and ray of the query snapshot
-(:class:`semantic_map.query_snapshot.QuerySnapshot`) with the softmax probability of each
+A search scores every voxel and ray of the query copy
+(:class:`semantic_map.query_copy.QueryCopy`) with the softmax probability of each
 target over targets + background phrases at ``search.temperature`` (the paper's querying;
 text embedded as :func:`mapper.query_answer.embed_text` does), then:
 
@@ -44,7 +44,7 @@ from planning.beyond import triangulate
 from planning.instances import Instance, InstanceTracker, pack_ijk
 from planning.look_next import LookNextCache, look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import score_rows, softmax_share
-from semantic_map.query_snapshot import one_thread
+from semantic_map.query_copy import one_thread
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -251,7 +251,7 @@ def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int) -> np.nda
 def _voxel_probabilities(snap, fs, prep, q: torch.Tensor, n_targets: int, temperature: float,
                          device) -> np.ndarray:
     """:func:`_probabilities` of the voxels, with the background's per-voxel log-sum-exp taken
-    from the snapshot's cache (:meth:`QuerySnapshot.phrase_logsumexp`, kept per map version
+    from the snapshot's cache (:meth:`QueryCopy.phrase_logsumexp`, kept per map version
     and updated for changed rows): only the targets are scored per search. Equal to the full
     softmax up to float32 rounding (``semantic_map.query.softmax_share``)."""
     lse_of = getattr(snap, "phrase_logsumexp", None)
@@ -415,7 +415,7 @@ def _beyond(snap, rs: np.ndarray, targets: list[str], scfg, qcfg, angle_err: flo
 
 def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
                   read_map: Callable[[Callable], object] | None, map_version: int = 0) -> SearchReply:
-    """Answer ``req`` from query snapshot ``snap`` (module docstring). ``cfg`` the mapper
+    """Answer ``req`` from query copy ``snap`` (module docstring). ``cfg`` the mapper
     config (``search``, ``query``, ``map``, ``device``, ``text_model_dir``); ``read_map(fn)``
     runs ``fn(map)`` under the map lock and returns its result (None: no look-next)."""
     scfg, qcfg = cfg.search, cfg.query
@@ -473,7 +473,7 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
 
 
 def text_similarities(snap, fs, texts: list[str], cfg, softmax: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each text's similarity to every voxel and ray of query snapshot ``snap``: ``(voxel
+    """Each text's similarity to every voxel and ray of query copy ``snap``: ``(voxel
     centres (N, 3) m, voxel scores (Q, N), ray scores (Q, R))`` (rays in ``snap.ray_origins`` /
     ``ray_dirs`` order). Scores: cosine, or with ``softmax`` the softmax across the texts at
     ``search.temperature`` (upstream RayFronts' ``compute_prob``; one text → all 1)."""

@@ -7,7 +7,7 @@ lets a robot certificate ask only its own); its standing searches are published 
 (:mod:`mapper.leases`).
 
 A search runs like a query (:class:`mapper.query_server.QueryServer`): under
-``state.query_lock``, on the query snapshot of the current map generation (the map worker is
+``state.query_lock``, on the query copy of the current map generation (the map worker is
 first asked to flush buffered frames), scoring outside the map lock; it takes the map lock
 again only to read occupancy and frontiers for look-next goals (at most
 ``search.lock_timeout_s``; past it the reply has no goals and ``timings_ms.stale = 1``).
@@ -75,7 +75,7 @@ class SearchServer:
         with s.query_lock:
             set_torch_threads(s.cfg, query=True)
             timings: dict = {}
-            snap = self.queries.snapshot(timings, flush=flush)
+            snap = self.queries.query_copy(timings, flush=flush)
             rep = answer_search(snap, s.space, req, s.cfg, self.trackers, self._read_map, map_version=s.version)
             self.half_angle_deg = float(snap.half_angle)
         rep.timings_ms.update({k: float(v) for k, v in timings.items()})
@@ -86,7 +86,7 @@ class SearchServer:
         return rep
 
     def similarities(self, texts: list[str], softmax: bool) -> tuple:
-        """:func:`mapper.search_answer.text_similarities` on the current map's query snapshot,
+        """:func:`mapper.search_answer.text_similarities` on the current map's query copy,
         plus the snapshot's ray origins and directions: ``(voxel xyz, voxel scores, ray
         origins, ray directions, ray scores)``; MessageError for an empty map."""
         from mapper.search_answer import text_similarities
@@ -96,7 +96,7 @@ class SearchServer:
             raise MessageError("the map is empty (no frames mapped yet)")
         with s.query_lock:
             set_torch_threads(s.cfg, query=True)
-            snap = self.queries.snapshot({})
+            snap = self.queries.query_copy({})
             vxyz, vs, rs = text_similarities(snap, s.space, list(texts), s.cfg, softmax)
             return vxyz, vs, snap.ray_origins.copy(), snap.ray_dirs.copy(), rs
 
@@ -164,7 +164,7 @@ class SearchServer:
 
     def shard_info(self) -> bytes | None:
         """The shard info attached to search / occupancy replies and standing-search puts
-        (``common.fleet``: the client merges several shards' answers with it)."""
+        (``common.robot_messages``: the client merges several shards' answers with it)."""
         fleet = self.state.fleet
         return None if fleet is None else fleet.shard_info(half_angle_deg=self.half_angle_deg)
 

@@ -16,20 +16,20 @@ entities, threads, close); each job is its own module over one shared
     mapper/stats queryable         QueryServer.on_stats  (query_server) Zenoh callback
     mapper/feature_space queryable QueryServer.on_feature_space         Zenoh callback
     mapper/shards/<name> token     (a named shard's membership)         —
-    mapper/shards/<name>/routing   Fleet.on_routing      (fleet_job)    Zenoh callback
+    mapper/shards/<name>/routing   RobotsJob.on_routing      (robots_job)    Zenoh callback
     mapper/snapshot queryable      SnapshotStore.on_snapshot (snapshot_store)
     mapper/search, occupancy       SearchServer.on_search / on_occupancy (search_server) Zenoh callbacks
     mapper/searches/<id> put       SearchServer.standing_loop           mapper-search
     mapper/robots/*/search, occupancy  SearchServer.on_robot_search / on_occupancy   Zenoh callbacks
     mapper/robots/<r>/searches/<id> put  SearchServer.standing_loop     mapper-search
     mapper/layers/* put + get      LayerPublisher        (outputs.layers)
-    mapper/robots/<r>/status put   Fleet.loop            (fleet_job)    mapper-fleet
-    mapper/robots/*/world_from_robot queryable  Fleet.on_transform      Zenoh callback
+    mapper/robots/<r>/status put   RobotsJob.loop            (robots_job)    mapper-fleet
+    mapper/robots/*/world_from_robot queryable  RobotsJob.on_transform      Zenoh callback
     (rerun file / gRPC)            RerunOutput           (outputs.rerun)
     ROS 2 topics (rmw_zenoh/bridge) RosOutput            (outputs.ros)   mapper-ros, Zenoh callbacks
 
 Module map: ARCHITECTURE.md; locks and events: :mod:`mapper.state`. The service's
-attributes ``map``, ``lock``, ``qlock``, ``mapped``, ``robots``, ... read and write the shared state.
+attributes ``map``, ``lock``, ``robots_lock``, ``mapped``, ``robots``, ... read and write the shared state.
 """
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ class MapperService:
     space_reply = _shared("space_reply")
     map_gen = _shared("map_gen", "bumps on every change of the map (under `lock`)")
     lock = _shared("lock", "the map lock (map + feature space)")
-    qlock = _shared("qlock", "robot table + queues")
+    robots_lock = _shared("robots_lock", "robot table + queues")
     query_lock = _shared("query_lock", "serialises queries; taken before `lock`")
     robots = _shared("robots")
     rejected = _shared("rejected")
@@ -101,9 +101,9 @@ class MapperService:
         self.snapshots = SnapshotStore(self.state)
         self.layers = LayerPublisher(self.state)
         self.worker = MapWorker(self.state, self.ingest.next_frame, self.layers, self.snapshots)
-        from mapper.fleet_job import Fleet
+        from mapper.robots_job import RobotsJob
 
-        self.fleet = Fleet(self.state)         # several robots: status, bounds, transforms, shard
+        self.fleet = RobotsJob(self.state)         # several robots: status, bounds, transforms, shard
         self.rerun = None                      # RerunOutput once started with rerun.file / rerun.serve_grpc
         self.ros = None                        # RosOutput once started with ros.enabled
         self._entities: list = []
@@ -121,8 +121,8 @@ class MapperService:
 
     # ================================================================== lifecycle
     def start(self) -> "MapperService":
-        from common.fleet import robot_transform_all
         from common.keys import KeySpace
+        from common.robot_messages import robot_transform_all
         from common.zenoh_session import open_session
         from mapper.service_config import resolve_query_threads
 

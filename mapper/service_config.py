@@ -8,8 +8,8 @@ from typing import Literal, Sequence
 
 from common.config import check_threads, field_, section
 from common.zenoh_session import ZenohConfig
-from mapper.fleet import FleetSection
 from mapper.outputs.ros import RosSection
+from mapper.robot_registry import FleetSection
 from mapper.search_config import SearchSection
 from mapper.shards import ShardSection
 from semantic_map.config import MapConfig

@@ -1,5 +1,5 @@
 """Mapper shards: several mapper processes, each owning a part of the world, one query
-answered by all of them (``common.fleet``, ``query_client.merge``).
+answered by all of them (``common.robot_messages``, ``query_client.merge``).
 
 A shard owns a region — a bounding box (``shard.region``), a set of square tiles
 (``shard.tile_m`` + ``shard.tiles``), both, or neither — and optionally a list of robots

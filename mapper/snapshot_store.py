@@ -115,7 +115,7 @@ class SnapshotStore:
             if state.map is None:
                 raise MessageError("nothing to snapshot: no map yet")
             version = state.version
-            with state.qlock:
+            with state.robots_lock:
                 meta = {"format_version": META_VERSION, "frames_mapped": state.mapped, "stamp": time.time(),
                         "version": version,
                         "flushed_version": state.flushed_version,
@@ -248,7 +248,7 @@ class SnapshotStore:
         fleet = getattr(self.state, "fleet", None)
         if not saved or fleet is None:
             return
-        from mapper.fleet import TransformError
+        from mapper.robot_registry import TransformError
 
         for robot, vals in saved.items():
             try:

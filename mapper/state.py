@@ -3,7 +3,7 @@ and the wake-up events (one :class:`MapperState` per :class:`mapper.service.Mapp
 
 The mapper's module map (which job lives where, and its thread) is ARCHITECTURE.md, "mapper/".
 
-Locking: ``lock`` (the map lock) guards the map and its feature space; ``qlock`` the robot
+Locking: ``lock`` (the map lock) guards the map and its feature space; ``robots_lock`` the robot
 table and queues; ``query_lock`` serialises queries (one-shot and standing), always taken
 *before* ``lock``. ``map_gen`` bumps on every change of the map (under ``lock``): integrate,
 flush, create and restore.
@@ -78,7 +78,7 @@ class RobotState:
     edge_cpu: tuple | None = None    # (first, last) edge process CPU s (frame meta ``cpu_s``) of mapped frames
     edge_cpu_frames: int = 0         # mapped frames between them
     seq_regressions: int = 0         # mapped frames whose seq was not above the last one (edge restart)
-    fleet: object = None             # mapper.fleet_job.FleetRobot (rates, re-projection, shard counts)
+    fleet: object = None             # mapper.robots_job.FleetRobot (rates, re-projection, shard counts)
     edge_state: str = ""             # the edge's own state (robots/<robot>/edge_status): running, refused, ...
     edge_reason: str = ""            # why, for refused / failed
     pose: np.ndarray | None = None   # (4, 4) world pose of its last mapped frame (after world_from_robot)
@@ -133,7 +133,7 @@ class MapperState:
         self.cfg = cfg
         self.stop = stop
         self.lock = threading.RLock()          # map + feature space
-        self.qlock = threading.Lock()          # robot table + queues
+        self.robots_lock = threading.Lock()          # robot table + queues
         self.query_lock = threading.Lock()     # serialises queries; taken before `lock`
         self.map_gen = 0                       # bumps on every change of the map (under `lock`)
         self.map: RayFrontsMap | None = None
@@ -179,7 +179,7 @@ class MapperState:
         self.flush_cv = threading.Condition()
         self.flush_asked = 0                   # tickets handed out (under flush_cv)
         self.flush_served = 0                  # tickets the map worker has served (under flush_cv)
-        self.fleet = None                      # mapper.fleet_job.Fleet (set by the service)
+        self.fleet = None                      # mapper.robots_job.RobotsJob (set by the service)
         self._overflow: RobotState | None = None   # stands in for ids over fleet.max_robots
 
     @property
@@ -193,7 +193,7 @@ class MapperState:
         return self._space_id[1]
 
     def robot(self, name: str) -> RobotState:
-        """The robot's state, created on first sight (caller holds ``qlock``)."""
+        """The robot's state, created on first sight (caller holds ``robots_lock``)."""
         st = self.robots.get(name)
         if st is None and self.fleet is not None and not self.fleet.admit(name):
             # over fleet.max_robots: one shared stand-in, never in the robot table, never mapped,
@@ -233,7 +233,7 @@ class MapperState:
 
     def reject(self, robot: str | None, reason: str, detail: str) -> None:
         """Count a rejected frame (globally and for its robot) and log it, rate-limited."""
-        with self.qlock:
+        with self.robots_lock:
             self.rejected[reason] += 1
             if robot is not None and robot in self.robots:
                 self.robots[robot].rejected[reason] += 1

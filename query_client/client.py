@@ -251,7 +251,7 @@ class Client(PlannerCalls):
         with an error (e.g. an empty map) are left out while one answers; none answering raises
         ``QueryError`` (their errors) or ``MapperUnavailable``. Remembers each shard's info (its
         region, for a later answer it misses)."""
-        from common.fleet import decode_shard_info
+        from common.robot_messages import decode_shard_info
 
         got, bad = [], []
         for data, att in oks:
@@ -293,7 +293,7 @@ class Client(PlannerCalls):
                   callback: Callable) -> ShardLatest:
         """The per-shard latest answers of standing request ``sid`` published on ``key``, merged
         with ``merge`` and passed to ``callback`` on every change (``query_client.standing``)."""
-        from common.fleet import decode_shard_info
+        from common.robot_messages import decode_shard_info
 
         latest = ShardLatest(self, merge, callback, what)
 
@@ -440,7 +440,7 @@ class Client(PlannerCalls):
         """The mapper's ``world_from_robot`` of ``robot`` (4x4 array, or None: identity); with
         ``value`` (a 4x4 rigid transform or 16 numbers) set it first, at run time. With several
         shards every shard that answers sets it."""
-        from common.fleet import (
+        from common.robot_messages import (
             FleetMessageError,
             decode_transform_reply,
             encode_transform_request,

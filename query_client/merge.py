@@ -20,7 +20,7 @@ merges (:func:`merge_results`), as one mapper holding the whole map would answer
 * **search volume**: the union of the cones of the ``search_rays`` best rays over all
   shards, with the shards' cone half-angle and range (``common.cones``), not a sum.
 
-Shards report what the merge needs in their reply's attachment (``common.fleet``); a reply
+Shards report what the merge needs in their reply's attachment (``common.robot_messages``); a reply
 without it (an older mapper) is merged with ``rel = 0.9`` and the largest shard volume.
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Merge several mapper shards' answers to one search or occupancy request into one answer
 (the planners' side of ``query_client.merge``; docs/key_space.md#shards).
 
-Each reply carries its shard's info as the Zenoh attachment (``common.fleet``: name, region,
+Each reply carries its shard's info as the Zenoh attachment (``common.robot_messages``: name, region,
 tiles, voxel size, search-volume parameters). Merged, as one mapper holding the whole map
 would answer:
 

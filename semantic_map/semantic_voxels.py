@@ -14,7 +14,7 @@ colours are within 2^-11 of the float32 mean: at most ±1 of the uint8 output). 
 hit-count weighted mean over every point ever inserted.
 
 Change journal (for an incrementally maintained copy, the query's
-:class:`mapper.query_answer.QuerySnapshot`): every row a fuse writes or a prune moves is
+:class:`mapper.query_answer.QueryCopy`): every row a fuse writes or a prune moves is
 recorded; :meth:`SemanticVoxels.take_changes` hands the rows changed since the last call to
 *one* consumer (``owner``), so the copy is brought up to date by copying those rows only.
 The journal holds at most ``n / 4`` rows (then it says "everything", and the consumer takes a

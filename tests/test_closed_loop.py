@@ -596,7 +596,7 @@ def test_live_loop_over_zenoh_finds_the_car_on_the_in_process_map(loop, tmp_path
     from apps.closed_loop.world_model import LocalMapper, mapper_config
     from common.messages import QueryRequest
     from mapper.query_answer import answer_snapshot
-    from semantic_map.query_snapshot import SCORE_ATOL
+    from semantic_map.query_copy import SCORE_ATOL
 
     w, chain, _ = loop
     robot, s = Platform.make("ground"), LoopSettings()

@@ -88,7 +88,7 @@ def test_edge_threads_config_and_auto():
 
 
 class _CountingLock:
-    """A lock that counts its acquisitions (the feature-space loop takes ``qlock`` once per pass)."""
+    """A lock that counts its acquisitions (the feature-space loop takes ``robots_lock`` once per pass)."""
 
     def __init__(self):
         self._lock = threading.Lock()
@@ -111,14 +111,14 @@ def test_space_loop_waits_while_frames_are_queued():
     from mapper.service_config import load_mapper_config
 
     svc = MapperService(load_mapper_config(None, ["preset=throughput"]))
-    svc.qlock = _CountingLock()
+    svc.robots_lock = _CountingLock()
     svc._wake.set()                       # as after a frame arrived, not yet taken by the map loop
     t = threading.Thread(target=svc._space_loop, daemon=True)
     t.start()
     time.sleep(1.2)
     svc._wake.set()                       # more frames
     time.sleep(0.3)
-    passes = svc.qlock.n
+    passes = svc.robots_lock.n
     svc.stop.set()
     svc._space_wake.set()
     t.join(10)

@@ -102,7 +102,7 @@ def test_export_from_a_live_mapper_over_zenoh(procs, pca_file, tmp_path):
     process) equal what the running mapper answers (its occupancy slice, its voxels layer, its
     query scores), and the mapper keeps running throughout."""
     from apps.processes import wait_for
-    from semantic_map.query_snapshot import SCORE_ATOL
+    from semantic_map.query_copy import SCORE_ATOL
     from tests.support.ports import free_port
     from tests.support.processes import Proc
     from tests.support.roles import client, edge_args, mapper_args
@@ -151,7 +151,7 @@ def test_export_from_a_live_mapper_over_zenoh(procs, pca_file, tmp_path):
 
 
 def test_ply_read_back_by_meshio_equals_the_map_voxels(snap, tmp_path, monkeypatch):
-    from semantic_map.query_snapshot import SCORE_ATOL
+    from semantic_map.query_copy import SCORE_ATOL
 
     monkeypatch.setenv("RAYFRONTS_TEXT_CACHE", proc_env()["RAYFRONTS_TEXT_CACHE"])
     out = tmp_path / "map.ply"
@@ -249,8 +249,8 @@ def _load_map_server(yaml_path: Path) -> tuple[np.ndarray, dict]:
 
 def test_map_server_files_reload_to_the_slice(snap, tmp_path):
     from mapper.snapshot import load_map
-    from semantic_map.map import RayFrontsMap
     from planning.occupancy_queries import costmap_slice
+    from semantic_map.map import RayFrontsMap
 
     out = tmp_path / "room.yaml"
     band = (0.2, 1.5)

@@ -581,18 +581,18 @@ def test_incremental_query_copy_answers_as_a_full_copy():
     from apps.bench.query import _change, _space, build_map
     from common.messages import QueryRequest
     from mapper.query_answer import answer_snapshot
-    from semantic_map.query_snapshot import QuerySnapshot
+    from semantic_map.query_copy import QueryCopy
 
     fs = _space(16)
     cfg, m = build_map(8_000, 16, 300, fs)
-    inc = QuerySnapshot()
+    inc = QueryCopy()
     g = torch.Generator().manual_seed(3)
     for step in range(4):
         inc.reserve(m)
         inc.sync(m, step)
         if step:
             assert 0 <= inc.changed_rows < len(m.sem) // 2, inc.changed_rows
-        full = QuerySnapshot().take(m, step)
+        full = QueryCopy().take(m, step)
         for text in ("car", "tree"):
             a = answer_snapshot(inc, fs, QueryRequest(text=text, top_k=8), cfg.query)
             b = answer_snapshot(full, fs, QueryRequest(text=text, top_k=8), cfg.query)

@@ -1,4 +1,4 @@
-"""Several robots in one map — the pure parts (mapper.fleet): feature-space compatibility and
+"""Several robots in one map — the pure parts (mapper.robot_registry): feature-space compatibility and
 re-projection between PCA bases (with the measured query-score error), world_from_robot
 transforms, rates, status and the bounds on per-robot state."""
 from __future__ import annotations
@@ -13,7 +13,7 @@ import torch
 
 from common.feature_space import FeatureSpace, compatibility
 from common.pca import PCA
-from mapper import fleet
+from mapper import robot_registry as fleet
 
 
 def _features(n, d=384, seed=0, decay=0.97, shift=0.0):
@@ -290,8 +290,8 @@ def test_edge_status_watcher_logs_changes_and_auto_rate(caplog):
     publish.rate_hz=auto follows the advised rate, smoothed, within its bounds."""
     import logging
 
-    from common.fleet import encode_robot_status
-    from edge.fleet_status import AutoRate, StatusWatcher
+    from common.robot_messages import encode_robot_status
+    from edge.mapper_status import AutoRate, StatusWatcher
 
     st = SimpleNamespace(received=1, mapped=0, dropped=0, rejected={}, queue=(), feature_space="s1")
     auto = AutoRate(start_hz=10.0, min_hz=0.5, max_hz=50.0)

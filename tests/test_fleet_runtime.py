@@ -131,7 +131,7 @@ def test_three_bases_one_map_other_encoder_refused(tmp_path, procs, recs, bases)
     needs is the same frames in both runs: one frame missing changes a car score by up to
     0.35 (the one flaky failure, 0.31, was an edge replacing an unsent frame; see
     tests/test_fleet_same_frames.py), hence lossless edges and exactly FRAMES mapped per robot."""
-    from common.fleet import decode_robot_status, robot_status_all
+    from common.robot_messages import decode_robot_status, robot_status_all
 
     seen: dict = {}
 
@@ -276,8 +276,8 @@ def test_many_robot_ids_bounded_and_evicted(tmp_path, procs):
     """1,000 robot ids that never serve a feature space: the mapper tracks at most
     fleet.max_robots, holds at most fleet.pending_max_frames frames, evicts them after
     fleet.no_space_evict_s (status 'evicted'), and its memory stays bounded."""
-    from common.fleet import decode_robot_status, robot_status_key
     from common.frame import Frame
+    from common.robot_messages import decode_robot_status, robot_status_key
     from common.wire import encode_frame
     from common.zenoh_session import open_session
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from semantic_map import kernels
-from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+from semantic_map.query_copy import SCORE_ATOL, QueryCopy
 
 
 def _cpu_flags() -> set[str]:
@@ -85,9 +85,9 @@ def test_query_copy_kernel_and_torch_paths_agree():
     m, v = fs.pca.torch_basis("cpu", torch.float32)
     x = mp.sem.feat.double() @ v.double().T + m.double()
     ref = ((q.double() / q.double().norm(dim=1, keepdim=True)) @ (x / x.norm(dim=1, keepdim=True)).T).numpy()
-    fast = QuerySnapshot().take(mp, 0).prepared(fs)[0].similarity(q, use_cache=False).numpy()
+    fast = QueryCopy().take(mp, 0).prepared(fs)[0].similarity(q, use_cache=False).numpy()
     with kernels.disabled():
-        slow = QuerySnapshot().take(mp, 0).prepared(fs)[0].similarity(q, use_cache=False).numpy()
+        slow = QueryCopy().take(mp, 0).prepared(fs)[0].similarity(q, use_cache=False).numpy()
     e_fast, e_slow = np.abs(fast - ref).max(), np.abs(slow - ref).max()
     assert e_fast <= SCORE_ATOL and e_slow <= SCORE_ATOL, (e_fast, e_slow)
     assert e_fast < e_slow                                  # no float16 rounding of query or sum

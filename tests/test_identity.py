@@ -246,10 +246,10 @@ def _state(cfg, root):
 
 def test_save_and_restore_keeps_every_objects_id_and_the_transforms(site, tmp_path):
     from common.messages import encode_feature_space
-    from mapper.fleet_job import Fleet
+    from mapper.robots_job import RobotsJob
     from mapper.search_answer import answer_search
     from mapper.snapshot_store import SnapshotStore
-    from semantic_map.query_snapshot import QuerySnapshot
+    from semantic_map.query_copy import QueryCopy
 
     before = site.ask(threshold=0.6)
     assert len(ids_by_car(site, before.found)) >= 3
@@ -261,18 +261,18 @@ def test_save_and_restore_keeps_every_objects_id_and_the_transforms(site, tmp_pa
     T = np.eye(4)
     T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
     T[:3, 3] = [12.5, -3.0, 0.25]
-    Fleet(st).transforms.set("r7", T.reshape(-1).tolist())
+    RobotsJob(st).transforms.set("r7", T.reshape(-1).tolist())
     st.standing_searches["s1"] = SearchRequest(targets=["car"], standing=True, id="s1").validate()
     SnapshotStore(st).save()
     issued = st.trackers.next_id
 
     again = _state(site.cfg, tmp_path)
-    fleet = Fleet(again)
+    fleet = RobotsJob(again)
     SnapshotStore(again).restore()
     assert np.array_equal(fleet.transforms.get("r7"), T)
     assert fleet.transforms.runtime() == {"r7": T.reshape(-1).tolist()}
     assert list(again.standing_searches) == ["s1"]
-    snap = QuerySnapshot()
+    snap = QueryCopy()
     snap.reserve(again.map)
     snap.sync(again.map, again.version, again.version)
     req = SearchRequest(targets=["car"], threshold=0.6, max_goals=0, max_instances=200).validate()

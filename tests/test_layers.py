@@ -1,8 +1,8 @@
 """Import layers (ARCHITECTURE.md, ``ALLOWED`` below): ``common`` imports only itself; the
 libraries ``semantic_map``, ``synthetic_world`` and ``encoders`` import ``common`` (``encoders``
-also ``synthetic_world``); ``planning`` imports ``common`` and ``semantic_map``; the roles ``edge``, ``mapper`` and ``query_client`` import
-``common``, the libraries they need and themselves, never another role; ``apps`` may import
-anything. And no import cycles between our modules.
+also ``synthetic_world``); ``planning`` imports ``common`` and ``semantic_map``; the roles
+``edge``, ``mapper`` and ``query_client`` import ``common``, the libraries they need and
+themselves, never another role; ``apps`` may import anything. And no import cycles between our modules.
 
 Every import statement counts: module level, inside functions (lazy imports), under
 ``if TYPE_CHECKING``, and ``importlib.import_module("literal")``. Read from the source with

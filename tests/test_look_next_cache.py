@@ -122,7 +122,7 @@ def test_standing_searches_of_three_robots_equal_their_one_by_one_answers():
     from apps.bench.search import ROBOTS
     from common.search_messages import SearchRequest
     from mapper import search_answer as sa
-    from semantic_map.query_snapshot import QuerySnapshot
+    from semantic_map.query_copy import QueryCopy
     from synthetic_world import World
 
     fs = _space(24)
@@ -143,7 +143,7 @@ def test_standing_searches_of_three_robots_equal_their_one_by_one_answers():
 
     frames(0, 2)
     emb = np.random.default_rng(1).standard_normal((2, fs.lang_dim)).astype(np.float32)
-    snap = QuerySnapshot()
+    snap = QueryCopy()
     snap.sync(m, 1, 1)
     trackers = sa.TrackerStore(cfg.search.max_trackers)
 
@@ -161,6 +161,6 @@ def test_standing_searches_of_three_robots_equal_their_one_by_one_answers():
     assert all(len(a["look_next"]) >= 3 for a in standing) and standing[0]["look_next"] != standing[1]["look_next"]
     for xyz, got in zip(ROBOTS, standing, strict=True):
         sa._LOOK_NEXT.pop(m, None)
-        alone = QuerySnapshot()
+        alone = QueryCopy()
         alone.sync(m, 2, 2)
         assert ask(alone, xyz, 2) == got

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from semantic_map.occupancy import make_occupancy
 from planning.occupancy_queries import _clearance_brute, occupied_cells, point_states
+from semantic_map.occupancy import make_occupancy
 
 VOX = 0.3
 

@@ -1,12 +1,12 @@
 """The query copy's float16 scoring against a float64 brute-force cosine, and the sampled
-top-k against a full stable sort (semantic_map.query_snapshot, mapper.query_answer.top_stable)."""
+top-k against a full stable sort (semantic_map.query_copy, mapper.query_answer.top_stable)."""
 import numpy as np
 import pytest
 import torch
 
 from apps.bench.query import _space, build_map
 from mapper.query_answer import top_stable
-from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+from semantic_map.query_copy import SCORE_ATOL, QueryCopy
 
 
 def _reference(fs, feats: torch.Tensor, q: torch.Tensor) -> np.ndarray:
@@ -25,7 +25,7 @@ def test_half_copy_scores_and_top_k_match_float64(n_queries):
     with torch.no_grad():                                   # rows of very different magnitude
         mp.sem._feat[: len(mp.sem) // 3] *= 1e3
         mp.sem._feat[len(mp.sem) // 3: len(mp.sem) // 2] *= 1e-3
-    snap = QuerySnapshot().take(mp, 0)
+    snap = QueryCopy().take(mp, 0)
     vprep, _ = snap.prepared(fs)
     assert type(vprep).__name__ == "HalfFeatures" and snap._vhalf.dtype == torch.float16
     q = torch.randn((n_queries, fs.lang_dim), generator=torch.Generator().manual_seed(1))
@@ -55,7 +55,7 @@ def test_half_copy_follows_incremental_changes():
     q = torch.randn((1, fs.lang_dim), generator=torch.Generator().manual_seed(2))
     for step in cm.steps(3):
         a = inc.prepared(fs)[0].similarity(q).numpy()
-        b = QuerySnapshot().take(mp, step).prepared(fs)[0].similarity(q).numpy()
+        b = QueryCopy().take(mp, step).prepared(fs)[0].similarity(q).numpy()
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
         assert np.abs(a - _reference(fs, mp.sem.feat, q)).max() <= SCORE_ATOL
 

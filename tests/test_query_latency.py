@@ -17,7 +17,7 @@ from common.language_head import MLP2, MLP2Config
 from common.messages import QueryRequest
 from mapper.query_answer import answer_snapshot, top_stable
 from semantic_map import cell_keys
-from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+from semantic_map.query_copy import SCORE_ATOL, QueryCopy
 from tests.support.data import bfs_components, low_rank_pca, query_map
 
 
@@ -101,7 +101,7 @@ def test_answer_snapshot_matches_bruteforce():
     qcfg = cfg.query
     qcfg.cluster_candidates = 300
     q = np.asarray(X[7], np.float32)
-    snap = QuerySnapshot().take(m, 1)
+    snap = QueryCopy().take(m, 1)
     res = answer_snapshot(snap, fs, QueryRequest(embedding=q, top_k=5), qcfg)
     # the brute force scores the rows as the query copy holds them (float16, per-row scaled:
     # their distance to the float32 / float64 cosine is tests/test_query_half.py's subject)
@@ -139,7 +139,7 @@ def test_answer_snapshot_matches_bruteforce():
 def test_snapshot_is_isolated_from_later_map_changes():
     m, fs, cfg, X = query_map(n_side=8)
     q = QueryRequest(embedding=np.asarray(X[3], np.float32), top_k=4)
-    snap = QuerySnapshot().take(m, 1)
+    snap = QueryCopy().take(m, 1)
     before = answer_snapshot(snap, fs, q, cfg.query)
     # the map changes: every voxel gets the query's own feature, and new voxels appear
     best = torch.from_numpy(fs.compress(X[3:4].astype(np.float32)))
@@ -190,6 +190,6 @@ def test_query_does_not_wait_past_lock_timeout_while_map_is_busy():
     res = svc.run_query(req)
     assert "stale" not in res.timings and res.frames_mapped == 4
     assert svc._qsnap.n_voxels == len(m.sem) > 6 ** 3
-    ref = answer_snapshot(QuerySnapshot().take(m, 0), fs, req, cfg.query)
+    ref = answer_snapshot(QueryCopy().take(m, 0), fs, req, cfg.query)
     np.testing.assert_array_equal(res.voxel_xyz, ref.voxel_xyz)
     np.testing.assert_array_equal(res.cluster_xyz, ref.cluster_xyz)

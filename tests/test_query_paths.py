@@ -14,7 +14,7 @@ import torch
 from common.messages import QueryRequest
 from mapper import query_answer
 from mapper.query_answer import SOFTMAX_TEMPERATURE, answer_snapshot
-from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+from semantic_map.query_copy import SCORE_ATOL, QueryCopy
 from tests.support.data import query_map
 
 
@@ -31,7 +31,7 @@ def test_service_and_evaluation_give_equal_answers(softmax):
     k = 6
     standing = [QueryRequest(embedding=q[i].numpy(), id=f"s{i}") for i in (1, 2)]
     req = QueryRequest(embedding=q[0].numpy(), top_k=k, softmax=softmax, id="q")
-    res = answer_snapshot(QuerySnapshot().take(m, 1), fs, req, cfg.query, standing=standing)
+    res = answer_snapshot(QueryCopy().take(m, 1), fs, req, cfg.query, standing=standing)
     ev = _eval_scores(m, fs, q if softmax else q[:1], softmax, k)
     tv, tr = ev.top_voxels[0], ev.top_rays[0]
     # the same scores, rank by rank (float16 copy vs float32 rows)
@@ -54,7 +54,7 @@ def test_service_scores_through_the_map_scoring_function(monkeypatch):
     """answer_snapshot reaches semantic_map.query.score_rows (replacing it changes the answer)."""
     m, fs, cfg, X = query_map(seed=4)
     req = QueryRequest(embedding=np.asarray(X[5], np.float32), top_k=3)
-    snap = QuerySnapshot().take(m, 1)
+    snap = QueryCopy().take(m, 1)
     before = answer_snapshot(snap, fs, req, cfg.query)
     monkeypatch.setattr(query_answer, "score_rows", lambda *a, **kw: -torch.ones((1, len(a[0]))))
     after = answer_snapshot(snap, fs, req, cfg.query)

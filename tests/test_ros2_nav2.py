@@ -116,9 +116,9 @@ class Rig:
 
         class Snapshots:        # the query server's part a search reads: a snapshot of the map
             def snapshot(_, timings, flush=False):
-                from semantic_map.query_snapshot import QuerySnapshot
+                from semantic_map.query_copy import QueryCopy
 
-                return QuerySnapshot().take(st.map, st.map_gen)
+                return QueryCopy().take(st.map, st.map_gen)
 
         self.search = SearchServer(st, Snapshots())
         for rid in robots:
@@ -142,7 +142,7 @@ class Rig:
         fwd = np.array([math.cos(yaw), math.sin(yaw), 0.0])
         P[:3, 0], P[:3, 1], P[:3, 2] = np.cross(fwd, [0, 0, 1.0]), [0, 0, -1.0], fwd   # RDF camera axes
         P[:3, 3] = xyz
-        with self.state.qlock:
+        with self.state.robots_lock:
             self.state.robots[rid].pose, self.state.robots[rid].pose_stamp = P, stamp
 
     def close(self):
@@ -394,7 +394,7 @@ def test_bad_search_input_one_line_counted_and_serving_goes_on(world_map, caplog
         # a robot of the mapper's table that is not configured may ask on its own namespace
         from mapper.state import RobotState
 
-        with rig.state.qlock:
+        with rig.state.robots_lock:
             rig.state.robots["r9"] = RobotState("r9", queue=__import__("collections").deque())
         rig.place("r9", np.array([5.0, 5.0, 1.2]))
         put("r9", "car")

@@ -12,11 +12,11 @@ import torch
 
 from common.conventions import voxel_center
 from planning.beyond import best_rays, closest_approach, triangulate
-from semantic_map.config import map_config
 from planning.instances import InstanceTracker, connected_26
 from planning.look_next import MIN_RAYS_FOR_Z, look_next, points_in_polygon, ray_outlier_z, unknown_volume
-from semantic_map.map import RayFrontsMap
 from planning.occupancy_queries import FREE, OCCUPIED, UNKNOWN, costmap_slice, point_states, state_grid
+from semantic_map.config import map_config
+from semantic_map.map import RayFrontsMap
 from synthetic_world import World
 from tests.support.data import bfs_components
 

@@ -1,6 +1,6 @@
 """The search's similarity fast path against brute force: the targets' softmax share over a
 background summarised by its per-voxel log-sum-exp (semantic_map.query.softmax_share), the
-snapshot's cached, incrementally updated log-sum-exp (QuerySnapshot.phrase_logsumexp) and
+snapshot's cached, incrementally updated log-sum-exp (QueryCopy.phrase_logsumexp) and
 the search's voxel probabilities (mapper.search_answer) against a float64 softmax of the
 same scores."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ import torch
 from apps.bench.query import _change, _space, build_map
 from mapper.search_answer import _probabilities, _voxel_probabilities
 from semantic_map.query import softmax_share
-from semantic_map.query_snapshot import SCORE_ATOL, QuerySnapshot
+from semantic_map.query_copy import SCORE_ATOL, QueryCopy
 from tests.support.snapshots import ChangingMap
 
 #: |fast − float64 softmax of the same float32 scores| at temperature 100 (float32 rounding of
@@ -52,7 +52,7 @@ def test_softmax_share_equals_full_softmax(n_targets: int, n_rest: int):
     assert softmax_share(torch.zeros((n_targets, 0)), torch.zeros(0)).shape == (n_targets, 0)
 
 
-def _snap_scores(snap: QuerySnapshot, fs, q: torch.Tensor) -> np.ndarray:
+def _snap_scores(snap: QueryCopy, fs, q: torch.Tensor) -> np.ndarray:
     """(Q, N) scores of a fresh snapshot's float16 copy, one query at a time."""
     v, _ = snap.prepared(fs)
     return np.stack([v.similarity(q[i:i + 1])[0].numpy() for i in range(len(q))])
@@ -61,10 +61,10 @@ def _snap_scores(snap: QuerySnapshot, fs, q: torch.Tensor) -> np.ndarray:
 def test_multi_query_scores_are_the_single_query_ones():
     fs = _space(24)
     _, mp = build_map(8_000, 24, 50, fs, seed=2)
-    v, _ = QuerySnapshot().take(mp, 0).prepared(fs)
+    v, _ = QueryCopy().take(mp, 0).prepared(fs)
     q = torch.randn((4, fs.lang_dim), generator=torch.Generator().manual_seed(4))
     many = v.similarity(q).numpy()
-    assert np.array_equal(many, _snap_scores(QuerySnapshot().take(mp, 0), fs, q))
+    assert np.array_equal(many, _snap_scores(QueryCopy().take(mp, 0), fs, q))
     rows = torch.tensor([5, 0, 7999, 3, 3], dtype=torch.int64)
     np.testing.assert_allclose(v.subset(rows).similarity(q).numpy(), many[:, rows.numpy()], rtol=1e-6, atol=1e-7)
 
@@ -79,7 +79,7 @@ def test_phrase_logsumexp_follows_incremental_changes():
     for step in cm.steps(4):
         got = snap.phrase_logsumexp(fs, bg, 100.0)
         assert got is not None and len(got) == len(mp.sem)
-        want = _lse64(_snap_scores(QuerySnapshot().take(mp, step), fs, bg), 100.0)
+        want = _lse64(_snap_scores(QueryCopy().take(mp, step), fs, bg), 100.0)
         assert np.abs(got.numpy() - want).max() <= 1e-4 * 100
         np.testing.assert_allclose(got.numpy(), want, rtol=2e-6, atol=1e-5)
         if step == 1:                                          # a second phrase set kept alongside
@@ -95,7 +95,7 @@ def test_search_voxel_probabilities_match_full_softmax():
     of the copy's scores, and those scores the float64 cosine within SCORE_ATOL."""
     fs = _space(32)
     _, mp = build_map(30_000, 32, 100, fs, seed=7)
-    snap = QuerySnapshot()
+    snap = QueryCopy()
     snap.reserve(mp)
     snap.sync(mp, 1)
     v, _ = snap.prepared(fs)
@@ -130,7 +130,7 @@ def test_voxel_ijk_equals_the_centres_round_trip():
     mp.sem.fuse_sums(cell_keys.pack(ijk), torch.rand((4, 3)), torch.randn((4, 8)), torch.ones(4))
     for vox in (0.05, 0.2, 1.0):
         mp.cfg.vox_size = vox
-        snap = QuerySnapshot().take(mp, 0)
+        snap = QueryCopy().take(mp, 0)
         rows = np.r_[np.arange(0, len(mp.sem), 7), len(mp.sem) - 4 + np.arange(4)]
         got = snap.voxel_ijk(rows)
         assert got.dtype == np.int64
@@ -168,7 +168,7 @@ def test_tracker_repeat_of_the_same_input_matches_reference():
 def test_score_cache_follows_incremental_changes(monkeypatch):
     """Queries scored on earlier versions of the copy (cached, updated for the changed rows)
     score exactly like a fresh copy, also when the cache evicts (few entries allowed)."""
-    import semantic_map.query_snapshot as qs
+    import semantic_map.query_copy as qs
 
     monkeypatch.setattr(qs, "SCORE_CACHE_ENTRIES", 3)
     cm = ChangingMap(seed=4, change_seed=9)
@@ -176,7 +176,7 @@ def test_score_cache_follows_incremental_changes(monkeypatch):
     q = torch.randn((5, fs.lang_dim), generator=torch.Generator().manual_seed(6))
     for step in cm.steps(4):
         v, _ = snap.prepared(fs)
-        fresh, _ = QuerySnapshot().take(mp, step).prepared(fs)
+        fresh, _ = QueryCopy().take(mp, step).prepared(fs)
         want = fresh.similarity(q, use_cache=False).numpy()
         for i in ([0, 1], [0], [2, 3, 4], [1, 0]):             # hits, misses and evictions
             assert np.array_equal(v.similarity(q[i]).numpy(), want[i])
@@ -195,7 +195,7 @@ def test_answer_search_equals_the_plain_path_across_map_changes(monkeypatch):
     from apps.bench.search import TARGETS
     from common.search_messages import SearchRequest
     from mapper.search_answer import TrackerStore, answer_search
-    from semantic_map.query_snapshot import HalfFeatures
+    from semantic_map.query_copy import HalfFeatures
 
     class Plain:
         """The snapshot without its caches."""
@@ -225,7 +225,7 @@ def test_answer_search_equals_the_plain_path_across_map_changes(monkeypatch):
     monkeypatch.setattr(sa, "embed_phrases", embed)
     torch.manual_seed(14)
     cfg, mp = build_map(30_000, 16, 300, fs, seed=11)
-    snap = QuerySnapshot()
+    snap = QueryCopy()
     fast, plain = TrackerStore(8), TrackerStore(8)
     g = torch.Generator().manual_seed(12)
     bg = torch.randn((4, fs.lang_dim), generator=torch.Generator().manual_seed(13)).numpy()

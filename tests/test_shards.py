@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from common.cones import cone_union_volume
-from common.fleet import decode_shard_info, encode_shard_info
 from common.messages import QueryResult
+from common.robot_messages import decode_shard_info, encode_shard_info
 from query_client.merge import merge_results
 from tests.support.processes import Proc, stop_all, wait_for
 

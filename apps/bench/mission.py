@@ -15,7 +15,7 @@ wall ms per frame, stage times, current and peak RSS (MiB), semantic voxels, fro
 bins, the map's own memory estimate (``map_memory_mb`` = :meth:`RayFrontsMap.memory_bytes`
 / 2^20: the semantic layers, with their parts ``semantic_mb`` (voxels), ``rays_mb``,
 ``frontiers_mb``; the occupancy grid apart, ``occupancy_mb``; ``total_memory_mb`` both) and, at the window end,
-the query latency: a persistent :class:`QuerySnapshot` synced to the live map (unflushed, as
+the query latency: a persistent :class:`QueryCopy` synced to the live map (unflushed, as
 the mapper's query thread sees it; ``query_sync_ms``) and ``--queries`` queries answered by
 :func:`mapper.query_answer.answer_snapshot` (the in-process path of ``bench query``; text
 queries, embedded once up front, or ``--query-source random`` language-space vectors, which
@@ -99,13 +99,13 @@ class _Queries:
         from apps.bench.query import TEXTS, _space
         from common.messages import QueryRequest
         from mapper.service_config import MapperConfig, resolve_query_threads
-        from semantic_map.query_snapshot import QuerySnapshot
+        from semantic_map.query_copy import QueryCopy
 
         self.n = max(0, args.queries)
         self.fs = _space(args.feature_dim)
         self.qcfg = MapperConfig().query
         self.threads = resolve_query_threads(0)
-        self.snap = QuerySnapshot()
+        self.snap = QueryCopy()
         self.gen = 0
         if args.query_source == "text":
             self.reqs = [QueryRequest(text=TEXTS[i % len(TEXTS)], top_k=10) for i in range(self.n)]

@@ -5,7 +5,7 @@ For each map size (``--voxels 100k,1M,5M``) a map is filled with that many seman
 ``--rays`` semantic rays, then:
 
 * **in process** (what the mapper does per query, without Zenoh): the query copy is synced
-  under a lock (:meth:`mapper.query_answer.QuerySnapshot.sync`) and the query answered
+  under a lock (:meth:`mapper.query_answer.QueryCopy.sync`) and the query answered
   (:func:`mapper.query_answer.answer_snapshot`); ``steady`` = repeated queries on an
   unchanged map (the texts' scores are cached per copy and updated for changed rows, so this
   is the repeated / standing query), ``cold`` = a query vector never seen before (a full pass
@@ -127,13 +127,13 @@ def in_process(cfg: MapperConfig, m: RayFrontsMap, fs: FeatureSpace, args: argpa
     from common.messages import QueryRequest
     from mapper.query_answer import answer_snapshot
     from mapper.service_config import resolve_query_threads
-    from semantic_map.query_snapshot import QuerySnapshot
+    from semantic_map.query_copy import QueryCopy
 
     # as the mapper does per query: a MapperService run before (client_round_trip) leaves
     # this thread's torch thread count at its map thread's
     torch.set_num_threads(args.threads or resolve_query_threads(0))
     lock = threading.Lock()
-    snap = QuerySnapshot()
+    snap = QueryCopy()
     gen = [1]
 
     cpu = []

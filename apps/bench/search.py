@@ -5,7 +5,7 @@ For each map size (``--voxels 100k,1M,5M``) the query benchmark's map
 PCA-``--dim`` label space and ``--rays`` semantic rays) also gets occupancy, frontiers and
 real rays from ``--frames`` synthetic-world frames (random features of the same dimension,
 so look-next has frontiers to score). Then, as the mapper answers a search
-(:func:`mapper.search_answer.answer_search` on the query snapshot, the map read directly for
+(:func:`mapper.search_answer.answer_search` on the query copy, the map read directly for
 look-next):
 
 * ``search_ms``: wall p50 / p95 of ``--queries`` searches for one target against the
@@ -115,12 +115,12 @@ def standing_latency(cfg, m, fs, snap, trackers, dim: int, frames: int, rounds: 
 
 
 def search_latency(cfg, m, fs, queries: int, dim: int = 0, frames: int = 0) -> dict:
-    """Searches answered as the mapper does (query snapshot, cached embeddings)."""
+    """Searches answered as the mapper does (query copy, cached embeddings)."""
     from common.search_messages import SearchRequest
     from mapper.search_answer import TrackerStore, answer_search
-    from semantic_map.query_snapshot import QuerySnapshot
+    from semantic_map.query_copy import QueryCopy
 
-    snap = QuerySnapshot()
+    snap = QueryCopy()
     snap.reserve(m)
     snap.sync(m, 1, 1)
     trackers = TrackerStore(cfg.search.max_trackers)

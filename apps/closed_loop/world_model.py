@@ -4,7 +4,7 @@ run in this process (:class:`LocalMapper`) or from a real mapper over Zenoh
 
 The local mapper integrates decoded frames into a :class:`semantic_map.map.RayFrontsMap` and
 answers searches with :func:`mapper.search_answer.answer_search` on a
-:class:`semantic_map.query_snapshot.QuerySnapshot` — the functions the mapper service calls —
+:class:`semantic_map.query_copy.QueryCopy` — the functions the mapper service calls —
 so in-process and distributed episodes see the same answers for the same frames. World
 frame, metres, z up.
 """
@@ -68,11 +68,11 @@ class LocalMapper:
                  score_poses: bool = False):
         from mapper.search_answer import TrackerStore
         from mapper.service_map import create_map
-        from semantic_map.query_snapshot import QuerySnapshot
+        from semantic_map.query_copy import QueryCopy
 
         self.space, self.cfg = space, cfg
         self.map = create_map(cfg, space)
-        self.snap = QuerySnapshot()
+        self.snap = QueryCopy()
         self.trackers = TrackerStore(cfg.search.max_trackers)
         self.band, self.window = band_m, float(window_m)
         self.frames = 0

@@ -419,7 +419,7 @@ class RosRobots:
                 return r
         rid = namespace.strip("/")
         st = self.out.state
-        with st.qlock:
+        with st.robots_lock:
             known = rid in st.robots
         if known and "/" not in rid and rid not in self.robots:
             self.robots[rid] = RobotSearch(rid, robot_section(rid, {}))
@@ -469,7 +469,7 @@ class RosRobots:
     def position(self, r: RobotSearch) -> tuple[np.ndarray | None, float]:
         """``(world pose (4, 4) of the robot's last mapped frame or None, its stamp s)``."""
         st = self.out.state
-        with st.qlock:
+        with st.robots_lock:
             rs = st.robots.get(r.cfg.robot)
             if rs is None or rs.pose is None:
                 return None, 0.0

@@ -8,18 +8,18 @@ from collections.abc import Iterator
 import torch
 
 from apps.bench.query import _change, _space, build_map
-from semantic_map.query_snapshot import QuerySnapshot
+from semantic_map.query_copy import QueryCopy
 
 
 class ChangingMap:
-    """A map (``map``), its feature space (``fs``) and a :class:`QuerySnapshot` (``snap``) that
+    """A map (``map``), its feature space (``fs``) and a :class:`QueryCopy` (``snap``) that
     :meth:`steps` syncs before each step and changes after it."""
 
     def __init__(self, seed: int = 0, change_seed: int = 3):
         """``seed`` fills the map; ``change_seed`` draws the changes between steps."""
         self.fs = _space(16)
         _, self.map = build_map(20_000, 16, 100, self.fs, seed=seed)
-        self.snap = QuerySnapshot()
+        self.snap = QueryCopy()
         self._g = torch.Generator().manual_seed(change_seed)
 
     def steps(self, n: int) -> Iterator[int]:

@@ -1,5 +1,5 @@
 """The edge's side of the mapper's per-robot status (``mapper/robots/<robot>/status``,
-``common.fleet``): log what the mapper does with this robot's frames when it changes, and
+``common.robot_messages``): log what the mapper does with this robot's frames when it changes, and
 ``publish.rate_hz=auto`` — publish at the rate the mapper advises instead of flooding a
 queue that drops.
 
@@ -72,7 +72,7 @@ class StatusWatcher:
             self.log.debug("mapper status: %s", e)
 
     def on_payload(self, data: bytes) -> dict | None:
-        from common.fleet import FleetMessageError, decode_robot_status
+        from common.robot_messages import FleetMessageError, decode_robot_status
 
         try:
             st = decode_robot_status(data)

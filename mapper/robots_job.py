@@ -1,21 +1,21 @@
 """The mapper's fleet job: several robots in one map, told what happens, bounded; and this
 mapper as one shard of several (module map: ARCHITECTURE.md).
 
-Hooks (the other jobs call them; pure parts in :mod:`mapper.fleet`, :mod:`mapper.shards`):
+Hooks (the other jobs call them; pure parts in :mod:`mapper.robot_registry`, :mod:`mapper.shards`):
 
-* ``MapperState.robot`` (a new robot id, ``qlock`` held): :meth:`Fleet.admit` (robot cap);
-* ingest, feature-space fetch: :meth:`Fleet.space_decided` — refuses another encoder family
-  with one line, builds the :class:`mapper.fleet.Reprojection` of a robot with another PCA
+* ``MapperState.robot`` (a new robot id, ``robots_lock`` held): :meth:`RobotsJob.admit` (robot cap);
+* ingest, feature-space fetch: :meth:`RobotsJob.space_decided` — refuses another encoder family
+  with one line, builds the :class:`mapper.robot_registry.Reprojection` of a robot with another PCA
   basis;
-* map worker, before integrating: :meth:`Fleet.prepare` — re-projects features into the
+* map worker, before integrating: :meth:`RobotsJob.prepare` — re-projects features into the
   map's basis, applies ``world_from_robot`` to the pose, and leaves out frames outside this
   shard's region (counted ``outside_shard``);
-* its own thread (:meth:`Fleet.loop`, every 0.5 s, waiting on ``stop``): per-robot rates
+* its own thread (:meth:`RobotsJob.loop`, every 0.5 s, waiting on ``stop``): per-robot rates
   from the counters ingest and the map worker keep, drop warnings with the rate, evictions,
   pending-frame expiry, per-robot status on ``mapper/robots/<robot>/status`` (on change,
   else at most every ``fleet.status_period_s``);
-* the ``mapper/robots/*/world_from_robot`` queryable (:meth:`Fleet.on_transform`);
-* query replies carry :meth:`Fleet.shard_info` as their attachment (client-side merge).
+* the ``mapper/robots/*/world_from_robot`` queryable (:meth:`RobotsJob.on_transform`);
+* query replies carry :meth:`RobotsJob.shard_info` as their attachment (client-side merge).
 
 Per-robot frames never mix: a frame is queued under the robot of its key, and only when the
 frame's own ``robot`` field equals it (ingest rejects ``robot_mismatch``); its features,
@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from common.feature_space import compatibility
-from mapper.fleet import (
+from mapper.robot_registry import (
     DropWarner,
     RateMeter,
     Reprojection,
@@ -81,7 +81,7 @@ class FleetRobot:
         return d
 
 
-class Fleet:
+class RobotsJob:
     """See the module docstring. One per mapper; ``state.fleet`` points at it."""
 
     def __init__(self, state: MapperState) -> None:
@@ -107,7 +107,7 @@ class Fleet:
         return fr
 
     def admit(self, name: str) -> bool:
-        """True when ``name`` is tracked or may be (caller holds ``qlock``; ``MapperState.robot``
+        """True when ``name`` is tracked or may be (caller holds ``robots_lock``; ``MapperState.robot``
         asks for every new id); else counts the frame under ``robot_cap`` (globally: nothing is
         kept per refused id)."""
         state = self.state
@@ -124,7 +124,7 @@ class Fleet:
 
     def sample_counts(self, st: RobotState, now: float, now_wall: float) -> None:
         """Turn the robot's counters (received / mapped / dropped / rejected, kept by ingest and
-        the map worker) into rates, warn about drops with their rate. Caller holds ``qlock``."""
+        the map worker) into rates, warn about drops with their rate. Caller holds ``robots_lock``."""
         fr = self.robot_data(st)
         cur = (st.received, st.mapped, st.dropped, int(sum(st.rejected.values())))
         prev = fr.counts if fr.counts is not None else (0, 0, 0, 0)
@@ -200,7 +200,7 @@ class Fleet:
         return robot_status(st.name, state, reason, _Counts(st, fr), rates, shared.space_id, self.shard.name, adv)
 
     def _publish(self, body: dict) -> None:
-        from common.fleet import encode_robot_status, robot_status_key
+        from common.robot_messages import encode_robot_status, robot_status_key
 
         state = self.state
         if state.session is None:
@@ -215,7 +215,7 @@ class Fleet:
         state = self.state
         now, now_w = time.monotonic(), time.time()
         out = []
-        with state.qlock:
+        with state.robots_lock:
             for st in state.robots.values():
                 self.sample_counts(st, now, now_w)
             for name, n in expire_pending(state.robots.values(), now_w, self.cfg, state.cfg.queues.per_robot):
@@ -254,13 +254,13 @@ class Fleet:
     # ------------------------------------------------------------ transforms
     def on_transform(self, query: zenoh.Query) -> None:
         """``get mapper/robots/<robot>/world_from_robot``: payload (16 numbers) sets it; none reads it."""
-        from common.fleet import (
+        from common.messages import encode_error
+        from common.robot_messages import (
             FleetMessageError,
             decode_transform_request,
             encode_transform_reply,
             robot_from_mapper_key,
         )
-        from common.messages import encode_error
 
         state = self.state
         try:
@@ -301,9 +301,9 @@ class Fleet:
 
     # ------------------------------------------------------------ queries, stats
     def shard_info(self, res: QueryResult | None = None, half_angle_deg: float | None = None) -> bytes:
-        """The shard info attached to query, search and occupancy replies (``common.fleet``);
+        """The shard info attached to query, search and occupancy replies (``common.robot_messages``);
         ``half_angle_deg`` when ``res`` does not carry it (a search)."""
-        from common.fleet import encode_shard_info
+        from common.robot_messages import encode_shard_info
 
         q = self.state.cfg.query
         info = {"shard": self.shard.name, "search_range_m": float(q.search_range_m),
@@ -334,7 +334,7 @@ class Fleet:
 
 
 class _Counts:
-    """What :func:`mapper.fleet.robot_status` reads from a robot (its state + fleet data)."""
+    """What :func:`mapper.robot_registry.robot_status` reads from a robot (its state + fleet data)."""
 
     def __init__(self, st: RobotState, fr: FleetRobot) -> None:
         self.received, self.mapped, self.dropped = st.received, st.mapped, st.dropped
@@ -343,7 +343,7 @@ class _Counts:
 
 
 class _Evictable:
-    """What :func:`mapper.fleet.evictions` reads from a robot."""
+    """What :func:`mapper.robot_registry.evictions` reads from a robot."""
 
     def __init__(self, st: RobotState, fr: FleetRobot) -> None:
         self.present, self.gone_at, self.seen_at = st.present, st.gone_at, st.seen_at
@@ -352,7 +352,7 @@ class _Evictable:
         self.last_frame_at = fr.last_frame_at
 
 
-def start_thread(fleet: Fleet) -> threading.Thread:
+def start_thread(fleet: RobotsJob) -> threading.Thread:
     t = threading.Thread(target=fleet.loop, name="mapper-fleet", daemon=True)
     t.start()
     return t

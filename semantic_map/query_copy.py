@@ -1,4 +1,4 @@
-"""The query's copy of the map (:class:`QuerySnapshot`), kept query-ready incrementally, and
+"""The query's copy of the map (:class:`QueryCopy`), kept query-ready incrementally, and
 its half-precision scoring (:class:`HalfFeatures`); split out of :mod:`mapper.query_answer`
 (which re-exports the names).
 
@@ -20,12 +20,12 @@ for voxels whose reference score lies within ``2·SCORE_ATOL`` of the k-th best 
 Cosine terms that do not depend on the query (the inverse norms) are float32, from the
 stored row.
 
-Per-version products, kept up to date for the rows each :meth:`QuerySnapshot.sync` changed
+Per-version products, kept up to date for the rows each :meth:`QueryCopy.sync` changed
 (as the prepared terms): the scores of the last queries (:class:`_ScoreCache`: a repeated
 or standing query costs the changed rows, not a pass over the copy; 4 bytes per voxel per
 query, at most :data:`SCORE_CACHE_ENTRIES` queries and a quarter of the copy's bytes) and
 the per-voxel log-sum-exp of a search's background phrases
-(:meth:`QuerySnapshot.phrase_logsumexp`). Both hold exactly what a fresh computation gives
+(:meth:`QueryCopy.phrase_logsumexp`). Both hold exactly what a fresh computation gives
 (the same per-row product).
 """
 from __future__ import annotations
@@ -49,7 +49,7 @@ if TYPE_CHECKING:
 
 #: max |score − float64 cosine| of the half-precision copy (see the module docstring)
 SCORE_ATOL = 2e-3
-#: phrase sets whose per-row log-sum-exp :meth:`QuerySnapshot.phrase_logsumexp` keeps per space
+#: phrase sets whose per-row log-sum-exp :meth:`QueryCopy.phrase_logsumexp` keeps per space
 LSE_SETS = 4
 #: queries whose scores a prepared space keeps (:class:`HalfFeatures`), and the least bytes allowed
 SCORE_CACHE_ENTRIES = 16
@@ -189,7 +189,7 @@ class HalfFeatures:
 
 @dataclass
 class _PreparedSpace:
-    """What :meth:`QuerySnapshot.prepared` keeps per (feature space, device)."""
+    """What :meth:`QueryCopy.prepared` keeps per (feature space, device)."""
 
     kind: str                                       # "half" (no head), "raw" or "head" (language head)
     v: HalfFeatures | PreparedFeatures              # prepared voxel features
@@ -242,7 +242,7 @@ class _ScoreCache:
         self.entries[key] = _RowValues(buf, n)
 
 
-class QuerySnapshot:
+class QueryCopy:
     """A consistent copy of what a query reads from the map, maintained *incrementally*.
 
     :meth:`sync` (the caller holds the map lock) copies only the voxel rows the map wrote or
@@ -312,7 +312,7 @@ class QuerySnapshot:
             self._vscale[s:e].copy_(sc)
         self._vkeys[:n].copy_(sem.keys)
 
-    def reserve(self, m: RayFrontsMap) -> QuerySnapshot:
+    def reserve(self, m: RayFrontsMap) -> QueryCopy:
         """Grow the buffers for map ``m``'s current size ahead of :meth:`sync` (no lock
         needed: a size hint; the copy's content is kept)."""
         sem = m.sem
@@ -320,12 +320,12 @@ class QuerySnapshot:
             self._fit(sem, len(sem), self.n_voxels)
         return self
 
-    def sync(self, m: RayFrontsMap, gen: int, frames_mapped: int = 0) -> QuerySnapshot:
+    def sync(self, m: RayFrontsMap, gen: int, frames_mapped: int = 0) -> QueryCopy:
         """Bring the copy up to map ``m`` (the caller holds the map lock): changed rows only."""
         with _one_thread():
             return self._sync(m, gen, frames_mapped)
 
-    def _sync(self, m: RayFrontsMap, gen: int, frames_mapped: int) -> QuerySnapshot:
+    def _sync(self, m: RayFrontsMap, gen: int, frames_mapped: int) -> QueryCopy:
         t = time.perf_counter()
         sem = m.sem
         n = len(sem)
@@ -352,7 +352,7 @@ class QuerySnapshot:
         self.take_ms = (time.perf_counter() - t) * 1e3
         return self
 
-    def take(self, m: RayFrontsMap, gen: int, frames_mapped: int = 0) -> QuerySnapshot:
+    def take(self, m: RayFrontsMap, gen: int, frames_mapped: int = 0) -> QueryCopy:
         """A full copy of the map's query arrays (the caller holds the map lock), without
         touching the map's change journal (for a map queried once)."""
         t = time.perf_counter()

@@ -87,7 +87,7 @@ def _decode(data: bytes | bytearray | memoryview, schema: str) -> dict:
 
 
 def encode_robot_status(status: dict) -> bytes:
-    """The body of ``mapper.fleet.robot_status`` (numbers, strings, a dict of reject counts)."""
+    """The body of ``mapper.robot_registry.robot_status`` (numbers, strings, a dict of reject counts)."""
     if status.get("state") not in ROBOT_STATES:
         raise FleetMessageError(f"robot state must be one of {ROBOT_STATES}, got {status.get('state')!r}")
     body = dict(status)
