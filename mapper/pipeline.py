@@ -85,7 +85,7 @@ class MapPipeline:
         self._gen_lock = threading.Lock()
         self._before: dict[int, torch.Tensor] = {}
         self._closed = False
-        m._rng_state_source = self.committed_rng_state
+        m.attach_rng_state_source(self.committed_rng_state)
 
     def __len__(self) -> int:
         """Frames submitted and not yet committed."""
@@ -98,13 +98,13 @@ class MapPipeline:
                 if seq in self._before:
                     return self._before[seq].clone()
                 break
-            return self.map.generator.get_state()
+            return self.map.prepared_rng_state()
 
     def _prepare(self, seq: int, args: tuple) -> tuple[PreparedFrame, float]:
         import time
         c0 = time.thread_time()
         with self._gen_lock:
-            self._before[seq] = self.map.generator.get_state()
+            self._before[seq] = self.map.prepared_rng_state()
             p = self.map.prepare(*args)
         return p, (time.thread_time() - c0) * 1e3
 
@@ -175,8 +175,7 @@ class MapPipeline:
         out = self.drain()
         self._closed = True
         self._pool.shutdown(wait=True)
-        if getattr(self.map, "_rng_state_source", None) == self.committed_rng_state:
-            self.map._rng_state_source = None
+        self.map.detach_rng_state_source(self.committed_rng_state)
         return out
 
     def __enter__(self) -> "MapPipeline":

@@ -450,8 +450,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
                 # parallel region would wait on a descheduled worker)
                 f = m.frontiers().centres.detach().cpu().numpy().astype(np.float64).reshape(-1, 3)
                 f = f[_in_area(f, req.polygon(), req.z_band)]
-                radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.fronts.beta)
-                return look_next(m.occupancy, float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
+                radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.cfg.beta)
+                return look_next(m.occupancy_view(), float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
                                  snap.ray_dirs[rkeep], rs[:, rkeep].T, list(req.targets), req.from_xyz,
                                  ray_z=rz.T, ray_radius_m=radius, standoff_m=scfg.standoff_m,
                                  sensing_radius_m=scfg.sensing_radius_m, max_goals=req.max_goals,

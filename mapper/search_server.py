@@ -187,16 +187,16 @@ class SearchServer:
             m = s.map
             if m is None:
                 raise MessageError("the map is empty (no frames mapped yet)")
-            vox = float(m.cfg.vox_size)
+            vox, grid = float(m.cfg.vox_size), m.occupancy_view()
             rep = OccupancyReply(kind=req.kind, frames_mapped=int(s.mapped), map_version=int(s.version))
             if req.kind == "box":
-                rep.states, origin, rep.cell_m = state_grid(m.occupancy, vox, req.box_min, req.box_max, req.stride,
+                rep.states, origin, rep.cell_m = state_grid(grid, vox, req.box_min, req.box_max, req.stride,
                                                             max_cells=limit)
             elif req.kind == "slice":
-                rep.states, origin, rep.cell_m = costmap_slice(m.occupancy, vox, req.box_min, req.box_max,
+                rep.states, origin, rep.cell_m = costmap_slice(grid, vox, req.box_min, req.box_max,
                                                                req.z_band, req.stride, max_cells=limit)
             else:
-                rep.states, rep.dist = point_states(m.occupancy, vox, req.points, float(req.radius), max_cells=limit)
+                rep.states, rep.dist = point_states(grid, vox, req.points, float(req.radius), max_cells=limit)
                 origin, rep.cell_m = [], vox
         rep.origin = [float(v) for v in origin]
         return rep

@@ -102,22 +102,22 @@ def layer_arrays(m: RayFrontsMap, layer: str, lcfg: LayerLimits) -> tuple[dict, 
         # straight from the voxel store: only the kept rows are decoded (no feature copies)
         from semantic_map import cell_keys
 
-        sem = m.sem
-        n = len(sem)
-        keys, rgb = sem.keys, sem.rgb
+        keys, rgb = m.voxel_colours()
+        n = len(keys)
         if n > lcfg.max_voxels:
             idx = torch.from_numpy(np.sort(rng.choice(n, lcfg.max_voxels, replace=False))).to(keys.device)
             keys, rgb = keys[idx], rgb[idx]
-        xyz = to_numpy(voxel_center(cell_keys.unpack(keys), sem.vox)).astype(np.float32, copy=False).reshape(-1, 3)
+        xyz = voxel_center(cell_keys.unpack(keys), float(m.cfg.vox_size))
+        xyz = to_numpy(xyz).astype(np.float32, copy=False).reshape(-1, 3)
         rgb = np.clip(to_numpy(rgb).astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8).reshape(-1, 3)
         return {"xyz": xyz, "rgb": rgb}, {"total": n, "vox_size": float(m.cfg.vox_size)}
     if layer == "frontiers":
         f = frontier_xyz(m)
         return {"xyz": f}, {"total": len(f)}
     if layer == "rays":
-        rs = m.ray_store
-        o = to_numpy(rs.origins()).astype(np.float32).reshape(-1, 3)
-        d = to_numpy(rs.directions()).astype(np.float32).reshape(-1, 3)
+        ro, rd, _ = m.ray_geometry()
+        o = to_numpy(ro).astype(np.float32).reshape(-1, 3)
+        d = to_numpy(rd).astype(np.float32).reshape(-1, 3)
         n = len(o)
         if n > lcfg.max_rays:
             idx = np.sort(rng.choice(n, lcfg.max_rays, replace=False))

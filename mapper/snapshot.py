@@ -51,35 +51,14 @@ def save_map(m: RayFrontsMap, path: str | Path) -> Path:
 def capture_map(m: RayFrontsMap) -> tuple[dict[str, np.ndarray], dict]:
     """``(arrays, manifest)``: copies of everything a snapshot holds, taken while the caller
     holds the map still; writing them (:func:`write_capture`) needs no lock."""
-    arrays: dict[str, np.ndarray] = {}
-    occ = m.occupancy.state()
-    arrays["occ_ijk"] = _np(occ["ijk"]).astype(np.int64)
-    arrays["occ_values"] = _np(occ["values"]).astype(np.int8)
-    for k, v in m.sem.state().items():
-        arrays["sem_" + k] = _np(v)
-    for k, v in m.fronts.state().items():
-        arrays["front_" + k] = _np(v)
-    for k, v in m.ray_store.state().items():
-        arrays["ray_" + k] = _np(v)
-    arrays["rng_state"] = _np(m.rng_state())  # after the last committed frame (mapper.pipeline)
-    # pending buffers
-    buf_meta = {"occ": len(m._buf_occ), "sem": len(m._buf_sem), "rays": len(m._buf_rays),
-                "prune": len(m._pending_prune)}
-    for i, (a, b) in enumerate(m._buf_occ):
-        arrays[f"buf_occ_{i}_occ"], arrays[f"buf_occ_{i}_free"] = _np(a), _np(b)
-    for i, parts in enumerate(m._buf_sem):
-        for j, x in enumerate(parts):
-            arrays[f"buf_sem_{i}_{j}"] = _np(x)
-    for i, parts in enumerate(m._buf_rays):
-        for j, x in enumerate(parts):
-            arrays[f"buf_rays_{i}_{j}"] = _np(x)
-    for i, x in enumerate(m._pending_prune):
-        arrays[f"buf_prune_{i}"] = _np(x)
+    state, meta = m.export_state()
+    arrays = {k: _np(v) for k, v in state.items()}
+    arrays["occ_ijk"] = arrays["occ_ijk"].astype(np.int64)
+    arrays["occ_values"] = arrays["occ_values"].astype(np.int8)
     manifest = {
-        "format": FORMAT, "version": VERSION, "feature_dim": m.feature_dim,
-        "feature_space": m.feature_space, "config": to_dict(m.cfg), "counters": dict(m.counters),
-        "occupancy": {"vox": float(occ["vox"]), "lo": int(occ["lo"]), "hi": int(occ["hi"])},
-        "last_fov_deg": list(m.last_fov_deg), "buffers": buf_meta,
+        "format": FORMAT, "version": VERSION, "feature_dim": meta["feature_dim"],
+        "feature_space": meta["feature_space"], "config": to_dict(m.cfg), "counters": meta["counters"],
+        "occupancy": meta["occupancy"], "last_fov_deg": meta["last_fov_deg"], "buffers": meta["buffers"],
         "stats": {k: v for k, v in m.stats().items() if k != "timings_ms_total"},
     }
     return arrays, manifest
@@ -166,7 +145,6 @@ def load_map(path: str | Path, map_cls: type[RayFrontsMap], device: str | torch.
     """A ``map_cls`` (:class:`semantic_map.map.RayFrontsMap`, passed in by the caller so this
     module does not import the map) restored from the snapshot at ``path``, with its saved config."""
     from semantic_map.config import MapConfig
-    from semantic_map.occupancy import from_state
 
     path = Path(path)
     man = read_manifest(path)
@@ -178,28 +156,18 @@ def load_map(path: str | Path, map_cls: type[RayFrontsMap], device: str | torch.
     except Exception as e:  # noqa: BLE001 - any read problem is a snapshot problem
         raise SnapshotError(f"cannot read {af}: {e}") from None
     cfg = merge(MapConfig(), man["config"])
-    m = map_cls(cfg, man["feature_dim"], man["feature_space"], device=device,
-                occupancy_backend=occupancy_backend)
+    return map_cls.from_state(cfg, _SavedArrays(z, path), man, device=device, occupancy_backend=occupancy_backend)
 
-    def saved(name: str) -> torch.Tensor:
-        if name not in z:
-            raise SnapshotError(f"snapshot {path} lacks array {name!r}")
-        return torch.from_numpy(z[name]).to(device)
 
-    occ = dict(man["occupancy"], ijk=z["occ_ijk"], values=z["occ_values"])
-    m.occupancy = from_state(occ, backend=occupancy_backend)
-    m.sem.load_state({k: saved("sem_" + k) for k in ("keys", "rgb", "feat", "count")})
-    m.fronts.load_state({k: saved("front_" + k) for k in ("keys", "counts")})
-    m.ray_store.load_state({k: saved("ray_" + k) for k in m.ray_store._fields()})
-    m.generator.set_state(torch.from_numpy(z["rng_state"]))
-    m.counters = dict(man["counters"])
-    m.last_fov_deg = tuple(man["last_fov_deg"])
-    b = man["buffers"]
-    m._buf_occ = [(saved(f"buf_occ_{i}_occ"), saved(f"buf_occ_{i}_free")) for i in range(b["occ"])]
-    m._buf_sem = [tuple(saved(f"buf_sem_{i}_{j}") for j in range(4)) for i in range(b["sem"])]
-    m._buf_rays = [tuple(saved(f"buf_rays_{i}_{j}") for j in range(3)) for i in range(b["rays"])]
-    m._pending_prune = [saved(f"buf_prune_{i}") for i in range(b["prune"])]
-    return m
+class _SavedArrays(dict):
+    """A snapshot's arrays by name; a missing one is a :class:`SnapshotError` naming it."""
+
+    def __init__(self, arrays: dict[str, np.ndarray], path: Path) -> None:
+        super().__init__(arrays)
+        self.path = path
+
+    def __missing__(self, name: str) -> np.ndarray:
+        raise SnapshotError(f"snapshot {self.path} lacks array {name!r}")
 
 
 # --------------------------------------------------------------- generations on disk

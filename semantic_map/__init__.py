@@ -6,11 +6,17 @@ that). Usable on its own::
     from semantic_map import RayFrontsMap, MapConfig
     m = RayFrontsMap(MapConfig(), feature_dim=384)
 
+Outside this package the map is reached through ``RayFrontsMap``'s methods only (its parts,
+``occupancy``, ``sem``, ``fronts``, ``ray_store`` ..., are its own; ``tests/test_map_api.py``):
+layers (``voxels``, ``frontiers``, ``rays``, ``voxel_xyz``, ``ray_geometry`` ...), the
+read-only ``occupancy_view``, ``stats`` / ``memory_parts``, ``export_state`` /
+``RayFrontsMap.from_state`` for snapshots.
+
 Conventions (frames, units, voxel indexing) are those of ``docs/conventions.md``.
 """
 from __future__ import annotations
 
-__all__ = ["RayFrontsMap", "MapConfig"]
+__all__ = ["RayFrontsMap", "MapConfig", "OccupancyView"]
 
 
 def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` loads no map
@@ -20,4 +26,7 @@ def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` 
     if name == "MapConfig":
         from semantic_map.config import MapConfig
         return MapConfig
+    if name == "OccupancyView":  # what RayFrontsMap.occupancy_view() hands out (read-only)
+        from semantic_map.occupancy.base import OccupancyView
+        return OccupancyView
     raise AttributeError(name)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -30,7 +30,9 @@ from semantic_map import cell_keys, kernels
 from semantic_map.config import MapConfig
 from semantic_map.depth_geometry import ArrayOrTensor, FrameGeometry, aggregate_samples, frame_geometry, sample_image
 from semantic_map.frontiers import FrontierTable
+from semantic_map.occupancy import from_state as occupancy_from_state
 from semantic_map.occupancy import make_occupancy
+from semantic_map.occupancy.base import OccupancyView
 from semantic_map.query import LayerScores, Similarity, run_query
 from semantic_map.ray_frontiers import (
     RayBatch,
@@ -59,6 +61,7 @@ class VoxelLayer:
 class FrontierLayer:
     centres: torch.Tensor    # (F, 3) float32 coarse cell centres (m)
     keys: torch.Tensor       # (F,) int64 packed coarse ijk (semantic_map.cell_keys)
+    counts: torch.Tensor     # (F,) int64 fine frontier voxels in each coarse cell
 
 
 @dataclass
@@ -140,6 +143,7 @@ class RayFrontsMap:
         self.last_fov_deg = (90.0, 90.0)
         self._reset_buffers()
         self._rng_state_source: Callable[[], torch.Tensor] | None = None  # set by mapper.pipeline.MapPipeline
+        self._occupancy_view: OccupancyView | None = None
         self.timings: dict[str, float] = {}
         self.timings_total: dict[str, float] = {}
 
@@ -148,6 +152,21 @@ class RayFrontsMap:
         saves): with frames prepared ahead by a pipeline, the state before the oldest one."""
         src = self._rng_state_source
         return src() if src is not None else self.generator.get_state()
+
+    def prepared_rng_state(self) -> torch.Tensor:
+        """The budget generator's state now: after every frame prepared so far, committed or
+        not (a pipeline notes it before each prepare)."""
+        return self.generator.get_state()
+
+    def attach_rng_state_source(self, source: Callable[[], torch.Tensor]) -> None:
+        """Let ``source`` answer :meth:`rng_state` (a pipeline that prepares frames ahead
+        knows the state after the last committed one)."""
+        self._rng_state_source = source
+
+    def detach_rng_state_source(self, source: Callable[[], torch.Tensor]) -> None:
+        """Stop asking ``source`` (a no-op when another source is attached)."""
+        if self._rng_state_source == source:
+            self._rng_state_source = None
 
     def _reset_buffers(self) -> None:
         self._buf_occ: list[tuple[torch.Tensor, torch.Tensor]] = []
@@ -495,7 +514,7 @@ class RayFrontsMap:
         return VoxelLayer(self.sem.xyz(), self.sem.rgb.clone(), self.sem.feat.clone(), self.sem.count.clone())
 
     def frontiers(self) -> FrontierLayer:
-        return FrontierLayer(self.fronts.centres(), self.fronts.keys.clone())
+        return FrontierLayer(self.fronts.centres(), self.fronts.keys.clone(), self.fronts.counts.clone())
 
     def rays(self) -> RayLayer:
         rs = self.ray_store
@@ -523,11 +542,17 @@ class RayFrontsMap:
         """Bytes held by the semantic layers: voxels (rows at capacity and key index), ray
         bins (rows, index) and the frontier table. The occupancy grid is apart
         (:meth:`occupancy_memory_bytes`): it grows with observed space, not with voxels."""
-        return int(self.sem.memory_bytes() + self.ray_store.memory_bytes() + self.fronts.memory_bytes())
+        return int(sum(self.memory_parts().values()))
 
     def occupancy_memory_bytes(self) -> int:
         """Bytes held by the occupancy grid (OpenVDB ``memUsage``; torch: keys + values)."""
         return int(self.occupancy.memory_bytes())
+
+    def memory_parts(self) -> dict[str, int]:
+        """Bytes of each semantic layer: ``voxels`` (rows and key index), ``rays`` (bins and
+        index), ``frontiers`` (the table); their sum is :meth:`memory_bytes`."""
+        return {"voxels": int(self.sem.memory_bytes()), "rays": int(self.ray_store.memory_bytes()),
+                "frontiers": int(self.fronts.memory_bytes())}
 
     def stats(self) -> dict:
         return dict(n_voxels=len(self.sem), n_frontiers=len(self.fronts), n_rays=len(self.ray_store),
@@ -538,3 +563,130 @@ class RayFrontsMap:
                     feature_space=self.feature_space,
                     timings_ms_total={k: round(v, 3) for k, v in self.timings_total.items()})
 
+
+    # ------------------------------------------------------------------ read access
+    def occupancy_view(self) -> OccupancyView:
+        """Read-only view of the occupancy grid (:class:`semantic_map.occupancy.base.OccupancyView`:
+        int8 log-odds per voxel, ``ijk = floor(xyz / vox_size)``, world frame). The same
+        object while the grid is the same one, so planners may cache per view and revision."""
+        grid = self.occupancy
+        view = self._occupancy_view
+        if view is None or view._grid is not grid:
+            view = self._occupancy_view = OccupancyView(grid)
+        return view
+
+    def voxel_xyz(self) -> torch.Tensor:
+        """(N, 3) float32 semantic voxel centres (m), in the voxel rows' order (that of
+        :meth:`voxels`), without copying the features."""
+        return self.sem.xyz()
+
+    def voxel_colours(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(keys, rgb)`` of the semantic voxels in row order: (N,) int64 packed voxel ijk
+        (:mod:`semantic_map.cell_keys`) and (N, 3) mean colour in [0, 1] (feature dtype).
+        Views of the live rows, valid until the map next changes; no feature copy."""
+        return self.sem.keys, self.sem.rgb
+
+    def ray_geometry(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(origins, directions, weights)`` of the ray bins in :meth:`rays` order, without
+        the features: (R, 3) float32 frontier centres (m), (R, 3) float32 unit directions
+        (world axes), (R,) float32 accumulated weights."""
+        rs = self.ray_store
+        return rs.origins(), rs.directions(), rs.weight
+
+    def n_voxels(self) -> int:
+        """Number of semantic voxels."""
+        return len(self.sem)
+
+    def n_frontiers(self) -> int:
+        """Number of coarse frontier cells."""
+        return len(self.fronts)
+
+    def n_rays(self) -> int:
+        """Number of ray bins (one per frontier and angle bin)."""
+        return len(self.ray_store)
+
+    def schedule_counters(self) -> dict[str, int]:
+        """A copy of the integration schedule's counters: ``frames`` committed, frames since the
+        last voxel block / occupancy prune / semantic prune / ray block (``vox``,
+        ``occ_prune``, ``sem_prune``, ``ray``), ``ray_phase``, ``voxel_blocks``, ``ray_blocks``."""
+        return dict(self.counters)
+
+    # ------------------------------------------------------------------ direct writes
+    def fuse_samples(self, xyz: torch.Tensor, rgb: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """Fuse semantic points into the voxels directly, without depth, occupancy or rays
+        (synthetic maps for benches and tests): ``xyz`` (P, 3) world metres, ``rgb`` (P, 3) in
+        [0, 1], ``features`` (P, C). Returns the packed keys of the touched voxels (sorted)."""
+        return self.sem.fuse(xyz, rgb, features)
+
+    def fuse_sums(self, keys: torch.Tensor, rgb_sums: torch.Tensor, feature_sums: torch.Tensor,
+                  counts: torch.Tensor) -> torch.Tensor:
+        """As :meth:`fuse_samples` with samples pre-aggregated per voxel: packed voxel ``keys``
+        (K,) (may repeat), sums of RGB (K, 3) and features (K, C) over ``counts`` (K,) points."""
+        return self.sem.fuse_sums(keys, rgb_sums, feature_sums, counts)
+
+    def replace_ray_bins(self, bins: Mapping[str, torch.Tensor]) -> None:
+        """Replace every ray bin (synthetic maps for benches and tests): ``bins`` holds
+        ``fkey`` (R,) int64 packed coarse frontier ijk, ``tbin`` / ``pbin`` (R,) int64 angle
+        bins, ``feat`` (R, C), ``weight`` (R,) and ``dsum`` (R, 3) weighted direction sums;
+        each (fkey, bin) pair once."""
+        self.ray_store.load_state(dict(bins))
+
+    # ------------------------------------------------------------------ whole state
+    def export_state(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """``(arrays, meta)``: everything needed to continue exactly where the map stands,
+        pending buffers included (nothing is flushed). ``arrays`` maps the names of
+        docs/snapshot_format.md (``occ_ijk``, ``occ_values``, ``sem_*``, ``front_*``,
+        ``ray_*``, ``rng_state``, ``buf_*``) to tensors or numpy arrays, some of them views
+        of the map's memory (copy them before the map changes); ``meta`` is JSON-able:
+        ``feature_dim``, ``feature_space``, ``counters``, ``occupancy`` (vox, lo, hi),
+        ``last_fov_deg``, ``buffers`` (how many of each). The config is :attr:`cfg`."""
+        arrays: dict[str, Any] = {}
+        occ = self.occupancy.state()
+        arrays["occ_ijk"], arrays["occ_values"] = occ["ijk"], occ["values"]
+        for prefix, part in (("sem_", self.sem), ("front_", self.fronts), ("ray_", self.ray_store)):
+            for k, v in part.state().items():
+                arrays[prefix + k] = v
+        arrays["rng_state"] = self.rng_state()  # after the last committed frame (mapper.pipeline)
+        buffers = {"occ": len(self._buf_occ), "sem": len(self._buf_sem), "rays": len(self._buf_rays),
+                   "prune": len(self._pending_prune)}
+        for i, (a, b) in enumerate(self._buf_occ):
+            arrays[f"buf_occ_{i}_occ"], arrays[f"buf_occ_{i}_free"] = a, b
+        for name, bufs in (("sem", self._buf_sem), ("rays", self._buf_rays)):
+            for i, parts in enumerate(bufs):
+                for j, x in enumerate(parts):
+                    arrays[f"buf_{name}_{i}_{j}"] = x
+        for i, x in enumerate(self._pending_prune):
+            arrays[f"buf_prune_{i}"] = x
+        meta = {"feature_dim": self.feature_dim, "feature_space": self.feature_space,
+                "counters": dict(self.counters),
+                "occupancy": {"vox": float(occ["vox"]), "lo": int(occ["lo"]), "hi": int(occ["hi"])},
+                "last_fov_deg": list(self.last_fov_deg), "buffers": buffers}
+        return arrays, meta
+
+    @classmethod
+    def from_state(cls, cfg: MapConfig, arrays: Mapping[str, Any], meta: Mapping[str, Any],
+                   device: str | torch.device = "cpu", occupancy_backend: str = "auto") -> RayFrontsMap:
+        """A map restored from :meth:`export_state`'s ``(arrays, meta)`` (numpy arrays or
+        tensors) with config ``cfg``: same answers bit for bit, and the next frames integrate
+        as they would have. A missing array is ``arrays[name]``'s error (KeyError for a dict)."""
+        m = cls(cfg, meta["feature_dim"], meta["feature_space"], device=device, occupancy_backend=occupancy_backend)
+
+        def saved(name: str) -> torch.Tensor:
+            return torch.as_tensor(arrays[name]).to(device)
+
+        occ = dict(meta["occupancy"], ijk=arrays["occ_ijk"], values=arrays["occ_values"])
+        m.occupancy = occupancy_from_state(occ, backend=occupancy_backend)
+        m.sem.load_state({k: saved("sem_" + k) for k in ("keys", "rgb", "feat", "count")})
+        m.fronts.load_state({k: saved("front_" + k) for k in ("keys", "counts")})
+        m.ray_store.load_state({k: saved("ray_" + k) for k in m.ray_store._fields()})
+        m.generator.set_state(torch.as_tensor(arrays["rng_state"]))
+        m.counters = dict(meta["counters"])
+        m.last_fov_deg = tuple(meta["last_fov_deg"])
+        b = meta["buffers"]
+        m._buf_occ = [(saved(f"buf_occ_{i}_occ"), saved(f"buf_occ_{i}_free")) for i in range(b["occ"])]
+        m._buf_sem = [(saved(f"buf_sem_{i}_0"), saved(f"buf_sem_{i}_1"), saved(f"buf_sem_{i}_2"),
+                       saved(f"buf_sem_{i}_3")) for i in range(b["sem"])]
+        m._buf_rays = [(saved(f"buf_rays_{i}_0"), saved(f"buf_rays_{i}_1"), saved(f"buf_rays_{i}_2"))
+                       for i in range(b["rays"])]
+        m._pending_prune = [saved(f"buf_prune_{i}") for i in range(b["prune"])]
+        return m

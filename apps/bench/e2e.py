@@ -252,17 +252,17 @@ def _big_snapshot(root: Path, n_vox: int, pca_path: Path, preset: str, n_rays: i
     xyz = (ijk.float() + 0.5) * 0.5
     for a in range(0, n_vox, 250_000):
         b = min(n_vox, a + 250_000)
-        m.sem.fuse(xyz[a:b], torch.rand((b - a, 3), generator=g), torch.randn((b - a, pca.out_dim), generator=g))
-    assert len(m.sem) == n_vox
+        m.fuse_samples(xyz[a:b], torch.rand((b - a, 3), generator=g), torch.randn((b - a, pca.out_dim), generator=g))
+    assert m.n_voxels() == n_vox
     if n_rays > 0:
         from semantic_map import cell_keys
 
         fk = torch.unique(cell_keys.pack(torch.randint(-400, 400, (n_rays, 3), generator=g)))
         r = fk.numel()
         z = torch.zeros(r, dtype=torch.int64)
-        m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(),
-                                "feat": torch.randn((r, pca.out_dim), generator=g), "weight": torch.ones(r),
-                                "dsum": torch.nn.functional.normalize(torch.randn((r, 3), generator=g), dim=1)})
+        m.replace_ray_bins({"fkey": fk, "tbin": z, "pbin": z.clone(),
+                            "feat": torch.randn((r, pca.out_dim), generator=g), "weight": torch.ones(r),
+                            "dsum": torch.nn.functional.normalize(torch.randn((r, 3), generator=g), dim=1)})
     write_snapshot(root, capture_map(m), encode_feature_space("bench", fs.to_body()),
                    {"frames_mapped": 0, "robots": {}})
     return np.random.default_rng(0).standard_normal(pca.in_dim).astype(np.float32)

@@ -139,13 +139,15 @@ def maps_identical(a: RayFrontsMap, b: RayFrontsMap) -> bool:
     import torch
     va, vb = a.voxels(), b.voxels()
     ra, rb = a.rays(), b.rays()
+    fa, fb = a.frontiers(), b.frontiers()
     pairs = [(va.xyz, vb.xyz), (va.rgb, vb.rgb), (va.features, vb.features), (va.counts, vb.counts),
-             (a.fronts.keys, b.fronts.keys), (a.fronts.counts, b.fronts.counts),
+             (fa.keys, fb.keys), (fa.counts, fb.counts),
              (ra.frontier_keys, rb.frontier_keys), (ra.features, rb.features), (ra.weights, rb.weights),
              (ra.directions, rb.directions)]
     if not all(x.shape == y.shape and torch.equal(x, y) for x, y in pairs):
         return False
-    return a.counters == b.counters and int(a.occupancy.num_active) == int(b.occupancy.num_active)
+    return (a.schedule_counters() == b.schedule_counters()
+            and int(a.occupancy_view().num_active) == int(b.occupancy_view().num_active))
 
 
 def _render_frames(args: argparse.Namespace, hw: tuple[int, int]) -> tuple[list[BenchFrame], np.ndarray, float]:
@@ -224,7 +226,7 @@ def _fresh_map_control(args: argparse.Namespace, m: RayFrontsMap, frames: list[B
     side.close()
     fresh = round(1e3 * side.cpu / (e - s), 2)
     first, last = windows[0]["cpu_ms_per_frame"], windows[-1]["cpu_ms_per_frame"]
-    return {"frames": [s, e], "fresh_map_cpu_ms_per_frame": fresh, "n_voxels": len(m.sem),
+    return {"frames": [s, e], "fresh_map_cpu_ms_per_frame": fresh, "n_voxels": m.n_voxels(),
             "stage_ms_per_frame": side.summary()["stage_ms_per_frame"],
             "content_ratio": round(fresh / first, 3) if first else None,
             "map_size_ratio": round(last / fresh, 3) if fresh else None}

@@ -150,11 +150,11 @@ class _Queries:
 def map_memory(m) -> dict:
     """The map's memory estimate (MiB): the semantic layers and their parts, the occupancy grid apart."""
     mb = 1 / 2**20
-    layers, grid = m.memory_bytes(), m.occupancy_memory_bytes()
+    layers, grid, parts = m.memory_bytes(), m.occupancy_memory_bytes(), m.memory_parts()
     return {"map_memory_mb": round(layers * mb, 3),
-            "semantic_mb": round(m.sem.memory_bytes() * mb, 3),
-            "rays_mb": round(m.ray_store.memory_bytes() * mb, 3),
-            "frontiers_mb": round(m.fronts.memory_bytes() * mb, 3),
+            "semantic_mb": round(parts["voxels"] * mb, 3),
+            "rays_mb": round(parts["rays"] * mb, 3),
+            "frontiers_mb": round(parts["frontiers"] * mb, 3),
             "occupancy_mb": round(grid * mb, 3),
             "total_memory_mb": round((layers + grid) * mb, 3)}
 
@@ -261,7 +261,7 @@ def _window(side: FeedSide, queries: _Queries, s: int, e: int, win0: tuple, rend
     c0, w0, st0, load0, t0, r0 = win0
     rec = window_record(side, s, e - s, c0, w0, st0, load0)
     rec.update(map_memory(side.map))
-    rec["n_occupancy_active"] = int(side.map.occupancy.num_active)
+    rec["n_occupancy_active"] = int(side.map.occupancy_view().num_active)
     rec["rss_mb"] = round(current_rss_mb(), 1)
     rec["peak_rss_mb"] = round(peak_rss_mb(), 1)
     rec["render_s"] = round(render_s - r0, 2)

@@ -90,15 +90,14 @@ def build_map(n: int, dim: int, n_rays: int, fs: FeatureSpace, seed: int = 0) ->
         idx = torch.arange(s0, min(n, s0 + chunk), dtype=torch.int64)
         ijk = torch.stack([idx % side, (idx // side) % side, idx // (side * side)], 1)
         k = idx.numel()
-        m.sem.fuse_sums(cell_keys.pack(ijk), torch.rand((k, 3), generator=g), torch.randn((k, dim), generator=g),
-                        torch.ones(k))
-    rs = m.ray_store
+        m.fuse_sums(cell_keys.pack(ijk), torch.rand((k, 3), generator=g), torch.randn((k, dim), generator=g),
+                    torch.ones(k))
     cell = torch.randperm(200 ** 3, generator=g)[:n_rays]          # distinct frontier cells (one ray each)
     fk = cell_keys.pack(torch.stack([cell % 200, (cell // 200) % 200, cell // 40_000], 1))
     d = torch.nn.functional.normalize(torch.randn((n_rays, 3), generator=g), dim=1)
-    rs.load_state({"fkey": torch.sort(fk).values, "tbin": torch.zeros(n_rays, dtype=torch.int64),
-                   "pbin": torch.zeros(n_rays, dtype=torch.int64), "feat": torch.randn((n_rays, dim), generator=g),
-                   "weight": torch.ones(n_rays), "dsum": d})
+    m.replace_ray_bins({"fkey": torch.sort(fk).values, "tbin": torch.zeros(n_rays, dtype=torch.int64),
+                        "pbin": torch.zeros(n_rays, dtype=torch.int64), "feat": torch.randn((n_rays, dim), generator=g),
+                        "weight": torch.ones(n_rays), "dsum": d})
     return cfg, m
 
 
@@ -109,8 +108,8 @@ def _change(m, dim: int, g, side_hint: int) -> None:
     from semantic_map import cell_keys
 
     ijk = torch.randint(0, side_hint + 2, (3000, 3), generator=g)
-    m.sem.fuse_sums(cell_keys.pack(ijk), torch.rand((3000, 3), generator=g), torch.randn((3000, dim), generator=g),
-                    torch.ones(3000))
+    m.fuse_sums(cell_keys.pack(ijk), torch.rand((3000, 3), generator=g), torch.randn((3000, dim), generator=g),
+                torch.ones(3000))
 
 
 def _pct(a) -> dict:
@@ -193,7 +192,7 @@ def in_process(cfg: MapperConfig, m: RayFrontsMap, fs: FeatureSpace, args: argpa
             "after_change_ms": af, "after_change_lock_held_ms": _pct(after_sync),
             "after_change_over_steady_p50": af["p50"] / max(st["p50"], 1e-9),
             "after_change_prepare_ms": _pct([t.get("prepare", 0.0) for t in after_timings]),
-            "voxels": len(m.sem), "rays": len(m.ray_store)}
+            "voxels": m.n_voxels(), "rays": m.n_rays()}
 
 
 def client_round_trip(cfg: MapperConfig, m: RayFrontsMap, fs: FeatureSpace, args: argparse.Namespace) -> dict:

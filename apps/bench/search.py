@@ -76,18 +76,18 @@ def _occupancy_latency(m, n: int) -> dict:
     for _ in range(WARM_POINT_QUERIES):          # a planner's first steps: the index is built on the way
         q = rng.uniform([-30, -30, 0], [30, 30, 4], (1000, 3))
         t = time.perf_counter()
-        point_states(m.occupancy, vox, q, 1.0)
+        point_states(m.occupancy_view(), vox, q, 1.0)
         first.append((time.perf_counter() - t) * 1e3)
     for _ in range(n):
         t = time.perf_counter()
-        state_grid(m.occupancy, vox, [-20, -20, 0], [20, 20, 6])
+        state_grid(m.occupancy_view(), vox, [-20, -20, 0], [20, 20, 6])
         box.append((time.perf_counter() - t) * 1e3)
         t = time.perf_counter()
-        costmap_slice(m.occupancy, vox, [-40, -40], [40, 40], [0.2, 2.0])
+        costmap_slice(m.occupancy_view(), vox, [-40, -40], [40, 40], [0.2, 2.0])
         sl.append((time.perf_counter() - t) * 1e3)
         q = rng.uniform([-30, -30, 0], [30, 30, 4], (1000, 3))
         t = time.perf_counter()
-        point_states(m.occupancy, vox, q, 1.0)
+        point_states(m.occupancy_view(), vox, q, 1.0)
         pts.append((time.perf_counter() - t) * 1e3)
     return {"box_40x40x6m": _pct(box), "slice_80x80m": _pct(sl), "points_1000_r1m": _pct(pts),
             "points_1000_r1m_first": _pct(first)}
@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> dict:
         t = time.perf_counter()
         cfg, m = build_map(n, args.dim, args.rays, fs)
         _add_frames(m, args.dim, args.frames)
-        row: dict = {"build_s": time.perf_counter() - t, "voxels": len(m.sem), "rays": len(m.ray_store),
+        row: dict = {"build_s": time.perf_counter() - t, "voxels": m.n_voxels(), "rays": m.n_rays(),
                      "frontiers": int(m.frontiers().centres.shape[0])}
         with meta.timed(f"search_{spec}"):
             row.update(search_latency(cfg, m, fs, args.queries, args.dim, args.frames))

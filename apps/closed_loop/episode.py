@@ -169,7 +169,7 @@ def _record(trace: Trace | None, obs, d, mapper, step: int) -> None:
     trace.why.append(d.why)
     m = getattr(mapper, "map", None)
     if m is not None:
-        xyz = m.sem.xyz().cpu().numpy()
+        xyz = m.voxel_xyz().cpu().numpy()
         trace.voxels.append(xyz[np.random.default_rng(step).permutation(len(xyz))[:20000]])
 
 

@@ -112,7 +112,7 @@ class LocalMapper:
         ms = (time.perf_counter() - t) * 1e3
         vox = float(self.map.cfg.vox_size)
         lo, hi = np.asarray(at[:2]) - self.window, np.asarray(at[:2]) + self.window
-        states, origin, cell = costmap_slice(self.map.occupancy, vox, lo, hi, self.band)
+        states, origin, cell = costmap_slice(self.map.occupancy_view(), vox, lo, hi, self.band)
         poses = self._scored_poses(targets) if self.score_poses else []
         goals = rep.look_next
         if not semantic:

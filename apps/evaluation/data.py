@@ -115,7 +115,7 @@ def ground_truth(frames: list[Frame], class_names: list[str], vox: float, gt_ran
             feats = torch.nn.functional.one_hot(lt, nc).permute(2, 0, 1).to(torch.float32)
         gmap.integrate(f.pose, K, d, None, feats, None)
     gmap.flush()
-    ijk, _ = gmap.occupancy.active()
+    ijk, _ = gmap.occupancy_view().active()
     ijk = ijk.numpy().astype(np.int64)
     if scene_volume == "bbox" and len(ijk):
         lo, hi = ijk.min(0), ijk.max(0)

@@ -193,7 +193,7 @@ def snapshot(rmap: RayFrontsMap, text: torch.Tensor, cfg: SrchvolConfig, with_ra
     denoising over the whole layer, threshold; label = class id, 0 = none/sky).
     ``similarity``: map features × class texts → (K, N) (e.g. through a language head;
     None = cosine)."""
-    ijk, _ = rmap.occupancy.active()
+    ijk, _ = rmap.occupancy_view().active()
     ok = np.sort(pack(ijk.numpy())) if ijk.shape[0] else np.empty(0, np.int64)
     res = rmap.query(text, similarity=similarity, softmax=True, temperature=cfg.temperature, top_k=0,
                      denoise=cfg.denoise, threshold=cfg.pred_thresh)
@@ -206,7 +206,7 @@ def snapshot(rmap: RayFrontsMap, text: torch.Tensor, cfg: SrchvolConfig, with_ra
         o, d = rl.origins.cpu().numpy().astype(np.float64), rl.directions.cpu().numpy().astype(np.float64)
     else:
         lab, o, d = np.empty(0, np.int64), np.empty((0, 3)), np.empty((0, 3))
-    return Snapshot(ok, o, d, lab, rmap.sem.xyz().cpu().numpy().astype(np.float64), vl)
+    return Snapshot(ok, o, d, lab, rmap.voxel_xyz().cpu().numpy().astype(np.float64), vl)
 
 
 @dataclass

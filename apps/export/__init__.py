@@ -122,7 +122,7 @@ def export_ply(m: RayFrontsMap, src: Source, out: Path, args: argparse.Namespace
     from apps.export.formats import ply_bytes, write_atomically
     from mapper.service_map import voxel_arrays
 
-    if len(m.sem) == 0:
+    if m.n_voxels() == 0:
         raise UserError(f"the map of {src.origin} has no semantic voxels yet (empty map): nothing to export")
     xyz, _, rgb = voxel_arrays(m)
     extra: dict[str, np.ndarray] = {}
@@ -143,7 +143,7 @@ def export_ply(m: RayFrontsMap, src: Source, out: Path, args: argparse.Namespace
 
 
 def _observed(m: RayFrontsMap, src: Source) -> dict:
-    st = m.occupancy.state()
+    st = m.occupancy_view().state()
     if not (np.asarray(st["values"]) != 0).any():
         raise UserError(f"the map of {src.origin} has no observed occupancy yet (empty map): nothing to export")
     return st
@@ -171,7 +171,7 @@ def export_map_server(m: RayFrontsMap, src: Source, out: Path, args: argparse.Na
     vox = float(st["vox"])
     lo, hi = (ijk[:, :2].min(0) + 0.5) * vox, (ijk[:, :2].max(0) + 0.5) * vox  # centres of the end voxels
     try:
-        states, origin, cell = costmap_slice(m.occupancy, vox, lo, hi, (args.z_min, args.z_max), args.stride)
+        states, origin, cell = costmap_slice(m.occupancy_view(), vox, lo, hi, (args.z_min, args.z_max), args.stride)
     except ValueError as e:
         raise UserError(f"{e} (--stride)") from None
     pgm = out.with_suffix(".pgm")
@@ -192,7 +192,7 @@ def export_snapshot(m: RayFrontsMap, src: Source, out: Path, args: argparse.Name
     if env is None:
         raise UserError(f"{src.origin} is a bare map directory without feature_space.bin; --format snapshot "
                         "needs a whole generation (the directory holding meta.json and map/)")
-    meta = dict(src.meta) or {"frames_mapped": int(m.counters.get("frames", 0))}
+    meta = dict(src.meta) or {"frames_mapped": int(m.schedule_counters().get("frames", 0))}
     path = write_snapshot(out, capture_map(m), env, meta, keep=1 << 30)
     return f"generation {path.name}"
 

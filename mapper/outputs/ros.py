@@ -156,10 +156,10 @@ def query_id(text: str) -> str:
 
 def ray_arrays_weighted(m: RayFrontsMap, max_rays: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ray origins, unit directions and weights (subsampled like the rays layer: seeded)."""
-    rs = m.ray_store
-    o = rs.origins().detach().cpu().numpy().astype(np.float32).reshape(-1, 3)
-    d = rs.directions().detach().cpu().numpy().astype(np.float32).reshape(-1, 3)
-    w = rs.weight.detach().cpu().numpy().astype(np.float32).reshape(-1)
+    ro, rd, rw = m.ray_geometry()
+    o = ro.detach().cpu().numpy().astype(np.float32).reshape(-1, 3)
+    d = rd.detach().cpu().numpy().astype(np.float32).reshape(-1, 3)
+    w = rw.detach().cpu().numpy().astype(np.float32).reshape(-1)
     if len(o) > max_rays:
         idx = np.sort(np.random.default_rng(0).choice(len(o), max_rays, replace=False))
         o, d, w = o[idx], d[idx], w[idx]

@@ -234,7 +234,7 @@ class RosSearch:
         with st.lock:
             if st.map is None:
                 return None
-            ijk, _ = st.map.occupancy.active()
+            ijk, _ = st.map.occupancy_view().active()
             vox = float(st.map.cfg.vox_size)
         ijk = np.asarray(ijk.cpu() if hasattr(ijk, "cpu") else ijk).reshape(-1, 3)
         if not len(ijk):

@@ -131,3 +131,79 @@ class OccupancyGrid(Protocol):
     def load_state(self, state: dict) -> None:
         """Replace the map's voxels by ``state`` (as produced by :meth:`state`); use
         :func:`semantic_map.occupancy.from_state` to build a grid from a snapshot."""
+
+
+class OccupancyView:
+    """Read-only access to one occupancy grid (what planners and exports read): the read
+    methods and fields of :class:`OccupancyGrid` (same units and conventions: int8 log-odds,
+    ``> 0`` occupied, ``< 0`` free, ``0`` unobserved; voxel ``ijk = floor(xyz / vox)``), none of
+    its writes. :meth:`semantic_map.map.RayFrontsMap.occupancy_view` hands out one view per
+    grid, so a reader may cache by the view object and its :attr:`revision`.
+    :attr:`changes` is the grid's change log for that one reader's cache (taking from it
+    changes no voxel)."""
+
+    __slots__ = ("_grid", "__weakref__")
+
+    def __init__(self, grid: OccupancyGrid) -> None:
+        self._grid = grid
+
+    @property
+    def vox(self) -> float:
+        """Voxel size (m)."""
+        return self._grid.vox
+
+    @property
+    def lo(self) -> int:
+        """Clamp lower bound of the values."""
+        return self._grid.lo
+
+    @property
+    def hi(self) -> int:
+        """Clamp upper bound of the values."""
+        return self._grid.hi
+
+    @property
+    def revision(self) -> int:
+        """Grows with every change of values (:attr:`OccupancyGrid.revision`)."""
+        return self._grid.revision
+
+    @property
+    def changes(self) -> ChangeLog:
+        """The voxels written since this view's reader last took them (:class:`ChangeLog`)."""
+        return self._grid.changes
+
+    @property
+    def num_active(self) -> int:
+        """Active voxel count (tiles counted by their voxel volume; a walk over the grid)."""
+        return self._grid.num_active
+
+    def query(self, ijk: GridInput) -> torch.Tensor:
+        """(N,) int8 values of voxels ``ijk`` (N, 3); 0 where unobserved."""
+        return self._grid.query(ijk)
+
+    def frontiers(self, min_unobserved: int, min_free: int, min_occupied: int = 0,
+                  radius: int = 1, bbox: BBox | None = None) -> torch.Tensor:
+        """(K, 3) int64 fine frontier voxels (:meth:`OccupancyGrid.frontiers`)."""
+        return self._grid.frontiers(min_unobserved, min_free, min_occupied, radius, bbox)
+
+    def active(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """All active voxels: ((M, 3) int64 ijk sorted, (M,) int8 values)."""
+        return self._grid.active()
+
+    def occupied(self) -> np.ndarray:
+        """(M, 3) int64 voxels with value > 0, in no particular order."""
+        return self._grid.occupied()
+
+    def first_blocked(self, origins: GridInput, directions: GridInput, max_dist: float) -> torch.Tensor:
+        """(N,) float64 distance (m) along each ray to its first non-free voxel, ``inf`` past
+        ``max_dist`` (:meth:`OccupancyGrid.first_blocked`)."""
+        return self._grid.first_blocked(origins, directions, max_dist)
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the grid."""
+        return self._grid.memory_bytes()
+
+    def state(self) -> dict:
+        """A copy of the grid's exact state: {"vox", "lo", "hi", "ijk" (M, 3) int64 sorted,
+        "values" (M,) int8} (tiles expanded)."""
+        return self._grid.state()
