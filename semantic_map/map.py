@@ -580,6 +580,10 @@ class RayFrontsMap:
         :meth:`voxels`), without copying the features."""
         return self.sem.xyz()
 
+    def voxel_ijk(self) -> torch.Tensor:
+        """(N, 3) int64 semantic voxel indices (``floor(xyz / vox_size)``), in row order."""
+        return self.sem.ijk()
+
     def voxel_colours(self) -> tuple[torch.Tensor, torch.Tensor]:
         """``(keys, rgb)`` of the semantic voxels in row order: (N,) int64 packed voxel ijk
         (:mod:`semantic_map.cell_keys`) and (N, 3) mean colour in [0, 1] (feature dtype).
@@ -623,6 +627,11 @@ class RayFrontsMap:
         """As :meth:`fuse_samples` with samples pre-aggregated per voxel: packed voxel ``keys``
         (K,) (may repeat), sums of RGB (K, 3) and features (K, C) over ``counts`` (K,) points."""
         return self.sem.fuse_sums(keys, rgb_sums, feature_sums, counts)
+
+    def remove_voxels(self, ijk: torch.Tensor) -> int:
+        """Remove the semantic voxels ``ijk`` (K, 3) int64 (absent ones are ignored), as a
+        semantic prune does (rows move); returns how many were removed."""
+        return self.sem.remove(cell_keys.pack(ijk.to(self.device)))
 
     def replace_ray_bins(self, bins: Mapping[str, torch.Tensor]) -> None:
         """Replace every ray bin (synthetic maps for benches and tests): ``bins`` holds

@@ -79,7 +79,7 @@ def mapper():
     tower = np.array([3.25, -1.75, 8.25])
     xyz = np.concatenate([xyz[np.abs(xyz - tower).sum(1) > 0.1], tower[None]])
     cls = np.concatenate([cls[: len(xyz) - 1], [4]])
-    m.sem.fuse(torch.as_tensor(xyz, dtype=torch.float32), torch.rand(len(xyz), 3), emb[cls])
+    m.fuse_samples(torch.as_tensor(xyz, dtype=torch.float32), torch.rand(len(xyz), 3), emb[cls])
     svc = MapperService(cfg)
     svc.map, svc.space, svc.map_gen, svc.mapped = m, fs, 1, 7
     svc.start()

@@ -617,7 +617,7 @@ def test_live_loop_over_zenoh_finds_the_car_on_the_in_process_map(loop, tmp_path
     ref = answer_snapshot(local.snap, chain.space, QueryRequest(text="car", top_k=100_000), cfg.query)
     mine = dict(zip(map(tuple, np.round(ref.voxel_xyz, 3)), ref.voxel_score, strict=True))
     theirs = dict(zip(map(tuple, np.round(got.voxel_xyz, 3)), got.voxel_score, strict=True))
-    assert len(theirs) == len(mine) == len(local.map.sem) > 100 and set(theirs) == set(mine)
+    assert len(theirs) == len(mine) == local.map.n_voxels() > 100 and set(theirs) == set(mine)
     assert max(abs(mine[k] - theirs[k]) for k in mine) <= SCORE_ATOL
     assert "sim_camera: ignoring a message" in (tmp_path / "edge.log").read_text()
 

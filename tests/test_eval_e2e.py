@@ -99,12 +99,12 @@ def test_shared_semantic_voxels_equal_separate_map(world):
     for mp in maps:
         mp.flush()
     a, b = (mp.voxels() for mp in maps)
-    assert a.xyz.shape[0] > 0 and len(maps[0].ray_store) > 0 and len(maps[1].ray_store) == 0
+    assert a.xyz.shape[0] > 0 and maps[0].n_rays() > 0 and maps[1].n_rays() == 0
     ia = torch.argsort(a.xyz[:, 0] * 1e6 + a.xyz[:, 1] * 1e3 + a.xyz[:, 2])
     ib = torch.argsort(b.xyz[:, 0] * 1e6 + b.xyz[:, 1] * 1e3 + b.xyz[:, 2])
     torch.testing.assert_close(a.xyz[ia], b.xyz[ib])
     torch.testing.assert_close(a.features[ia], b.features[ib])
-    oa, ob = maps[0].occupancy.active(), maps[1].occupancy.active()
+    oa, ob = maps[0].occupancy_view().active(), maps[1].occupancy_view().active()
     assert torch.equal(oa[0], ob[0]) and torch.equal(oa[1], ob[1])
 
 

@@ -87,8 +87,8 @@ def _mapper_scores(gen: Path, fs, text: str) -> dict[tuple, float]:
     from semantic_map.map import RayFrontsMap
 
     m = load_map(gen / "map", RayFrontsMap)
-    r = answer_query(m, fs, QueryRequest(text=text, top_k=len(m.sem)), QuerySection())
-    assert len(r.voxel_score) == len(m.sem)
+    r = answer_query(m, fs, QueryRequest(text=text, top_k=m.n_voxels()), QuerySection())
+    assert len(r.voxel_score) == m.n_voxels()
     ijk = np.floor(np.asarray(r.voxel_xyz, np.float64) / VOX).astype(int)
     return {tuple(c): float(s) for c, s in zip(ijk.tolist(), r.voxel_score, strict=True)}
 
@@ -269,7 +269,7 @@ def test_map_server_files_reload_to_the_slice(snap, tmp_path):
     assert (cells == ref).all()
     # and the mapper's own slice function on the loaded map
     m = load_map(snap["gen"] / "map", RayFrontsMap)
-    st, origin, cell = costmap_slice(m.occupancy, VOX, seen[:, :2].min(0) * VOX + 0.25,
+    st, origin, cell = costmap_slice(m.occupancy_view(), VOX, seen[:, :2].min(0) * VOX + 0.25,
                                      seen[:, :2].max(0) * VOX + 0.25, band)
     assert (np.array([-1, 0, 100])[st + 1] == cells).all() and cell == VOX  # UNKNOWN -1, FREE 0, OCCUPIED 1
     # --stride 2: cells of 2 x 2 voxel columns, occupied if any, free if all free, else unknown

@@ -591,7 +591,7 @@ def test_incremental_query_copy_answers_as_a_full_copy():
         inc.reserve(m)
         inc.sync(m, step)
         if step:
-            assert 0 <= inc.changed_rows < len(m.sem) // 2, inc.changed_rows
+            assert 0 <= inc.changed_rows < m.n_voxels() // 2, inc.changed_rows
         full = QueryCopy().take(m, step)
         for text in ("car", "tree"):
             a = answer_snapshot(inc, fs, QueryRequest(text=text, top_k=8), cfg.query)
@@ -601,7 +601,7 @@ def test_incremental_query_copy_answers_as_a_full_copy():
             np.testing.assert_allclose(a.voxel_score, b.voxel_score, rtol=1e-6, atol=1e-7)
         _change(m, 16, g, 20)
         if step == 1:
-            m.sem.remove(m.sem.keys[:500].clone())         # a prune moves rows
+            m.remove_voxels(m.voxel_ijk()[:500])         # a prune moves rows
 
 
 def test_frame_callback_only_enqueues_and_the_queue_is_bounded(monkeypatch):

@@ -343,9 +343,9 @@ def test_frame_order_does_not_change_the_map():
         for p, d, rgb, f in order:
             m.integrate(p, K, d, rgb, f)
         m.flush()
-        feat = m.sem.feat.float()
+        feat = m.voxels().features.float()
         feat = feat / feat.norm(dim=1, keepdim=True).clamp_min(1e-9)
-        return dict(zip(map(tuple, m.sem.ijk().tolist()), feat.numpy(), strict=True))
+        return dict(zip(map(tuple, m.voxel_ijk().tolist()), feat.numpy(), strict=True))
 
     a = run(frames)
     shuffled = frames[:]

@@ -83,7 +83,7 @@ def test_query_copy_kernel_and_torch_paths_agree():
     _, mp = build_map(40_000, 32, 100, fs, seed=6)
     q = torch.randn((2, fs.lang_dim), generator=torch.Generator().manual_seed(7))
     m, v = fs.pca.torch_basis("cpu", torch.float32)
-    x = mp.sem.feat.double() @ v.double().T + m.double()
+    x = mp.voxels().features.double() @ v.double().T + m.double()
     ref = ((q.double() / q.double().norm(dim=1, keepdim=True)) @ (x / x.norm(dim=1, keepdim=True)).T).numpy()
     fast = QueryCopy().take(mp, 0).prepared(fs)[0].similarity(q, use_cache=False).numpy()
     with kernels.disabled():

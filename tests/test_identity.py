@@ -132,17 +132,17 @@ def test_an_object_below_threshold_for_an_update_comes_back_with_its_id(site):
     inst = next(f for f in before.found if f["id"] == oid)
     # the object's voxels leave the map for one update (no voxel above any threshold) ...
     m = site.loc.map
-    xyz = m.sem.xyz().numpy()
+    xyz = m.voxel_xyz().numpy()
     lo, hi = np.asarray(inst["box_min"]) - VOX / 2, np.asarray(inst["box_max"]) + VOX / 2
     rows = np.flatnonzero(np.all((xyz >= lo) & (xyz <= hi), axis=1))
-    saved = (m.sem.xyz()[rows].clone(), m.sem.rgb[rows].clone(), m.sem.feat[rows].clone())
-    m.sem.remove(m.sem.keys[torch.as_tensor(rows)].clone())
+    saved = (m.voxel_xyz()[rows].clone(), m.voxels().rgb[rows].clone(), m.voxels().features[rows].clone())
+    m.remove_voxels(m.voxel_ijk()[torch.as_tensor(rows)])
     site.sync()
     gone = site.ask(trackers=trackers)
     assert oid not in {f["id"] for f in gone.found}
     assert not [e for e in gone.events if e["id"] == oid], gone.events     # within the grace: not lost
     # ... and come back: the same id, no new object
-    m.sem.fuse(*saved)
+    m.fuse_samples(*saved)
     site.sync()
     back = site.ask(trackers=trackers)
     assert ids_by_car(site, back.found).get(name) == oid
@@ -154,12 +154,12 @@ def test_an_object_below_threshold_for_an_update_comes_back_with_its_id(site):
     cfg0 = dataclasses.replace(site.cfg, search=dataclasses.replace(site.cfg.search, instance_grace=0))
     t0 = TrackerStore()
     oid0 = ids_by_car(site, site.ask(trackers=t0, cfg=cfg0).found)[name]
-    m.sem.remove(m.sem.keys[torch.as_tensor(np.flatnonzero(np.all((m.sem.xyz().numpy() >= lo) &
-                                                                  (m.sem.xyz().numpy() <= hi), axis=1)))].clone())
+    m.remove_voxels(m.voxel_ijk()[torch.as_tensor(np.flatnonzero(np.all((m.voxel_xyz().numpy() >= lo) &
+                                                                  (m.voxel_xyz().numpy() <= hi), axis=1)))])
     site.sync()
     lost = site.ask(trackers=t0, cfg=cfg0)
     assert {"kind": "lost", "id": oid0, "target": "car", "frame": lost.frames_mapped} in lost.events
-    m.sem.fuse(*saved)
+    m.fuse_samples(*saved)
     site.sync()
     again = ids_by_car(site, site.ask(trackers=t0, cfg=cfg0).found)[name]
     assert again > oid0
@@ -222,15 +222,15 @@ def test_events_new_grow_lost_in_the_reply(site):
     cfg0 = dataclasses.replace(site.cfg, search=dataclasses.replace(site.cfg.search, instance_grace=0))
     inst = max(later.found, key=lambda f: f["voxels"])
     m = site.loc.map
-    xyz = m.sem.xyz().numpy()
+    xyz = m.voxel_xyz().numpy()
     rows = np.flatnonzero(np.all((xyz >= np.asarray(inst["box_min"]) - VOX / 2)
                                  & (xyz <= np.asarray(inst["box_max"]) + VOX / 2), axis=1))
-    saved = (m.sem.xyz()[rows].clone(), m.sem.rgb[rows].clone(), m.sem.feat[rows].clone())
-    m.sem.remove(m.sem.keys[torch.as_tensor(rows)].clone())
+    saved = (m.voxel_xyz()[rows].clone(), m.voxels().rgb[rows].clone(), m.voxels().features[rows].clone())
+    m.remove_voxels(m.voxel_ijk()[torch.as_tensor(rows)])
     site.sync()
     rep = site.ask(trackers=trackers, cfg=cfg0)
     assert [e["kind"] for e in rep.events if e["id"] == inst["id"]] == ["lost"]
-    m.sem.fuse(*saved)
+    m.fuse_samples(*saved)
     site.sync()
 
 

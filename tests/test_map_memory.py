@@ -91,7 +91,9 @@ def test_map_memory_is_semantic_layers_occupancy_apart():
     m.flush()
     st = m.stats()
     assert st["n_voxels"] > 0 and st["n_rays"] > 0
-    assert m.fronts.memory_bytes() == 16 * len(m.fronts)          # int64 key + int64 count per frontier
-    parts = m.sem.memory_bytes() + m.ray_store.memory_bytes() + 16 * len(m.fronts)
-    assert st["memory_bytes"] == parts
-    assert st["occupancy_memory_bytes"] == m.occupancy.memory_bytes() > 0
+    parts = m.memory_parts()
+    assert parts["frontiers"] == 16 * m.n_frontiers()          # int64 key + int64 count per frontier
+    assert parts["voxels"] >= st["n_voxels"] * (8 + 4 + 2 * (3 + 16))  # key, count, float16 rgb + features
+    assert parts["rays"] >= st["n_rays"] * (8 + 4 + 4 + 4 * 3 + 2 * 16)  # key, bin, weight, dsum, features
+    assert st["memory_bytes"] == sum(parts.values())
+    assert st["occupancy_memory_bytes"] == m.occupancy_view().memory_bytes() > 0

@@ -89,8 +89,8 @@ def test_presets_and_methods_follow_the_reference():
 def test_schedule_and_layers():
     frames = _frames(10)
     m = _run(_cfg(), frames)
-    assert m.counters["voxel_blocks"] == 5
-    assert m.counters["ray_blocks"] == 3  # frames 4, 7, 10 after a 1-frame phase
+    assert m.schedule_counters()["voxel_blocks"] == 5
+    assert m.schedule_counters()["ray_blocks"] == 3  # frames 4, 7, 10 after a 1-frame phase
     st = m.stats()
     assert st["n_voxels"] > 50 and st["n_frontiers"] > 0 and st["n_rays"] > 0
     v, r, f = m.voxels(), m.rays(), m.frontiers()
@@ -101,7 +101,7 @@ def test_schedule_and_layers():
     d = r.directions
     torch.testing.assert_close(r.angles[:, 0], torch.rad2deg(torch.atan2(d[:, 1], d[:, 0])))
     # all voxels are occupied in the occupancy grid (pruning keeps them consistent)
-    q = m.occupancy.query(cell_keys.unpack(m.sem.keys))
+    q = m.occupancy_view().query(m.voxel_ijk())
     assert float((q > 0).float().mean()) > 0.9
 
 
@@ -131,7 +131,7 @@ def test_snapshot_round_trip_exact(tmp_path):
     a, b = m.query(q), m2.query(q)
     assert torch.equal(a.voxel_sim, b.voxel_sim) and torch.equal(a.ray_sim, b.ray_sim)
     assert torch.equal(m.frontiers().keys, m2.frontiers().keys)
-    s1, s2 = m.occupancy.active(), m2.occupancy.active()
+    s1, s2 = m.occupancy_view().active(), m2.occupancy_view().active()
     assert torch.equal(s1[0], s2[0]) and torch.equal(s1[1], s2[1])
     # versioning and missing files
     (tmp_path / "snap" / "arrays.npz").unlink()
@@ -167,7 +167,7 @@ def test_baseline_modes():
                         continue
                     off = torch.tensor([dx, dy, dz], dtype=torch.float64)
                     ijk = torch.floor((c + off * vox) / vox).to(torch.int64)[None]
-                    v = int(torch.as_tensor(uni.occupancy.query(ijk))[0])
+                    v = int(torch.as_tensor(uni.occupancy_view().query(ijk))[0])
                     acc += off if v == 0 else -off
         if acc.norm() > 0:
             torch.testing.assert_close(got, (acc / acc.norm()).to(torch.float32), atol=1e-6, rtol=0)
@@ -219,7 +219,7 @@ def test_synthetic_world_labels_and_landmark_rays():
         m.integrate(p, K, r.depth, r.rgb, onehot)
     m.flush()
     # in-range voxels: nearest class feature = the world's voxel label
-    gt = w.voxel_labels(cell_keys.unpack(m.sem.keys).numpy(), 0.5)
+    gt = w.voxel_labels(m.voxel_ijk().numpy(), 0.5)
     pred = m.voxels().features.argmax(1).numpy()
     sel = gt > 0
     assert sel.sum() > 200

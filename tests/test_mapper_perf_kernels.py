@@ -349,5 +349,5 @@ def test_map_kernel_equals_torch_end_to_end():
         v, r = m.voxels(), m.rays()
         return (tuple(getattr(v, f) for f in ("xyz", "rgb", "features", "counts")) + (m.frontiers().keys,)
                 + tuple(getattr(r, f) for f in ("origins", "directions", "features", "weights", "frontier_keys"))
-                + tuple(m.occupancy.active()))
+                + tuple(m.occupancy_view().active()))
     kernel_same((None if k is None else layers(k), layers(t)))

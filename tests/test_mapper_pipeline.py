@@ -7,7 +7,9 @@ array of the map's state is compared: semantic voxels (keys, rgb, features, coun
 order), occupancy (all active cells and values), frontier table, ray store (every field, in
 order), counters, pending buffers and the random generator's state.
 """
+import gc
 import threading
+import weakref
 
 import numpy as np
 import pytest
@@ -46,24 +48,19 @@ def _cfg(preset, **kw):
 
 
 def _state(m: RayFrontsMap) -> dict:
-    st = {f"sem_{k}": v for k, v in m.sem.state().items()}
-    st.update({f"fr_{k}": v for k, v in m.fronts.state().items()})
-    st.update({f"ray_{k}": v for k, v in m.ray_store.state().items()})
-    ijk, val = m.occupancy.active()
-    order = np.lexsort(np.asarray(ijk).T[::-1])
-    st["occ_ijk"], st["occ_val"] = torch.as_tensor(np.asarray(ijk)[order]), torch.as_tensor(np.asarray(val)[order])
-    st["rng"] = m.generator.get_state()
-    for name in ("_buf_occ", "_buf_sem", "_buf_rays", "_pending_prune"):
-        for i, item in enumerate(getattr(m, name)):
-            for j, t in enumerate(item if isinstance(item, tuple) else (item,)):
-                st[f"{name}_{i}_{j}"] = t
+    """Every array of the map's exact state (``export_state``: voxels, occupancy, frontiers,
+    rays, pending buffers, the generator after the last committed frame) as tensors, and the
+    generator after every prepared frame."""
+    arrays, _ = m.export_state()
+    st = {k: torch.as_tensor(np.asarray(v)) if not isinstance(v, torch.Tensor) else v for k, v in arrays.items()}
+    st["rng_prepared"] = m.prepared_rng_state()
     return st
 
 
 def _assert_same(a: RayFrontsMap, b: RayFrontsMap) -> None:
-    assert a.counters == b.counters
-    assert a.last_fov_deg == b.last_fov_deg
+    assert a.export_state()[1] == b.export_state()[1]       # counters, field of view, buffer counts
     sa, sb = _state(a), _state(b)
+    assert {"occ_ijk", "sem_feat", "front_keys", "ray_feat", "rng_state"} <= sa.keys()
     assert sa.keys() == sb.keys()
     for k in sa:
         assert sa[k].shape == sb[k].shape and sa[k].dtype == sb[k].dtype, k
@@ -87,7 +84,7 @@ def _sequential(cfg, frames, skip=()):
 def test_pipeline_map_identical_to_sequential(frames, preset, kw, depth):
     cfg = _cfg(preset, **kw)
     ref = _sequential(cfg, frames)
-    assert len(ref.ray_store) > 0 and len(ref.sem) > 0 and ref.counters["ray_blocks"] >= 4
+    assert ref.n_rays() > 0 and ref.n_voxels() > 0 and ref.schedule_counters()["ray_blocks"] >= 4
     m = RayFrontsMap(cfg, 8, "t")
     done = []
     with MapPipeline(m, depth=depth) as pp:
@@ -129,7 +126,8 @@ def test_prepare_commit_equals_integrate_and_prepare_leaves_map_alone(frames):
         before = _state(b)
         prep = b.prepare(*f)
         after = _state(b)
-        assert all(torch.equal(before[k], after[k]) for k in before if k != "rng")  # only the generator moved
+        moved = {"rng_state", "rng_prepared"}                                      # only the generator moved
+        assert all(torch.equal(before[k], after[k]) for k in before if k not in moved)
         tm = b.commit(prep)
         assert {"validate", "geometry", "sample", "commit", "total"} <= set(tm)
     _assert_same(a, b)
@@ -140,7 +138,7 @@ def test_pipeline_rejects_use_after_close(frames):
     pp = MapPipeline(m)
     pp.submit(*frames[0])
     assert [c.error for c in pp.close()] == [None]
-    assert m.counters["frames"] == 1
+    assert m.schedule_counters()["frames"] == 1
     with pytest.raises(RuntimeError):
         pp.submit(*frames[1])
     with pytest.raises(ValueError):
@@ -156,12 +154,16 @@ def test_snapshot_with_frames_in_flight_equals_sequential(frames, tmp_path):
     with MapPipeline(m, depth=2) as pp:
         for f in frames[:11]:
             pp.submit(*f)
-        assert len(pp) == 2 and m.counters["frames"] == 9
+        assert len(pp) == 2 and m.schedule_counters()["frames"] == 9
         pp._inflight[-1][1].result()  # both in-flight prepares have drawn their random numbers
-        assert not torch.equal(m.generator.get_state(), ref.generator.get_state())
-        assert torch.equal(m.rng_state(), ref.generator.get_state())
+        assert not torch.equal(m.prepared_rng_state(), ref.prepared_rng_state())
+        assert torch.equal(m.rng_state(), ref.prepared_rng_state())
         save_map(m, tmp_path / "snap")
-    assert m._rng_state_source is None
+        closed = weakref.ref(pp)
+    del pp
+    gc.collect()
+    assert closed() is None                  # the closed pipeline let go of the map's rng state
+    assert torch.equal(m.rng_state(), m.prepared_rng_state())
     restored = load_map(tmp_path / "snap", RayFrontsMap)
     _assert_same(ref, restored)
     for f in frames[9:]:

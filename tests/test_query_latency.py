@@ -11,12 +11,10 @@ import pytest
 import torch
 
 from common.cones import cone_union_volume
-from common.conventions import voxel_center
 from common.feature_space import FeatureSpace
 from common.language_head import MLP2, MLP2Config
 from common.messages import QueryRequest
 from mapper.query_answer import answer_snapshot, top_stable
-from semantic_map import cell_keys
 from semantic_map.query_copy import SCORE_ATOL, QueryCopy
 from tests.support.data import bfs_components, low_rank_pca, query_map
 
@@ -105,8 +103,7 @@ def test_answer_snapshot_matches_bruteforce():
     res = answer_snapshot(snap, fs, QueryRequest(embedding=q, top_k=5), qcfg)
     # the brute force scores the rows as the query copy holds them (float16, per-row scaled:
     # their distance to the float32 / float64 cosine is tests/test_query_half.py's subject)
-    feats, keys = snap.voxel_feats, m.sem.keys
-    xyz = voxel_center(cell_keys.unpack(keys), 0.5).numpy()
+    feats, xyz, vijk = snap.voxel_feats, m.voxel_xyz().numpy(), m.voxel_ijk().numpy()
     vs = _slow_cos(fs, feats, torch.from_numpy(q)[None])[0].numpy()
     order = np.argsort(-vs, kind="stable")
     np.testing.assert_array_equal(res.voxel_xyz, xyz[order[:5]])
@@ -114,7 +111,7 @@ def test_answer_snapshot_matches_bruteforce():
     # clusters: candidates above the relative score, 26-connected, best first
     cand = order[:300]
     keep = cand[vs[cand] >= vs.min() + qcfg.cluster_rel_score * (vs[cand[0]] - vs.min())]
-    ijk = cell_keys.unpack(keys[torch.from_numpy(keep)]).numpy()
+    ijk = vijk[keep]
     lab = bfs_components(ijk)  # the brute-force 26-neighbour oracle
     best = np.array([vs[keep][lab == c].max() for c in range(lab.max() + 1)])
     cl = np.argsort(-best, kind="stable")[:5]
@@ -126,9 +123,9 @@ def test_answer_snapshot_matches_bruteforce():
         np.testing.assert_allclose(res.cluster_extent[i], ctr.max(0) - ctr.min(0) + 0.5, atol=1e-6)
     assert res.cluster_size.sum() > len(res.cluster_size)     # some clusters have several voxels
     # rays and their search volume
-    rs = _slow_cos(fs, m.ray_store.feat.float(), torch.from_numpy(q)[None])[0].numpy()
+    rs = _slow_cos(fs, m.rays().features.float(), torch.from_numpy(q)[None])[0].numpy()
     ro = np.argsort(-rs, kind="stable")[:5]
-    np.testing.assert_array_equal(res.ray_origin, m.ray_store.origins().numpy()[ro])
+    np.testing.assert_array_equal(res.ray_origin, m.ray_geometry()[0].numpy()[ro])
     np.testing.assert_allclose(res.ray_score, rs[ro], atol=1e-5)
     ns = min(qcfg.search_rays, 5)
     ref = cone_union_volume(res.ray_origin[:ns], res.ray_direction[:ns], m.cone_half_angle(),
@@ -143,8 +140,8 @@ def test_snapshot_is_isolated_from_later_map_changes():
     before = answer_snapshot(snap, fs, q, cfg.query)
     # the map changes: every voxel gets the query's own feature, and new voxels appear
     best = torch.from_numpy(fs.compress(X[3:4].astype(np.float32)))
-    m.sem.fuse(torch.full((50, 3), 100.25), torch.rand(50, 3), best.repeat(50, 1))
-    m.sem.fuse(voxel_center(cell_keys.unpack(m.sem.keys[:64]), 0.5), torch.rand(64, 3), best.repeat(64, 1) * 9)
+    m.fuse_samples(torch.full((50, 3), 100.25), torch.rand(50, 3), best.repeat(50, 1))
+    m.fuse_samples(m.voxel_xyz()[:64], torch.rand(64, 3), best.repeat(64, 1) * 9)
     after_old = answer_snapshot(snap, fs, q, cfg.query)
     for f in ("voxel_xyz", "voxel_score", "cluster_xyz", "cluster_size", "ray_score"):
         np.testing.assert_array_equal(getattr(after_old, f), getattr(before, f))
@@ -170,7 +167,7 @@ def test_query_does_not_wait_past_lock_timeout_while_map_is_busy():
     def busy():
         with svc.lock:
             # the map grows (so the next snapshot needs bigger buffers) while the lock is held
-            m.sem.fuse(torch.rand(3000, 3) * 40 + 50, torch.rand(3000, 3), torch.randn(3000, fs.dim))
+            m.fuse_samples(torch.rand(3000, 3) * 40 + 50, torch.rand(3000, 3), torch.randn(3000, fs.dim))
             svc.map_gen += 1
             svc.mapped = 4
             held.set()
@@ -189,7 +186,7 @@ def test_query_does_not_wait_past_lock_timeout_while_map_is_busy():
         t.join(30)
     res = svc.run_query(req)
     assert "stale" not in res.timings and res.frames_mapped == 4
-    assert svc._qsnap.n_voxels == len(m.sem) > 6 ** 3
+    assert svc._qsnap.n_voxels == m.n_voxels() > 6 ** 3
     ref = answer_snapshot(QueryCopy().take(m, 0), fs, req, cfg.query)
     np.testing.assert_array_equal(res.voxel_xyz, ref.voxel_xyz)
     np.testing.assert_array_equal(res.cluster_xyz, ref.cluster_xyz)

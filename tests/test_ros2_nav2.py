@@ -289,7 +289,7 @@ def test_costmap_fixed_origin_transient_local_equals_slice(world_map):
             wait_for(lambda i=i: len(rig.rec.of("/r1/rayfronts/costmap")) == i + 1 or None, 20, what=f"costmap {i}")
             og = deserialize_message(rig.rec.of("/r1/rayfronts/costmap")[-1], OccupancyGrid)
             o = np.array([og.info.origin.position.x, og.info.origin.position.y])
-            states, origin, cell = costmap_slice(rig.state.map.occupancy, 0.5, o + 0.25,
+            states, origin, cell = costmap_slice(rig.state.map.occupancy_view(), 0.5, o + 0.25,
                                                  o + np.array([og.info.width, og.info.height]) * 1.0 - 0.25,
                                                  [0.5, 1.5], 2)
             grids.append(og)
@@ -464,7 +464,7 @@ def test_upstream_messaging_service_drop_in(world_map):
         # the map's voxels, all of them (threshold 0), the same order in both clouds
         m = rig.state.map
         vox = float(m.cfg.vox_size)
-        ijk = m.sem.ijk().numpy()
+        ijk = m.voxel_ijk().numpy()
         xyz = np.stack([c0["x"], c0["y"], c0["z"]], 1)
         ref = (ijk + 0.5) * vox
         assert len(xyz) == len(ref) > 100
@@ -472,7 +472,7 @@ def test_upstream_messaging_service_drop_in(world_map):
         np.testing.assert_array_equal(xyz, np.stack([c1["x"], c1["y"], c1["z"]], 1))
         # sim: softmax over the two queries of 100 * cosine with each class's one-hot vector
         w = world_map["world"]
-        f = m.sem.feat.float().numpy()
+        f = m.voxels().features.float().numpy()
         cos = f[:, [w.classes.index("car"), w.classes.index("building")]] / np.linalg.norm(f, axis=1)[:, None]
         p = np.exp(100 * (cos - cos.max(1, keepdims=True)))
         p /= p.sum(1, keepdims=True)
@@ -485,8 +485,8 @@ def test_upstream_messaging_service_drop_in(world_map):
         # rays: each ray's frontier, its direction's angles, its share of "building"
         rn, r1, _ = _cloud(rays)
         assert rn == ["x", "y", "z", "theta", "phi", "sim"]
-        o = m.ray_store.origins().numpy()
-        d = m.ray_store.directions().numpy()
+        o = m.ray_geometry()[0].numpy()
+        d = m.ray_geometry()[1].numpy()
         assert len(r1["x"]) == len(o) > 10
         np.testing.assert_allclose(np.stack([r1["x"], r1["y"], r1["z"]], 1), o, atol=1e-5)
         np.testing.assert_allclose(r1["theta"], np.degrees(np.arctan2(d[:, 1], d[:, 0])), atol=1e-3)

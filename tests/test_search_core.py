@@ -59,10 +59,11 @@ def built():
             m.integrate(p, K, r.depth.astype(np.float32), r.rgb, oh.permute(2, 0, 1).float())
         done = stop
         m.flush()
-        conf = _confidence(m.sem.feat, car)
+        conf = _confidence(m.voxels().features, car)
         sel = conf > 0.5
-        events = tr.update("car", m.sem.ijk()[torch.as_tensor(sel)].numpy(), conf[sel], m.counters["frames"])
-        stages.append(dict(instances=tr.current("car"), events=events, frames=m.counters["frames"]))
+        frames = m.schedule_counters()["frames"]
+        events = tr.update("car", m.voxel_ijk()[torch.as_tensor(sel)].numpy(), conf[sel], frames)
+        stages.append(dict(instances=tr.current("car"), events=events, frames=frames))
     return dict(world=w, map=m, tracker=tr, stages=stages, car=car, poses=poses)
 
 
@@ -76,8 +77,8 @@ def test_found_instances_are_true_cars(built):
     inst = built["stages"][-1]["instances"]
     assert len(inst) >= 2
     true = w.instances_of(car)
-    xyz = m.sem.xyz().numpy().astype(np.float64)
-    truth = w.voxel_labels(m.sem.ijk().numpy(), VOX)
+    xyz = m.voxel_xyz().numpy().astype(np.float64)
+    truth = w.voxel_labels(m.voxel_ijk().numpy(), VOX)
     for i in inst:
         # the centroid lies within 2 voxels of a true car's box ...
         d = [_box_distance(i.centroid, t.aabb_min, t.aabb_max) for t in true]
@@ -191,11 +192,11 @@ def test_look_next_goals_free_in_map_and_world(built):
     rl = m.rays()
     rscore = _confidence(rl.features, car)[:, None]
     start = built["poses"][STAGES[-1] - 1][:3, 3]
-    goals = look_next(m.occupancy, VOX, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
+    goals = look_next(m.occupancy_view(), VOX, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
                       rscore, ["car"], from_xyz=start, max_goals=8, sensing_radius_m=2.0)
     assert len(goals) >= 3
     pos = np.stack([g.position for g in goals])
-    st, _ = point_states(m.occupancy, VOX, pos, 0.0)
+    st, _ = point_states(m.occupancy_view(), VOX, pos, 0.0)
     assert np.all(st == FREE)
     assert np.all(w.labels_at(pos) == 0)                     # free in the true world as well
     scores = [round(g.score, 3) for g in goals]          # ranked by score to 3 decimals
@@ -208,7 +209,7 @@ def test_look_next_goals_free_in_map_and_world(built):
         near = np.linalg.norm(rl.origins.numpy() - g.frontier, axis=1) <= 1.0
         assert g.score == pytest.approx(float(rscore[near, 0].max()) if near.any() else 0.0)
         assert (g.target == "car") == (g.score > 0)
-    gains = unknown_volume(m.occupancy, VOX, pos[:2], 2.0)
+    gains = unknown_volume(m.occupancy_view(), VOX, pos[:2], 2.0)
     assert [g.gain_m3 for g in goals[:2]] == pytest.approx(list(gains))
     assert any(g.gain_m3 > 0 for g in goals)
 
@@ -257,9 +258,9 @@ def test_look_next_brings_a_far_outlier_ray_forward(built):
     score = np.full((len(o), 1), 1e-12)
     z = np.zeros((len(o), 1))
     z[far] = 6.0
-    plain = look_next(m.occupancy, VOX, f, o, d, score, ["water tower"], from_xyz=start, max_goals=3,
+    plain = look_next(m.occupancy_view(), VOX, f, o, d, score, ["water tower"], from_xyz=start, max_goals=3,
                       max_candidates=3, ray_radius_m=1.0)
-    goals = look_next(m.occupancy, VOX, f, o, d, score, ["water tower"], from_xyz=start, max_goals=3,
+    goals = look_next(m.occupancy_view(), VOX, f, o, d, score, ["water tower"], from_xyz=start, max_goals=3,
                       max_candidates=3, ray_radius_m=1.0, ray_z=z)
     near_far = np.linalg.norm(f - o[far], axis=1) <= 1.0
     assert near_far.any()
@@ -269,7 +270,7 @@ def test_look_next_brings_a_far_outlier_ray_forward(built):
     assert np.linalg.norm(goals[0].frontier - o[far]) <= 1.0 + 1e-6
     assert all(g.ray_z == 0 for g in goals[1:])
     with pytest.raises(ValueError, match="ray_z has shape"):
-        look_next(m.occupancy, VOX, f, o, d, score, ["water tower"], ray_z=z[:-1])
+        look_next(m.occupancy_view(), VOX, f, o, d, score, ["water tower"], ray_z=z[:-1])
 
 
 def test_look_next_keeps_places_for_the_way_on(built):
@@ -285,15 +286,15 @@ def test_look_next_keeps_places_for_the_way_on(built):
     r = np.linalg.norm(o - start, axis=1)
     score = (r > np.median(r)).astype(np.float64)[:, None]          # the far half of the rays see it
     kw = dict(from_xyz=start, max_candidates=100000, ray_radius_m=1.0, sensing_radius_m=2.0)
-    every = look_next(m.occupancy, VOX, f, o, d, score, ["car"], max_goals=100000, **kw)
+    every = look_next(m.occupancy_view(), VOX, f, o, d, score, ["car"], max_goals=100000, **kw)
     n = 8
     assert sum(g.score > 0.5 for g in every) > n                    # more evidence than places
-    goals = look_next(m.occupancy, VOX, f, o, d, score, ["car"], max_goals=n, **kw)
+    goals = look_next(m.occupancy_view(), VOX, f, o, d, score, ["car"], max_goals=n, **kw)
     rest = sorted(every[n - 2:], key=lambda g: -g.gain_m3 / (1.0 + g.distance_m))[:2]
     key = lambda g: tuple(np.round(g.position, 6))                  # noqa: E731
     assert {key(g) for g in goals} == {key(g) for g in every[:n - 2] + rest}
     assert any(g.score < 0.5 for g in goals)                        # the way on: no evidence, near
-    head = look_next(m.occupancy, VOX, f, o, d, score, ["car"], max_goals=n, explore_share=0.0, **kw)
+    head = look_next(m.occupancy_view(), VOX, f, o, d, score, ["car"], max_goals=n, explore_share=0.0, **kw)
     assert [key(g) for g in head] == [key(g) for g in every[:n]]
     scores = [round(g.score, 3) for g in goals]
     assert scores == sorted(scores, reverse=True)                   # still in rank order
@@ -302,13 +303,13 @@ def test_look_next_keeps_places_for_the_way_on(built):
 def test_unknown_volume_brute_force(built):
     m = built["map"]
     p = np.array([[1.0, 2.0, 1.2], [5.0, -3.0, 0.5]])
-    got = unknown_volume(m.occupancy, VOX, p, 1.0)
+    got = unknown_volume(m.occupancy_view(), VOX, p, 1.0)
     r = 4
     ax = np.arange(-r, r + 1)
     off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
     off = off[np.linalg.norm(off * VOX, axis=1) <= 1.0 + 1e-9]
     for q, g in zip(p, got, strict=True):
-        vals = m.occupancy.query(torch.as_tensor(np.floor(q / VOX).astype(np.int64) + off)).numpy()
+        vals = m.occupancy_view().query(torch.as_tensor(np.floor(q / VOX).astype(np.int64) + off)).numpy()
         assert g == pytest.approx((vals == 0).sum() * VOX ** 3)
 
 
@@ -357,7 +358,7 @@ def _cam(built) -> np.ndarray:
 
 
 def _brute_states(m, ijk: np.ndarray) -> np.ndarray:
-    v = m.occupancy.query(torch.as_tensor(ijk)).numpy()
+    v = m.occupancy_view().query(torch.as_tensor(ijk)).numpy()
     return np.where(v > 0, OCCUPIED, np.where(v < 0, FREE, UNKNOWN))
 
 
@@ -365,7 +366,7 @@ def test_state_grid_equals_map_occupancy(built):
     m = built["map"]
     c = _cam(built)
     lo, hi = c + np.array([-4.0, -3.1, -2.0]), c + np.array([3.0, 2.0, 1.1])
-    g, origin, cell = state_grid(m.occupancy, VOX, lo, hi)
+    g, origin, cell = state_grid(m.occupancy_view(), VOX, lo, hi)
     assert cell == VOX and np.allclose(origin, np.floor(lo / VOX) * VOX)
     i0 = np.floor(lo / VOX).astype(np.int64)
     idx = np.argwhere(np.ones(g.shape, bool))
@@ -373,7 +374,7 @@ def test_state_grid_equals_map_occupancy(built):
     assert {FREE, OCCUPIED, UNKNOWN} <= set(np.unique(g).tolist())
     assert np.all(origin + np.array(g.shape) * cell >= hi)
     # stride 2: occupied if any, free if all free, else unknown
-    g2, o2, c2 = state_grid(m.occupancy, VOX, lo, hi, stride=2)
+    g2, o2, c2 = state_grid(m.occupancy_view(), VOX, lo, hi, stride=2)
     assert c2 == 2 * VOX and np.allclose(o2, origin)
     for c in np.argwhere(np.ones(g2.shape, bool))[::7]:
         sub = _brute_states(m, np.argwhere(np.ones((2, 2, 2), bool)) + i0 + 2 * c)
@@ -384,7 +385,7 @@ def test_state_grid_equals_map_occupancy(built):
 def test_costmap_slice_brute_force(built):
     m = built["map"]
     c = _cam(built)[:2]
-    cm, origin, cell = costmap_slice(m.occupancy, VOX, c - 4.0, c + 4.0, (0.7, 1.6), stride=2)
+    cm, origin, cell = costmap_slice(m.occupancy_view(), VOX, c - 4.0, c + 4.0, (0.7, 1.6), stride=2)
     assert {FREE, OCCUPIED, UNKNOWN} <= set(np.unique(cm).tolist())
     k0, k1 = math.floor(0.7 / VOX), math.floor(1.6 / VOX)
     i0 = np.floor((c - 4.0) / VOX).astype(np.int64)
@@ -401,9 +402,9 @@ def test_point_states_brute_force(built):
     m = built["map"]
     rng = np.random.default_rng(2)
     pts = _cam(built) + rng.uniform([-6, -6, -1.5], [6, 6, 1.5], (40, 3))
-    st, dist = point_states(m.occupancy, VOX, pts, 1.0)
+    st, dist = point_states(m.occupancy_view(), VOX, pts, 1.0)
     assert np.array_equal(st, _brute_states(m, np.floor(pts / VOX).astype(np.int64)))
-    ijk, val = m.occupancy.active()
+    ijk, val = m.occupancy_view().active()
     occ = ijk.numpy()[val.numpy() > 0]
     lo = occ * VOX
     for p, s, d in zip(pts, st, dist, strict=True):
@@ -417,13 +418,13 @@ def test_point_states_brute_force(built):
 def test_occupancy_requests_over_the_limit_raise(built):
     m = built["map"]
     with pytest.raises(ValueError, match="limit of 4000000 cells"):
-        state_grid(m.occupancy, VOX, [-500, -500, 0], [500, 500, 10])
+        state_grid(m.occupancy_view(), VOX, [-500, -500, 0], [500, 500, 10])
     with pytest.raises(ValueError, match="limit of 1000 cells"):
-        costmap_slice(m.occupancy, VOX, [0, 0], [30, 30], (0, 1), max_cells=1000)
+        costmap_slice(m.occupancy_view(), VOX, [0, 0], [30, 30], (0, 1), max_cells=1000)
     with pytest.raises(ValueError, match="stride"):
-        state_grid(m.occupancy, VOX, [0, 0, 0], [1, 1, 1], stride=0)
+        state_grid(m.occupancy_view(), VOX, [0, 0, 0], [1, 1, 1], stride=0)
     with pytest.raises(ValueError, match="limit"):
-        point_states(m.occupancy, VOX, np.zeros((10, 3)), 50.0)
+        point_states(m.occupancy_view(), VOX, np.zeros((10, 3)), 50.0)
     assert voxel_center(np.zeros((1, 3), np.int64), VOX).shape == (1, 3)
 
 
@@ -431,8 +432,8 @@ def test_car_count_is_the_true_cars_seen(built):
     """"How many cars have we seen" from instances: one instance per true car of which the map
     holds at least ``min_voxels`` voxels truly of that car."""
     w, m, car = built["world"], built["map"], built["car"]
-    truth = w.voxel_labels(m.sem.ijk().numpy(), VOX)
-    xyz = m.sem.xyz().numpy().astype(np.float64)
+    truth = w.voxel_labels(m.voxel_ijk().numpy(), VOX)
+    xyz = m.voxel_xyz().numpy().astype(np.float64)
     seen = set()
     for t in w.instances_of(car):
         inside = (truth == car) & np.all((xyz >= t.aabb_min - VOX) & (xyz <= t.aabb_max + VOX), axis=1)
@@ -451,13 +452,13 @@ def test_look_next_goals_reachable_through_known_free_space(built):
     m, w = built["map"], built["world"]
     rl = m.rays()
     start = built["poses"][STAGES[-1] - 1][:3, 3].astype(np.float64)
-    goals = look_next(m.occupancy, VOX, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
+    goals = look_next(m.occupancy_view(), VOX, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
                       _confidence(rl.features, built["car"])[:, None], ["car"], from_xyz=start, max_goals=8)
     assert goals
     pts = np.vstack([start] + [g.position for g in goals])
     lo, hi = pts.min(0) - 6.0, pts.max(0) + 6.0
     lo[2], hi[2] = 0.0, max(hi[2], 4.0)
-    states, origin, cell = state_grid(m.occupancy, VOX, lo, hi)
+    states, origin, cell = state_grid(m.occupancy_view(), VOX, lo, hi)
     free = states == FREE
 
     def cell_of(p):
@@ -509,11 +510,11 @@ def test_far_target_seen_only_beyond_range():
         for _ in range(3):
             m.integrate(pose, K, depth, np.zeros((H, W, 3), np.uint8), torch.as_tensor(feat))
     m.flush()
-    assert len(m.sem) == 0                                           # nothing of it in range
+    assert m.n_voxels() == 0                                           # nothing of it in range
     rl = m.rays()
     rf = rl.features.float()
     conf = (rf[:, 1] / rf.sum(1).clamp_min(1e-9)).numpy()
-    goals = look_next(m.occupancy, 0.5, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
+    goals = look_next(m.occupancy_view(), 0.5, m.frontiers().centres.numpy(), rl.origins.numpy(), rl.directions.numpy(),
                       conf[:, None], ["tower"], from_xyz=cams[0], max_goals=5)
     assert goals[0].score > 0.5 and goals[0].score == max(g.score for g in goals)
     for g in goals:

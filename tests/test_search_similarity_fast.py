@@ -78,7 +78,7 @@ def test_phrase_logsumexp_follows_incremental_changes():
     other = torch.randn((2, fs.lang_dim), generator=torch.Generator().manual_seed(3))
     for step in cm.steps(4):
         got = snap.phrase_logsumexp(fs, bg, 100.0)
-        assert got is not None and len(got) == len(mp.sem)
+        assert got is not None and len(got) == mp.n_voxels()
         want = _lse64(_snap_scores(QueryCopy().take(mp, step), fs, bg), 100.0)
         assert np.abs(got.numpy() - want).max() <= 1e-4 * 100
         np.testing.assert_allclose(got.numpy(), want, rtol=2e-6, atol=1e-5)
@@ -112,7 +112,7 @@ def test_search_voxel_probabilities_match_full_softmax():
             assert np.array_equal(got, plain)                  # no background: the same path
     # the copy's scores are the cosine of the map's features within the stated tolerance
     m, vb = fs.pca.torch_basis("cpu", torch.float32)
-    x = mp.sem.feat.double() @ vb.double().T + m.double()
+    x = mp.voxels().features.double() @ vb.double().T + m.double()
     ref = (torch.nn.functional.normalize(q.double(), dim=1) @ torch.nn.functional.normalize(x, dim=1).T).numpy()
     assert np.abs(s - ref).max() <= SCORE_ATOL
 
@@ -127,11 +127,11 @@ def test_voxel_ijk_equals_the_centres_round_trip():
     _, mp = build_map(2_000, 8, 10, fs)
     lim = (1 << 20) - 1
     ijk = torch.tensor([[lim, -lim - 1, 0], [-lim - 1, lim, lim], [123456, -654321, 7], [-1, -1, -1]])
-    mp.sem.fuse_sums(cell_keys.pack(ijk), torch.rand((4, 3)), torch.randn((4, 8)), torch.ones(4))
+    mp.fuse_sums(cell_keys.pack(ijk), torch.rand((4, 3)), torch.randn((4, 8)), torch.ones(4))
     for vox in (0.05, 0.2, 1.0):
         mp.cfg.vox_size = vox
         snap = QueryCopy().take(mp, 0)
-        rows = np.r_[np.arange(0, len(mp.sem), 7), len(mp.sem) - 4 + np.arange(4)]
+        rows = np.r_[np.arange(0, mp.n_voxels(), 7), mp.n_voxels() - 4 + np.arange(4)]
         got = snap.voxel_ijk(rows)
         assert got.dtype == np.int64
         assert np.array_equal(got, voxel_index(snap.voxel_xyz(rows).astype(np.float64), vox))
@@ -244,7 +244,7 @@ def test_answer_search_equals_the_plain_path_across_map_changes(monkeypatch):
                                atol=PROB_ATOL)
             n_found += len(a.found)
         _change(mp, 16, g, 31)
-        mp.sem.remove(mp.sem.keys[:200].clone())
+        mp.remove_voxels(mp.voxel_ijk()[:200])
     assert n_found > 0
 
 

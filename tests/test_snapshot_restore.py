@@ -31,7 +31,7 @@ def _snapshot(root, overrides: list[str]) -> FeatureSpace:
     cfg = load_mapper_config(None, overrides)
     m = create_map(cfg, fs)
     g = torch.Generator().manual_seed(0)
-    m.sem.fuse(torch.rand((50, 3), generator=g) * 5, torch.rand((50, 3), generator=g),
+    m.fuse_samples(torch.rand((50, 3), generator=g) * 5, torch.rand((50, 3), generator=g),
                torch.randn((50, 4), generator=g))
     write_snapshot(root, capture_map(m), encode_feature_space("t", fs.to_body()), {"frames_mapped": 7, "robots": {}})
     return fs
@@ -46,7 +46,7 @@ def _restore(root, overrides: list[str]) -> MapperState:
 def test_same_config_restores(tmp_path):
     _snapshot(tmp_path, ["map.vox_size=0.5"])
     st = _restore(tmp_path, ["map.vox_size=0.5"])
-    assert st.map is not None and len(st.map.sem) > 0 and st.mapped == 7
+    assert st.map is not None and st.map.n_voxels() > 0 and st.mapped == 7
 
 
 def test_differing_map_config_is_one_line_naming_the_keys(tmp_path):
@@ -125,7 +125,7 @@ def test_snapshot_writes_outside_the_map_lock(tmp_path, monkeypatch):
     SnapshotStore(st).save()
     assert held == [False]
     again = _restore(tmp_path / "out", ["map.vox_size=0.5"])
-    assert torch.equal(again.map.sem.feat, st.map.sem.feat)
+    assert torch.equal(again.map.voxels().features, st.map.voxels().features)
 
 
 def test_standing_queries_are_saved_and_resume(tmp_path):

@@ -133,6 +133,11 @@ class OccupancyGrid(Protocol):
         :func:`semantic_map.occupancy.from_state` to build a grid from a snapshot."""
 
 
+def _grid_field(name: str, doc: str) -> property:
+    """A read-only property: the viewed grid's attribute ``name``."""
+    return property(lambda self: getattr(self._grid, name), doc=doc)
+
+
 class OccupancyView:
     """Read-only access to one occupancy grid (what planners and exports read): the read
     methods and fields of :class:`OccupancyGrid` (same units and conventions: int8 log-odds,
@@ -147,35 +152,13 @@ class OccupancyView:
     def __init__(self, grid: OccupancyGrid) -> None:
         self._grid = grid
 
-    @property
-    def vox(self) -> float:
-        """Voxel size (m)."""
-        return self._grid.vox
-
-    @property
-    def lo(self) -> int:
-        """Clamp lower bound of the values."""
-        return self._grid.lo
-
-    @property
-    def hi(self) -> int:
-        """Clamp upper bound of the values."""
-        return self._grid.hi
-
-    @property
-    def revision(self) -> int:
-        """Grows with every change of values (:attr:`OccupancyGrid.revision`)."""
-        return self._grid.revision
-
-    @property
-    def changes(self) -> ChangeLog:
-        """The voxels written since this view's reader last took them (:class:`ChangeLog`)."""
-        return self._grid.changes
-
-    @property
-    def num_active(self) -> int:
-        """Active voxel count (tiles counted by their voxel volume; a walk over the grid)."""
-        return self._grid.num_active
+    vox = _grid_field("vox", "Voxel size (m).")
+    lo = _grid_field("lo", "Clamp lower bound of the values.")
+    hi = _grid_field("hi", "Clamp upper bound of the values.")
+    revision = _grid_field("revision", "Grows with every change of values (:attr:`OccupancyGrid.revision`).")
+    changes = _grid_field("changes", "The voxels written since this view's reader last took them (:class:`ChangeLog`).")
+    num_active = _grid_field("num_active", "Active voxel count (tiles counted by their voxel volume; a walk "
+                                           "over the grid).")
 
     def query(self, ijk: GridInput) -> torch.Tensor:
         """(N,) int8 values of voxels ``ijk`` (N, 3); 0 where unobserved."""

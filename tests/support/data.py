@@ -57,11 +57,11 @@ def query_map(n_side=14, n_rays=300, seed=0):
     # two strongly matching blobs so that clusters are non-trivial
     feats = torch.from_numpy(p.compress(X[torch.randint(0, 3000, (len(xyz),), generator=g).numpy()]
                                         .astype(np.float32)))
-    m.sem.fuse(xyz, torch.rand((len(xyz), 3), generator=g), feats)
+    m.fuse_samples(xyz, torch.rand((len(xyz), 3), generator=g), feats)
     fk = torch.unique(cell_keys.pack(torch.randint(-50, 50, (n_rays, 3), generator=g)))
     r = fk.numel()
     z = torch.zeros(r, dtype=torch.int64)
-    m.ray_store.load_state({"fkey": fk, "tbin": z, "pbin": z.clone(), "feat": torch.randn((r, p.out_dim), generator=g),
+    m.replace_ray_bins({"fkey": fk, "tbin": z, "pbin": z.clone(), "feat": torch.randn((r, p.out_dim), generator=g),
                             "weight": torch.ones(r),
                             "dsum": torch.nn.functional.normalize(torch.randn((r, 3), generator=g), dim=1)})
     return m, fs, cfg, X

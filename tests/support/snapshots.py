@@ -31,4 +31,4 @@ class ChangingMap:
             self.snap.sync(self.map, step)
             yield step
             _change(self.map, 16, self._g, 28)
-            self.map.sem.remove(self.map.sem.keys[:300].clone())
+            self.map.remove_voxels(self.map.voxel_ijk()[:300])
