@@ -511,12 +511,18 @@ class RayFrontsMap:
 
     # ------------------------------------------------------------------------------------
     def voxels(self) -> VoxelLayer:
+        """The semantic voxels in row order (:class:`VoxelLayer`; centres in m, world frame;
+        copies of the rows)."""
         return VoxelLayer(self.sem.xyz(), self.sem.rgb.clone(), self.sem.feat.clone(), self.sem.count.clone())
 
     def frontiers(self) -> FrontierLayer:
+        """The coarse frontier cells, sorted by packed key (:class:`FrontierLayer`; centres in m,
+        cell size ``cfg.beta``; copies)."""
         return FrontierLayer(self.fronts.centres(), self.fronts.keys.clone(), self.fronts.counts.clone())
 
     def rays(self) -> RayLayer:
+        """The ray bins by (frontier key, angle bin) (:class:`RayLayer`; origins are frontier
+        centres in m, unit directions and angles in world axes; copies)."""
         rs = self.ray_store
         dirs = rs.directions()
         return RayLayer(rs.origins(), dirs, angles_deg(dirs).to(torch.float32), rs.feat,   # fields are copies
@@ -555,6 +561,9 @@ class RayFrontsMap:
                 "frontiers": int(self.fronts.memory_bytes())}
 
     def stats(self) -> dict:
+        """Sizes (``n_voxels``, ``n_frontiers``, ``n_rays``, ``n_occupancy_active``), schedule
+        (``frames``, ``voxel_blocks``, ``ray_blocks``), bytes, feature space and the per-stage
+        ms summed over all frames (``timings_ms_total``). Walks the occupancy grid."""
         return dict(n_voxels=len(self.sem), n_frontiers=len(self.fronts), n_rays=len(self.ray_store),
                     n_occupancy_active=int(self.occupancy.num_active), frames=self.counters["frames"],
                     voxel_blocks=self.counters["voxel_blocks"], ray_blocks=self.counters["ray_blocks"],
