@@ -114,13 +114,13 @@ class Rig:
         self.client = zenoh.open(zenoh_client_config(f"tcp/127.0.0.1:{port}"))
         self.rec = Recorder(self.client) if record else None
 
-        class Snapshots:        # the query server's part a search reads: a snapshot of the map
-            def snapshot(_, timings, flush=False):
+        class QueryCopies:      # the query server's part a search reads: the map's query copy
+            def query_copy(_, timings, flush=False):
                 from semantic_map.query_copy import QueryCopy
 
                 return QueryCopy().take(st.map, st.map_gen)
 
-        self.search = SearchServer(st, Snapshots())
+        self.search = SearchServer(st, QueryCopies())
         for rid in robots:
             st.robots[rid] = RobotState(rid, queue=__import__("collections").deque())
         self.out = RosOutput(st, search=self.search).start()
