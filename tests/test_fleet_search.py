@@ -34,6 +34,8 @@ from common.fleet_messages import (
 from common.messages import VERSION, MessageError
 from common.wire import encode_message
 from common.zenoh_session import free_tcp_port
+from tests.support.console import EventStream, http, matches_openapi, post_json
+from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, cli_cmd, stop_all, wait_for, zenoh_env
 from tests.support.roles import client, edge_args, mapper_args, zenoh_client_config
 
@@ -97,6 +99,9 @@ class Site:
             self.edges[r] = Proc(f"edge-{r}", edge_args(self.ep, pca, robot=r, frames=FRAMES, rate=4.0, extra=[
                 f"source.trajectory_seed={lap}", "publish.linger_s=600"]), tmp)
             self.procs.append(self.edges[r])
+        self.port = free_port()
+        self.procs.append(Proc("console", ["console", "--connect", self.ep, "--http", f"127.0.0.1:{self.port}",
+                                           "--timeout", "60"], tmp))
         world = World.generate(0)
         self.positions = {r: np.asarray(world.trajectory("ground", FRAMES, seed=lap))[-1][:3, 3]
                           for r, lap in LAPS.items()}
@@ -107,6 +112,7 @@ class Site:
                      what="the last frame of both robots mapped")
             wait_for(lambda: c.stats()["text_warm_up_s"], 120, what="text model warm-up")
             c.fleet_search("car", timeout=60)            # the first search embeds the text: not timed
+            wait_for(lambda: http(self.url("/api/config"), timeout=5)[0] == 200, 60, what="console serving")
         except BaseException:
             stop_all(reversed(self.procs))
             raise
@@ -114,6 +120,9 @@ class Site:
     def cli(self, *args: str) -> subprocess.CompletedProcess:
         return subprocess.run(cli_cmd("search", *args, "--connect", self.ep, "--timeout", "60"), env=zenoh_env(),
                               cwd=str(ROOT), capture_output=True, text=True, timeout=120)
+
+    def url(self, path: str) -> str:
+        return f"http://127.0.0.1:{self.port}{path}"
 
     def close(self):
         self.client.close()
@@ -208,6 +217,40 @@ def test_bad_fleet_input_one_line_nothing_else_changes(site):
         s.close()
     with pytest.raises(Exception, match="the fleet is empty|unknown robot"):
         c.fleet_search("car", ["nobody"])
+
+
+@pytest.mark.timeout(300)
+def test_console_fleet_search_http_api_matches_client_and_openapi(site):
+    from openapi_spec_validator import validate
+
+    c = site.client
+    c.wait_settled(timeout=60)                       # a frozen map: the same answer twice
+    direct = c.fleet_search("car", ["r1", "r2"])
+    st, spec = http(site.url("/openapi.json"))
+    assert st == 200
+    validate(spec)
+    st, got = http(site.url("/api/fleet_search?q=car&fleet=r1,r2"))
+    assert st == 200, got
+    matches_openapi(spec, "/api/fleet_search", "get", got)
+    assert tuple(got) == FLEET_JSON_FIELDS and got["goals"] == direct.goals and got["found"] == direct.found
+    assert all(got["goals"][r] is not None for r in LAPS)
+    st, posted = post_json(site.url("/api/fleet_search"), {"q": ["car"], "fleet": ["r1", "r2"]})
+    assert st == 200, posted
+    matches_openapi(spec, "/api/fleet_search", "post", posted)
+    assert posted["goals"] == direct.goals
+    for url, match in (("/api/fleet_search?q=car&fleet=r1,r9", "unknown robot r9 in the fleet"),
+                       ("/api/fleet_search?q=car&fleet=", "--fleet is empty"),
+                       ("/api/fleet_search?q=car&fleet=r1&target_count=0", "target_count must be an integer")):
+        st, err = http(site.url(url))
+        assert st == 400 and set(err) == {"error"} and match in err["error"] and "\n" not in err["error"], (url, err)
+        matches_openapi(spec, "/api/fleet_search", "get", err, st)
+    s = EventStream("127.0.0.1", site.port, "/api/fleet_search/stream?q=car&fleet=r1,r2")
+    try:
+        ev = s.next()
+        matches_openapi(spec, "/api/fleet_search/stream", "get", ev)
+        assert ev["goals"] == direct.goals
+    finally:
+        s.close()
 
 
 @pytest.mark.timeout(400)

@@ -396,7 +396,7 @@ class RosRobots:
         self._pending: set[str] = set()        # robots with an answer thread not yet started on it
         self._pending_lock = threading.Lock()
         self.fleet_sent: Counter = Counter()   # fleet-search goals sent, by robot
-        self._fleet_gates: dict[str, tuple[RosRobotSection, GoalGate]] = {}
+        self._fleet_gates: dict[tuple[str, str], tuple[RosRobotSection, GoalGate]] = {}   # (search id, robot)
 
     # -------------------------------------------------------------- wiring
     def start(self) -> list:
@@ -422,19 +422,24 @@ class RosRobots:
     def fleet_goals(self, rep) -> None:
         """A standing fleet search's answer (``common.fleet_messages.FleetSearchReply``): each
         robot given a goal gets it as a PoseStamped on its goal topic (its ``ros.robots`` entry's,
-        else ``/<id>/goal_pose`` in ``map``), when its :class:`GoalGate` lets it through; the
-        header stamp is the robot's last mapped frame's."""
+        else ``/<id>/goal_pose`` in ``map``), when the :class:`GoalGate` of (search, robot) lets it
+        through (a new fleet search sends its goals anew); the header stamp is the robot's last
+        mapped frame's."""
         from mapper.outputs.ros_markers import header_msg
         from mapper.outputs.ros_search import pose_msg
 
         T = self.out.T
+        live = set(getattr(self.search.fleet, "standing", {})) | {rep.id}
+        for k in [k for k in self._fleet_gates if k[0] not in live]:
+            del self._fleet_gates[k]               # searches that ended
         for rid, g in rep.goals.items():
             if g is None:
                 continue
-            got = self._fleet_gates.get(rid)
+            got = self._fleet_gates.get((rep.id, rid))
             if got is None:
                 conf = self.robots[rid].cfg if rid in self.robots else robot_section(rid, {})
-                got = self._fleet_gates[rid] = (conf, GoalGate(conf.goal_min_move_m, conf.goal_min_turn_deg))
+                got = self._fleet_gates[(rep.id, rid)] = (conf, GoalGate(conf.goal_min_move_m,
+                                                                         conf.goal_min_turn_deg))
             conf, gate = got
             xyz, yaw = np.asarray(g["position"], np.float64), float(g["heading_rad"])
             if not gate.due(xyz, yaw, "fleet"):
