@@ -124,15 +124,15 @@ class FleetSearchReply:
     waiting: list = field(default_factory=list)
     gone: list = field(default_factory=list)
     found: list = field(default_factory=list)
+    events: list = field(default_factory=list)
     candidates: list = field(default_factory=list)
     utility: float = 0.0
     method: str = ""
-    footprint_m: float = 0.0
-    events: list = field(default_factory=list)
     frames_mapped: int = 0
     map_version: int = 0
-    timings_ms: dict = field(default_factory=dict)
+    footprint_m: float = 0.0
     missing_shards: list = field(default_factory=list)
+    timings_ms: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """JSON-ready dict (the reply's fields)."""

@@ -82,6 +82,47 @@ def test_unknown_fleet_field_and_bad_unreachable():
         UnreachableReport([1, 2]).validate()
 
 
+def _goal(x: float, y: float) -> dict:
+    return {"position": [x, y, 1.0], "heading_rad": 0.0, "score": 0.0, "gain_m3": 10.0, "distance_m": 1.0,
+            "target": None, "frontier": [x, y, 1.0], "rays": [], "ray_z": 0.0}
+
+
+def test_shard_merge_keeps_goals_apart_and_names_their_shard():
+    from query_client.fleet_search import merge_fleet_replies
+
+    req = FleetSearchRequest(targets=["car"]).validate()
+    assigned = {"state": "assigned", "position": [0.0, 0.0, 1.0], "unreachable": 0}
+    east = FleetSearchReply(goals={"r1": _goal(10, 0), "r2": _goal(11, 0)}, footprint_m=4.0, method="greedy",
+                            robots={"r1": dict(assigned), "r2": dict(assigned)})
+    west = FleetSearchReply(goals={"r1": _goal(-10, 0), "r2": _goal(-20, 0), "r3": None}, footprint_m=4.0,
+                            robots={"r1": dict(assigned), "r2": dict(assigned),
+                                    "r3": {"state": "waiting", "position": None, "unreachable": 0}})
+    m = merge_fleet_replies([(west, {"shard": "west"}), (east, {"shard": "east"})], req)
+    # shard-name order, east first: r1 keeps east's goal; east's r2 goal lies 1 m from it (closer
+    # than the footprint) and is dropped, so r2 takes west's; west's r1 goal is not used; r3 waits
+    assert m.goals["r1"]["shard"] == "east" and m.goals["r1"]["position"] == [10, 0, 1.0]
+    assert m.goals["r2"]["shard"] == "west" and m.goals["r2"]["position"] == [-20, 0, 1.0]
+    assert m.goals["r3"] is None and m.waiting == ["r3"] and m.robots["r2"]["state"] == "assigned"
+    lone = FleetSearchReply(goals={"r1": _goal(1, 1)})
+    assert merge_fleet_replies([(lone, {})], req) is lone
+
+
+def test_unreachable_store_is_bounded_and_forgets():
+    from mapper.fleet_search import Unreachable
+
+    now = [0.0]
+    u = Unreachable(3, 10.0, clock=lambda: now[0])
+    for i in range(5):
+        u.add("r1", [i, 0, 0])
+    assert u.of("r1") == ((2.0, 0.0, 0.0), (3.0, 0.0, 0.0), (4.0, 0.0, 0.0))      # the oldest forgotten
+    u.add("r2", [9, 9, 9])
+    now[0] = 10.5
+    assert u.of("r1") == () and u.of("r2") == ()                                   # past the TTL
+    u.add("r3", [1, 1, 1])
+    u.keep_only({"r1"})
+    assert u.of("r3") == ()
+
+
 # ----------------------------------------------------------------------------- processes
 class Site:
     """The mapper, the edges and a client; ``positions``: each robot's last camera position."""
