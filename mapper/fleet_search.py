@@ -91,6 +91,11 @@ class Unreachable:
                 self.generation += 1
             return tuple(p for _, p in q)
 
+    def counts(self) -> dict[str, int]:
+        """Positions held per robot (for stats)."""
+        with self._lock:
+            return {r: len(q) for r, q in self._by_robot.items() if q}
+
     def keep_only(self, robots: set[str]) -> None:
         """Forget the robots not in ``robots`` (evicted from the robot table)."""
         with self._lock:
@@ -115,6 +120,12 @@ class FleetSearchServer:
         self._seen: dict[str, tuple] = {}              # sid -> (map_gen, robots, unreachable gen) answered
         self._searched: dict[str, tuple[int, SearchReply, float]] = {}   # sid -> (map_gen, search, when)
         self._lock = threading.RLock()                 # one fleet answer at a time
+
+    def stats(self) -> dict:
+        """``stats["fleet_search"]``: standing fleet searches, answers given, their leases (s
+        left) and the unreachable positions held per robot."""
+        return {"standing": len(self.standing), "answered": self.answered, "leases_s": self.leases.describe(),
+                "unreachable": self.unreachable.counts()}
 
     # ------------------------------------------------------------ the fleet
     def footprint(self, req: FleetSearchRequest) -> float:
@@ -354,6 +365,7 @@ def start_fleet_search(state, search, session, keys) -> tuple[FleetSearchServer,
     """Declare the fleet-search queryables and start its standing thread: ``(server, zenoh
     entities, thread)``."""
     srv = FleetSearchServer(state, search)
+    state.fleet_search = srv
     ents = [session.declare_queryable(keys.mapper_fleet_search, srv.on_fleet_search),
             session.declare_queryable(keys.robot_unreachable_all, srv.on_unreachable)]
     t = threading.Thread(target=srv.standing_loop, name="mapper-fleet-search", daemon=True)

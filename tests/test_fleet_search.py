@@ -324,6 +324,9 @@ def test_standing_unreachable_and_a_robot_leaving_gives_its_goal_to_another(site
                 goal_keys[r].append(sample.payload.to_bytes())
 
     sub = s.declare_subscriber("0/*/goal_pose/**", on_ros)
+    own: list[FleetSearchReply] = []                   # r1's own key: its part of each answer
+    own_sub = s.declare_subscriber("rayfronts/mapper/robots/r1/fleet_goal",
+                                   lambda sample: own.append(decode_fleet_search_reply(sample.payload.to_bytes())))
     h = c.watch_fleet_search("car", on_reply, robots=["r1", "r2"])
     try:
         first = wait_reply(lambda r: all(r.goals.get(x) for x in LAPS), "both robots assigned")
@@ -336,6 +339,9 @@ def test_standing_unreachable_and_a_robot_leaving_gives_its_goal_to_another(site
             assert ps.header.frame_id == "map"
             pos = [ps.pose.position.x, ps.pose.position.y, ps.pose.position.z]
             assert any(np.allclose(pos, x.goals[r]["position"], atol=1e-5) for x in got if x.goals.get(r)), r
+        wait_for(lambda: own, 30, what="r1's fleet_goal")
+        assert set(own[-1].goals) == {"r1"} and own[-1].id == h.id
+        assert any(own[-1].goals["r1"] == x.goals["r1"] for x in got)
         # r1 cannot reach its goal: it gets another, at once, away from that position
         bad = first.goals["r1"]["position"]
         ack = c.report_unreachable("r1", bad, sid=h.id)
@@ -352,7 +358,16 @@ def test_standing_unreachable_and_a_robot_leaving_gives_its_goal_to_another(site
         assert gone.goals["r2"] is None and gone.robots["r2"]["state"] == "gone"
         alone = _allocation(gone, {"r1": [bad]})
         assert list(alone) == ["r1"] and gone.goals["r1"]["position"] == alone["r1"]
+        # r2 joins again (its liveliness; its last pose is still known): both are assigned at once
+        tok = s.liveliness().declare_token("rayfronts/robots/r2/alive")
+        back = wait_reply(lambda r: r.gone == [] and r.goals.get("r2") is not None, "r2 back")
+        _check_distinct(back)
+        assert {r: g["position"] for r, g in back.goals.items()} == _allocation(back, {"r1": [bad]})
+        tok.undeclare()
+        fs = c.stats()["fleet_search"]
+        assert fs["standing"] == 1 and fs["unreachable"] == {"r1": 1} and h.id in fs["leases_s"]
     finally:
         h.cancel()
         sub.undeclare()
+        own_sub.undeclare()
         s.close()

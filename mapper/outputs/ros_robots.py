@@ -397,6 +397,7 @@ class RosRobots:
         self._pending_lock = threading.Lock()
         self.fleet_sent: Counter = Counter()   # fleet-search goals sent, by robot
         self._fleet_gates: dict[tuple[str, str], tuple[RosRobotSection, GoalGate]] = {}   # (search id, robot)
+        self._fleet_lock = threading.Lock()    # fleet answers come from the fleet thread and Zenoh callbacks
 
     # -------------------------------------------------------------- wiring
     def start(self) -> list:
@@ -425,29 +426,32 @@ class RosRobots:
         else ``/<id>/goal_pose`` in ``map``), when the :class:`GoalGate` of (search, robot) lets it
         through (a new fleet search sends its goals anew); the header stamp is the robot's last
         mapped frame's."""
+        with self._fleet_lock:
+            live = set(getattr(self.search.fleet, "standing", {})) | {rep.id}
+            for k in [k for k in self._fleet_gates if k[0] not in live]:
+                del self._fleet_gates[k]           # searches that ended
+            for rid, g in rep.goals.items():
+                if g is not None:
+                    self._fleet_goal(rep.id, rid, g)
+
+    def _fleet_goal(self, sid: str, rid: str, g: dict) -> None:
+        """Robot ``rid``'s goal ``g`` of fleet search ``sid`` on its goal topic, if its gate lets it through."""
         from mapper.outputs.ros_markers import header_msg
         from mapper.outputs.ros_search import pose_msg
 
+        got = self._fleet_gates.get((sid, rid))
+        if got is None:
+            conf = self.robots[rid].cfg if rid in self.robots else robot_section(rid, {})
+            got = self._fleet_gates[(sid, rid)] = (conf, GoalGate(conf.goal_min_move_m, conf.goal_min_turn_deg))
+        conf, gate = got
+        xyz, yaw = np.asarray(g["position"], np.float64), float(g["heading_rad"])
+        if not gate.due(xyz, yaw, "fleet"):
+            return
         T = self.out.T
-        live = set(getattr(self.search.fleet, "standing", {})) | {rep.id}
-        for k in [k for k in self._fleet_gates if k[0] not in live]:
-            del self._fleet_gates[k]               # searches that ended
-        for rid, g in rep.goals.items():
-            if g is None:
-                continue
-            got = self._fleet_gates.get((rep.id, rid))
-            if got is None:
-                conf = self.robots[rid].cfg if rid in self.robots else robot_section(rid, {})
-                got = self._fleet_gates[(rep.id, rid)] = (conf, GoalGate(conf.goal_min_move_m,
-                                                                         conf.goal_min_turn_deg))
-            conf, gate = got
-            xyz, yaw = np.asarray(g["position"], np.float64), float(g["heading_rad"])
-            if not gate.due(xyz, yaw, "fleet"):
-                continue
-            _, stamp = self.position(RobotSearch(rid, conf))
-            self.out._put(conf.goal_topic, POSE_STAMPED, T[POSE_STAMPED](header=header_msg(T, conf.frame_id, stamp),
-                                                                         pose=pose_msg(T, xyz, yaw)))
-            self.fleet_sent[rid] += 1
+        _, stamp = self.position(RobotSearch(rid, conf))
+        self.out._put(conf.goal_topic, POSE_STAMPED, T[POSE_STAMPED](header=header_msg(T, conf.frame_id, stamp),
+                                                                     pose=pose_msg(T, xyz, yaw)))
+        self.fleet_sent[rid] += 1
 
     def robot_of(self, namespace: str) -> RobotSearch:
         """The robot whose namespace is ``namespace``: a configured one, or a robot of the
