@@ -330,7 +330,7 @@ def fleet_table_markdown(rows: list[dict]) -> str:
              "paths m |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         found = "yes" if r["success"] else "no"
-        lines.append(f"| {r['seed']} | {r['policy']} | {r['robots']} | {r['start']} | {found} | {r['steps']} | "
+        lines.append(f"| {r['seed']} | {r['policy']} | {r['robots']} | {r['start_mode']} | {found} | {r['steps']} | "
                      f"{r['path_m']:.0f} | {r['spl']:.2f} | {r['duplicated_coverage']:.2f} | "
                      + ", ".join(f"{p:.0f}" for p in r["paths_m"]) + " |")
     return "\n".join(lines)
@@ -338,7 +338,7 @@ def fleet_table_markdown(rows: list[dict]) -> str:
 
 ROW_FIELDS = ["seed", "episode", "platform", "depth_limit_m", "kind", "target", "policy", "success", "spl", "path_m",
               "shortest_m", "steps", "found", "k", "false_finds", "collided", "cpu_ms_per_step", "search_ms_p50",
-              "robots", "start", "finder", "duplicated_coverage"]
+              "robots", "start_mode", "finder", "duplicated_coverage"]
 
 
 def write_outputs(doc: dict, json_path: str | Path) -> list[Path]:

@@ -391,7 +391,7 @@ def run_fleet_episode(world: World, mission: Mission, policy: str, settings: Loo
     dup, observed = duplicated_coverage(fl.seen)
     paths = [float(r.path_m) for r in fl.runs]
     fpath = paths[names.index(tally.finder)] if tally.finder is not None else 0.0
-    return {"policy": policy, "robots": fleet.robots, "start": fleet.start, "success": bool(success),
+    return {"policy": policy, "robots": fleet.robots, "start_mode": fleet.start, "success": bool(success),
             "spl": spl(success, mission.shortest_m, fpath), "path_m": float(sum(paths)), "paths_m": paths,
             "finder": tally.finder, "finder_path_m": fpath, "shortest_m": mission.shortest_m, "steps": steps,
             "false_finds": int(tally.false_finds), "finds": tally.finds, "found": len(tally.counted),
