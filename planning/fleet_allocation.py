@@ -139,8 +139,8 @@ def _check_fleet(robots: Sequence[RobotSlot], footprint_m: float) -> None:
         raise ValueError(f"allocate_goals: footprint_m must be a finite number ≥ 0 (metres), got {footprint_m!r}")
 
 
-def _utilities(robots: Sequence[RobotSlot], candidates: Sequence[Goal], path_m, value, tol: float
-               ) -> tuple[np.ndarray, np.ndarray]:
+def _utilities(robots: Sequence[RobotSlot], candidates: Sequence[Goal], path_m, value, tol: float,
+               eligible=None) -> tuple[np.ndarray, np.ndarray]:
     """(N, M) utility and path length per robot and candidate; -inf utility = not allowed."""
     pos = np.stack([_finite_xyz(g.position, f"candidate {i} position") for i, g in enumerate(candidates)]) \
         if candidates else np.zeros((0, 3))
@@ -154,7 +154,7 @@ def _utilities(robots: Sequence[RobotSlot], candidates: Sequence[Goal], path_m, 
             u = np.asarray(r.unreachable, np.float64).reshape(-1, 3)
             bad = (np.linalg.norm(pos[:, None, :] - u[None], axis=2) <= tol).any(1)
         for j in range(len(candidates)):
-            if bad[j]:
+            if bad[j] or (eligible is not None and not eligible(r.robot, candidates[j])):
                 continue
             p = float(np.linalg.norm(pos[j] - at)) if path_m is None else path_m(r.robot, pos[j].copy())
             if p is None or not math.isfinite(p):
@@ -215,19 +215,21 @@ def _brute_force(util: np.ndarray, conflict: np.ndarray, max_combinations: int) 
 def allocate_goals(robots: Sequence[RobotSlot], candidates: Sequence[Goal], *, footprint_m: float,
                    path_m: Callable[[str, np.ndarray], float | None] | None = None,
                    value: Callable[[Goal], float] | None = None, method: str = "greedy",
+                   eligible: Callable[[str, Goal], bool] | None = None,
                    unreachable_tol_m: float = 0.5, found: Sequence[FoundInstance] = (),
                    target_count: int | Mapping[str, int] = 1, max_combinations: int = 2_000_000) -> Assignment:
     """Give each robot of ``robots`` at most one of ``candidates`` (module docstring: objective,
     constraints, methods). ``path_m(robot, position)``: that robot's path length (m) to a
     viewpoint (None / inf: unreachable; default the straight line); ``value``: what a goal is
-    worth (default :func:`goal_value`); ``found`` / ``target_count``: instances already
+    worth (default :func:`goal_value`); ``eligible(robot, goal)``: whether that robot may be
+    given that goal at all (default: every robot every goal); ``found`` / ``target_count``: instances already
     confirmed, applied with :func:`discount_found` first. Raises ``ValueError`` (one line) on
     an empty fleet, repeated robot ids, a non-finite position or an unknown method."""
     _check_fleet(robots, footprint_m)
     if method not in METHODS:
         raise ValueError(f"allocate_goals: method must be one of {', '.join(METHODS)}, not {method!r}")
     cands = discount_found(candidates, found, target_count=target_count) if found else list(candidates)
-    util, paths = _utilities(robots, cands, path_m, value or goal_value, float(unreachable_tol_m))
+    util, paths = _utilities(robots, cands, path_m, value or goal_value, float(unreachable_tol_m), eligible)
     conflict = _conflicts(cands, float(footprint_m))
     pick = _greedy(util, conflict) if method == "greedy" else _brute_force(util, conflict, max_combinations)
     goals: dict[str, Goal | None] = {}
