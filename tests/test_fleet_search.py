@@ -34,7 +34,8 @@ from common.fleet_messages import (
 from common.messages import VERSION, MessageError
 from common.wire import encode_message
 from common.zenoh_session import free_tcp_port
-from tests.support.console import EventStream, http, matches_openapi, post_json
+from tests.support.browser import module_browser
+from tests.support.console import EventStream, click, http, matches_openapi, post_json, wait_page
 from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, cli_cmd, stop_all, wait_for, zenoh_env
 from tests.support.roles import client, edge_args, mapper_args, zenoh_client_config
@@ -42,6 +43,7 @@ from tests.support.roles import client, edge_args, mapper_args, zenoh_client_con
 FRAMES = 12
 LAPS = {"r1": 1, "r2": 2}            # robot -> trajectory_seed (town seed 0)
 FOOTPRINT = 4.0
+browser = module_browser()
 
 
 # ----------------------------------------------------------------------------- schemas
@@ -292,6 +294,29 @@ def test_console_fleet_search_http_api_matches_client_and_openapi(site):
         assert ev["goals"] == direct.goals
     finally:
         s.close()
+
+
+@pytest.mark.timeout(300)
+def test_console_page_shows_each_robots_goal(site, browser):
+    """The page in real headless chromium: targets and a fleet typed, Search clicked; its fleet
+    rows are the API's answer (robots, states, goals to 2 decimals, paths to 1)."""
+    site.client.wait_settled(timeout=60)
+    st, api = http(site.url("/api/fleet_search?q=car&fleet=r1,r2"))
+    assert st == 200 and all(api["goals"][r] for r in LAPS), api
+    browser.navigate(site.url("/"))
+    wait_page(browser, "document.readyState === 'complete' && !!document.getElementById('fleet')", 30, "the page")
+    for field, text in (("q", "car"), ("fleet", "r1,r2")):
+        browser.evaluate(f"document.getElementById('{field}').value = ''; document.getElementById('{field}').focus()")
+        browser.call("Input.insertText", text=text)
+    click(browser, "search")
+    rows_js = "[...document.querySelectorAll('#fleet_goals tr')].map(r => [...r.cells].map(c => c.textContent))"
+    rows = wait_page(browser, rows_js + ".length && " + rows_js, 60, "fleet goals")
+    want = [[r, api["robots"][r]["state"], ", ".join(f"{v:.2f}" for v in api["goals"][r]["position"]),
+             f"{api['goals'][r]['distance_m']:.1f}"] for r in sorted(api["goals"])]
+    assert rows == want
+    n_found = browser.evaluate("document.querySelectorAll('#instances tr').length")
+    assert n_found == len(api["found"]) and "2 robots assigned" in browser.evaluate(
+        "document.getElementById('status').textContent")
 
 
 @pytest.mark.timeout(400)
