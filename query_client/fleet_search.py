@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import uuid
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -181,7 +181,30 @@ class FleetCalls:
             goals.update(a["goals"])
         return {"robot": robot, "held": max(int(a["held"]) for a, _ in got), "goals": goals}
 
+    def watch_fleet_goal(self, callback: Callable[[FleetSearchReply], None], robot: str | None = None):
+        """A robot's own goal in every standing fleet search: ``callback(FleetSearchReply)`` (its
+        ``goals`` and ``robots`` hold that robot only; ``id`` names the fleet search) on each answer,
+        from ``<p>/mapper/robots/<robot>/fleet_goal``, which a ``robot-<id>`` certificate may read.
+        ``robot``: default the client's own (``Client(robot=...)``). Returns the Zenoh subscriber
+        (``undeclare()`` stops it)."""
+        import logging
+
+        rid = robot or self.robot
+        if not rid:
+            raise self._query_error("watch_fleet_goal needs a robot id (Client(robot=...) or robot=...)")
+        key = self.keys.robot_fleet_goal(rid)
+
+        def on_sample(sample) -> None:
+            try:
+                callback(decode_fleet_search_reply(sample.payload.to_bytes()))
+            except Exception as e:  # never raise out of a Zenoh callback
+                logging.getLogger("rayfronts.client").warning("fleet goal of %s: %s", rid, e)
+
+        return self.session.declare_subscriber(key, on_sample)
+
     # what the Client provides (query_client.client / query_client.search)
+    robot: str | None
+    session: Any
     lease_s: float
     client_id: str
     keys: KeySpace

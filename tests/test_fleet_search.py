@@ -350,8 +350,7 @@ def test_standing_unreachable_and_a_robot_leaving_gives_its_goal_to_another(site
 
     sub = s.declare_subscriber("0/*/goal_pose/**", on_ros)
     own: list[FleetSearchReply] = []                   # r1's own key: its part of each answer
-    own_sub = s.declare_subscriber("rayfronts/mapper/robots/r1/fleet_goal",
-                                   lambda sample: own.append(decode_fleet_search_reply(sample.payload.to_bytes())))
+    own_sub = c.watch_fleet_goal(own.append, robot="r1")
     h = c.watch_fleet_search("car", on_reply, robots=["r1", "r2"])
     try:
         first = wait_reply(lambda r: all(r.goals.get(x) for x in LAPS), "both robots assigned")
