@@ -62,6 +62,10 @@ def goal_of(d: dict) -> Goal:
                 rays=np.asarray(d.get("rays", []), np.float32).reshape(-1, 3), ray_z=float(d.get("ray_z", 0.0)))
 
 
+def _xyz(v) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
+
+
 class Unreachable:
     """Positions each robot reported unreachable: at most ``max_per_robot`` per robot (oldest
     forgotten), each for ``ttl_s`` seconds (monotonic clock); ``generation`` bumps on a change."""
@@ -76,7 +80,7 @@ class Unreachable:
         """Remember ``xyz`` for ``robot``; how many it holds now."""
         with self._lock:
             q = self._by_robot.setdefault(robot, collections.deque(maxlen=self.max))
-            q.append((self.clock() + self.ttl_s, tuple(float(v) for v in xyz)))
+            q.append((self.clock() + self.ttl_s, _xyz(xyz)))
             self.generation += 1
             return len(q)
 
@@ -198,13 +202,12 @@ class FleetSearchServer:
             rep = self._search(req, flush, reuse)
             t = time.perf_counter()
             fp = self.footprint(req)
-            slots = [RobotSlot(n, tuple(info[n]["position"]), self.unreachable.of(n))  # type: ignore[arg-type]
+            slots = [RobotSlot(n, _xyz(info[n]["position"]), self.unreachable.of(n))
                      for n in names if info[n]["state"] == "present"]
             goals: dict[str, dict | None] = {n: None for n in names}
             utility, method = 0.0, "greedy"
             if slots:
-                found = [FoundInstance(str(f["target"]), tuple(float(v) for v in f["centroid"]))  # type: ignore[arg-type]
-                         for f in rep.found]
+                found = [FoundInstance(str(f["target"]), _xyz(f["centroid"])) for f in rep.found]
                 a = allocate_goals(slots, [goal_of(d) for d in rep.look_next], footprint_m=fp,
                                    unreachable_tol_m=float(s.cfg.search.fleet_unreachable_tol_m), found=found,
                                    target_count=req.target_count)
