@@ -30,6 +30,10 @@ experiments can share one Zenoh network::
                                        onboard planner; the ACL lets a robot ask only its own)
     <p>/mapper/robots/<robot>/occupancy        the same for occupancy
     <p>/mapper/robots/<robot>/searches/<id>    results of a standing search robot <robot> registered
+    <p>/mapper/fleet_search            mapper queryable: one search for several robots (goals shared out)
+    <p>/mapper/fleet_searches/<id>     mapper publishes results of a standing fleet search
+    <p>/mapper/robots/<robot>/unreachable  mapper queryable: robot <robot> reports a goal unreachable
+    <p>/mapper/robots/<robot>/fleet_goal   mapper publishes robot <robot>'s goal of standing fleet searches
 
 Robot ids, query ids and layer names are single key chunks: ``[A-Za-z0-9_-]{1,64}``
 (no ``/``, no Zenoh wildcards ``*``/``$``, no ``?#`` which Zenoh reserves).
@@ -228,6 +232,29 @@ class KeySpace:
     def robot_searches(self, robot: str, sid: str) -> str:
         """Where the mapper publishes standing search ``sid`` that robot ``robot`` registered."""
         return f"{self.prefix}/mapper/robots/{check_id(robot)}/searches/{check_id(sid, 'search id')}"
+
+    # ------------------------------------------------------------ fleet search
+    @property
+    def mapper_fleet_search(self) -> str:
+        """Mapper queryable: one search for several robots (``common.fleet_messages``)."""
+        return f"{self.prefix}/mapper/fleet_search"
+
+    def mapper_fleet_searches(self, sid: str) -> str:
+        """Where the mapper publishes a standing fleet search's replies."""
+        return f"{self.prefix}/mapper/fleet_searches/{check_id(sid, 'fleet search id')}"
+
+    def robot_unreachable(self, robot: str) -> str:
+        """``<p>/mapper/robots/<robot>/unreachable``: robot ``robot`` reports a goal it cannot reach."""
+        return f"{self.prefix}/mapper/robots/{check_id(robot)}/unreachable"
+
+    @property
+    def robot_unreachable_all(self) -> str:
+        return f"{self.prefix}/mapper/robots/*/unreachable"
+
+    def robot_fleet_goal(self, robot: str) -> str:
+        """``<p>/mapper/robots/<robot>/fleet_goal``: robot ``robot``'s goal in each standing fleet
+        search (a ``rayfronts.fleet_search_reply`` holding that robot only)."""
+        return f"{self.prefix}/mapper/robots/{check_id(robot)}/fleet_goal"
 
     def asker_from_key(self, key: object) -> str | None:
         """Robot id of a ``<p>/mapper/robots/<robot>/<leaf>`` key (a robot-scoped planner

@@ -39,7 +39,7 @@ OCC_KINDS = ("box", "slice", "points")
 
 SEARCH_REQUEST_LIMITS = WireLimits(max_message_bytes=4 << 20, max_header_bytes=1 << 20, max_container_len=4096,
                                    max_nesting=5, max_containers=1024, max_str_bytes=64 << 10)
-_REQUEST_FIELDS = {"targets", "embeddings", "background", "area", "box", "z_band", "threshold", "max_instances",
+REQUEST_FIELDS = {"targets", "embeddings", "background", "area", "box", "z_band", "threshold", "max_instances",
                    "max_goals", "from_xyz", "standing", "cancel", "id", "lease_s", "renew", "client", "owner"}
 _OCC_FIELDS = {"kind", "box_min", "box_max", "z_band", "points", "stride", "radius"}
 
@@ -173,25 +173,36 @@ class SearchRequest:
         return self.area
 
 
-def encode_search_request(req: SearchRequest) -> bytes:
+def request_body(req: SearchRequest, fields: set[str]) -> dict[str, Any]:
+    """The wire body of a validated search request (or a subclass's, with its ``fields``)."""
     req.validate()
-    body: dict[str, Any] = {k: getattr(req, k) for k in _REQUEST_FIELDS if k != "embeddings"}
+    body: dict[str, Any] = {k: getattr(req, k) for k in fields if k != "embeddings"}
     body = {k: v for k, v in body.items() if v is not None}
     if req.embeddings is not None:
         body["embeddings"] = np.ascontiguousarray(req.embeddings, np.float32)
-    return encode_message(SCHEMA_SEARCH_REQUEST, VERSION, body)
+    return body
 
 
-def decode_search_request(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> SearchRequest:
-    body = _decode(data, SCHEMA_SEARCH_REQUEST, limits or SEARCH_REQUEST_LIMITS)
-    unknown = set(body) - _REQUEST_FIELDS
+def request_fields(data: bytes | bytearray | memoryview, schema: str, fields: set[str],
+                   limits: WireLimits | None = None) -> dict[str, Any]:
+    """The keyword arguments of a search request (or a subclass's) read from the wire: unknown
+    fields and a non-array ``embeddings`` are one-line :class:`MessageError`."""
+    body = _decode(data, schema, limits or SEARCH_REQUEST_LIMITS)
+    unknown = set(body) - fields
     if unknown:
-        raise MessageError(f"{SCHEMA_SEARCH_REQUEST}: unknown fields {sorted(unknown)}")
+        raise MessageError(f"{schema}: unknown fields {sorted(unknown)}")
     emb = body.get("embeddings")
     if emb is not None and not isinstance(emb, np.ndarray):
         raise MessageError("embeddings must be a float32 array")
-    kw = {k: body[k] for k in _REQUEST_FIELDS if k in body}
-    return SearchRequest(**kw).validate()
+    return {k: body[k] for k in fields if k in body}
+
+
+def encode_search_request(req: SearchRequest) -> bytes:
+    return encode_message(SCHEMA_SEARCH_REQUEST, VERSION, request_body(req, REQUEST_FIELDS))
+
+
+def decode_search_request(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> SearchRequest:
+    return SearchRequest(**request_fields(data, SCHEMA_SEARCH_REQUEST, REQUEST_FIELDS, limits)).validate()
 
 
 @dataclass

@@ -226,6 +226,7 @@ class QueryServer:
                        "instance_id_reserve_errors": state.trackers.reserve_errors,
                        "leases_s": state.search_leases.describe()},
             "query_leases_s": state.query_leases.describe(),
+            "fleet_search": state.fleet_search.stats() if state.fleet_search is not None else {},
             "request_errors": dict(REQUEST_ERRORS),
             "first_mapped_at": state.first_mapped_at, "last_mapped_at": state.last_mapped_at,
             # process CPU (all threads) from the first to the last integration, and in total

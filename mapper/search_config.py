@@ -44,6 +44,14 @@ class SearchSection:
     max_standing: int = field_(64, "standing searches held at once (all clients); one more is refused")
     max_standing_per_client: int = field_(8, "standing searches one client (request 'client', or the robot of "
                                              "a robot-scoped search) may hold at once")
+    fleet_footprint_m: float = field_(0.0, "a fleet search keeps its robots' goal viewpoints at least this far apart "
+                                           "(no two robots sent to one frontier region); 0 = twice "
+                                           "search.sensing_radius_m (the sensed spheres do not overlap)")
+    fleet_unreachable_tol_m: float = field_(1.0, "a robot that reported a position unreachable gets no fleet goal "
+                                                 "within this distance of it")
+    fleet_unreachable_max: int = field_(32, "unreachable positions kept per robot (the oldest is forgotten)")
+    fleet_unreachable_ttl_s: float = field_(600.0, "an unreachable position is forgotten after this long (s): the "
+                                                   "map, and the way there, change")
     warm_up: bool = field_(True, "load the text model and embed the background phrases in the background as soon "
                                  "as the map's feature space is known, so the first search is as fast as the next")
 
@@ -56,7 +64,11 @@ class SearchSection:
             raise ConfigError(f"search.identity_threshold={self.identity_threshold}: must be a probability in (0, 1)")
         if self.instance_grace < 0:
             raise ConfigError(f"search.instance_grace={self.instance_grace}: must be >= 0 (map updates)")
-        for k in ("lease_s", "max_standing", "max_standing_per_client"):
+        for k in ("fleet_footprint_m", "fleet_unreachable_tol_m"):
+            if not getattr(self, k) >= 0.0:
+                raise ConfigError(f"search.{k}={getattr(self, k)}: must be >= 0 (metres)")
+        for k in ("lease_s", "max_standing", "max_standing_per_client", "fleet_unreachable_max",
+                  "fleet_unreachable_ttl_s"):
             if not getattr(self, k) > 0:
                 raise ConfigError(f"search.{k}={getattr(self, k)}: must be > 0")
         return self

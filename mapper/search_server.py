@@ -55,6 +55,7 @@ class SearchServer:
         self.standing: dict[str, SearchRequest] = state.standing_searches
         self._last_gen: dict[str, int] = {}
         self.half_angle_deg: float | None = None     # the search volume's cone half-angle, for the shard info
+        self.fleet = None                  # mapper.fleet_search.FleetSearchServer (set by the service)
 
     def _read_map(self, fn):
         """``fn(map)`` under the map lock (None when the lock stays busy past the timeout)."""

@@ -22,6 +22,8 @@ entities, threads, close); each job is its own module over one shared
     mapper/searches/<id> put       SearchServer.standing_loop           mapper-search
     mapper/robots/*/search, occupancy  SearchServer.on_robot_search / on_occupancy   Zenoh callbacks
     mapper/robots/<r>/searches/<id> put  SearchServer.standing_loop     mapper-search
+    mapper/fleet_search, robots/*/unreachable  FleetSearchServer.on_fleet_search / on_unreachable (fleet_search)
+    mapper/fleet_searches/<id>, robots/<r>/fleet_goal put  FleetSearchServer.standing_loop  mapper-fleet-search
     mapper/layers/* put + get      LayerPublisher        (outputs.layers)
     mapper/robots/<r>/status put   RobotsJob.loop            (robots_job)    mapper-fleet
     mapper/robots/*/world_from_robot queryable  RobotsJob.on_transform      Zenoh callback
@@ -157,6 +159,11 @@ class MapperService:
 
             self.search, ents, t = start_search_server(self.state, self.queries, session, keys)
             self._entities[-1:-1] = ents          # before the liveliness token
+            self._threads.append(t)
+            from mapper.fleet_search import start_fleet_search
+
+            self.search.fleet, ents, t = start_fleet_search(self.state, self.search, session, keys)
+            self._entities[-1:-1] = ents
             self._threads.append(t)
         except Exception:
             self.close()

@@ -180,6 +180,7 @@ class MapperState:
         self.flush_asked = 0                   # tickets handed out (under flush_cv)
         self.flush_served = 0                  # tickets the map worker has served (under flush_cv)
         self.fleet = None                      # mapper.robots_job.RobotsJob (set by the service)
+        self.fleet_search = None               # mapper.fleet_search.FleetSearchServer (set by the service)
         self._overflow: RobotState | None = None   # stands in for ids over fleet.max_robots
 
     @property

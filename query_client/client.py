@@ -31,6 +31,7 @@ from common.messages import (
     encode_query_request,
     encode_snapshot_request,
 )
+from query_client.fleet_search import FleetCalls
 from query_client.search import PlannerCalls
 from query_client.standing import ShardLatest, StandingHandle
 
@@ -97,7 +98,7 @@ class WatchHandle(StandingHandle):
                          encode_query_request(QueryRequest(cancel=True, id=qid)), "standing query")
 
 
-class Client(PlannerCalls):
+class Client(PlannerCalls, FleetCalls):
     """A Zenoh client of the mapper. ``zenoh_cfg`` (a ``ZenohConfig``) or ``connect``
     (endpoint string or list) say where the router is; ``prefix`` the key space.
 

@@ -12,7 +12,8 @@ beyond the mapped range. Scores are softmax probabilities over targets + backgro
 
   rayfronts search car --json
   rayfronts search car bench --area 0,0,40,40 --z-band 0,3 --from 1,2,1.5
-  rayfronts search "street lamp" --background road building --threshold 0.6 --watch"""
+  rayfronts search "street lamp" --background road building --threshold 0.6 --watch
+  rayfronts search car --fleet r1,r2,r3 --json      (one goal per robot, shared found list)"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,8 +27,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--z-band", default=None, metavar="z0,z1", help="height band (m)")
     parser.add_argument("--threshold", type=float, default=0.5, help="probability a voxel needs, in (0, 1)")
     parser.add_argument("--max-instances", type=int, default=10, help="instances reported (default 10)")
-    parser.add_argument("--max-goals", type=int, default=5, help="look-next goals reported (default 5)")
+    parser.add_argument("--max-goals", type=int, default=None,
+                        help="look-next goals reported (default 5); with --fleet the candidates shared out "
+                             "(default 20)")
     parser.add_argument("--from", dest="from_xyz", default=None, metavar="x,y,z", help="the robot's position")
+    parser.add_argument("--fleet", default=None, metavar="r1,r2,...",
+                        help="fleet search: one goal per robot (distinct regions), shared found list; robot ids, "
+                             "or 'all' for every robot present (docs/fleet.md)")
+    parser.add_argument("--target-count", type=int, default=1,
+                        help="with --fleet: instances of each target after which the others stop being sent "
+                             "toward it (default 1)")
+    parser.add_argument("--footprint", type=float, default=0.0, metavar="M",
+                        help="with --fleet: least distance between two robots' goals, m (default: the mapper's "
+                             "search.fleet_footprint_m)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--watch", action="store_true", help="standing search: print each refresh until Ctrl-C")
     parser.add_argument("--timeout", type=float, default=20.0, help="seconds to wait for the mapper (default 20)")
@@ -40,11 +52,18 @@ def search_kwargs(args: argparse.Namespace) -> dict:
     from common.config import ConfigError
     from query_client.vocabulary import search_fields
 
-    kw = search_fields(args.targets, background=args.background, threshold=args.threshold,
-                       max_instances=args.max_instances, max_goals=args.max_goals, area=args.area,
-                       z_band=args.z_band, from_xyz=args.from_xyz)
     if args.timeout <= 0:
         raise ConfigError(f"--timeout must be > 0 seconds (got {args.timeout})")
+    if args.fleet is not None:
+        from query_client.vocabulary import fleet_fields
+
+        return fleet_fields(args.fleet, args.targets, target_count=args.target_count, footprint_m=args.footprint,
+                            from_xyz=args.from_xyz, max_goals=args.max_goals, background=args.background,
+                            threshold=args.threshold, max_instances=args.max_instances, area=args.area,
+                            z_band=args.z_band)
+    kw = search_fields(args.targets, background=args.background, threshold=args.threshold,
+                       max_instances=args.max_instances, max_goals=5 if args.max_goals is None else args.max_goals,
+                       area=args.area, z_band=args.z_band, from_xyz=args.from_xyz)
     return kw
 
 
@@ -73,6 +92,28 @@ def format_reply(r) -> str:
     return "\n".join(lines)
 
 
+def format_fleet_reply(r) -> str:
+    """Human-readable summary of a :class:`common.fleet_messages.FleetSearchReply`."""
+    lines = [f"fleet search ({r.frames_mapped} frames mapped, map version {r.map_version}, "
+             f"{r.timings_ms.get('total', 0.0):.0f} ms, {r.method}, footprint {r.footprint_m:.1f} m, "
+             f"{len(r.candidates)} candidates)"]
+    for robot in sorted(r.goals):
+        info, g = r.robots.get(robot, {}), r.goals[robot]
+        if g is None:
+            lines.append(f"  {robot:<12s} {info.get('state', '?')}")
+            continue
+        p = g["position"]
+        lines.append(f"  {robot:<12s} goal ({p[0]:7.2f}, {p[1]:7.2f}, {p[2]:5.2f}) heading {g['heading_rad']:+.2f} "
+                     f"rad  score {g['score']:.3f}  gain {g['gain_m3']:.1f} m³  {g['distance_m']:.1f} m  "
+                     f"{g['target'] or '-'}")
+    lines.append(f"  found (shared): {len(r.found)}")
+    for i in r.found:
+        c = i["centroid"]
+        lines.append(f"    #{i['id']!s:<4} {i['target']:<16s} p={i['confidence']:.3f} ({c[0]:7.2f}, {c[1]:7.2f}, "
+                     f"{c[2]:5.2f})")
+    return "\n".join(lines)
+
+
 def run(args: argparse.Namespace) -> int:
     from query_client.cli import with_client
 
@@ -84,6 +125,8 @@ def _search(args: argparse.Namespace, client, kw: dict) -> int:
     from query_client.cli import warn_missing, watch_until_signal
     from query_client.vocabulary import search_reply_text
 
+    if args.fleet is not None:
+        return _fleet(args, client, kw)
     if args.watch:
         def show(r) -> None:
             warn_missing(r, "search")
@@ -94,4 +137,19 @@ def _search(args: argparse.Namespace, client, kw: dict) -> int:
     r = client.search(args.targets, timeout=args.timeout, **kw)
     warn_missing(r, "search")
     print(search_reply_text(r) if args.json else format_reply(r))
+    return 0
+
+
+def _fleet(args: argparse.Namespace, client, kw: dict) -> int:
+    from query_client.cli import warn_missing, watch_until_signal
+    from query_client.vocabulary import fleet_reply_text
+
+    def show(r) -> None:
+        warn_missing(r, "search")
+        print(fleet_reply_text(r) if args.json else format_fleet_reply(r) + ("\n" if args.watch else ""), flush=True)
+
+    if args.watch:
+        watch_until_signal(lambda: client.watch_fleet_search(args.targets, show, timeout=args.timeout, **kw))
+        return 0
+    show(client.fleet_search(args.targets, timeout=args.timeout, **kw))
     return 0

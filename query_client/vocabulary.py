@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 from common.config import ConfigError
 
 if TYPE_CHECKING:
+    from common.fleet_messages import FleetSearchReply
     from common.search_messages import SearchReply
 
 #: the fields of a search reply's JSON object (``rayfronts search --json``, the console's /api/search)
@@ -72,6 +73,46 @@ def search_fields(targets: Sequence[str], *, background: Sequence[str] | None = 
     return kw
 
 
+def fleet_robots(text: str | Sequence[str]) -> list[str]:
+    """The robots of ``--fleet``: comma-separated ids ("all" = every robot present on the
+    mapper: returned as []); an empty fleet or a bad id is a one-line ``ConfigError``."""
+    from common.keys import InvalidKey, check_id
+
+    items = [t.strip() for t in (text.split(",") if isinstance(text, str) else list(text))]
+    items = [t for t in items if t]
+    if not items:
+        raise ConfigError("--fleet is empty: name the robots (--fleet r1,r2,r3) or say --fleet all")
+    if items == ["all"]:
+        return []
+    try:
+        return [check_id(t, "robot id in --fleet") for t in items]
+    except InvalidKey as e:
+        raise ConfigError(str(e)) from None
+
+
+def fleet_fields(robots: str | Sequence[str], targets: Sequence[str], *, target_count: int = 1,
+                 footprint_m: float = 0.0, from_xyz: str | Sequence[float] | None = None,
+                 max_goals: int | None = None, **search: Any) -> dict[str, Any]:
+    """``Client.fleet_search`` / ``Client.watch_fleet_search`` keywords (besides ``targets``):
+    :func:`search_fields`' (``search``: background, threshold, max_instances, area, z_band)
+    plus ``robots`` (:func:`fleet_robots`), ``target_count``, ``footprint_m`` and ``max_goals``
+    (look-next candidates, None = 20); ``from_xyz`` is refused (each robot's own position is used)."""
+    from common.fleet_messages import DEFAULT_CANDIDATES
+    from common.messages import MessageError
+    from query_client.fleet_search import FleetCalls
+
+    if from_xyz is not None and _given(from_xyz):
+        raise ConfigError("--from has no meaning with --fleet: each robot's own position is used")
+    kw = search_fields(targets, **search)
+    kw.update(robots=fleet_robots(robots), target_count=target_count, footprint_m=footprint_m,
+              max_goals=DEFAULT_CANDIDATES if max_goals is None else max_goals)
+    try:
+        FleetCalls.fleet_search_request(list(targets), **kw)
+    except MessageError as e:
+        raise ConfigError(str(e)) from None
+    return kw
+
+
 def query_fields(text: str | None, image: str | None = None, top_k: int = 5, *,
                  example: str = ', e.g. rayfronts query "water tower"') -> dict[str, Any]:
     """``Client.query`` / ``Client.watch`` keywords from plain fields: a query ``text`` or an
@@ -96,6 +137,17 @@ def search_reply_json(r: SearchReply) -> dict[str, Any]:
 def search_reply_text(r: SearchReply) -> str:
     """:func:`search_reply_json` as one line of JSON text."""
     return json.dumps(search_reply_json(r))
+
+
+def fleet_reply_json(r: FleetSearchReply) -> dict[str, Any]:
+    """A ``FleetSearchReply`` as the JSON object ``rayfronts search --fleet ... --json`` prints
+    (plain types; fields ``common.fleet_messages.FLEET_JSON_FIELDS``)."""
+    return r.to_dict()
+
+
+def fleet_reply_text(r: FleetSearchReply) -> str:
+    """:func:`fleet_reply_json` as one line of JSON text."""
+    return json.dumps(fleet_reply_json(r))
 
 
 def settled(stats: dict, mapped: int = 1, received: int = 0) -> bool:

@@ -16,7 +16,7 @@ import urllib.parse
 import numpy as np
 import pytest
 
-from tests.support.console import EventStream, http, multipart, post_json, raw_post
+from tests.support.console import EventStream, http, matches_openapi, multipart, post_json, raw_post
 from tests.support.ports import free_port
 from tests.support.processes import ROOT, Proc, cli_cmd, proc_env, stop_all, wait_for, wait_log
 from tests.support.roles import client
@@ -145,16 +145,6 @@ def test_every_endpoint_matches_the_client(console_world):
         assert st == 200 and desc == c.snapshot()
 
 
-def _matches(spec: dict, path: str, method: str, reply, status: int = 200) -> None:
-    """``reply`` validates against the schema the OpenAPI document gives for ``method path`` and ``status``."""
-    from jsonschema import Draft202012Validator
-
-    schema = spec["paths"][path][method]["responses"][str(status)]["content"]["application/json"]["schema"]
-    assert "$ref" in schema, (path, method, status, schema)
-    errors = list(Draft202012Validator({**schema, "components": spec["components"]}).iter_errors(reply))
-    assert not errors, (path, method, status, [e.message for e in errors[:3]])
-
-
 def test_openapi_and_pages_are_complete_and_local(console_world):
     from openapi_spec_validator import validate
 
@@ -180,19 +170,19 @@ def test_openapi_and_pages_are_complete_and_local(console_world):
     for url in gets:
         st, reply = http(w.url(url))
         assert st == 200, (url, reply)
-        _matches(spec, url.split("?")[0], "get", reply)
+        matches_openapi(spec, url.split("?")[0], "get", reply)
     st, found = http(w.url("/api/search?q=vehicle"))
     assert found["found"] and found["look_next"], "something to check: instances and goals"
     for path, obj in (("/api/query", {"q": "vehicle", "top_k": 2}), ("/api/search", {"q": ["vehicle"]}),
                       ("/api/occupancy/points", {"points": [[0, 0, 1]], "radius": 2.0})):
         st, reply = post_json(w.url(path), obj)
         assert st == 200, (path, reply)
-        _matches(spec, path, "post", reply)
+        matches_openapi(spec, path, "post", reply)
     st, err = http(w.url("/api/search?q=vehicle&threshold=2"))
-    _matches(spec, "/api/search", "get", err, st)
+    matches_openapi(spec, "/api/search", "get", err, st)
     s = EventStream("127.0.0.1", w.port, "/api/search/stream?q=vehicle")
     try:
-        _matches(spec, "/api/search/stream", "get", s.next())
+        matches_openapi(spec, "/api/search/stream", "get", s.next())
     finally:
         s.close()
     want = {("get", "/api/query"), ("post", "/api/query"), ("get", "/api/search"), ("post", "/api/search"),

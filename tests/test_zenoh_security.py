@@ -102,6 +102,8 @@ def test_access_control(closer, certs):
     mapper.cmd("sub", name="mapper_ns", key="rayfronts/mapper/**")
     mapper.cmd("lsub", name="alive", key=K.alive_all)
     mapper.cmd("queryable", key=K.mapper_query, reply="answer")
+    mapper.cmd("queryable", key=K.mapper_fleet_search, reply="fleet")
+    mapper.cmd("queryable", key=K.robot_unreachable_all, reply="unreachable")
     mapper.cmd("token", key=K.mapper_alive)
     r1.cmd("queryable", key=K.feature_space("r1"), reply="fs-r1")
     r1.cmd("token", key=K.alive("r1"))
@@ -151,6 +153,12 @@ def test_access_control(closer, certs):
     assert op.cmd("get", key=K.feature_space("r1"), timeout=2.0)["replies"] == []
     assert op.cmd("get", key=K.stats, timeout=2.0)["replies"] == []
     assert r1.cmd("get", key=K.mapper_query, timeout=2.0)["replies"] == []  # robots cannot query the mapper
+    # fleet search: the operators ask it, a robot may not; a robot reports its own unreachable goals only
+    assert op.cmd("get", key=K.mapper_fleet_search)["replies"] == [{"key": K.mapper_fleet_search, "payload": "fleet"}]
+    assert r1.cmd("get", key=K.robot_unreachable("r1"))["replies"] == [
+        {"key": K.robot_unreachable("r1"), "payload": "unreachable"}]
+    assert r1.cmd("get", key=K.mapper_fleet_search, timeout=1.0)["replies"] == []
+    assert r1.cmd("get", key=K.robot_unreachable("r2"), timeout=1.0)["replies"] == []
 
     # liveliness: r1's own token is visible, its forged r2 token is not
     assert [s["key"] for s in mapper.received("alive", n=1, timeout=10)] == [K.alive("r1")]

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from apps.closed_loop.episode import BACKGROUNDS, GENERIC_BACKGROUND, LoopSettings, Trace, run_episode
+from apps.closed_loop.fleet_episode import FLEET_POLICIES, FleetSettings, run_fleet_episode
 from apps.closed_loop.metrics import summarize
 from apps.closed_loop.missions import LANDMARK_TARGETS, OBJECT_TARGETS, TARGETS, make_mission
 from apps.closed_loop.policies import MIN_RAY_Z, POLICIES
@@ -99,16 +100,30 @@ class SearchEvalConfig:
     encoder: str = "sim"           # the image encoder (SensorConfig.encoder)
     pca_fit: str = "first_views"   # where the PCA basis comes from (SensorConfig.pca_fit)
     sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
+    robots: int = 1                # the fleet's size (fleet policies: apps.closed_loop.fleet_episode)
+    start: str = "together"        # the fleet's starts (fleet_episode.START_MODES)
+    footprint_m: float = 8.0       # least distance between two robots' goals (coordinated, frontier-only)
 
     def sensor_config(self, seed: int = 0) -> SensorConfig:
         """The closed loop's camera and edge settings of this run (sensor draws seeded by ``seed``)."""
         return SensorConfig(resolution=self.resolution, encoder=self.encoder, sensor=self.sensor,
                             pca_fit=self.pca_fit, sensor_seed=int(seed))
 
+    def fleet(self) -> FleetSettings:
+        """The fleet of the run's fleet policies."""
+        return FleetSettings(self.robots, self.start, self.footprint_m)
+
     def validate(self) -> "SearchEvalConfig":
-        bad = [p for p in self.policies if p not in POLICIES]
+        bad = [p for p in self.policies if p not in POLICIES and p not in FLEET_POLICIES]
         if bad:
-            raise ValueError(f"unknown policies {bad}; choose from {', '.join(POLICIES)}")
+            raise ValueError(f"unknown policies {bad}; choose from {', '.join([*POLICIES, *FLEET_POLICIES])}")
+        self.fleet().validate()
+        single = [p for p in self.policies if p in POLICIES]
+        if self.robots > 1 and single:
+            raise ValueError(f"--robots {self.robots}: {', '.join(single)} drive one robot; use the fleet policies "
+                             f"{', '.join(FLEET_POLICIES)} (or --robots 1)")
+        if self.distributed and any(p in FLEET_POLICIES for p in self.policies):
+            raise ValueError("--distributed runs one robot per episode; leave the fleet policies out")
         bad = [m for m in self.missions if m not in MISSIONS]
         if bad:
             raise ValueError(f"unknown missions {bad}; choose from {', '.join(MISSIONS)}")
@@ -139,6 +154,10 @@ def _summary(rows: list[dict]) -> dict:
     s["steps"] = float(np.mean([r["steps"] for r in rows])) if rows else 0.0
     s["cpu_ms_per_step"] = float(np.mean([r["cpu_ms_per_step"] for r in rows])) if rows else 0.0
     s["collisions"] = int(sum(bool(r["collided"]) for r in rows))
+    fleet = [r for r in rows if "robots" in r]
+    if fleet:     # fleet episodes: time to find (steps) of the successes, coverage duplicated
+        s["duplicated_coverage"] = float(np.mean([r["duplicated_coverage"] for r in fleet]))
+        s["robots"] = sorted({int(r["robots"]) for r in fleet})
     stages = [r["step_ms_p50"] for r in rows if r.get("step_ms_p50", {}).get("step")]
     if stages:
         s["step_ms_p50"] = {k: float(np.median([x[k] for x in stages])) for k in stages[0]}
@@ -162,6 +181,8 @@ def _episode(cfg: SearchEvalConfig, world, seed: int, mission, policy: str, sett
              trace: Trace | None) -> dict:
     """One episode, in process or (``cfg.distributed``, map-based policies) with a live mapper
     and edge started for it (:class:`apps.closed_loop.distributed.LiveMapper`)."""
+    if policy in FLEET_POLICIES:
+        return run_fleet_episode(world, mission, policy, settings, cfg.fleet(), chain)
     method, semantic, _ = POLICIES[policy]
     if not cfg.distributed or method is None:
         return run_episode(world, mission, policy, settings, chain=chain, trace=trace)
@@ -296,11 +317,28 @@ def table_markdown(doc: dict) -> str:
         lines += [f"| {r['seed']} | {r['policy']} | {r['target']} | {d['step']} | "
                   f"({', '.join(f'{v:.0f}' for v in d['centroid'])}) | {d['nearest_class']} #{d['nearest_id']} | "
                   f"{d['nearest_m']:.1f} |" for r, d in false]
+    fleet = [r for r in doc["episodes"] if "robots" in r]
+    if fleet:
+        lines += ["", fleet_table_markdown(fleet)]
     return "\n".join(lines) + "\n"
 
 
+def fleet_table_markdown(rows: list[dict]) -> str:
+    """Per seed, policy and fleet size: found (steps), total path, the finder's SPL, duplicated
+    coverage and each robot's path (fleet episode rows)."""
+    lines = ["| seed | policy | robots | start | found | steps | total path m | finder SPL | duplicated coverage | "
+             "paths m |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        found = "yes" if r["success"] else "no"
+        lines.append(f"| {r['seed']} | {r['policy']} | {r['robots']} | {r['start_mode']} | {found} | {r['steps']} | "
+                     f"{r['path_m']:.0f} | {r['spl']:.2f} | {r['duplicated_coverage']:.2f} | "
+                     + ", ".join(f"{p:.0f}" for p in r["paths_m"]) + " |")
+    return "\n".join(lines)
+
+
 ROW_FIELDS = ["seed", "episode", "platform", "depth_limit_m", "kind", "target", "policy", "success", "spl", "path_m",
-              "shortest_m", "steps", "found", "k", "false_finds", "collided", "cpu_ms_per_step", "search_ms_p50"]
+              "shortest_m", "steps", "found", "k", "false_finds", "collided", "cpu_ms_per_step", "search_ms_p50",
+              "robots", "start_mode", "finder", "duplicated_coverage"]
 
 
 def write_outputs(doc: dict, json_path: str | Path) -> list[Path]:

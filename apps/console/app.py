@@ -27,6 +27,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from apps.console.models import (
     ConfigReply,
     ErrorReply,
+    FleetSearchReplyModel,
     ImageQueryForm,
     OccupancyReply,
     QueryBody,
@@ -45,7 +46,7 @@ from apps.console.security import (
     token_cookie,
     token_ok,
 )
-from query_client.vocabulary import query_fields, search_reply_json
+from query_client.vocabulary import fleet_reply_json, query_fields, search_reply_json
 
 log = logging.getLogger("rayfronts.console")
 STATIC = Path(__file__).with_name("static")
@@ -66,6 +67,20 @@ class SearchBody(BaseModel):
     area: list[float] | None = Field(None, description="box x0,y0,x1,y1 or polygon x0,y0,x1,y1,x2,y2,...")
     z_band: list[float] | None = None
     model_config = {"populate_by_name": True}
+
+
+class FleetSearchBody(BaseModel):
+    """POST /api/fleet_search: the fields of ``rayfronts search --fleet`` (world frame, metres, z up)."""
+    q: list[str] = Field(..., description="targets (one or more phrases)")
+    fleet: list[str] = Field(..., description="robot ids, or [\"all\"] for every robot present")
+    background: list[str] | None = None
+    threshold: float = 0.5
+    max_instances: int = 10
+    max_goals: int = Field(20, description="look-next candidates shared out")
+    target_count: int = 1
+    footprint_m: float = Field(0.0, description="least distance between two goals, m (0: the mapper's)")
+    area: list[float] | None = Field(None, description="box x0,y0,x1,y1 or polygon x0,y0,x1,y1,x2,y2,...")
+    z_band: list[float] | None = None
 
 
 class PointsBody(BaseModel):
@@ -102,6 +117,20 @@ def search_kwargs_from(q: list[str], background: list[str] | None, threshold: fl
         raise ApiError(400, "give at least one non-empty target: ?q=vehicle")
     return search_fields(q, background=background, threshold=threshold, max_instances=max_instances,
                          max_goals=max_goals, area=area, z_band=z_band, from_xyz=from_xyz)
+
+
+def fleet_kwargs_from(q: list[str], fleet: str | list[str], background: list[str] | None, threshold: float,
+                      max_instances: int, max_goals: int, target_count: int, footprint_m: float,
+                      area: str | list[float] | None, z_band: str | list[float] | None) -> dict:
+    """``Client.fleet_search`` keywords from HTTP fields (``query_client.vocabulary.fleet_fields``:
+    the checks and messages of ``rayfronts search --fleet``)."""
+    from query_client.vocabulary import fleet_fields
+
+    if not q or not all(t.strip() for t in q):
+        raise ApiError(400, "give at least one non-empty target: ?q=vehicle")
+    return fleet_fields(fleet, q, target_count=target_count, footprint_m=footprint_m, max_goals=max_goals,
+                        background=background, threshold=threshold, max_instances=max_instances, area=area,
+                        z_band=z_band)
 
 
 def _occ_json(rep) -> dict:
@@ -292,6 +321,7 @@ def create_app(client, *, token: str | None = None, viewer_url: str | None = Non
     slots = StreamSlots(max_streams_per_client, max_streams)  # each open stream holds one standing search/query
     _query_routes(app, client, timeout, max_body, slots)
     _search_routes(app, client, timeout, slots)
+    _fleet_routes(app, client, timeout, slots)
     _map_routes(app, client, timeout, slots, refused)
     return app
 
@@ -393,6 +423,40 @@ def _search_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> 
         return await _sse(request, lambda push: client.watch_search(
             q, lambda r: push(search_reply_json(r)), timeout=timeout, **kw), slots)
 
+
+
+Fleet = Annotated[str, Query(description="robot ids r1,r2,r3, or 'all' (every robot present)")]
+
+
+def _fleet_routes(app: FastAPI, client, timeout: float, slots: StreamSlots) -> None:
+    @app.get("/api/fleet_search", summary="fleet search: one goal per robot, shared found list; same object as "
+             "`rayfronts search --fleet ... --json`", responses=_doc(FleetSearchReplyModel, 503))
+    def fleet_get(q: Targets, fleet: Fleet, background: Background = None, threshold: float = 0.5,
+                  max_instances: int = 10, max_goals: int = 20, target_count: int = 1, footprint_m: float = 0.0,
+                  area: str | None = Query(None, description="x0,y0,x1,y1 or polygon"),
+                  z_band: str | None = Query(None, description="z0,z1")) -> dict:
+        kw = fleet_kwargs_from(q, fleet, background, threshold, max_instances, max_goals, target_count, footprint_m,
+                               area, z_band)
+        return fleet_reply_json(client.fleet_search(q, timeout=timeout, **kw))
+
+    @app.post("/api/fleet_search", summary="fleet search (JSON body with the GET fields; fleet a list)",
+              responses=_doc(FleetSearchReplyModel, 422, 503))
+    def fleet_post(body: FleetSearchBody) -> dict:
+        kw = fleet_kwargs_from(body.q, body.fleet, body.background, body.threshold, body.max_instances,
+                               body.max_goals, body.target_count, body.footprint_m, body.area, body.z_band)
+        return fleet_reply_json(client.fleet_search(body.q, timeout=timeout, **kw))
+
+    @app.get("/api/fleet_search/stream", summary="standing fleet search as server-sent events (event 'update', "
+             "data: the /api/fleet_search reply)", responses=_doc(FleetSearchReplyModel, 503),
+             response_class=StreamingResponse)
+    async def fleet_stream(request: Request, q: Targets, fleet: Fleet, background: Background = None,
+                           threshold: float = 0.5, max_instances: int = 10, max_goals: int = 20,
+                           target_count: int = 1, footprint_m: float = 0.0, area: str | None = None,
+                           z_band: str | None = None) -> StreamingResponse:
+        kw = fleet_kwargs_from(q, fleet, background, threshold, max_instances, max_goals, target_count, footprint_m,
+                               area, z_band)
+        return await _sse(request, lambda push: client.watch_fleet_search(
+            q, lambda r: push(fleet_reply_json(r)), timeout=timeout, **kw), slots)
 
 
 def _map_routes(app: FastAPI, client, timeout: float, slots: StreamSlots, refused: Counter) -> None:

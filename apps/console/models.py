@@ -62,6 +62,33 @@ class SearchReplyModel(_Open):
                                                                  "{kind, id, target, ...} (docs/messages.md)")
 
 
+class FleetRobot(_Open):
+    """One robot of a fleet search: ``state`` assigned / idle / waiting (no pose yet) / gone."""
+    state: str
+    position: Vec | None = None
+    unreachable: int = 0
+
+
+class FleetSearchReplyModel(_Open):
+    """GET/POST /api/fleet_search and each event of /api/fleet_search/stream: the object
+    ``rayfronts search --fleet ... --json`` prints (docs/fleet.md "Fleet search")."""
+    id: str = ""
+    goals: dict[str, LookNext | None] = Field(description="robot -> its goal (distance_m: its own path) or null")
+    robots: dict[str, FleetRobot]
+    waiting: list[str]
+    gone: list[str]
+    found: list[FoundInstance] = Field(description="found instances, shared by the fleet")
+    candidates: list[LookNext]
+    utility: float
+    method: str
+    footprint_m: float
+    events: list[dict] = Field(default_factory=list)
+    frames_mapped: int
+    map_version: int
+    timings_ms: dict[str, float]
+    missing_shards: list[str] = Field(default_factory=list)
+
+
 class QueryReply(_Open):
     """GET/POST /api/query and each event of /api/query/stream: clusters (voxels of high
     similarity) and rays, best first."""

@@ -106,6 +106,13 @@ def _search_parser(sub) -> None:
                          "occupancy queries); slower, same maps; needs --sensor exact (synthetic world)")
     se.add_argument("--work-dir", default="", metavar="DIR",
                     help="--distributed: where the processes' configs and logs go (default: a temp dir, removed)")
+    se.add_argument("--robots", type=int, default=1, metavar="N",
+                    help="robots searching together on one shared map (default 1: the single-robot loop); with N > 1 "
+                         "the policies are the fleet's: coordinated, uncoordinated, frontier-only")
+    se.add_argument("--start", choices=["together", "spread"], default="together",
+                    help="the fleet's starts: next to each other at the mission start (default) or spread out 12 m")
+    se.add_argument("--footprint", type=float, default=8.0, metavar="M",
+                    help="least distance (m) between two robots' goals, coordinated and frontier-only (default 8)")
     tu = sub.add_parser("tune-sem-poses", help="choose sem-poses' margin z cut on the development seeds",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.tuning", fromlist=["x"]).__doc__)
@@ -171,7 +178,12 @@ def _search_config(args: argparse.Namespace):
 
     distributed = bool(getattr(args, "distributed", False))
     depths = [float(x) for a in (args.depth_limit or ["20"]) for x in a.split(",") if x.strip()]
-    if args.policies is None:
+    robots = int(getattr(args, "robots", 1))
+    if args.policies is None and robots > 1:
+        from apps.closed_loop.fleet_episode import FLEET_POLICIES
+
+        policies = list(FLEET_POLICIES)
+    elif args.policies is None:
         policies = [p for p in POLICIES if not (distributed and p == "sem-poses")]
     else:
         policies = [p.strip() for p in args.policies.split(",") if p.strip()]
@@ -182,7 +194,9 @@ def _search_config(args: argparse.Namespace):
                             distributed=distributed, work_dir=getattr(args, "work_dir", ""),
                             background=args.background, world=args.world, sensor=args.sensor,
                             encoder=args.encoder, pca_fit=args.pca_fit,
-                            sem_poses_min_z=args.sem_poses_min_z).validate()
+                            sem_poses_min_z=args.sem_poses_min_z, robots=robots,
+                            start=getattr(args, "start", "together"),
+                            footprint_m=float(getattr(args, "footprint", 8.0))).validate()
 
 
 def _run_search(args: argparse.Namespace) -> int:

@@ -27,9 +27,11 @@ Keys: docs/key_space.md. ``<p>`` is the prefix (``--prefix``).
     (Zenoh matching status) would never end and its frames would be replaced unsent).
   - asks the mapper for its OWN searches and occupancy: query
     ``<p>/mapper/robots/<id>/search`` and ``<p>/mapper/robots/<id>/occupancy`` (and gets the
-    replies); subscribes to its standing searches' results ``<p>/mapper/robots/<id>/searches/*``
-    and to the mapper's status of it, ``<p>/mapper/robots/<id>/status``. Another robot's
-    searches, and the operators' ``<p>/mapper/search`` / ``query`` / ``stats``, are refused.
+    replies), and reports its own unreachable fleet goals on ``<p>/mapper/robots/<id>/unreachable``;
+    subscribes to its standing searches' results ``<p>/mapper/robots/<id>/searches/*``, to its
+    goal in the fleet searches ``<p>/mapper/robots/<id>/fleet_goal`` and to the mapper's status of
+    it, ``<p>/mapper/robots/<id>/status``. Another robot's searches and goals, and the operators'
+    ``<p>/mapper/search`` / ``fleet_search`` / ``query`` / ``stats``, are refused.
   - reads ``<p>/mapper/feature_space`` (an edge adopting the map's PCA basis) and the
     shards' routing announcements ``<p>/mapper/shards/*/routing`` (an edge sends each frame
     only to the shards that own it, on ``<p>/robots/<id>/frames/s.<a>.<b>.``, covered by
@@ -40,10 +42,11 @@ Keys: docs/key_space.md. ``<p>`` is the prefix (``--prefix``).
 * ``operator-<name>`` — a laptop, a planner off the robot, the console's process
   (``rayfronts console`` runs with an operator certificate, e.g. ``operator-console``):
 
-  - query ``<p>/mapper/{query,stats,snapshot,search,occupancy,feature_space}`` and the
-    layers ``<p>/mapper/layers/*`` (``Client.layer``), and get the replies;
+  - query ``<p>/mapper/{query,stats,snapshot,search,occupancy,feature_space,fleet_search}`` and
+    the layers ``<p>/mapper/layers/*`` (``Client.layer``), and get the replies;
   - subscribe to standing query results ``<p>/mapper/queries/**``, standing search results
-    ``<p>/mapper/searches/**`` and the layers ``<p>/mapper/layers/**``;
+    ``<p>/mapper/searches/**``, standing fleet search results ``<p>/mapper/fleet_searches/**``
+    and the layers ``<p>/mapper/layers/**``;
   - watch and query the liveliness of robots ``<p>/robots/*/alive``, the mapper
     ``<p>/mapper/alive`` and the shards ``<p>/mapper/shards/*``.
   - It cannot publish or serve anything, so it cannot inject frames or pose as the mapper.
@@ -88,8 +91,8 @@ def _robot_rules(p: str, r: str) -> list[dict]:
     root, mine = f"{p}/robots/{r}", f"{p}/mapper/robots/{r}"
     frames = [f"{root}/frames", f"{root}/frames/*"]
     served = [f"{root}/feature_space", f"{root}/edge_status"]
-    planner = [f"{mine}/search", f"{mine}/occupancy"]
-    results = [f"{mine}/searches/*", f"{mine}/status"]
+    planner = [f"{mine}/search", f"{mine}/occupancy", f"{mine}/unreachable"]
+    results = [f"{mine}/searches/*", f"{mine}/status", f"{mine}/fleet_goal"]
     return [
         _rule(f"robot_{r}_publish", ["put"], ["ingress"], [*frames, f"{root}/edge_status"]),
         _rule(f"robot_{r}_alive", ["liveliness_token"], ["ingress"], [f"{root}/alive"]),
@@ -120,9 +123,11 @@ def _robots_shared(p: str) -> list[dict]:
 
 def _operator_rules(p: str) -> list[dict]:
     """The operators' rules (module docstring)."""
-    services = [f"{p}/mapper/{s}" for s in ("query", "stats", "snapshot", "search", "occupancy", "feature_space")]
+    services = [f"{p}/mapper/{s}" for s in ("query", "stats", "snapshot", "search", "occupancy", "feature_space",
+                                            "fleet_search")]
     services.append(f"{p}/mapper/layers/*")
-    results = [f"{p}/mapper/queries/**", f"{p}/mapper/searches/**", f"{p}/mapper/layers/**"]
+    results = [f"{p}/mapper/queries/**", f"{p}/mapper/searches/**", f"{p}/mapper/fleet_searches/**",
+               f"{p}/mapper/layers/**"]
     alive = [f"{p}/robots/*/alive", f"{p}/mapper/alive", f"{p}/mapper/shards/*"]
     return [
         _rule("operator_query", ["query"], ["ingress"], services),

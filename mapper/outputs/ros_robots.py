@@ -25,6 +25,9 @@ robot's own clock, used as every header stamp of its messages). Topics, under it
 * ``<ns>/rayfronts/search/path`` (with ``path``) — nav_msgs/Path from the robot to the goal
   over the costmap (:func:`grid_path`: free cells, unknown ones at ``path_unknown_cost``;
   no poses when there is no way);
+* fleet search (docs/fleet.md "Fleet search"): every answer of a standing fleet search sends
+  each assigned robot its goal on its ``goal_topic`` (a robot not configured here: ``/<id>/goal_pose``,
+  frame ``map``), through its own :class:`GoalGate` (:meth:`RosRobots.fleet_goals`);
 * ``costmap_topic`` (default ``<ns>/rayfronts/costmap``) — nav_msgs/OccupancyGrid, reliable +
   transient-local depth 1 (Nav2's static layer): a ``costmap_window_m`` square around the robot
   whose origin moves (by whole cells) only when the robot leaves the window's middle half, or
@@ -392,6 +395,9 @@ class RosRobots:
         self._lock = threading.RLock()         # one robot update at a time
         self._pending: set[str] = set()        # robots with an answer thread not yet started on it
         self._pending_lock = threading.Lock()
+        self.fleet_sent: Counter = Counter()   # fleet-search goals sent, by robot
+        self._fleet_gates: dict[tuple[str, str], tuple[RosRobotSection, GoalGate]] = {}   # (search id, robot)
+        self._fleet_lock = threading.Lock()    # fleet answers come from the fleet thread and Zenoh callbacks
 
     # -------------------------------------------------------------- wiring
     def start(self) -> list:
@@ -409,7 +415,43 @@ class RosRobots:
             o._publisher(r.cfg.goal_topic, POSE_STAMPED)
             if r.cfg.costmap != "off":
                 o._publisher(r.cfg.costmap_topic, OCCUPANCY_GRID, latched=True)
+        fleet = getattr(self.search, "fleet", None)
+        if fleet is not None:                  # standing fleet searches send each robot its goal
+            fleet.followers.append(self.fleet_goals)
         return ents
+
+    def fleet_goals(self, rep) -> None:
+        """A standing fleet search's answer (``common.fleet_messages.FleetSearchReply``): each
+        robot given a goal gets it as a PoseStamped on its goal topic (its ``ros.robots`` entry's,
+        else ``/<id>/goal_pose`` in ``map``), when the :class:`GoalGate` of (search, robot) lets it
+        through (a new fleet search sends its goals anew); the header stamp is the robot's last
+        mapped frame's."""
+        with self._fleet_lock:
+            live = set(getattr(self.search.fleet, "standing", {})) | {rep.id}
+            for k in [k for k in self._fleet_gates if k[0] not in live]:
+                del self._fleet_gates[k]           # searches that ended
+            for rid, g in rep.goals.items():
+                if g is not None:
+                    self._fleet_goal(rep.id, rid, g)
+
+    def _fleet_goal(self, sid: str, rid: str, g: dict) -> None:
+        """Robot ``rid``'s goal ``g`` of fleet search ``sid`` on its goal topic, if its gate lets it through."""
+        from mapper.outputs.ros_markers import header_msg
+        from mapper.outputs.ros_search import pose_msg
+
+        got = self._fleet_gates.get((sid, rid))
+        if got is None:
+            conf = self.robots[rid].cfg if rid in self.robots else robot_section(rid, {})
+            got = self._fleet_gates[(sid, rid)] = (conf, GoalGate(conf.goal_min_move_m, conf.goal_min_turn_deg))
+        conf, gate = got
+        xyz, yaw = np.asarray(g["position"], np.float64), float(g["heading_rad"])
+        if not gate.due(xyz, yaw, "fleet"):
+            return
+        T = self.out.T
+        _, stamp = self.position(RobotSearch(rid, conf))
+        self.out._put(conf.goal_topic, POSE_STAMPED, T[POSE_STAMPED](header=header_msg(T, conf.frame_id, stamp),
+                                                                     pose=pose_msg(T, xyz, yaw)))
+        self.fleet_sent[rid] += 1
 
     def robot_of(self, namespace: str) -> RobotSearch:
         """The robot whose namespace is ``namespace``: a configured one, or a robot of the

@@ -107,6 +107,16 @@ def raw_post(host: str, port: int, path: str, headers: dict[str, str], chunks: l
     return status, json.loads(body)
 
 
+def matches_openapi(spec: dict, path: str, method: str, reply, status: int = 200) -> None:
+    """``reply`` validates against the schema the OpenAPI document gives for ``method path`` and ``status``."""
+    from jsonschema import Draft202012Validator
+
+    schema = spec["paths"][path][method]["responses"][str(status)]["content"]["application/json"]["schema"]
+    assert "$ref" in schema, (path, method, status, schema)
+    errors = list(Draft202012Validator({**schema, "components": spec["components"]}).iter_errors(reply))
+    assert not errors, (path, method, status, [e.message for e in errors[:3]])
+
+
 class EventStream:
     """A server-sent-event stream read over a raw socket (HTTP/1.0: no chunked framing; closing it is an
     immediate disconnect). ``status``: the response's; ``source``: the local address to connect from

@@ -30,6 +30,18 @@ function showSearch(r) {
   status(`map v${r.map_version}, ${r.frames_mapped} frames mapped, ${(r.found || []).length} found` + missing(r));
 }
 
+// a fleet search's reply: the shared found list, the candidates, and each robot's goal (or its state)
+function showFleet(r) {
+  showSearch(Object.assign({}, r, { look_next: r.candidates }));
+  rows("fleet_goals", Object.keys(r.goals || {}).sort(), (name) => {
+    const g = r.goals[name];
+    const st = (r.robots[name] || {}).state || "";
+    return [name, st, g ? fmt(g.position) : "", g ? Number(g.distance_m).toFixed(1) : ""];
+  });
+  status(`map v${r.map_version}, ${r.frames_mapped} frames mapped, ${(r.found || []).length} found, ` +
+         `${Object.values(r.goals || {}).filter((g) => g).length} robots assigned` + missing(r));
+}
+
 function showQuery(r) {
   const a = (r.cluster_xyz || []).map((p, i) => [i + 1, Number(r.cluster_score[i]).toFixed(3), "voxels " + fmt(p)]);
   const b = (r.ray_origin || []).map((p, i) => [a.length + i + 1, Number(r.ray_score[i]).toFixed(3), "ray " + fmt(p)]);
@@ -48,13 +60,18 @@ function searchParams() {
 async function doSearch() {
   if (stream) { stream.close(); stream = null; }
   status("searching…");
+  const fleet = $("fleet").value.trim();
+  const params = searchParams();
+  if (fleet) params.set("fleet", fleet);
+  const [path, show] = fleet ? ["/api/fleet_search", showFleet] : ["/api/search", showSearch];
+  if (!fleet) $("fleet_goals").replaceChildren();
   if ($("live").checked) {
-    stream = new EventSource("/api/search/stream?" + searchParams());
-    stream.addEventListener("update", (ev) => showSearch(JSON.parse(ev.data)));
+    stream = new EventSource(path + "/stream?" + params);
+    stream.addEventListener("update", (ev) => show(JSON.parse(ev.data)));
     stream.onerror = () => status("stream interrupted (retrying)");
     return;
   }
-  try { showSearch(await api("/api/search?" + searchParams())); } catch (e) { status(e.message); }
+  try { show(await api(path + "?" + params)); } catch (e) { status(e.message); }
 }
 
 async function doQuery() {
