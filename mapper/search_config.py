@@ -5,12 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from common.config import ConfigError, field_
+from mapper.leases import StandingLimits
 
 DEFAULT_BACKGROUND = ["building", "road", "ground", "tree", "sky"]
 
 
 @dataclass
-class SearchSection:
+class SearchSection(StandingLimits):
     background: list[str] = field_(list(DEFAULT_BACKGROUND),
                                     "phrases a search's targets are softmaxed against when the request names none "
                                     "(the paper's querying: probabilities over targets + background)")
@@ -38,12 +39,6 @@ class SearchSection:
     lock_timeout_s: float = field_(2.0, "a search waits at most this long for the map lock to read occupancy and "
                                         "frontiers; after that it answers without look_next (timings_ms.stale=1)")
     max_occupancy_cells: int = field_(4_000_000, "cells an occupancy request may return")
-    lease_s: float = field_(30.0, "a standing search registered over Zenoh ends this many seconds after its last "
-                                  "registration or renewal unless the request names its own lease_s "
-                                  "(query_client.Client renews every lease_s / 3)")
-    max_standing: int = field_(64, "standing searches held at once (all clients); one more is refused")
-    max_standing_per_client: int = field_(8, "standing searches one client (request 'client', or the robot of "
-                                             "a robot-scoped search) may hold at once")
     warm_up: bool = field_(True, "load the text model and embed the background phrases in the background as soon "
                                  "as the map's feature space is known, so the first search is as fast as the next")
 
@@ -56,7 +51,5 @@ class SearchSection:
             raise ConfigError(f"search.identity_threshold={self.identity_threshold}: must be a probability in (0, 1)")
         if self.instance_grace < 0:
             raise ConfigError(f"search.instance_grace={self.instance_grace}: must be >= 0 (map updates)")
-        for k in ("lease_s", "max_standing", "max_standing_per_client"):
-            if not getattr(self, k) > 0:
-                raise ConfigError(f"search.{k}={getattr(self, k)}: must be > 0")
+        self.check_limits("search")
         return self
