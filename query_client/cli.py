@@ -84,7 +84,7 @@ def log_result_rerun(r: QueryResult, file: str | None = None, url: str | None = 
     if layers and "voxels" in layers:
         v = layers["voxels"]
         rec.log(paths.MAP_VOXELS, rr.Points3D(v["xyz"], colors=v["rgb"]))
-    base = paths.query(paths.entity_name(r.query))
+    base = paths.QUERIES(paths.entity_name(r.query))
     if len(r.cluster_xyz):
         rec.log(f"{base}/clusters", rr.Boxes3D(centers=r.cluster_xyz, half_sizes=np.asarray(r.cluster_extent) / 2,
                                                labels=[f"{r.query} {s:.3f}" for s in r.cluster_score]))

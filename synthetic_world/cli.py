@@ -76,13 +76,13 @@ def _log_rerun(path: Path, world, poses, K, hw, frames_iter, seed: int, robot: s
         half_sizes=np.array([(i.aabb_max - i.aabb_min) / 2 for i in inst]),
         labels=[f"{world.classes[i.class_id]} ({i.name})" for i in inst],
         class_ids=np.array([i.class_id for i in inst])), static=True)
-    rec.log(paths.trajectory(robot), rr.LineStrips3D([poses[:, :3, 3]]), static=True)
+    rec.log(paths.ROBOTS(robot, paths.TRAJECTORY), rr.LineStrips3D([poses[:, :3, 3]]), static=True)
     h, w = hw
-    image = paths.image(robot)
+    image = paths.ROBOTS(robot, paths.IMAGE)
     for i, (pose, r, depth) in enumerate(frames_iter):
         rec.set_time("frame", sequence=i)
         rec.set_time("time", duration=i * FRAME_DT)
-        rec.log(paths.camera(robot), rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+        rec.log(paths.ROBOTS(robot, paths.CAMERA), rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         rec.log(image, rr.Pinhole(image_from_camera=K, width=w, height=h, camera_xyz=rr.ViewCoordinates.RDF))
         ok, jpg = cv2.imencode(".jpg", r.rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
         if not ok:

@@ -31,11 +31,11 @@ def record_episode(path: str, world: World, mission: Mission, trace: Trace, row:
                                            f"path={row['path_m']:.1f} m steps={row['steps']}"), static=True)
     pos = np.asarray(trace.positions)
     robot_id = str(row.get("platform") or "robot")
-    robot = paths.robot(robot_id)
-    found_at = paths.search(paths.entity_name(mission.target)) + "/instances"
+    robot = paths.ROBOTS(robot_id)
+    found_at = paths.SEARCHES(paths.entity_name(mission.target)) + "/instances"
     for i in range(len(trace.goals)):
         rec.set_time("step", sequence=i)
-        rec.log(paths.trajectory(robot_id), rr.LineStrips3D([pos[:i + 2]], colors=[[255, 80, 0]]))
+        rec.log(paths.ROBOTS(robot_id, paths.TRAJECTORY), rr.LineStrips3D([pos[:i + 2]], colors=[[255, 80, 0]]))
         rec.log(f"{robot}/position", rr.Points3D(pos[i:i + 1], radii=0.6, colors=[[255, 80, 0]]))
         g = trace.goals[i]
         if g is not None:

@@ -111,9 +111,10 @@ class RerunLogger:
         self._t(frame_no)
         self.rec.set_time("sensor_time", timestamp=float(frame.stamp))
         pose = np.asarray(frame.pose, np.float64)
-        self.rec.log(paths.camera(frame.robot), rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+        cam = paths.ROBOTS(frame.robot, paths.CAMERA)
+        self.rec.log(cam, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         h, w = frame.depth.shape[:2]
-        image = paths.image(frame.robot)
+        image = paths.ROBOTS(frame.robot, paths.IMAGE)
         self.rec.log(image, rr.Pinhole(image_from_camera=np.asarray(frame.intrinsics), width=w, height=h,
                                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0))
         rgb = np.asarray(frame.rgb)
@@ -127,7 +128,8 @@ class RerunLogger:
         self.rec.log(f"{image}/depth", rr.DepthImage(dmm, meter=1000.0))
         tr = self._traj.setdefault(frame.robot, [])
         tr.append(pose[:3, 3].astype(np.float32))
-        self.rec.log(paths.trajectory(frame.robot), rr.LineStrips3D([np.asarray(tr)], colors=[255, 255, 255]))
+        self.rec.log(paths.ROBOTS(frame.robot, paths.TRAJECTORY),
+                     rr.LineStrips3D([np.asarray(tr)], colors=[255, 255, 255]))
         if frame.robot not in self._robots:
             self._robots.append(frame.robot)
             self._send_blueprint()
@@ -157,7 +159,7 @@ class RerunLogger:
         rr = self.rr
         self._t(frame_no)
         name = paths.entity_name(res.query)
-        base = paths.query(name)
+        base = paths.QUERIES(name)
         vox = float(m.cfg.vox_size)
         xyz, feats, _ = voxel_arrays(m)
         lo = hi = float("nan")
@@ -167,7 +169,7 @@ class RerunLogger:
             s = s.detach().cpu().numpy() if hasattr(s, "detach") else np.asarray(s)
             cols, lo, hi = heat_colors(s)
             self.rec.log(f"{base}/heat", rr.Points3D(xyz, colors=cols, radii=0.55 * vox))
-            self.rec.log(f"{paths.scale(name)}/colour_scale", rr.Image(colour_scale_image(lo, hi)))
+            self.rec.log(f"{paths.SCALE(name)}/colour_scale", rr.Image(colour_scale_image(lo, hi)))
             if self._eye is None:
                 from mapper.outputs.rerun_view import eye_for
 
@@ -198,14 +200,14 @@ class RerunLogger:
             self.rec.log(f"{base}/rays", rr.Clear(recursive=False))
             self.rec.log(f"{base}/search_volume", rr.Clear(recursive=False))
         rng = f"{lo:.3f} (blue) to {hi:.3f} (yellow)" if np.isfinite(lo) else "no voxels yet"
-        self.rec.log(f"{paths.scale(name)}/legend", rr.TextDocument(
+        self.rec.log(f"{paths.SCALE(name)}/legend", rr.TextDocument(
             f"### {res.query}\n\n"
             f"- heat: similarity of every voxel, {rng}\n"
             f"- clusters: {len(res.cluster_xyz)} (white boxes; the best ones, apart, labelled)\n"
             f"- rays beyond range: {len(res.ray_origin)}; search volume of the best {n} cones: "
             f"{res.search_volume_m3:,.0f} m³ (cut at {self.search_range_m:g} m)\n"
             f"- {res.frames_mapped} frames mapped\n\n"
-            f"Other queries: `{paths.QUERIES}/<query>` in the blueprint panel (eye icon).",
+            f"Other queries: `{paths.QUERIES.root}/<query>` in the blueprint panel (eye icon).",
             media_type=rr.MediaType.MARKDOWN))
         if name not in self._queries:
             self._queries.append(name)
@@ -218,7 +220,7 @@ class RerunLogger:
         labelled boxes whose class ids are the instances' stable ids, and its look-next goals."""
         rr = self.rr
         self._t(frame_no)
-        base = paths.search(paths.entity_name(",".join(targets)))
+        base = paths.SEARCHES(paths.entity_name(",".join(targets)))
         b = search_boxes(rep)
         if len(b["centers"]):
             self.rec.log(f"{base}/instances", rr.Boxes3D(centers=b["centers"], half_sizes=b["half_sizes"],

@@ -142,7 +142,7 @@ def build_blueprint(selected: str | None, queries: Iterable[str], robots: Sequen
     scale and one camera view per robot."""
     import rerun.blueprint as rrb
 
-    overrides = {paths.query(q): rrb.EntityBehavior(visible=False) for q in queries if q != selected}
+    overrides = {paths.QUERIES(q): rrb.EntityBehavior(visible=False) for q in queries if q != selected}
     kw = {}
     if eye is not None:
         pos, target = eye
@@ -152,10 +152,10 @@ def build_blueprint(selected: str | None, queries: Iterable[str], robots: Sequen
                                **kw)
     side = []
     if selected:
-        side.append(rrb.TextDocumentView(name="query", origin=f"{paths.scale(selected)}/legend"))
-        side.append(rrb.Spatial2DView(name="colour scale", origin=f"{paths.scale(selected)}/colour_scale"))
+        side.append(rrb.TextDocumentView(name="query", origin=f"{paths.SCALE(selected)}/legend"))
+        side.append(rrb.Spatial2DView(name="colour scale", origin=f"{paths.SCALE(selected)}/colour_scale"))
     for r in robots:
-        side.append(rrb.Spatial2DView(name=f"camera {r}", origin=paths.image(r),
+        side.append(rrb.Spatial2DView(name=f"camera {r}", origin=paths.ROBOTS(r, paths.IMAGE),
                                       contents=["+ $origin/rgb", "+ $origin/depth"]))
     if not side:
         layout = view3d
