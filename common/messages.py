@@ -106,8 +106,36 @@ def decode_feature_space(data: bytes | bytearray | memoryview, limits: WireLimit
 
 
 # -------------------------------------------------------------------------- query
+@dataclass(kw_only=True)
+class StandingControl:
+    """The standing-request fields that :class:`QueryRequest` and
+    :class:`common.search_messages.SearchRequest` share (keyword-only, so each request keeps
+    its own fields first in ``__init__``; the wire bodies name every field, so their bytes do
+    not depend on this base): ``standing`` registers the request under ``id``; ``cancel``
+    drops the standing request ``id``; it lives ``lease_s`` seconds (0 = the mapper's
+    default) unless renewed (``renew`` + ``id``); ``client`` names the asker (per-client cap)."""
+
+    standing: bool = False
+    cancel: bool = False
+    id: str = ""
+    lease_s: float = 0.0
+    renew: bool = False
+    client: str = ""
+
+    def check_control(self, noun: str) -> bool:
+        """Validate ``lease_s`` / ``renew`` / ``client`` (:func:`check_lease`) and, for a cancel
+        or renew, that it names the standing ``noun``'s ``id``; one-line :class:`MessageError`.
+        Returns whether this is a cancel or renew (the other fields then do not matter)."""
+        self.lease_s = check_lease(self.lease_s, self.renew, self.client)
+        if not (self.cancel or self.renew):
+            return False
+        if not self.id:
+            raise MessageError(f"a {'cancel' if self.cancel else 'renew'} request needs the standing {noun} id")
+        return True
+
+
 @dataclass
-class QueryRequest:
+class QueryRequest(StandingControl):
     """An open-vocabulary query: exactly one of ``text``, ``image`` (JPEG/PNG bytes) or
     ``embedding`` (a vector in the map's language space, e.g. from a planner).
 
@@ -121,20 +149,10 @@ class QueryRequest:
     embedding: np.ndarray | None = None
     top_k: int = 10
     softmax: bool = False
-    standing: bool = False
-    cancel: bool = False
-    id: str = ""
-    lease_s: float = 0.0
-    renew: bool = False
-    client: str = ""
 
     def validate(self) -> "QueryRequest":
         given = [n for n in ("text", "image", "embedding") if getattr(self, n) is not None]
-        self.lease_s = check_lease(self.lease_s, self.renew, self.client)
-        if self.cancel or self.renew:
-            if not self.id:
-                raise MessageError(f"a {'cancel' if self.cancel else 'renew'} request needs the standing query id")
-        elif len(given) != 1:
+        if not self.check_control("query") and len(given) != 1:
             raise MessageError(f"a query needs exactly one of text, image, embedding (got {given or 'none'})")
         if self.text is not None:
             if not isinstance(self.text, str) or not self.text.strip():

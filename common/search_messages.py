@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from common.messages import VERSION, MessageError, _decode, check_lease
+from common.messages import VERSION, MessageError, StandingControl, _decode
 from common.wire import WireLimits, encode_message
 
 SCHEMA_SEARCH_REQUEST = "rayfronts.search_request"
@@ -72,7 +72,7 @@ def _int_in(v, lo: int, hi: int, what: str) -> int:
 
 
 @dataclass
-class SearchRequest:
+class SearchRequest(StandingControl):
     """Find ``targets`` (text phrases; or ``embeddings`` (T, D) in the map's language space,
     one row per target, the phrases then only name them) against ``background`` phrases
     (None: the mapper's ``search.background``). Scores are softmax probabilities over
@@ -94,12 +94,6 @@ class SearchRequest:
     max_instances: int = 10
     max_goals: int = 5
     from_xyz: list[float] | None = None
-    standing: bool = False
-    cancel: bool = False
-    id: str = ""
-    lease_s: float = 0.0
-    renew: bool = False
-    client: str = ""
     owner: str = ""
 
     def validate(self) -> "SearchRequest":  # noqa: C901 - one check per field
@@ -108,10 +102,7 @@ class SearchRequest:
         for k in ("id", "owner"):
             if not isinstance(getattr(self, k), str) or not re.match(r"^[A-Za-z0-9_-]{0,64}$", getattr(self, k)):
                 raise MessageError(f"search {k} {getattr(self, k)!r} must match [A-Za-z0-9_-]{{0,64}}")
-        self.lease_s = check_lease(self.lease_s, self.renew, self.client)
-        if self.cancel or self.renew:
-            if not self.id:
-                raise MessageError(f"a {'cancel' if self.cancel else 'renew'} request needs the standing search id")
+        if self.check_control("search"):
             return self
         self.targets = _phrases(self.targets, "targets", 1, MAX_TARGETS)
         if self.background is not None:

@@ -19,7 +19,26 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
+from common.config import ConfigError, field_
 from common.messages import MessageError
+
+
+@dataclass(kw_only=True)
+class StandingLimits:
+    """The config keys of a kind of standing request that :class:`Leases` enforces, shared by
+    the mapper's ``query`` and ``search`` sections (keyword-only fields: each section keeps its
+    own fields first). A robot-scoped search counts for the client ``robot-<id>``."""
+
+    lease_s: float = field_(30.0, "seconds a standing request lives after its registration or last renewal unless "
+                                  "it names its own lease_s (query_client.Client renews every lease_s / 3)")
+    max_standing: int = field_(64, "standing requests held at once (all clients); one more is refused")
+    max_standing_per_client: int = field_(8, "standing requests one client (its 'client' id) may hold at once")
+
+    def check_limits(self, section: str) -> None:
+        """Refuse a limit that is not > 0 (one-line :class:`ConfigError` naming ``<section>.<key>``)."""
+        for k in ("lease_s", "max_standing", "max_standing_per_client"):
+            if not getattr(self, k) > 0:
+                raise ConfigError(f"{section}.{k}={getattr(self, k)}: must be > 0")
 
 
 @dataclass

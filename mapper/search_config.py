@@ -5,12 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from common.config import ConfigError, field_
+from mapper.leases import StandingLimits
 
 DEFAULT_BACKGROUND = ["building", "road", "ground", "tree", "sky"]
 
 
 @dataclass
-class SearchSection:
+class SearchSection(StandingLimits):
     background: list[str] = field_(list(DEFAULT_BACKGROUND),
                                     "phrases a search's targets are softmaxed against when the request names none "
                                     "(the paper's querying: probabilities over targets + background)")
@@ -38,12 +39,6 @@ class SearchSection:
     lock_timeout_s: float = field_(2.0, "a search waits at most this long for the map lock to read occupancy and "
                                         "frontiers; after that it answers without look_next (timings_ms.stale=1)")
     max_occupancy_cells: int = field_(4_000_000, "cells an occupancy request may return")
-    lease_s: float = field_(30.0, "a standing search registered over Zenoh ends this many seconds after its last "
-                                  "registration or renewal unless the request names its own lease_s "
-                                  "(query_client.Client renews every lease_s / 3)")
-    max_standing: int = field_(64, "standing searches held at once (all clients); one more is refused")
-    max_standing_per_client: int = field_(8, "standing searches one client (request 'client', or the robot of "
-                                             "a robot-scoped search) may hold at once")
     fleet_footprint_m: float = field_(0.0, "a fleet search keeps its robots' goal viewpoints at least this far apart "
                                            "(no two robots sent to one frontier region); 0 = twice "
                                            "search.sensing_radius_m (the sensed spheres do not overlap)")
@@ -67,8 +62,8 @@ class SearchSection:
         for k in ("fleet_footprint_m", "fleet_unreachable_tol_m"):
             if not getattr(self, k) >= 0.0:
                 raise ConfigError(f"search.{k}={getattr(self, k)}: must be >= 0 (metres)")
-        for k in ("lease_s", "max_standing", "max_standing_per_client", "fleet_unreachable_max",
-                  "fleet_unreachable_ttl_s"):
+        for k in ("fleet_unreachable_max", "fleet_unreachable_ttl_s"):
             if not getattr(self, k) > 0:
                 raise ConfigError(f"search.{k}={getattr(self, k)}: must be > 0")
+        self.check_limits("search")
         return self

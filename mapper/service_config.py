@@ -8,6 +8,7 @@ from typing import Literal, Sequence
 
 from common.config import check_threads, field_, section
 from common.zenoh_session import ZenohConfig
+from mapper.leases import StandingLimits
 from mapper.outputs.ros import RosSection
 from mapper.robot_registry import FleetSection
 from mapper.search_config import SearchSection
@@ -34,13 +35,8 @@ class LayersSection:
 
 
 @dataclass
-class QuerySection:
+class QuerySection(StandingLimits):
     standing_rate_hz: float = field_(1.0, "standing queries are re-run at most this often after map updates")
-    lease_s: float = field_(30.0, "a standing query registered over Zenoh ends this many seconds after its last "
-                                  "registration or renewal unless the request names its own lease_s "
-                                  "(query_client.Client renews every lease_s / 3)")
-    max_standing: int = field_(64, "standing queries held at once (all clients); one more is refused")
-    max_standing_per_client: int = field_(8, "standing queries one client (request 'client') may hold at once")
     cluster_candidates: int = field_(2000, "top voxels considered when grouping voxel hits into clusters")
     cluster_rel_score: float = field_(0.9, "only voxels scoring >= this fraction of the best (after min-max "
                                            "normalisation over the map) are clustered")

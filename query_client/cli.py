@@ -73,16 +73,18 @@ def log_result_rerun(r: QueryResult, file: str | None = None, url: str | None = 
     import numpy as np
     import rerun as rr
 
+    from common import rerun_paths as paths
+
     rec = rr.RecordingStream("rayfronts_query")
     if file:
         rec.save(file)
     if url:
         rec.connect_grpc(url)
-    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     if layers and "voxels" in layers:
         v = layers["voxels"]
-        rec.log("world/map/voxels", rr.Points3D(v["xyz"], colors=v["rgb"]))
-    base = "world/query"
+        rec.log(paths.MAP_VOXELS, rr.Points3D(v["xyz"], colors=v["rgb"]))
+    base = paths.QUERIES(paths.entity_name(r.query))
     if len(r.cluster_xyz):
         rec.log(f"{base}/clusters", rr.Boxes3D(centers=r.cluster_xyz, half_sizes=np.asarray(r.cluster_extent) / 2,
                                                labels=[f"{r.query} {s:.3f}" for s in r.cluster_score]))

@@ -150,15 +150,21 @@ def fleet_reply_text(r: FleetSearchReply) -> str:
     return json.dumps(fleet_reply_json(r))
 
 
+def _outside_shard(stats: dict) -> int:
+    """Frames a shard received outside its region (its robots' ``outside_shard``; 0 unsharded)."""
+    return sum(int(r.get("outside_shard", 0)) for r in stats["robots"].values())
+
+
 def settled(stats: dict, mapped: int = 1, received: int = 0) -> bool:
     """Whether a mapper's ``stats`` (``Client.stats``) say it has settled: every frame it received
-    mapped, dropped or rejected, no robot queue holding a frame, the map flushed
-    (``flushed_version == map_version``), at least ``mapped`` frames mapped and ``received``
-    received. ``mapped`` counts the frames of a restored snapshot too, ``received`` only this
-    process's: the accounting is ``mapped + dropped + rejected >= received``."""
+    mapped, dropped, rejected or (a shard) outside its region, no robot queue holding a frame,
+    the map flushed (``flushed_version == map_version``), at least ``mapped`` frames mapped and
+    ``received`` received. ``mapped`` counts the frames of a restored snapshot too, ``received``
+    only this process's: the accounting is ``mapped + dropped + rejected + outside_shard >=
+    received``."""
     f = stats["frames"]
     return (f["mapped"] >= mapped and f["received"] >= received
-            and f["mapped"] + f["dropped"] + f["rejected_total"] >= f["received"]
+            and f["mapped"] + f["dropped"] + f["rejected_total"] + _outside_shard(stats) >= f["received"]
             and not any(r["queue"] for r in stats["robots"].values())
             and stats["flushed_version"] == stats["map_version"])
 
@@ -168,5 +174,5 @@ def settled_line(stats: dict) -> str:
     f = stats["frames"]
     queued = sum(r["queue"] for r in stats["robots"].values())
     return (f"received {f['received']}, mapped {f['mapped']}, dropped {f['dropped']}, rejected "
-            f"{f['rejected_total']}, queued {queued}, map version {stats['map_version']} flushed "
-            f"{stats['flushed_version']}")
+            f"{f['rejected_total']}, outside shard {_outside_shard(stats)}, queued {queued}, map version "
+            f"{stats['map_version']} flushed {stats['flushed_version']}")

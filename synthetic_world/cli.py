@@ -57,37 +57,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-rerun", action="store_true", help="do not write world.rrd")
 
 
-def _log_rerun(path: Path, world, poses, K, hw, frames_iter, seed: int) -> None:
+def _log_rerun(path: Path, world, poses, K, hw, frames_iter, seed: int, robot: str) -> None:
+    """``world.rrd``: the world's instances (ground truth), the trajectory and each frame of
+    robot ``robot`` (entity paths: :mod:`common.rerun_paths`)."""
     import cv2
     import rerun as rr
 
+    from common import rerun_paths as paths
+
     rec = rr.RecordingStream("rayfronts_world", recording_id=f"world-seed{seed}")
     rec.save(str(path))
-    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     classes = enumerate(zip(world.classes, world.class_colors, strict=True))
-    rec.log("world", rr.AnnotationContext([(i, n, c) for i, (n, c) in classes]), static=True)
+    rec.log(paths.WORLD, rr.AnnotationContext([(i, n, c) for i, (n, c) in classes]), static=True)
     inst = world.instances
-    rec.log("world/instances", rr.Boxes3D(
+    rec.log(paths.TRUTH_INSTANCES, rr.Boxes3D(
         centers=np.array([i.center for i in inst]),
         half_sizes=np.array([(i.aabb_max - i.aabb_min) / 2 for i in inst]),
         labels=[f"{world.classes[i.class_id]} ({i.name})" for i in inst],
         class_ids=np.array([i.class_id for i in inst])), static=True)
-    rec.log("world/trajectory", rr.LineStrips3D([poses[:, :3, 3]]), static=True)
+    rec.log(paths.ROBOTS(robot, paths.TRAJECTORY), rr.LineStrips3D([poses[:, :3, 3]]), static=True)
     h, w = hw
+    image = paths.ROBOTS(robot, paths.IMAGE)
     for i, (pose, r, depth) in enumerate(frames_iter):
         rec.set_time("frame", sequence=i)
         rec.set_time("time", duration=i * FRAME_DT)
-        rec.log("world/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
-        rec.log("world/camera/image", rr.Pinhole(image_from_camera=K, width=w, height=h,
-                                                 camera_xyz=rr.ViewCoordinates.RDF))
+        rec.log(paths.ROBOTS(robot, paths.CAMERA), rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+        rec.log(image, rr.Pinhole(image_from_camera=K, width=w, height=h, camera_xyz=rr.ViewCoordinates.RDF))
         ok, jpg = cv2.imencode(".jpg", r.rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
         if not ok:
             raise RuntimeError("JPEG encoding failed")
-        rec.log("world/camera/image/rgb", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
-        rec.log("world/camera/image/depth", rr.DepthImage(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32),
-                                                          meter=1.0))
+        rec.log(f"{image}/rgb", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
+        rec.log(f"{image}/depth", rr.DepthImage(np.where(np.isfinite(depth), depth, 0.0).astype(np.float32), meter=1.0))
         lab = r.labels.astype(np.uint8) if len(world.classes) < 256 else r.labels.astype(np.uint16)
-        rec.log("world/camera/image/labels", rr.SegmentationImage(lab))
+        rec.log(f"{image}/labels", rr.SegmentationImage(lab))
     rec.flush()
     rec.disconnect()
 
@@ -146,7 +149,7 @@ def _run(args: argparse.Namespace) -> int:
         for _ in frames():
             pass
     else:
-        _log_rerun(rrd, world, poses, K, hw, frames(), args.seed)
+        _log_rerun(rrd, world, poses, K, hw, frames(), args.seed, args.robot)
     dt = time.perf_counter() - t0
     print(f"rayfronts world: {args.frames} frames ({hw[0]}x{hw[1]}, {args.preset}, seed {args.seed}) in {dt:.1f} s")
     print(f"  recording: {rec_dir}")

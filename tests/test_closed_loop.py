@@ -547,7 +547,8 @@ def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_pat
             out = subprocess.run([rerun_binary(), "rrd", "stats", str(rrd)], capture_output=True, text=True,
                                  timeout=60)
             assert out.returncode == 0, out.stderr
-            for ent in ("/robot/path", "/robot/position", "/map/voxels", "/truth/targets"):
+            for ent in ("/world/robots/robot/trajectory", "/world/robots/robot/position", "/world/map/voxels",
+                        "/world/truth/targets", "/summary"):   # docs/conventions.md#rerun-entity-paths
                 assert ent in out.stdout, f"{ent} not in the recording:\n{out.stdout[:2000]}"
     assert not differ, f"not deterministic: {sorted(differ)}: {differ}"
 

@@ -363,12 +363,6 @@ def _answers(c) -> dict:
     return out
 
 
-def _flushed(c, n=None):
-    st = c.stats(timeout=5.0)
-    ok = st["flushed_version"] == st["map_version"] and (n is None or st["frames"]["mapped"] == n)
-    return st if ok else None
-
-
 @pytest.fixture(scope="module")
 def snapshot_run(tmp_path_factory, pca_file):
     """One mapper with periodic snapshots, SIGKILLed (no clean shutdown: only the periodic
@@ -389,7 +383,8 @@ def snapshot_run(tmp_path_factory, pca_file):
             wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
             edge = Proc("edge", edge_args(ep, pca_file, frames=8, rate=4.0), logdir)
             started.append(edge)
-            before_st = wait_for(lambda: _flushed(c, 8), 150, what="8 frames mapped and flushed")
+            before_st = c.wait_settled(mapped=8, timeout=150)           # the 8 frames mapped and flushed
+            assert before_st["frames"]["mapped"] == 8, before_st["frames"]
             wait_for(lambda: c.snapshot().get("frames_mapped") == 8, 30, what="a snapshot of the 8 frames")
             before = _answers(c)
             assert edge.p.wait(60) == 0
@@ -425,7 +420,7 @@ def test_sigkilled_mapper_restored_answers_the_same(tmp_path, procs, snapshot_ru
     snaps = _snap_copy(snapshot_run, tmp_path)
     ep, m2 = _mapper_from(snaps, tmp_path, procs)
     with client(ep) as c:
-        st = wait_for(lambda: _flushed(c), 60, what="restored mapper flushed")
+        st = c.wait_settled(timeout=60)                                # restored and flushed
         assert st["snapshot"].get("restored") is True and st["frames"]["mapped"] == 8
         assert st["map"]["n_voxels"] == before_st["map"]["n_voxels"] > 0
         assert st["map"]["n_rays"] == before_st["map"]["n_rays"]
@@ -460,7 +455,7 @@ def test_corrupt_latest_snapshot_falls_back_to_older(tmp_path, procs, snapshot_r
     arrays.write_bytes(data[: len(data) // 2])            # the newest generation is corrupt
     ep, m2 = _mapper_from(snaps, tmp_path, procs)
     with client(ep) as c:
-        st = wait_for(lambda: _flushed(c), 60, what="restarted mapper, flushed")
+        st = c.wait_settled(timeout=60)                                # restarted and flushed
         snap = st["snapshot"]
         assert snap.get("restored") is True, snap
         assert snap["path"] == str(older) and st["frames"]["mapped"] == older_frames, (snap, older)
@@ -545,14 +540,9 @@ def test_queries_answered_during_three_edge_flood(tmp_path, procs, pca_file, sha
             p.p.kill()
             p.p.wait()
 
-        def settled():
-            rs = c.stats()["robots"]
-            ok = all(rs[r]["queue"] == 0 and rs[r]["received"] == rs[r]["mapped"] + rs[r]["dropped"]
-                     + sum(rs[r]["rejected"].values()) for r in robots)
-            return rs if ok else None
-
         # nothing lost: once the floods stop, every frame received is mapped or dropped (counted)
-        rs = wait_for(settled, 60, what="every received frame accounted for")
+        rs = c.wait_settled(timeout=60)["robots"]
+        assert all(rs[r]["received"] == rs[r]["mapped"] + rs[r]["dropped"] for r in robots), rs
         assert all(not rs[r]["rejected"] for r in robots), {r: rs[r]["rejected"] for r in robots}
         assert all(rs[r]["mapped"] >= 2 for r in robots)
     times = [q["s"] for q in qs]

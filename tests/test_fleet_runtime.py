@@ -312,12 +312,12 @@ def test_many_robot_ids_bounded_and_evicted(tmp_path, procs):
             s.close()
         last = {}
 
-        def settled():
+        def all_received():
             x = c.stats(timeout=5.0)
             done = x["frames"]["received"] >= 2000 and x["frames"]["received"] == last.get("n")
             last["n"] = x["frames"]["received"]
             return x if done else None
-        st = wait_for(settled, 120, every=2.0, what="all frames received")
+        st = wait_for(all_received, 120, every=2.0, what="all frames received")
         fl = st["fleet"]
         print("fleet ids:", {k: fl[k] for k in ("robots_tracked", "refused_robot_cap", "pending_frames")},
               "rss", rss0, "->", st["rss_mb"], "dropped before decode", st["frames"]["dropped"])

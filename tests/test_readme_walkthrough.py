@@ -16,7 +16,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -152,13 +151,5 @@ def _wait_mapped(endpoint: str, timeout: float) -> None:
     flushed everything it received."""
     from query_client.client import Client
 
-    end = time.monotonic() + timeout
     with Client(connect=endpoint, timeout=10.0) as c:
-        while time.monotonic() < end:
-            st = c.stats(timeout=5.0)
-            fr = st["frames"]
-            if fr["received"] > 0 and fr["mapped"] + fr["dropped"] + fr["rejected_total"] >= fr["received"] \
-                    and st.get("flushed_version") == st.get("map_version"):
-                return
-            time.sleep(0.5)
-    raise AssertionError(f"the mapper did not finish mapping within {timeout} s")
+        c.wait_settled(received=1, timeout=timeout)

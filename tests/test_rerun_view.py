@@ -109,3 +109,27 @@ def test_recording_file_carries_the_blueprint_and_the_layout(tmp_path):
     for ent in ("/viewport", "/blueprint_panel", "/world/robots/r7/camera/image/rgb", "/world/map/voxels"):
         assert ent in text, f"{ent} not in the recording:\n{text[:3000]}"
     assert text.count("/view/") >= 2  # the 3D view and the camera view of robot r7
+
+
+def test_query_cli_recording_uses_the_mappers_entity_paths(tmp_path):
+    """``rayfronts query --rerun``: the answer under ``world/queries/<query>`` and the map's
+    voxels under ``world/map/voxels``, the mapper's own paths (docs/conventions.md), read back
+    by rerun's CLI; a path of the old ``world/query`` layout is absent."""
+    import subprocess
+
+    from common.messages import QueryResult
+    from mapper.outputs.rerun_view import rerun_binary
+    from query_client.cli import log_result_rerun
+
+    r = QueryResult(query="water tower", cluster_xyz=np.ones((2, 3), np.float32),
+                    cluster_size=np.array([3, 4], np.int32), cluster_extent=np.ones((2, 3), np.float32),
+                    cluster_score=np.array([0.9, 0.5], np.float32), ray_origin=np.zeros((1, 3), np.float32),
+                    ray_direction=np.array([[1.0, 0, 0]], np.float32), ray_score=np.array([0.7], np.float32))
+    path = tmp_path / "q.rrd"
+    log_result_rerun(r, file=str(path), layers={"voxels": {"xyz": np.zeros((5, 3), np.float32),
+                                                           "rgb": np.full((5, 3), 9, np.uint8)}})
+    out = subprocess.run([rerun_binary(), "rrd", "stats", str(path)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    for ent in ("/world/queries/water_tower/clusters", "/world/queries/water_tower/rays", "/world/map/voxels"):
+        assert ent in out.stdout, f"{ent} not in the recording:\n{out.stdout[:3000]}"
+    assert "/world/query/" not in out.stdout

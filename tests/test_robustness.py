@@ -85,7 +85,7 @@ def test_edge_sigkill_robot_gone_and_restart(tmp_path, procs, pca_file, queue2_m
         gone_after = st["robots"]["r1"]["gone_at"] - t_kill
         assert gone_after <= GONE_BOUND_S, f"robot reported gone {gone_after:.2f} s after SIGKILL"
         # the mapper keeps serving queries (once it flushed what it buffered)
-        wait_for(lambda: (lambda s: s["flushed_version"] == s["map_version"])(c.stats()), 30, what="flush")
+        c.wait_settled(timeout=30)
         r = c.query("car", top_k=3)
         assert len(r.voxel_xyz) > 0
         n_before = mapped(c, "r1")
@@ -165,9 +165,8 @@ def test_malformed_flood_rejected_and_map_equals_good_frames(tmp_path, procs, pc
         flush(m)
         vox_local, _ = layer_arrays(m, "voxels", type(cfg.layers)(max_voxels=10 ** 9, max_rays=10 ** 9))
         o_local, _ = layer_arrays(m, "rays", type(cfg.layers)(max_voxels=10 ** 9, max_rays=10 ** 9))
-        st = wait_for(lambda: (lambda s: s if s["frames"]["mapped"] == 12 and s["flushed_version"] == s["map_version"]
-                               else None)(c.stats()), 120, what="12 good frames mapped and flushed")
-        assert st["frames"]["rejected_total"] == 10_000, st["frames"]
+        st = c.wait_settled(mapped=12, timeout=120)           # the 12 good frames mapped and flushed
+        assert st["frames"]["mapped"] == 12 and st["frames"]["rejected_total"] == 10_000, st["frames"]
         assert len(st["frames"]["rejected"]) >= 4   # counted by reason
         assert st["robots"]["r1"]["mapped"] == 12
         vox_remote, _ = c.layer("voxels")
@@ -193,8 +192,7 @@ def test_fast_edge_bounded_queue_counts_drops(tmp_path, procs, pca_file, queue2_
         procs.append(edge)
         edge.p.wait(150)
         assert edge.p.returncode == 0
-        st = wait_for(lambda: (lambda s: s if s["queues"].get("fast", 1) == 0 else None)(c.stats()), 60,
-                      what="queue drained")
+        st = c.wait_settled(timeout=60)                        # the queue drained, the map flushed
         fr = st["robots"]["fast"]
         # every frame is accounted for and the queue stays bounded; how many are dropped
         # depends on the machine's speed (rayfronts bench e2e reports it), so no "> 0" here

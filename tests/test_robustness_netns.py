@@ -27,21 +27,12 @@ def netns():
 
 
 CLIENT = textwrap.dedent("""
-    import json, sys, time
+    import json, sys
     from common.zenoh_session import ZenohConfig
     from query_client import Client
     ep, n = sys.argv[1], int(sys.argv[2])
     with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60000, shared_memory=False), timeout=20) as c:
-        end = time.time() + 150
-        st = None
-        while time.time() < end:
-            try:
-                st = c.stats()
-                if st["frames"]["mapped"] >= n and st["flushed_version"] == st["map_version"]:
-                    break
-            except Exception:
-                pass
-            time.sleep(0.5)
+        st = c.wait_settled(mapped=n, timeout=150)
         robots = c.robots()
         r = c.query("car", top_k=3)
         print(json.dumps({"mapped": st["frames"]["mapped"], "robots": robots, "voxels": len(r.voxel_xyz),

@@ -6,7 +6,6 @@ reads, and a standing query sent as a std_msgs/String."""
 from __future__ import annotations
 
 import signal
-import threading
 import time
 
 import numpy as np
@@ -16,7 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from common.zenoh_session import ZenohConfig, free_tcp_port
 from tests.support.processes import proc_env, start_cli, stop_all, wait_for
-from tests.support.roles import zenoh_client_config
+from tests.support.roles import SampleLog, zenoh_client_config
 
 JAZZY = get_typestore(Stores.ROS2_JAZZY)
 MAP = ["preset=throughput", "map.vox_size=0.5", "map.depth_limit=20", "layers.rate_hz=0", "rerun.file=",
@@ -41,22 +40,6 @@ def _cloud(msg) -> dict[str, np.ndarray]:
     return out
 
 
-class Latest:
-    def __init__(self, s, key):
-        self.lock = threading.Lock()
-        self.samples: list = []
-        self.sub = s.declare_subscriber(key, self._cb)
-
-    def _cb(self, sample):
-        with self.lock:
-            self.samples.append((str(sample.key_expr), sample.payload.to_bytes(),
-                                 None if sample.attachment is None else sample.attachment.to_bytes()))
-
-    def last(self):
-        with self.lock:
-            return self.samples[-1] if self.samples else None
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
@@ -71,8 +54,8 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
         with Client(ZenohConfig(connect=[ep], connect_timeout_ms=60_000), timeout=20.0) as c:
             wait_for(lambda: c.mapper_alive(), 60, what="mapper alive")
             s = zenoh.open(zenoh_client_config(ep))
-            subs = {n: Latest(s, f"0/rayfronts/{n}/*/*") for n in ("voxels", "frontiers", "rays")}
-            qsub = Latest(s, "0/rayfronts/query/ros_vehicle/*/*")
+            subs = {n: SampleLog(s, f"0/rayfronts/{n}/*/*") for n in ("voxels", "frontiers", "rays")}
+            qsub = SampleLog(s, "0/rayfronts/query/ros_vehicle/*/*")
             procs.append(start_cli(
                 ["edge", "--connect", ep, "--rate", "0", "robot=r1", "source.resolution=96x128", "source.n_frames=12",
                  "source.depth_limit=20", "pca.out_dim=16", "pca.fit_frames=4", "publish.linger_s=8",
@@ -88,7 +71,7 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
             assert len(vox_l["xyz"]) == n_vox > 100
 
             def final(name, n):
-                last = subs[name].last()
+                last = subs[name].latest()
                 if last is None:
                     return None
                 msg = JAZZY.deserialize_cdr(last[1], "sensor_msgs/msg/PointCloud2")
@@ -121,7 +104,7 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
             fxyz = np.stack([fc["x"], fc["y"], fc["z"]], 1)
             np.testing.assert_array_equal(fxyz[np.lexsort(fxyz.T)], fr_l["xyz"][np.lexsort(fr_l["xyz"].T)])
 
-            rkey, rraw, _ = subs["rays"].last()
+            rkey, rraw, _ = subs["rays"].latest()
             assert rkey.startswith(f"0/rayfronts/rays/{_dds('visualization_msgs/msg/MarkerArray')}/RIHS01_")
             ma = JAZZY.deserialize_cdr(rraw, "visualization_msgs/msg/MarkerArray")
             assert ma.markers[0].action == 3  # DELETEALL
@@ -151,7 +134,7 @@ def test_mapper_ros_output_decodes_and_equals_layers(tmp_path):
             h = JAZZY.hash_rihs01("std_msgs/msg/String")
             s.put(f"0/rayfronts/query_text/{_dds('std_msgs/msg/String')}/{h}",
                   bytes(JAZZY.serialize_cdr(T["std_msgs/msg/String"](data="vehicle"), "std_msgs/msg/String")))
-            qkey, qraw, _ = wait_for(lambda: qsub.last(), 30, what="the standing query cloud")
+            qkey, qraw, _ = wait_for(lambda: qsub.latest(), 30, what="the standing query cloud")
             qc = _cloud(JAZZY.deserialize_cdr(qraw, "sensor_msgs/msg/PointCloud2"))
             assert set(qc) == {"x", "y", "z", "score"} and len(qc["score"]) > 0
             ref = c.query("vehicle", top_k=1000)

@@ -27,7 +27,7 @@ from common.ros2 import cdr
 from common.zenoh_session import free_tcp_port
 from tests.support.ports import open_loopback_router
 from tests.support.processes import Proc, stop_all, wait_for
-from tests.support.roles import client, edge_args, mapper_args, zenoh_client_config
+from tests.support.roles import SampleLog, client, edge_args, mapper_args, zenoh_client_config
 
 STRING_KEY = "std_msgs::msg::dds_::String_"
 
@@ -43,18 +43,11 @@ def _cloud(msg) -> dict[str, np.ndarray]:
     return {f.name: raw[:, f.offset:f.offset + 4].copy().view("<f4").reshape(-1) for f in msg.fields}
 
 
-class Recorder:
+class Recorder(SampleLog):
     """Every sample under ``0/rayfronts/**``: (key, payload, attachment) in arrival order."""
 
     def __init__(self, s, key: str = "0/rayfronts/**"):
-        self.lock = threading.Lock()
-        self.samples: list = []
-        self.sub = s.declare_subscriber(key, self._cb)
-
-    def _cb(self, sample):
-        with self.lock:
-            self.samples.append((str(sample.key_expr), sample.payload.to_bytes(),
-                                 None if sample.attachment is None else sample.attachment.to_bytes()))
+        super().__init__(s, key)
 
     def of(self, topic: str) -> list:
         with self.lock:

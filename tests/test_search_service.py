@@ -131,8 +131,7 @@ def test_search_service_with_real_processes(tmp_path, procs, pca_file):
             assert np.all(occ.states == 0)
         # more frames: the same objects keep their ids
         assert procs[1].p.wait(timeout=180) == 0              # the edge sent its 40 frames
-        wait_for(lambda: mapped(c) > first["frames_mapped"], 60, what="more frames mapped")
-        wait_for(lambda: (lambda s: s["flushed_version"] == s["map_version"])(c.stats()), 60, what="flush")
+        c.wait_settled(mapped=first["frames_mapped"] + 1, timeout=60)    # more frames mapped, all flushed
         later = c.search("car", max_instances=MAX_INSTANCES)      # all of them: none pushed out of the top 10
         assert later.frames_mapped > first["frames_mapped"]
         # every object-sized instance of the first answer is found again at its place (its

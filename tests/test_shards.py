@@ -224,6 +224,7 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
 
             def done():
                 from common.messages import decode_stats
+                from query_client.vocabulary import settled
 
                 if edge.p.poll() is None:
                     return None
@@ -231,12 +232,8 @@ def test_two_shards_answer_like_one_mapper(tmp_path):
                 sts = {s.get("fleet", {}).get("shard") or "all": s for s in (decode_stats(d) for d, _ in oks)}
                 if set(sts) != {"west", "east", "all"}:
                     return None
-                for s in sts.values():
-                    r = s["robots"].get("r1", {})
-                    if not r or r["queue"] or r["mapped"] + r["outside_shard"] < r["received"] \
-                            or s["flushed_version"] != s["map_version"]:
-                        return None
-                return sts
+                ok = all("r1" in s["robots"] and settled(s, mapped=0) for s in sts.values())
+                return sts if ok else None
             parts = wait_for(done, 180, every=0.5, what="every frame mapped")
             n = parts["all"]["robots"]["r1"]["mapped"]
             assert n >= 12 and parts["all"]["robots"]["r1"]["outside_shard"] == 0

@@ -57,16 +57,14 @@ def _positions(found: list[dict]) -> dict[tuple, str]:
 
 
 def _settled(op, frames: int):
-    """Every shard's stats once the lap's frames are mapped and flushed (else None)."""
+    """Every shard's stats once the lap's frames are mapped and each shard has settled
+    (``query_client.vocabulary.settled``: every frame accounted for, the map flushed), else None."""
+    from query_client.vocabulary import settled
+
     sts = op.stats_all(5.0)
-    if set(sts) != {"west", "east"}:
+    if set(sts) != {"west", "east"} or sum(s["frames"]["mapped"] for s in sts.values()) < frames:
         return None
-    if sum(s["frames"]["mapped"] for s in sts.values()) < frames:
-        return None
-    if any(s["flushed_version"] != s["map_version"] or any(r["queue"] for r in s["robots"].values())
-           for s in sts.values()):
-        return None
-    return sts
+    return sts if all(settled(s, mapped=0) for s in sts.values()) else None
 
 
 def _latest_snapshot(d) -> dict:

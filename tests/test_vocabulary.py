@@ -75,3 +75,13 @@ def test_settled_after_a_restore_counts_the_snapshot_frames_as_mapped():
     s = _stats()
     s["frames"].update(received=16, mapped=32, dropped=0, rejected_total=0)   # 16 restored + 16 new
     assert settled(s, mapped=32) and not settled(s, mapped=33)
+
+
+def test_settled_on_a_shard_counts_the_frames_outside_its_region():
+    s = _stats()
+    s["frames"].update(received=14)                              # 4 more, all outside this shard's region
+    assert not settled(s)
+    s["robots"]["r1"]["outside_shard"] = 3
+    assert not settled(s)                                        # one still unaccounted for
+    s["robots"]["r0"]["outside_shard"] = 1
+    assert settled(s, mapped=7, received=14)

@@ -43,11 +43,13 @@ def test_rayfronts_world_writes_recording_and_rrd(tmp_path, capsys):
     # The rerun file has the expected entities.
     reader = rr.chunk.RrdReader(str(out / "world.rrd"))
     summary = reader.store().summary()
-    for entity, col in [("/world/instances", "Boxes3D:centers"), ("/world/camera", "Transform3D:translation"),
-                        ("/world/camera/image", "Pinhole:image_from_camera"),
-                        ("/world/camera/image/rgb", "EncodedImage:blob"),
-                        ("/world/camera/image/depth", "DepthImage:buffer"),
-                        ("/world/camera/image/labels", "SegmentationImage:buffer"),
+    cam = "/world/robots/rover_1/camera"                 # docs/conventions.md#rerun-entity-paths
+    for entity, col in [("/world/truth/instances", "Boxes3D:centers"), (cam, "Transform3D:translation"),
+                        (f"{cam}/image", "Pinhole:image_from_camera"),
+                        (f"{cam}/image/rgb", "EncodedImage:blob"),
+                        (f"{cam}/image/depth", "DepthImage:buffer"),
+                        (f"{cam}/image/labels", "SegmentationImage:buffer"),
+                        ("/world/robots/rover_1/trajectory", "LineStrips3D:strips"),
                         ("/world", "AnnotationContext:context")]:
         assert any(line.startswith(entity + " ") and col in line for line in summary.splitlines()), entity
     labels = []

@@ -387,10 +387,14 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
 
 
 def _wait_drained(c, edge, n_frames: int, deadline_s: float, settle_s: float = 3.0) -> dict | None:
-    """Poll the mapper's stats until the edge has exited and every frame it sent is accounted
-    for (mapped + dropped = n_frames), or, short of that, until the counts and queues have not
-    moved for ``settle_s`` seconds after the edge exited (a frame still on the wire when the
-    edge exits arrives after its queue read empty, so "edge gone and queue empty" alone is early)."""
+    """Poll the mapper's stats until the edge has exited and the mapper has settled
+    (``query_client.vocabulary.settled``: every frame accounted for, queues empty, the map
+    flushed) on all ``n_frames`` it sent, or, short of that (frames lost on the wire), until it
+    has settled on fewer and the counts have not moved for ``settle_s`` seconds (a frame still
+    on the wire when the edge exits arrives after its queue read empty, so "edge gone and
+    settled" alone is early)."""
+    from query_client.vocabulary import settled
+
     end = time.monotonic() + deadline_s
     st, last, still_since = None, None, None
     while time.monotonic() < end:
@@ -399,15 +403,14 @@ def _wait_drained(c, edge, n_frames: int, deadline_s: float, settle_s: float = 3
             st = c.stats(timeout=5.0)
         except Exception:
             continue
-        if edge.poll() is None or sum(st["queues"].values()):
+        if edge.poll() is None or not settled(st):
             continue
-        fr = st["frames"]
-        seen = (fr["mapped"], fr["dropped"])
-        if fr["mapped"] + fr["dropped"] >= n_frames:
+        if settled(st, received=n_frames):
             break
+        seen = (st["frames"]["mapped"], st["frames"]["dropped"])
         if seen != last:
             last, still_since = seen, time.monotonic()
-        elif fr["mapped"] > 0 and time.monotonic() - still_since >= settle_s:
+        elif time.monotonic() - still_since >= settle_s:
             break
     return st
 

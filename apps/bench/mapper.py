@@ -33,6 +33,8 @@ import resource
 import time
 from typing import TYPE_CHECKING, Callable, Sequence
 
+from apps.bench.meta import add_synthetic_map_arguments
+
 if TYPE_CHECKING:
     import numpy as np
     import torch
@@ -52,14 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="map preset and input resolution (throughput: 224x224, 0.3 m; online: 640x640, 1 m)")
     parser.add_argument("--frames", type=int, default=300, help="frames to integrate (default 300)")
     parser.add_argument("--backend", choices=["auto", "vdb", "torch"], default="auto", help="occupancy backend")
-    parser.add_argument("--feature-dim", type=int, default=100, help="feature channels (default 100, PCA size)")
-    parser.add_argument("--depth-limit", type=float, default=20.0, help="simulated sensor range in m (default 20)")
-    parser.add_argument("--seed", type=int, default=0, help="world / feature seed")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch CPU threads per stage (default 1; more threads on a shared 2-core box "
-                             "slow torch down)")
+    add_synthetic_map_arguments(parser)
     parser.add_argument("--trajectory", choices=["ground", "drone"], default="ground", help="camera trajectory")
-    parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE", help="map config overrides")
     parser.add_argument("--no-kernels", action="store_true",
                         help="use the pure-torch paths instead of the C++ kernels (semantic_map._rfkernels); "
                              "same results")

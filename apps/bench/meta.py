@@ -235,3 +235,16 @@ def resolution_arg(s: str) -> tuple[int, int]:
     if h < 16 or w < 16:
         raise argparse.ArgumentTypeError(f"resolution must be at least 16x16, got {s!r}")
     return h, w
+
+
+def add_synthetic_map_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the benches that map the synthetic world in process (``bench mapper``,
+    ``bench mission``): ``--seed``, ``--feature-dim``, ``--depth-limit`` (m), ``--threads``
+    (torch CPU threads per mapping stage) and ``--override`` (map config ``KEY=VALUE``)."""
+    parser.add_argument("--seed", type=int, default=0, help="world / route / feature seed (default 0)")
+    parser.add_argument("--feature-dim", type=int, default=100, help="feature channels (default 100, PCA size)")
+    parser.add_argument("--depth-limit", type=float, default=20.0, help="simulated sensor range in m (default 20)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads per mapping stage (default 1; more threads on a shared 2-core box "
+                             "slow torch down)")
+    parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE", help="map config overrides")

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from apps.bench.meta import resolution_arg
+from apps.bench.meta import add_synthetic_map_arguments, resolution_arg
 
 if TYPE_CHECKING:
     import numpy as np
@@ -52,15 +52,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="rendered image size (default 224x224, as bench mapper's throughput preset)")
     parser.add_argument("--step", type=float, default=0.15, help="metres travelled per frame (default 0.15)")
     parser.add_argument("--chunk", type=int, default=200, help="frames rendered ahead per chunk (default 200)")
-    parser.add_argument("--seed", type=int, default=0, help="city / route / feature seed")
-    parser.add_argument("--feature-dim", type=int, default=100, help="feature channels (default 100, PCA size)")
-    parser.add_argument("--depth-limit", type=float, default=20.0, help="simulated sensor range in m (default 20)")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads per mapping stage (default 1)")
+    add_synthetic_map_arguments(parser)
     parser.add_argument("--no-pipeline", action="store_true", help="integrate sequentially (same map)")
     parser.add_argument("--queries", type=int, default=5, help="queries sampled at each window end (0: none)")
     parser.add_argument("--query-source", choices=["text", "random"], default="text",
                         help="text queries (loads the label text model once) or random language-space vectors")
-    parser.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE", help="map config overrides")
     parser.add_argument("--plot", type=Path, default=None, help="write a PNG: each per-window quantity vs frames")
 
 

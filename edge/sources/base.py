@@ -257,6 +257,15 @@ def number_rows(path: Path, count: int, layout: str) -> Iterator[list[float]]:
         yield vals
 
 
+class DirectorySource(FrameSource):
+    """A source read from the dataset directory ``source.path`` (``root``); one-line
+    :class:`SourceError` when it is not a directory."""
+
+    def __init__(self, cfg: SourceConfig):
+        super().__init__(cfg)
+        self.root = self._input_path("directory", directory=True)
+
+
 def filter_poses(poses: Sequence[np.ndarray], what: str, source: FrameSource) -> list[int]:
     """Indices of finite rigid poses; the others are counted in ``source.skipped``."""
     ok = []

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from edge.sources.base import FrameSource
+from edge.sources.base import DirectorySource
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 
@@ -30,26 +30,25 @@ def _find(info: dict, *keys):
     return None
 
 
-class RecordingSource(FrameSource):
+class RecordingSource(DirectorySource):
     kind = "recording"
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        path = self._input_path("directory", directory=True)
         try:
             from common.recording import RecordingError, RecordingReader
         except ImportError as e:
             raise SourceError(f"recording: the recording reader (common.recording) is not available: {e}") from None
         self._RecordingError = RecordingError
         try:
-            self.reader = RecordingReader(path)
+            self.reader = RecordingReader(self.root)
         except (RecordingError, OSError, ValueError) as e:
-            raise SourceError(f"recording: cannot open {path}: {e}") from None
+            raise SourceError(f"recording: cannot open {self.root}: {e}") from None
         self.info = dict(self.reader.info or {})
         names = _find(self.info, "class_names", "classes")
         self.class_names = [str(n) for n in names] if names else None
         src = self.info.get("source") if isinstance(self.info.get("source"), dict) else {}
-        self.name = f"recording:{path.name}"
+        self.name = f"recording:{self.root.name}"
         if src.get("type") == "synthetic_world":
             self.world_frame = "synthetic world frame, z up (x east, y north), ground at z = 0 (recorded)"
         else:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from common.conventions import convert_pose
-from edge.sources.base import FrameSource, filter_poses, native_frame, number_rows
+from edge.sources.base import DirectorySource, filter_poses, native_frame, number_rows
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 from edge.sources.imageops import read_depth_u16, read_rgb
@@ -33,18 +33,17 @@ def read_traj(path: Path) -> np.ndarray:
     return np.array(rows).reshape(-1, 4, 4)
 
 
-class ReplicaSource(FrameSource):
+class ReplicaSource(DirectorySource):
     kind = "replica"
     default_fps = 30.0
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        root = self._input_path("directory", directory=True)
-        scene = self._scene_dir(root)
-        params = next((p for p in (root / "cam_params.json", scene / "cam_params.json",
+        scene = self._scene_dir(self.root)
+        params = next((p for p in (self.root / "cam_params.json", scene / "cam_params.json",
                                     scene.parent / "cam_params.json") if p.is_file()), None)
         if params is None:
-            raise SourceError(f"replica: missing file: {root / 'cam_params.json'}")
+            raise SourceError(f"replica: missing file: {self.root / 'cam_params.json'}")
         try:
             cam = json.loads(params.read_text())["camera"]
             w, h = int(cam["w"]), int(cam["h"])

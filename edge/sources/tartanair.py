@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from common.conventions import convert_pose
-from edge.sources.base import FrameSource, filter_poses, native_frame, number_rows
+from edge.sources.base import DirectorySource, filter_poses, native_frame, number_rows
 from edge.sources.config import SourceConfig
 from edge.sources.errors import SourceError
 from edge.sources.imageops import decode_rgba_float32, read_png_unchanged, read_rgb
@@ -57,18 +57,17 @@ def read_tartanair_depth(path: Path) -> np.ndarray:
     return decode_rgba_float32(img)
 
 
-class TartanAirSource(FrameSource):
+class TartanAirSource(DirectorySource):
     kind = "tartanair"
     default_fps = 10.0
 
     def __init__(self, cfg: SourceConfig):
         super().__init__(cfg)
-        root = self._input_path("directory", directory=True)
         if cfg.scene:
-            traj = root / cfg.scene / cfg.difficulty
+            traj = self.root / cfg.scene / cfg.difficulty
             traj = traj / cfg.sequence if cfg.sequence else traj
         else:
-            traj = root / cfg.sequence if cfg.sequence else root
+            traj = self.root / cfg.sequence if cfg.sequence else self.root
         if not traj.is_dir():
             raise SourceError(f"tartanair: trajectory directory not found: {traj}")
         if not cfg.depth_cutoff > 0:
@@ -85,7 +84,7 @@ class TartanAirSource(FrameSource):
         self.native_hw, self.native_K = TARTANAIR_HW, TARTANAIR_K.copy()
         self.has_seg = self.seg_dir.is_dir()
         if self.has_seg:
-            for d in (traj, traj.parent, traj.parent.parent, root):
+            for d in (traj, traj.parent, traj.parent.parent, self.root):
                 f = d / "seg_label_map.json"
                 if f.is_file():
                     self.class_names = self._class_names(f)

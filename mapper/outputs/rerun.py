@@ -7,24 +7,9 @@ colour scale, labels, cones, the loopback-bound server) is :mod:`mapper.outputs.
 frame of a robot, the map after layers are published and at close, each answered query.
 Logging failures are counted in the rate-limited log and never stop mapping.
 
-Entity layout (world frame, z up, metres)::
-
-    world                              ViewCoordinates RIGHT_HAND_Z_UP (static)
-    world/robots/<robot>/camera        Transform3D (camera-to-world)
-    world/robots/<robot>/camera/image  Pinhole (RDF) + rgb (JPEG) + depth
-    world/robots/<robot>/trajectory    LineStrips3D of camera positions
-    world/map/voxels                   Points3D coloured by RGB
-    world/map/frontiers                Points3D
-    world/map/rays                     Arrows3D
-    world/queries/<q>/heat             Points3D: every voxel coloured by the query's score
-    world/queries/<q>/clusters         Boxes3D of the voxel clusters (best ones labelled, apart)
-    world/queries/<q>/rays             Arrows3D of the best rays (the best one labelled)
-    world/queries/<q>/search_volume    LineStrips3D outlining the best rays' cones
-    world/searches/<s>/instances       Boxes3D of a search's found instances (class id = instance id,
-                                       labelled "<target> #<id> <confidence>")
-    world/searches/<s>/goals           Points3D of its look-next goals (labelled with their scores)
-    scale/<q>/legend                   TextDocument: query, score range, counts, search volume
-    scale/<q>/colour_scale             Image of the heat colour scale with its range
+Entity paths: :mod:`common.rerun_paths` (robots' cameras and trajectories, the map's layers,
+each query's heat / clusters / rays / search volume and legend, each search's instances and
+goals).
 
 Timeline ``frame`` = frames mapped so far.
 """
@@ -35,6 +20,8 @@ import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from common import rerun_paths as paths
 
 if TYPE_CHECKING:
     from common.feature_space import FeatureSpace
@@ -96,7 +83,7 @@ class RerunLogger:
             log.info("rerun: streaming to %s (native viewer: rerun --connect %s)", self.url, self.url)
         if sinks:
             self.rec.set_sinks(*sinks, default_blueprint=bp)
-        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.rec.log(paths.WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._traj: dict[str, list] = {}
 
     @classmethod
@@ -123,25 +110,26 @@ class RerunLogger:
         rr = self.rr
         self._t(frame_no)
         self.rec.set_time("sensor_time", timestamp=float(frame.stamp))
-        base = f"world/robots/{frame.robot}"
         pose = np.asarray(frame.pose, np.float64)
-        self.rec.log(f"{base}/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
+        cam = paths.ROBOTS(frame.robot, paths.CAMERA)
+        self.rec.log(cam, rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         h, w = frame.depth.shape[:2]
-        self.rec.log(f"{base}/camera/image", rr.Pinhole(image_from_camera=np.asarray(frame.intrinsics),
-                                                        width=w, height=h, camera_xyz=rr.ViewCoordinates.RDF,
-                                                        image_plane_distance=1.0))
+        image = paths.ROBOTS(frame.robot, paths.IMAGE)
+        self.rec.log(image, rr.Pinhole(image_from_camera=np.asarray(frame.intrinsics), width=w, height=h,
+                                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=1.0))
         rgb = np.asarray(frame.rgb)
         if rgb.shape[:2] != (h, w):
             import cv2
 
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        self.rec.log(f"{base}/camera/image/rgb", rr.Image(rgb).compress(jpeg_quality=80))
+        self.rec.log(f"{image}/rgb", rr.Image(rgb).compress(jpeg_quality=80))
         d = np.asarray(frame.depth, np.float32)
         dmm = np.where(np.isfinite(d), np.clip(d * 1000.0, 0, 65535), 0).astype(np.uint16)
-        self.rec.log(f"{base}/camera/image/depth", rr.DepthImage(dmm, meter=1000.0))
+        self.rec.log(f"{image}/depth", rr.DepthImage(dmm, meter=1000.0))
         tr = self._traj.setdefault(frame.robot, [])
         tr.append(pose[:3, 3].astype(np.float32))
-        self.rec.log(f"{base}/trajectory", rr.LineStrips3D([np.asarray(tr)], colors=[255, 255, 255]))
+        self.rec.log(paths.ROBOTS(frame.robot, paths.TRAJECTORY),
+                     rr.LineStrips3D([np.asarray(tr)], colors=[255, 255, 255]))
         if frame.robot not in self._robots:
             self._robots.append(frame.robot)
             self._send_blueprint()
@@ -150,10 +138,9 @@ class RerunLogger:
                 ray_o: np.ndarray, ray_d: np.ndarray, vox_size: float = 0.3) -> None:
         rr = self.rr
         self._t(frame_no)
-        self.rec.log("world/map/voxels", rr.Points3D(vox_xyz, colors=vox_rgb, radii=vox_size / 2))
-        self.rec.log("world/map/frontiers", rr.Points3D(frontiers, colors=[0, 220, 160], radii=vox_size / 2))
-        self.rec.log("world/map/rays", rr.Arrows3D(origins=ray_o, vectors=np.asarray(ray_d) * 2.0,
-                                                   colors=[0, 200, 255]))
+        self.rec.log(paths.MAP_VOXELS, rr.Points3D(vox_xyz, colors=vox_rgb, radii=vox_size / 2))
+        self.rec.log(paths.MAP_FRONTIERS, rr.Points3D(frontiers, colors=[0, 220, 160], radii=vox_size / 2))
+        self.rec.log(paths.MAP_RAYS, rr.Arrows3D(origins=ray_o, vectors=np.asarray(ray_d) * 2.0, colors=[0, 200, 255]))
         if self._eye is None and len(vox_xyz):
             from mapper.outputs.rerun_view import eye_for
 
@@ -165,14 +152,14 @@ class RerunLogger:
         """The query's own entity tree: voxel heat (with its colour scale and range), labelled
         clusters, the best rays and the outlines of the search-volume cones; a new query text
         becomes the selected one."""
-        from mapper.outputs.rerun_view import colour_scale_image, cone_outlines, heat_colors, query_entity, thin_labels
+        from mapper.outputs.rerun_view import colour_scale_image, cone_outlines, heat_colors, thin_labels
         from mapper.query_answer import embed_request, scores_for
         from mapper.service_map import voxel_arrays
 
         rr = self.rr
         self._t(frame_no)
-        name = query_entity(res.query)
-        base = f"world/queries/{name}"
+        name = paths.entity_name(res.query)
+        base = paths.QUERIES(name)
         vox = float(m.cfg.vox_size)
         xyz, feats, _ = voxel_arrays(m)
         lo = hi = float("nan")
@@ -182,7 +169,7 @@ class RerunLogger:
             s = s.detach().cpu().numpy() if hasattr(s, "detach") else np.asarray(s)
             cols, lo, hi = heat_colors(s)
             self.rec.log(f"{base}/heat", rr.Points3D(xyz, colors=cols, radii=0.55 * vox))
-            self.rec.log(f"scale/{name}/colour_scale", rr.Image(colour_scale_image(lo, hi)))
+            self.rec.log(f"{paths.SCALE(name)}/colour_scale", rr.Image(colour_scale_image(lo, hi)))
             if self._eye is None:
                 from mapper.outputs.rerun_view import eye_for
 
@@ -213,14 +200,14 @@ class RerunLogger:
             self.rec.log(f"{base}/rays", rr.Clear(recursive=False))
             self.rec.log(f"{base}/search_volume", rr.Clear(recursive=False))
         rng = f"{lo:.3f} (blue) to {hi:.3f} (yellow)" if np.isfinite(lo) else "no voxels yet"
-        self.rec.log(f"scale/{name}/legend", rr.TextDocument(
+        self.rec.log(f"{paths.SCALE(name)}/legend", rr.TextDocument(
             f"### {res.query}\n\n"
             f"- heat: similarity of every voxel, {rng}\n"
             f"- clusters: {len(res.cluster_xyz)} (white boxes; the best ones, apart, labelled)\n"
             f"- rays beyond range: {len(res.ray_origin)}; search volume of the best {n} cones: "
             f"{res.search_volume_m3:,.0f} m³ (cut at {self.search_range_m:g} m)\n"
             f"- {res.frames_mapped} frames mapped\n\n"
-            "Other queries: `world/queries/<query>` in the blueprint panel (eye icon).",
+            f"Other queries: `{paths.QUERIES.root}/<query>` in the blueprint panel (eye icon).",
             media_type=rr.MediaType.MARKDOWN))
         if name not in self._queries:
             self._queries.append(name)
@@ -231,11 +218,9 @@ class RerunLogger:
     def log_search(self, targets: list[str], rep: SearchReply, frame_no: int) -> None:
         """A search answer (:class:`common.search_messages.SearchReply`): its instances as
         labelled boxes whose class ids are the instances' stable ids, and its look-next goals."""
-        from mapper.outputs.rerun_view import query_entity
-
         rr = self.rr
         self._t(frame_no)
-        base = f"world/searches/{query_entity(','.join(targets))}"
+        base = paths.SEARCHES(paths.entity_name(",".join(targets)))
         b = search_boxes(rep)
         if len(b["centers"]):
             self.rec.log(f"{base}/instances", rr.Boxes3D(centers=b["centers"], half_sizes=b["half_sizes"],

@@ -46,6 +46,8 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 import numpy as np
 import numpy.typing as npt
 
+from common import rerun_paths as paths
+
 if TYPE_CHECKING:
     import rerun.blueprint
 
@@ -134,31 +136,26 @@ def cone_outlines(origins: npt.ArrayLike, dirs: npt.ArrayLike, half_angle_deg: f
     return strips
 
 
-def query_entity(label: str) -> str:
-    import re
-
-    return re.sub(r"[^A-Za-z0-9_-]+", "_", label)[:48] or "query"
-
-
 def build_blueprint(selected: str | None, queries: Iterable[str], robots: Sequence[str],
                     eye: tuple[list, list] | None = None) -> rerun.blueprint.Blueprint:
     """The operator blueprint: 3D map + ``selected`` query (others hidden), legend, colour
     scale and one camera view per robot."""
     import rerun.blueprint as rrb
 
-    overrides = {f"world/queries/{q}": rrb.EntityBehavior(visible=False) for q in queries if q != selected}
+    overrides = {paths.QUERIES(q): rrb.EntityBehavior(visible=False) for q in queries if q != selected}
     kw = {}
     if eye is not None:
         pos, target = eye
         kw["eye_controls"] = rrb.EyeControls3D(position=pos, look_target=target, eye_up=[0.0, 0.0, 1.0])
     title = f"map + query '{selected}'" if selected else "map"
-    view3d = rrb.Spatial3DView(name=title, origin="world", contents=["+ world/**"], overrides=overrides, **kw)
+    view3d = rrb.Spatial3DView(name=title, origin=paths.WORLD, contents=[f"+ {paths.WORLD}/**"], overrides=overrides,
+                               **kw)
     side = []
     if selected:
-        side.append(rrb.TextDocumentView(name="query", origin=f"scale/{selected}/legend"))
-        side.append(rrb.Spatial2DView(name="colour scale", origin=f"scale/{selected}/colour_scale"))
+        side.append(rrb.TextDocumentView(name="query", origin=f"{paths.SCALE(selected)}/legend"))
+        side.append(rrb.Spatial2DView(name="colour scale", origin=f"{paths.SCALE(selected)}/colour_scale"))
     for r in robots:
-        side.append(rrb.Spatial2DView(name=f"camera {r}", origin=f"world/robots/{r}/camera/image",
+        side.append(rrb.Spatial2DView(name=f"camera {r}", origin=paths.ROBOTS(r, paths.IMAGE),
                                       contents=["+ $origin/rgb", "+ $origin/depth"]))
     if not side:
         layout = view3d

@@ -95,33 +95,20 @@ public:
 
     // value = clamp(value + inc, lo, hi), row by row (duplicates applied in order).
     void update(const IjkIn& ijk, const I32In& inc) {
-        const size_t n = ijk.shape(0);
-        if (inc.shape(0) != n) throw std::invalid_argument("inc must have one entry per row of ijk");
-        const int32_t* p = ijk.data();
         const int32_t* a = inc.data();
-        nb::gil_scoped_release release;
-        std::unique_lock<std::shared_mutex> lock(mutex_);
-        auto acc = grid_->getAccessor();
-        for (size_t i = 0; i < n; ++i) {
-            const Coord c(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+        write_rows(ijk, inc.shape(0), "inc", [&](auto& acc, const Coord& c, size_t i) {
             int8_t v = 0;
             const bool on = acc.probeValue(c, v);
             int64_t nv = int64_t(on ? v : 0) + int64_t(a[i]);
             nv = std::min<int64_t>(std::max<int64_t>(nv, lo_), hi_);
             acc.setValue(c, int8_t(nv));
-        }
+        });
     }
 
     // Overwrite voxels with given values (snapshot restore); activates them.
     void set_values(const IjkIn& ijk, const I8In& vals) {
-        const size_t n = ijk.shape(0);
-        if (vals.shape(0) != n) throw std::invalid_argument("values must have one entry per row of ijk");
-        const int32_t* p = ijk.data();
         const int8_t* v = vals.data();
-        nb::gil_scoped_release release;
-        std::unique_lock<std::shared_mutex> lock(mutex_);
-        auto acc = grid_->getAccessor();
-        for (size_t i = 0; i < n; ++i) acc.setValue(Coord(p[3 * i], p[3 * i + 1], p[3 * i + 2]), v[i]);
+        write_rows(ijk, vals.shape(0), "values", [&](auto& acc, const Coord& c, size_t i) { acc.setValue(c, v[i]); });
     }
 
     nb::ndarray<nb::numpy, int8_t> query(const IjkIn& ijk) const {
@@ -545,22 +532,10 @@ public:
         return to_numpy(std::move(out), {n});
     }
 
-    uint64_t num_active() const {
-        std::shared_lock<std::shared_mutex> lock(mutex_);
-        return grid_->constTree().activeVoxelCount();
-    }
-    uint64_t leaf_count() const {
-        std::shared_lock<std::shared_mutex> lock(mutex_);
-        return grid_->constTree().leafCount();
-    }
-    uint64_t tile_count() const {
-        std::shared_lock<std::shared_mutex> lock(mutex_);
-        return grid_->constTree().activeTileCount();
-    }
-    uint64_t mem_bytes() const {
-        std::shared_lock<std::shared_mutex> lock(mutex_);
-        return grid_->constTree().memUsage();
-    }
+    uint64_t num_active() const { return read_tree([](const TreeT& t) { return t.activeVoxelCount(); }); }
+    uint64_t leaf_count() const { return read_tree([](const TreeT& t) { return t.leafCount(); }); }
+    uint64_t tile_count() const { return read_tree([](const TreeT& t) { return t.activeTileCount(); }); }
+    uint64_t mem_bytes() const { return read_tree([](const TreeT& t) { return t.memUsage(); }); }
 
     void save(const std::string& path) const {
         nb::gil_scoped_release release;
@@ -596,6 +571,25 @@ public:
     }
 
 private:
+    // Under the write lock with the GIL released: f(accessor, coord, i) for each row i of ijk
+    // (rows applied in order); `what` (n values, one per row) names the value array in the error.
+    template <typename F>
+    void write_rows(const IjkIn& ijk, size_t n, const char* what, F&& f) {
+        if (ijk.shape(0) != n) throw std::invalid_argument(std::string(what) + " must have one entry per row of ijk");
+        const int32_t* p = ijk.data();
+        nb::gil_scoped_release release;
+        std::unique_lock<std::shared_mutex> lock(mutex_);
+        auto acc = grid_->getAccessor();
+        for (size_t i = 0; i < n; ++i) f(acc, Coord(p[3 * i], p[3 * i + 1], p[3 * i + 2]), i);
+    }
+
+    // f(tree) under the read lock (the GIL held: for quick counts).
+    template <typename F>
+    uint64_t read_tree(F&& f) const {
+        std::shared_lock<std::shared_mutex> lock(mutex_);
+        return uint64_t(f(grid_->constTree()));
+    }
+
     void init_grid() {
         grid_->setTransform(openvdb::math::Transform::createLinearTransform(vox_));
         grid_->setName("occupancy");

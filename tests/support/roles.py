@@ -56,3 +56,25 @@ def zenoh_client_config(ep: str):
     c.insert_json5("connect/endpoints", json.dumps([ep]))
     c.insert_json5("scouting/multicast/enabled", "false")
     return c
+
+
+class SampleLog:
+    """What one Zenoh subscriber on ``key`` receives: ``samples`` holds ``(key, payload bytes,
+    attachment bytes or None)`` in arrival order (guarded by ``lock``)."""
+
+    def __init__(self, session, key: str):
+        import threading
+
+        self.lock = threading.Lock()
+        self.samples: list = []
+        self.sub = session.declare_subscriber(key, self._cb)
+
+    def _cb(self, sample) -> None:
+        with self.lock:
+            self.samples.append((str(sample.key_expr), sample.payload.to_bytes(),
+                                 None if sample.attachment is None else sample.attachment.to_bytes()))
+
+    def latest(self):
+        """The last sample received, or None."""
+        with self.lock:
+            return self.samples[-1] if self.samples else None
