@@ -298,7 +298,7 @@ def decode_query_result(data: bytes | bytearray | memoryview, limits: WireLimits
 
 # ------------------------------------------------------------------------- layers
 #: arrays each layer carries: name -> {field: (dtype, ndim, last dim)}
-LAYER_FIELDS = {
+LAYER_FIELDS: dict[str, dict[str, tuple[Any, int, int]]] = {
     "voxels": {"xyz": (np.float32, 2, 3), "rgb": (np.uint8, 2, 3)},
     "frontiers": {"xyz": (np.float32, 2, 3)},
     "rays": {"origin": (np.float32, 2, 3), "direction": (np.float32, 2, 3)},
