@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import uuid
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -25,7 +25,10 @@ from common.search_messages import (
     encode_occupancy_request,
     encode_search_request,
 )
-from query_client.standing import StandingHandle
+from query_client.standing import ShardLatest, StandingHandle
+
+if TYPE_CHECKING:
+    from common.keys import KeySpace
 
 log = logging.getLogger("rayfronts.query_client")
 
@@ -59,6 +62,14 @@ class PlannerCalls:
 
     _query_error: type[Exception] = RuntimeError     # Client sets its QueryError
     robot: str | None = None
+    # what Client provides (query_client.client; declared here for the type checker)
+    keys: KeySpace
+    _get_all: Callable[[str, bytes | None, float | None], tuple[list, list[str]]]
+    _collect: Callable[[str, list, list[str], Callable], list[tuple]]
+    _missing: Callable[[set[str]], list[str]]
+    _missing_infos: Callable[[set[str]], list[dict]]
+    _standing: Callable[..., ShardLatest]
+    _follow_mapper: Callable[..., Any]
 
     def _search_key(self) -> str:
         return self.keys.robot_search(self.robot) if self.robot else self.keys.mapper_search
