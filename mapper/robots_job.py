@@ -319,8 +319,7 @@ class RobotsJob:
         if half_angle_deg is not None:
             info["half_angle_deg"] = float(half_angle_deg)
         if res is not None:
-            for k in ("score_min", "half_angle_deg"):
-                v = getattr(res, k, None)
+            for k, v in (("score_min", res.score_min), ("half_angle_deg", res.half_angle_deg)):
                 if v is not None:
                     info[k] = float(v)
         return encode_shard_info(info)
