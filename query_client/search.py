@@ -198,8 +198,9 @@ class PlannerCalls:
         """Dense states (nx, ny, nz) of a box at ``stride`` map voxels per cell."""
         return self._occupancy(OccupancyRequest("box", list(box_min), list(box_max), stride=stride), timeout)
 
-    def occupancy_slice(self, xy_min: Sequence[float], xy_max: Sequence[float], z_band: Sequence[float],
-                        stride: int = 1, timeout: float | None = None) -> OccupancyReply:
+    def occupancy_slice(self, xy_min: Sequence[float] | np.ndarray, xy_max: Sequence[float] | np.ndarray,
+                        z_band: Sequence[float] | np.ndarray, stride: int = 1,
+                        timeout: float | None = None) -> OccupancyReply:
         """2D costmap (nx, ny) of the z band: occupied if any, free if all free, else unknown."""
         return self._occupancy(OccupancyRequest("slice", list(xy_min), list(xy_max), list(z_band), stride=stride),
                                timeout)
