@@ -120,8 +120,8 @@ def layer_arrays(m: RayFrontsMap, layer: str, lcfg: LayerLimits) -> tuple[dict, 
         d = to_numpy(rs.directions()).astype(np.float32).reshape(-1, 3)
         n = len(o)
         if n > lcfg.max_rays:
-            idx = np.sort(rng.choice(n, lcfg.max_rays, replace=False))
-            o, d = o[idx], d[idx]
+            ridx = np.sort(rng.choice(n, lcfg.max_rays, replace=False))
+            o, d = o[ridx], d[ridx]
         return {"origin": o, "direction": d}, {"total": n}
     if layer == "occupancy":
         return {}, {k: v for k, v in map_stats(m).items() if isinstance(v, (int, float, str, bool))}

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -70,8 +70,8 @@ def capture_map(m: RayFrontsMap) -> tuple[dict[str, np.ndarray], dict]:
     for i, parts in enumerate(m._buf_sem):
         for j, x in enumerate(parts):
             arrays[f"buf_sem_{i}_{j}"] = _np(x)
-    for i, parts in enumerate(m._buf_rays):
-        for j, x in enumerate(parts):
+    for i, rparts in enumerate(m._buf_rays):
+        for j, x in enumerate(rparts):
             arrays[f"buf_rays_{i}_{j}"] = _np(x)
     for i, x in enumerate(m._pending_prune):
         arrays[f"buf_prune_{i}"] = _np(x)
@@ -120,7 +120,7 @@ def write_capture(capture: tuple[dict[str, np.ndarray], dict], path: str | Path)
     path.mkdir(parents=True, exist_ok=True)
     tmp = path / "arrays.npz.tmp"
     with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
+        np.savez(f, **cast(dict[str, Any], arrays))   # numpy's stub reads a key as allow_pickle
         f.flush()
         os.fsync(f.fileno())
     tmp.replace(path / "arrays.npz")
@@ -196,8 +196,8 @@ def load_map(path: str | Path, map_cls: type[RayFrontsMap], device: str | torch.
     m.last_fov_deg = tuple(man["last_fov_deg"])
     b = man["buffers"]
     m._buf_occ = [(saved(f"buf_occ_{i}_occ"), saved(f"buf_occ_{i}_free")) for i in range(b["occ"])]
-    m._buf_sem = [tuple(saved(f"buf_sem_{i}_{j}") for j in range(4)) for i in range(b["sem"])]
-    m._buf_rays = [tuple(saved(f"buf_rays_{i}_{j}") for j in range(3)) for i in range(b["rays"])]
+    m._buf_sem = [cast(Any, tuple(saved(f"buf_sem_{i}_{j}") for j in range(4))) for i in range(b["sem"])]
+    m._buf_rays = [cast(Any, tuple(saved(f"buf_rays_{i}_{j}") for j in range(3))) for i in range(b["rays"])]
     m._pending_prune = [saved(f"buf_prune_{i}") for i in range(b["prune"])]
     return m
 

@@ -10,7 +10,14 @@ Conventions (frames, units, voxel indexing) are those of ``docs/conventions.md``
 """
 from __future__ import annotations
 
-__all__ = ["RayFrontsMap", "MapConfig"]
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from semantic_map.config import MapConfig
+    from semantic_map.map import RayFrontsMap
+    from semantic_map.occupancy.base import OccupancyGrid
+
+__all__ = ["RayFrontsMap", "MapConfig", "OccupancyGrid"]
 
 
 def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` loads no map
@@ -20,4 +27,7 @@ def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` 
     if name == "MapConfig":
         from semantic_map.config import MapConfig
         return MapConfig
+    if name == "OccupancyGrid":      # the occupancy grid's interface (what planners read)
+        from semantic_map.occupancy.base import OccupancyGrid
+        return OccupancyGrid
     raise AttributeError(name)
