@@ -35,7 +35,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/python -m ruff check .
 
-# mypy on the pure map and the wire codec ([tool.mypy] in pyproject.toml; mypy comes with the test extra)
+# mypy on the packages [tool.mypy] in pyproject.toml lists, with check_untyped_defs (mypy comes with the test extra)
 typecheck: $(STAMP)
 	$(VENV)/bin/python -m mypy
 

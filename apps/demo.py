@@ -30,7 +30,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable
+from typing import IO, TYPE_CHECKING, Iterable
 
 import numpy as np
 
@@ -89,7 +89,7 @@ class Procs:
 
     def __init__(self, logdir: Path):
         self.logdir = logdir
-        self.procs: list[tuple[str, subprocess.Popen, object]] = []
+        self.procs: list[tuple[str, subprocess.Popen, IO[bytes]]] = []
 
     def start(self, name: str, cmd: list[str], env: dict | None = None) -> subprocess.Popen:
         f = open(self.logdir / f"{name}.log", "wb")
@@ -184,8 +184,8 @@ class Progress:
         self.stream = stream if stream is not None else sys.stdout
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.every_s = every_s
-        self._last_t = None
-        self._last_text = None
+        self._last_t: float | None = None
+        self._last_text: str | None = None
         self._open = False
 
     def update(self, text: str, force: bool = False) -> None:

@@ -83,11 +83,11 @@ def cone_union_volume(origins: np.ndarray, dirs: np.ndarray, half_angle_deg: flo
     vol_box = float(np.prod(hi - lo))
     cell = max(cell_m, (vol_box / max_cells) ** (1 / 3))
     axes = [np.arange(lo[i] + cell / 2, hi[i], cell, dtype=np.float32) for i in range(3)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    inside = np.zeros(len(pts), bool)
+    cells = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = np.zeros(len(cells), bool)
     cos_t = math.cos(th)
     for o, d in zip(origins.astype(np.float32), dirs.astype(np.float32), strict=False):
-        v = pts - o
+        v = cells - o
         t = v @ d
         nrm = np.linalg.norm(v, axis=1)
         inside |= (t > 0) & (t <= range_m) & (t >= nrm * cos_t)

@@ -40,7 +40,7 @@ def all_keys(schema: type, prefix: str = "") -> list[str]:
         out.append(k)
         t = hints[f.name]
         if dataclasses.is_dataclass(t):
-            out.extend(all_keys(t, k + "."))
+            out.extend(all_keys(typing.cast(type, t), k + "."))
     return out
 
 
@@ -171,7 +171,7 @@ def merge(cfg: _T, data: dict | None, prefix: str = "") -> _T:
             changes[k] = _deep_update(getattr(cfg, k), _coerce(v, t, prefix + k))
         else:
             changes[k] = _coerce(v, t, prefix + k)
-    return dataclasses.replace(cfg, **changes)
+    return dataclasses.replace(typing.cast(Any, cfg), **changes)
 
 
 def _deep_update(old: dict, new: dict) -> dict:
@@ -273,7 +273,7 @@ def describe(schema: type, prefix: str = "") -> str:
         t = hints[f.name]
         if dataclasses.is_dataclass(t):
             lines.append(f"[{k}]  {f.metadata.get('help', '')}".rstrip())
-            lines.append(describe(t, k + "."))
+            lines.append(describe(typing.cast(type, t), k + "."))
             continue
         v = getattr(inst, f.name)
         if isinstance(v, float) and math.isinf(v):
@@ -285,10 +285,13 @@ def describe(schema: type, prefix: str = "") -> str:
 def field_(default: Any, help: str, **kw: Any) -> Any:
     """Shorthand for a dataclass field with a help text (mutable defaults are copied)."""
     if isinstance(default, (list, dict, set)):
-        return dataclasses.field(default_factory=lambda d=default: type(d)(d), metadata={"help": help}, **kw)
+        def copy_() -> Any:
+            return type(default)(default)
+        return dataclasses.field(default_factory=copy_, metadata={"help": help}, **kw)
     if dataclasses.is_dataclass(default) and not isinstance(default, type):
-        return dataclasses.field(default_factory=lambda d=default: dataclasses.replace(d), metadata={"help": help},
-                                 **kw)
+        def fresh() -> Any:
+            return dataclasses.replace(default)
+        return dataclasses.field(default_factory=fresh, metadata={"help": help}, **kw)
     return dataclasses.field(default=default, metadata={"help": help}, **kw)
 
 

@@ -20,7 +20,7 @@ still yields a z-up world.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, overload
+from typing import TYPE_CHECKING, Any, TypeGuard, overload
 
 import numpy as np
 
@@ -91,7 +91,7 @@ def is_rigid(pose: ArrayLike, tol: float = 1e-3) -> bool:
     return bool(np.allclose(p[3], [0, 0, 0, 1], atol=tol))
 
 
-def _is_torch(x: Any) -> bool:
+def _is_torch(x: Any) -> TypeGuard[torch.Tensor]:
     return type(x).__module__.startswith("torch")
 
 
@@ -143,9 +143,9 @@ def sanitize_depth(depth: np.ndarray | torch.Tensor,
         if depth_limit is not None and depth_limit >= 0:
             d[torch.isfinite(d) & (d > depth_limit)] = float("inf")
         return d
-    d = np.array(depth, dtype=np.float32, copy=True)
+    a = np.array(depth, dtype=np.float32, copy=True)
     with np.errstate(invalid="ignore"):
-        d[(d <= 0) | np.isneginf(d)] = np.nan
+        a[(a <= 0) | np.isneginf(a)] = np.nan
         if depth_limit is not None and depth_limit >= 0:
-            d[np.isfinite(d) & (d > depth_limit)] = np.inf
-    return d
+            a[np.isfinite(a) & (a > depth_limit)] = np.inf
+    return a

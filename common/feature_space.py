@@ -153,7 +153,7 @@ class FeatureSpace:
             b["pca.n_samples"] = int(self.pca.n_samples)
         if self.encoder_config:
             b["encoder_config"] = dict(self.encoder_config)
-        if self.head_config is not None:
+        if self.head_config is not None and self.head_state is not None:   # both or neither (__post_init__)
             for k, v in self.head_config.to_dict().items():
                 b[f"head.cfg.{k}"] = int(v) if isinstance(v, bool) else v
             for k, v in self.head_state.items():
@@ -201,7 +201,7 @@ class FeatureSpace:
 
     def language_head(self, device: str | torch.device = "cpu") -> MLP2 | None:
         """The head as a module on ``device`` (cached), or None."""
-        if self.head_config is None:
+        if self.head_config is None or self.head_state is None:   # both or neither (__post_init__)
             return None
         key = str(device)
         if key not in self._head_cache:
@@ -259,6 +259,7 @@ class FeatureSpace:
             raise FeatureSpaceError(f"map features must be (N, {self.dim}), got {tuple(y.shape)}")
         if self.head_config is None and self.pca is not None:
             qv, qm = self.project_queries(queries, dev)   # (Q, k), (Q,)
+            assert qm is not None                          # with the PCA, q̂ᵀm is always there
             out = torch.empty(qv.shape[0], y.shape[0], device=dev)
             m, v = self.pca.torch_basis(dev, torch.float32)
             m64, v64 = m.double(), v.double()
@@ -364,6 +365,7 @@ class PreparedFeatures:
         may be a transposed view)."""
         fs = self.space
         if self._y is None:
+            assert self._raw is not None                   # prepared without a cache keeps the raw features
             return fs.similarity(self._raw, fs.check_queries(queries, self.device), device=self.device)
         qn, qm = fs.project_queries(queries, self.device, pca=self._inv is not None)
         if self.n == 0:
@@ -382,7 +384,7 @@ class PreparedFeatures:
 # ------------------------------------------------------------- sharing one map
 def head_digest(fs: FeatureSpace) -> str:
     """sha256 (16 hex) over the language head's config and weights ("" without a head)."""
-    if getattr(fs, "head_config", None) is None:
+    if fs.head_config is None or fs.head_state is None:
         return ""
     h = hashlib.sha256()
     h.update(repr(sorted(fs.head_config.to_dict().items())).encode())

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -66,7 +67,7 @@ class MLP2(nn.Module):
     def __init__(self, cfg: MLP2Config, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32):
         super().__init__()
         self.cfg = cfg
-        fk = dict(device=device, dtype=dtype)
+        fk: dict[str, Any] = dict(device=device, dtype=dtype)
         self.pre_norm = (nn.Sequential(nn.LayerNorm(cfg.in_dim, eps=cfg.ln_eps, **fk), nn.GELU())
                          if cfg.pre_norm else nn.Identity())
         self.fc1 = nn.Linear(cfg.in_dim, cfg.hidden_dim, **fk)

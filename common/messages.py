@@ -244,6 +244,9 @@ class QueryResult:
     * ``timings``: milliseconds per stage (``encode``, ``similarity``, ``total``, ...).
     * ``missing_shards``: shards the client saw (liveliness) that did not answer this merged
       result (set by the client; empty from one mapper).
+    * ``half_angle_deg``, ``score_min``: set by the mapper for the shard info of its reply (the
+      search cone's half-angle, the lowest voxel score); not on the wire, None on the client
+      side and then left out of :meth:`to_dict`.
     """
 
     id: str = ""
@@ -262,6 +265,8 @@ class QueryResult:
     stamp: float = 0.0
     timings: dict = field(default_factory=dict)
     missing_shards: list = field(default_factory=list)
+    half_angle_deg: float | None = field(default=None, repr=False, compare=False)
+    score_min: float | None = field(default=None, repr=False, compare=False)
 
     _ARRAYS = {
         "cluster_xyz": (np.float32, 2, 3), "cluster_size": (np.int32, 1, None),
@@ -281,8 +286,12 @@ class QueryResult:
 
     def to_dict(self) -> dict:
         """JSON-ready dict (lists instead of arrays)."""
-        out = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
+        out = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()
+               if v is not None or k not in _MAPPER_ONLY}
         return out
+
+
+_MAPPER_ONLY = ("half_angle_deg", "score_min")     # QueryResult fields not on the wire
 
 
 def encode_query_result(res: QueryResult) -> bytes:
@@ -299,7 +308,7 @@ def encode_query_result(res: QueryResult) -> bytes:
 
 def decode_query_result(data: bytes | bytearray | memoryview, limits: WireLimits | None = None) -> QueryResult:
     body = _decode(data, SCHEMA_QUERY_RESULT, limits)
-    kw = {}
+    kw: dict[str, Any] = {}
     for k, (dt, nd, last) in QueryResult._ARRAYS.items():
         kw[k] = _arr(body, k, SCHEMA_QUERY_RESULT, dt, nd, last)
     timings = body.get("timings", {})
@@ -316,7 +325,7 @@ def decode_query_result(data: bytes | bytearray | memoryview, limits: WireLimits
 
 # ------------------------------------------------------------------------- layers
 #: arrays each layer carries: name -> {field: (dtype, ndim, last dim)}
-LAYER_FIELDS = {
+LAYER_FIELDS: dict[str, dict[str, tuple[Any, int, int]]] = {
     "voxels": {"xyz": (np.float32, 2, 3), "rgb": (np.uint8, 2, 3)},
     "frontiers": {"xyz": (np.float32, 2, 3)},
     "rays": {"origin": (np.float32, 2, 3), "direction": (np.float32, 2, 3)},

@@ -108,7 +108,7 @@ class RecordingWriter:
         path: str | os.PathLike,
         *,
         robot: str,
-        source: dict | None = None,
+        source: dict | str | None = None,
         overwrite: bool = False,
         flush_every: int = 10,
         **encode_kwargs: Any,

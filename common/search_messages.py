@@ -349,7 +349,7 @@ def decode_occupancy_reply(data: bytes | bytearray | memoryview, limits: WireLim
     st = body.get("states")
     if not isinstance(st, np.ndarray):
         raise MessageError(f"{SCHEMA_OCCUPANCY_REPLY}: missing states array")
-    shape = tuple(int(s) for s in body.get("shape", st.shape))
+    shape = tuple(int(s) for s in body.get("shape", tuple(st.shape)))
     if int(np.prod(shape)) != st.size:
         raise MessageError(f"{SCHEMA_OCCUPANCY_REPLY}: states size {st.size} does not match shape {shape}")
     dist = body.get("dist")

@@ -394,7 +394,7 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
 def session_summary(session: zenoh.Session) -> dict:
     """zid, connected routers/peers and links of an open session (for logs and ``router``)."""
     info = session.info
-    out = {"zid": str(info.zid()), "routers": [str(z) for z in info.routers_zid()],
+    out: dict[str, Any] = {"zid": str(info.zid()), "routers": [str(z) for z in info.routers_zid()],
            "peers": [str(z) for z in info.peers_zid()]}
     try:
         out["links"] = [{"zid": str(lk.zid), "src": str(lk.src), "dst": str(lk.dst)} for lk in info.links()]

@@ -33,7 +33,9 @@ class ImageEncoder(Protocol):
     feature_dim: int
     stride: int
     text_model: str
-    language_head: torch.nn.Module | None
+
+    @property
+    def language_head(self) -> torch.nn.Module | None: ...   # read-only: encoders narrow it
 
     def encode(self, rgb: np.ndarray, labels: np.ndarray | None = None) -> torch.Tensor: ...
 

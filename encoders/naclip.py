@@ -17,7 +17,7 @@ the model's. The block's residual, layer scale and MLP are kept (RayFronts); NAC
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import torch
 from torch import nn
@@ -53,8 +53,8 @@ class NaclipAttention(nn.Module):
         self.n_prefix = int(n_prefix)
         self.gauss_std = float(gauss_std)
         self.use_gaussian = bool(use_gaussian)
-        self._bias_key = None
-        self._bias = None
+        self._bias_key: tuple | None = None
+        self._bias: torch.Tensor | None = None
 
     def bias(self, hw: tuple[int, int], device: str | torch.device, dtype: torch.dtype) -> torch.Tensor:
         """The Gaussian bias for an ``hw`` patch grid (cached for the last grid, device and dtype)."""
@@ -62,6 +62,7 @@ class NaclipAttention(nn.Module):
         if self._bias_key != key:
             self._bias = gaussian_bias(hw[0], hw[1], self.gauss_std, self.n_prefix, device, dtype)
             self._bias_key = key
+        assert self._bias is not None
         return self._bias
 
     def forward(self, x: torch.Tensor, grid_hw: tuple[int, int] | None = None, **kwargs: Any) -> torch.Tensor:
@@ -89,7 +90,7 @@ class NaclipBlock(nn.Module):
                  use_gaussian: bool = True):
         super().__init__()
         self.block = block
-        self.attn = NaclipAttention(block.attn, n_prefix, gauss_std, use_gaussian)
+        self.attn = NaclipAttention(cast(Attention, block.attn), n_prefix, gauss_std, use_gaussian)
         self.reduced = bool(reduced)
 
     def forward(self, x: torch.Tensor, grid_hw: tuple[int, int] | None = None) -> torch.Tensor:

@@ -18,6 +18,8 @@ query time, exactly like an averaged voxel feature) and the head applied to it f
 """
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import torch
 
@@ -27,6 +29,7 @@ from encoders.heads import summary_head, summary_slot
 from encoders.naclip import NaclipBlock
 from encoders.radio import (
     PRESETS,
+    Block,
     RadioCheckpoint,
     RadioConfig,
     RadioModel,
@@ -54,8 +57,7 @@ class NaradioEncoder:
         self.device = torch.device(device or cfg.device)
         self.dtype = _DTYPES[cfg.dtype]
         if ckpt is None:
-            path = find_radio_checkpoint(cfg.model, cfg.model_dir, cfg.checkpoint)
-            ckpt = read_checkpoint(path)
+            ckpt = read_checkpoint(find_radio_checkpoint(cfg.model, cfg.model_dir, cfg.checkpoint))
         path = ckpt.path
         expect = RadioConfig.preset(cfg.model) if cfg.model in PRESETS else None
         self.model: RadioModel = build_radio(ckpt, self.device, self.dtype, expect=expect)
@@ -67,7 +69,7 @@ class NaradioEncoder:
             raise ValueError(f"summary_slot {self.slot} outside the {rc.num_cls_tokens} class tokens")
         if self.head.in_dim != rc.embed_dim:
             raise ValueError(f"language head expects {self.head.in_dim}-d input, backbone gives {rc.embed_dim}")
-        self.last_block = (NaclipBlock(self.model.base_model.blocks[-1], rc.num_prefix, cfg.gauss_std,
+        self.last_block = (NaclipBlock(cast(Block, self.model.base_model.blocks[-1]), rc.num_prefix, cfg.gauss_std,
                                        cfg.reduced_block) if cfg.naclip else None)
         self.checkpoint_path = str(path)
         arch = cfg.model if cfg.model in PRESETS else rc.arch

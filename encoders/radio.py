@@ -135,7 +135,7 @@ class RadioConfig:
             summary_idxs = sorted(first.values())
         else:
             n_cls, summary_idxs = 1, [0]
-        slots = {}
+        slots: dict[str, int] = {}
         for i, t in enumerate(teachers):
             slots.setdefault(names[i], int(t.get("token_slot", i)) if per_teacher else 0)
         if n_cls > n_tok:
@@ -154,6 +154,9 @@ class RadioConfig:
 # ------------------------------------------------------------------------------ modules
 class InputConditioner(nn.Module):
     """``(x − mean) / std`` on [0, 1] RGB (CLIP statistics by default, from the checkpoint)."""
+
+    norm_mean: torch.Tensor
+    norm_std: torch.Tensor
 
     def __init__(self):
         super().__init__()
@@ -292,6 +295,9 @@ class RadioViT(nn.Module):
 
 class FeatureNormalizer(nn.Module):
     """Optional RADIO feature normaliser: ``(x − mean) · txᵀ``."""
+
+    mean: torch.Tensor
+    tx: torch.Tensor
 
     def __init__(self, dim: int):
         super().__init__()
@@ -446,7 +452,8 @@ def read_checkpoint(path: str | Path) -> RadioCheckpoint:
     p = Path(path)
     if not p.is_file():
         raise ModelFileError(f"RADIO checkpoint not found: {p}")
-    args = None
+    args: Any = None                     # the published layout's argparse Namespace (or dict)
+    cfg: RadioConfig | None
     if p.suffix == ".safetensors":
         sd, cfg = _read_safetensors(p)
     else:

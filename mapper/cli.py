@@ -5,7 +5,7 @@ import argparse
 import logging
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from common.cli_options import split_trailing_options
 
@@ -66,11 +66,11 @@ def build_config(args: argparse.Namespace) -> MapperConfig:
 
     ov = split_trailing_options(args, list(args.overrides or []), _options)
     cfg = load_mapper_config(args.config, ov)
-    ch = {"zenoh": zenoh_config_from_args(args, cfg.zenoh)}
+    ch: dict[str, Any] = {"zenoh": zenoh_config_from_args(args, cfg.zenoh)}
     if args.device:
         ch["device"] = args.device
     cfg = dataclasses.replace(cfg, **ch)
-    rr = {}
+    rr: dict[str, Any] = {}
     if args.rerun:
         rr["file"] = args.rerun
     if args.serve_grpc:

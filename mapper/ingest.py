@@ -127,7 +127,8 @@ class Ingest:
             state.dropped += len(keys)
             for key in keys:
                 try:
-                    st = state.robots.get(state.keys.robot_from_key(key))
+                    assert state.keys is not None      # frames arrive only after start()
+                    st = state.robots.get(state.keys.robot_from_key(key) or "")
                 except Exception:
                     st = None
                 if st is not None:
@@ -153,6 +154,7 @@ class Ingest:
         """Decode and validate one frame message, then queue it for its robot (or reject it)."""
         state = self.state
         try:
+            assert state.keys is not None              # frames arrive only after start()
             key_robot = state.keys.robot_from_key(key)
         except Exception:
             key_robot = None
@@ -206,6 +208,7 @@ class Ingest:
         try:
             import zenoh
 
+            assert state.keys is not None              # subscribed in start()
             robot = state.keys.robot_from_key(str(sample.key_expr))
             if robot is None:
                 return
@@ -235,6 +238,7 @@ class Ingest:
         try:
             from common.messages import decode_edge_status
 
+            assert state.keys is not None              # subscribed in start()
             robot = state.keys.robot_from_key(str(sample.key_expr))
             if robot is None:
                 return
@@ -283,6 +287,7 @@ class Ingest:
         st = state.robots[robot]
         st.fetch_started = time.monotonic()
         try:
+            assert state.session is not None and state.keys is not None   # started
             replies = list(state.session.get(state.keys.feature_space(robot), timeout=3.0))
         except Exception as e:
             st.fetch_after = time.monotonic() + 1.0

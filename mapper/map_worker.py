@@ -26,11 +26,15 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mapper.service_config import set_torch_threads
 from mapper.state import MapperState
+
+if TYPE_CHECKING:
+    from mapper.pipeline import MapPipeline
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -48,7 +52,7 @@ class MapWorker:
         self.layers = layers
         self.snapshots = snapshots
         self.rerun = rerun
-        self._pipe = None
+        self._pipe: MapPipeline | None = None
 
     def loop(self) -> None:
         state = self.state
@@ -114,6 +118,7 @@ class MapWorker:
         state = self.state
         with state.lock:
             try:
+                assert state.map is not None           # a pipeline exists only with a map
                 return state.map.commit(prepared)
             finally:
                 state.map_gen += 1
@@ -129,6 +134,7 @@ class MapWorker:
             from mapper.service_config import resolve_threads
 
             threads = resolve_threads(int(getattr(state.cfg, "threads", 0)))
+            assert state.map is not None               # frames are integrated once the map exists
             self._pipe = MapPipeline(state.map, depth=1, prepare_threads=threads, commit=self._commit)
         return self._pipe
 
@@ -176,6 +182,7 @@ class MapWorker:
         try:
             with state.lock:
                 try:
+                    assert state.map is not None       # frames are integrated once the map exists
                     integrate(state.map, frame, state.cfg.device)
                 finally:
                     state.map_gen += 1
@@ -237,6 +244,7 @@ class MapWorker:
         with state.lock:
             v = state.version
             try:
+                assert state.map is not None           # both callers check it
                 flush(state.map)
             except Exception as e:
                 state.warn("flush", "map flush failed: %s", e)

@@ -146,6 +146,7 @@ def embed_request(fs: FeatureSpace, req: QueryRequest, device: str | torch.devic
         from mapper.image_query import embed_image
 
         return embed_image(fs, req.image, device, model_dir, image_model_dir, text_encoder)
+    assert req.text is not None         # a validated request has exactly one of the three
     return embed_text(fs, req.text, device, model_dir, templates)
 
 

@@ -94,6 +94,7 @@ class QueryServer:
             got = state.lock.acquire()            # nothing to fall back on: wait for the frame
         timings["lock_wait"] = (time.perf_counter() - t) * 1e3
         if not got:
+            assert snap is not None               # without a copy the acquire above waits
             timings["stale"] = 1.0
             timings["stale_gens"] = float(max(0, state.map_gen - snap.gen))
             log.debug("query answered from the copy of map generation %d (map at %d): lock busy > %.2f s",
@@ -122,6 +123,7 @@ class QueryServer:
             set_torch_threads(state.cfg, query=True)
             timings: dict = {}
             snap = self.query_copy(timings, flush=flush)
+            assert state.space is not None        # the map is made with its feature space
             res = answer_snapshot(snap, state.space, req, state.cfg.query, device=state.cfg.device,
                                   model_dir=state.cfg.text_model_dir, standing=list(state.standing.values()))
             res.frames_mapped = snap.frames_mapped
@@ -197,6 +199,7 @@ class QueryServer:
                 res = self.run_query(req)
                 res.id = qid
                 att = state.fleet.shard_info(res) if state.fleet is not None else None
+                assert state.session is not None and state.keys is not None    # started
                 state.session.put(state.keys.mapper_queries(qid), encode_query_result(res), attachment=att)
             except Exception as e:
                 state.warn(f"standing:{qid}", "standing query %s failed: %s", qid, e)

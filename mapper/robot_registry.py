@@ -224,7 +224,7 @@ class RateMeter:
 
     def add(self, n: int = 1, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
-        for _ in range(min(int(n), self._t.maxlen)):
+        for _ in range(min(int(n), self._t.maxlen or 0)):     # made with a maxlen
             self._t.append(now)
 
     def rate(self, now: float | None = None) -> float:
@@ -375,7 +375,7 @@ def expire_pending(robots: Iterable, now_wall: float, cfg: FleetSection, per_rob
     per_robot)`` in total (one robot may always fill its own queue). Returns
     ``[(robot, n_dropped)]``."""
     waiting = [st for st in robots if not st.space_ok and st.queue]
-    out = collections.Counter()
+    out: collections.Counter[str] = collections.Counter()
     for st in waiting:
         while st.queue and now_wall - st.queue[0][1] > cfg.pending_ttl_s:
             st.queue.popleft()

@@ -29,7 +29,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -147,6 +147,7 @@ class RobotsJob:
         re-projected) or the one-line reason it is refused. Caller holds the map ``lock``."""
         state = self.state
         fr = self.robot_data(st)
+        assert state.space is not None        # the caller made the map (and its space) first
         why = compatibility(state.space, fs, self.cfg.reproject)
         fr.reprojection = None
         if not why and fs.id != state.space_id:
@@ -169,8 +170,9 @@ class RobotsJob:
         rp = fr.reprojection
         if rp is None and pose is frame.pose:
             return frame
-        ch = {"pose": pose}
+        ch: dict[str, Any] = {"pose": pose}
         if rp is not None:
+            assert frame.features is not None     # ingest rejects frames without features
             ch["features"] = rp.features(frame.features)
             if frame.global_feature is not None:
                 ch["global_feature"] = rp.vector(frame.global_feature)
@@ -193,7 +195,7 @@ class RobotsJob:
         fr = self.robot_data(st)
         state, reason = self._state_of(st)
         rates = fr.rates.as_dict(now)
-        with_frames = [r for r in shared.robots.values() if r.space_ok and getattr(r, "fleet", None) is not None
+        with_frames = [r for r in shared.robots.values() if r.space_ok and r.fleet is not None
                        and r.fleet.rates.received.rate(now) > 0]
         adv = advised_rate(self.map_rate.rate(now), len(with_frames),
                            {**rates, "queue": len(st.queue)}, st.queue.maxlen or 1) if state == "accepted" else None
@@ -206,6 +208,7 @@ class RobotsJob:
         if state.session is None:
             return
         try:
+            assert state.keys is not None         # set with the session
             state.session.put(robot_status_key(state.keys, body["robot"]), encode_robot_status(body))
         except Exception as e:
             state.warn("status", "publishing robot status failed: %s", e)
@@ -264,6 +267,7 @@ class RobotsJob:
 
         state = self.state
         try:
+            assert state.keys is not None         # the queryable is declared in start()
             robot = robot_from_mapper_key(state.keys, query.key_expr)
             try:
                 if robot is None:
@@ -311,7 +315,7 @@ class RobotsJob:
                 "search_rays": int(q.search_rays), "cluster_rel_score": float(q.cluster_rel_score),
                 "vox_size": float(self.state.cfg.map.vox_size)}
         sh = self.shard
-        if sh.lo is not None:
+        if sh.lo is not None and sh.hi is not None:      # a region has both
             info["region"] = [float(v) if np.isfinite(v) else (1e9 if v > 0 else -1e9)
                               for v in (*sh.lo, *sh.hi)]
         if sh.tiles:
@@ -319,8 +323,7 @@ class RobotsJob:
         if half_angle_deg is not None:
             info["half_angle_deg"] = float(half_angle_deg)
         if res is not None:
-            for k in ("score_min", "half_angle_deg"):
-                v = getattr(res, k, None)
+            for k, v in (("score_min", res.score_min), ("half_angle_deg", res.half_angle_deg)):
                 if v is not None:
                     info[k] = float(v)
         return encode_shard_info(info)

@@ -32,7 +32,7 @@ import threading
 import time
 import weakref
 from collections import OrderedDict
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
@@ -42,9 +42,16 @@ from common.conventions import voxel_center, voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from planning.beyond import triangulate
 from planning.instances import Instance, InstanceTracker, pack_ijk
-from planning.look_next import LookNextCache, look_next, points_in_polygon, ray_outlier_z
-from semantic_map.query import score_rows, softmax_share
+from planning.look_next import Goal, LookNextCache, look_next, points_in_polygon, ray_outlier_z
+from semantic_map.query import PreparedRows, score_rows, softmax_share
 from semantic_map.query_copy import one_thread
+
+if TYPE_CHECKING:
+    from common.feature_space import FeatureSpace
+    from mapper.search_config import SearchSection
+    from mapper.service_config import MapperConfig, QuerySection
+    from semantic_map.map import RayFrontsMap
+    from semantic_map.query_copy import QueryCopy
 
 log = logging.getLogger("rayfronts.mapper")
 
@@ -53,7 +60,7 @@ log = logging.getLogger("rayfronts.mapper")
 _LOOK_NEXT: "weakref.WeakKeyDictionary[object, LookNextCache]" = weakref.WeakKeyDictionary()
 
 
-def look_next_cache(m) -> LookNextCache:
+def look_next_cache(m: RayFrontsMap) -> LookNextCache:
     """The look-next cache of map ``m`` (created on first use)."""
     c = _LOOK_NEXT.get(m)
     if c is None:
@@ -187,8 +194,8 @@ def identity_key(req: SearchRequest, i: int) -> tuple[str, str]:
     return ("embedding", hashlib.sha1(row.tobytes()).hexdigest())
 
 
-def embed_phrases(fs, req: SearchRequest, background: list[str], device, model_dir: str,
-                  templates: str) -> torch.Tensor:
+def embed_phrases(fs: FeatureSpace, req: SearchRequest, background: list[str], device: str | torch.device,
+                  model_dir: str, templates: str) -> torch.Tensor:
     """(T + B, lang_dim) embeddings of the targets (or the request's embeddings) and background."""
     from mapper.query_answer import embed_text
 
@@ -203,7 +210,7 @@ def embed_phrases(fs, req: SearchRequest, background: list[str], device, model_d
     return q
 
 
-def _probabilities(prep, q: torch.Tensor, n_targets: int, temperature: float) -> np.ndarray:
+def _probabilities(prep: PreparedRows, q: torch.Tensor, n_targets: int, temperature: float) -> np.ndarray:
     """(T, N) softmax probabilities of the targets over targets + background."""
     if len(prep) == 0:
         return np.zeros((n_targets, 0), np.float32)
@@ -216,7 +223,8 @@ def _target_softmax(sim: torch.Tensor, n_targets: int, temperature: float) -> np
     return p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False)
 
 
-def _ray_scores(prep, q: torch.Tensor, n_targets: int, temperature: float) -> tuple[np.ndarray, np.ndarray]:
+def _ray_scores(prep: PreparedRows, q: torch.Tensor, n_targets: int, temperature: float
+                ) -> tuple[np.ndarray, np.ndarray]:
     """(T, N) softmax probabilities of the targets over targets + background, and (T, N)
     the rows' :func:`distinct_cosines` (one similarity pass for both)."""
     if len(prep) == 0:
@@ -248,8 +256,8 @@ def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int) -> np.nda
     return out
 
 
-def _voxel_probabilities(snap, fs, prep, q: torch.Tensor, n_targets: int, temperature: float,
-                         device) -> np.ndarray:
+def _voxel_probabilities(snap: QueryCopy, fs: FeatureSpace, prep: PreparedRows, q: torch.Tensor, n_targets: int,
+                         temperature: float, device: str | torch.device) -> np.ndarray:
     """:func:`_probabilities` of the voxels, with the background's per-voxel log-sum-exp taken
     from the snapshot's cache (:meth:`QueryCopy.phrase_logsumexp`, kept per map version
     and updated for changed rows): only the targets are scored per search. Equal to the full
@@ -266,7 +274,7 @@ def _voxel_probabilities(snap, fs, prep, q: torch.Tensor, n_targets: int, temper
     return p.detach().cpu().numpy().astype(np.float32, copy=False)
 
 
-def _voxel_ijk(snap, rows: np.ndarray) -> np.ndarray:
+def _voxel_ijk(snap: QueryCopy, rows: np.ndarray) -> np.ndarray:
     """(len(rows), 3) int64 voxel indices of snapshot rows (from the keys when the snapshot
     gives them, else ``floor(centre / vox)``)."""
     if not len(rows):
@@ -285,8 +293,9 @@ def _in_area(xyz: np.ndarray, poly, z_band) -> np.ndarray:
     return ok
 
 
-def _identity_probabilities(snap, fs, prep, q: torch.Tensor, targets: list[str], text: bool,
-                            phrases: list[str], canonical: list[str], temperature: float, device,
+def _identity_probabilities(snap: QueryCopy, fs: FeatureSpace, prep: PreparedRows, q: torch.Tensor,
+                            targets: list[str], text: bool, phrases: list[str], canonical: list[str],
+                            temperature: float, device: str | torch.device,
                             request: tuple[np.ndarray, int] | None = None) -> np.ndarray:
     """(T, N) each target's probability over itself + the canonical background (``canonical``,
     the configured ``search.background`` less the target's own phrase), whatever the request's
@@ -353,8 +362,9 @@ def _found(views: list[dict], req: SearchRequest) -> list[dict]:
     return out[:req.max_instances]
 
 
-def _instances(snap, fs, vprep, q: torch.Tensor, vs: np.ndarray, req: SearchRequest, phrases: list[str],
-               n_bg: int, cfg, trackers: TrackerStore, map_version: int) -> tuple[list[dict], list[dict]]:
+def _instances(snap: QueryCopy, fs: FeatureSpace, vprep: PreparedRows, q: torch.Tensor, vs: np.ndarray,
+               req: SearchRequest, phrases: list[str], n_bg: int, cfg: MapperConfig, trackers: TrackerStore,
+               map_version: int) -> tuple[list[dict], list[dict]]:
     """``(found, events)``: every target's identity tracker (:func:`identity_key`) updated
     with the voxels whose identity probability is above ``search.identity_threshold``, then
     seen through the request's probabilities ``vs`` (T, N) and threshold (docs/identity.md).
@@ -386,10 +396,13 @@ def _instances(snap, fs, vprep, q: torch.Tensor, vs: np.ndarray, req: SearchRequ
     return _found(views, req), events
 
 
-def _beyond(snap, rs: np.ndarray, targets: list[str], scfg, qcfg, angle_err: float, keep: np.ndarray) -> dict:
+def _beyond(snap: QueryCopy, rs: np.ndarray, targets: list[str], scfg: SearchSection, qcfg: QuerySection,
+            angle_err: float, keep: np.ndarray) -> dict:
     """Best rays per target, triangulated estimates, search volume of the best rays' cones."""
     o, d = snap.ray_origins.astype(np.float64), snap.ray_dirs.astype(np.float64)
-    rays, ests, best_all = [], [], []
+    rays: list[dict] = []
+    ests: list[dict] = []
+    best_all: list[tuple[float, int]] = []
     idx = np.flatnonzero(keep)
     for t, name in enumerate(targets):
         if not len(idx):
@@ -413,8 +426,9 @@ def _beyond(snap, rs: np.ndarray, targets: list[str], scfg, qcfg, angle_err: flo
     return dict(rays=rays[:max(10, 2 * len(targets))], estimates=ests[:10], search_volume_m3=vol)
 
 
-def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
-                  read_map: Callable[[Callable], object] | None, map_version: int = 0) -> SearchReply:
+def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: MapperConfig, trackers: TrackerStore,
+                  read_map: Callable[[Callable[[RayFrontsMap], list[Goal]]], list[Goal] | None] | None,
+                  map_version: int = 0) -> SearchReply:
     """Answer ``req`` from query copy ``snap`` (module docstring). ``cfg`` the mapper
     config (``search``, ``query``, ``map``, ``device``, ``text_model_dir``); ``read_map(fn)``
     runs ``fn(map)`` under the map lock and returns its result (None: no look-next)."""
@@ -445,7 +459,7 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     rz = ray_outlier_z(rcos, scfg.ray_cosine_resolution)[:, rkeep]
     goals: list[dict] = []
     if read_map is not None and req.max_goals > 0:
-        def run(m) -> list:
+        def run(m: RayFrontsMap) -> list[Goal]:
             with one_thread():                  # many small torch ops (on a loaded machine every
                 # parallel region would wait on a descheduled worker)
                 f = m.frontiers().centres.detach().cpu().numpy().astype(np.float64).reshape(-1, 3)
@@ -472,7 +486,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
                        frames_mapped=int(snap.frames_mapped), map_version=int(map_version), timings_ms=tm)
 
 
-def text_similarities(snap, fs, texts: list[str], cfg, softmax: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def text_similarities(snap: QueryCopy, fs: FeatureSpace, texts: list[str], cfg: MapperConfig, softmax: bool
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each text's similarity to every voxel and ray of query copy ``snap``: ``(voxel
     centres (N, 3) m, voxel scores (Q, N), ray scores (Q, R))`` (rays in ``snap.ray_origins`` /
     ``ray_dirs`` order). Scores: cosine, or with ``softmax`` the softmax across the texts at

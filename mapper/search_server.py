@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from typing import Iterable
 
 from common.messages import MessageError
 from common.search_messages import (
@@ -190,13 +191,17 @@ class SearchServer:
                 raise MessageError("the map is empty (no frames mapped yet)")
             vox, grid = float(m.cfg.vox_size), m.occupancy_view()
             rep = OccupancyReply(kind=req.kind, frames_mapped=int(s.mapped), map_version=int(s.version))
-            if req.kind == "box":
+            origin: Iterable[float]                  # the grid's corner (m); none for points
+            if req.kind == "box":                    # validate() checked what each kind needs
+                assert req.box_min is not None and req.box_max is not None
                 rep.states, origin, rep.cell_m = state_grid(grid, vox, req.box_min, req.box_max, req.stride,
                                                             max_cells=limit)
             elif req.kind == "slice":
+                assert req.box_min is not None and req.box_max is not None and req.z_band is not None
                 rep.states, origin, rep.cell_m = costmap_slice(grid, vox, req.box_min, req.box_max,
                                                                req.z_band, req.stride, max_cells=limit)
             else:
+                assert req.points is not None
                 rep.states, rep.dist = point_states(grid, vox, req.points, float(req.radius), max_cells=limit)
                 origin, rep.cell_m = [], vox
         rep.origin = [float(v) for v in origin]

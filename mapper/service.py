@@ -51,6 +51,8 @@ from mapper.state import MapperState
 
 if TYPE_CHECKING:
     from common.messages import QueryRequest, QueryResult
+    from mapper.outputs.rerun import RerunOutput
+    from mapper.outputs.ros import RosOutput
 
 __all__ = ["MapperService"]
 
@@ -106,8 +108,8 @@ class MapperService:
         from mapper.robots_job import RobotsJob
 
         self.fleet = RobotsJob(self.state)         # several robots: status, bounds, transforms, shard
-        self.rerun = None                      # RerunOutput once started with rerun.file / rerun.serve_grpc
-        self.ros = None                        # RosOutput once started with ros.enabled
+        self.rerun: RerunOutput | None = None  # once started with rerun.file / rerun.serve_grpc
+        self.ros: RosOutput | None = None      # once started with ros.enabled
         self._entities: list = []
         self._threads: list[threading.Thread] = []
         self._closed = False

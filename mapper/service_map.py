@@ -107,8 +107,8 @@ def layer_arrays(m: RayFrontsMap, layer: str, lcfg: LayerLimits) -> tuple[dict, 
         if n > lcfg.max_voxels:
             idx = torch.from_numpy(np.sort(rng.choice(n, lcfg.max_voxels, replace=False))).to(keys.device)
             keys, rgb = keys[idx], rgb[idx]
-        xyz = voxel_center(cell_keys.unpack(keys), float(m.cfg.vox_size))
-        xyz = to_numpy(xyz).astype(np.float32, copy=False).reshape(-1, 3)
+        centres = voxel_center(cell_keys.unpack(keys), float(m.cfg.vox_size))
+        xyz = to_numpy(centres).astype(np.float32, copy=False).reshape(-1, 3)
         rgb = np.clip(to_numpy(rgb).astype(np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8).reshape(-1, 3)
         return {"xyz": xyz, "rgb": rgb}, {"total": n, "vox_size": float(m.cfg.vox_size)}
     if layer == "frontiers":
@@ -120,8 +120,8 @@ def layer_arrays(m: RayFrontsMap, layer: str, lcfg: LayerLimits) -> tuple[dict, 
         d = to_numpy(rd).astype(np.float32).reshape(-1, 3)
         n = len(o)
         if n > lcfg.max_rays:
-            idx = np.sort(rng.choice(n, lcfg.max_rays, replace=False))
-            o, d = o[idx], d[idx]
+            ridx = np.sort(rng.choice(n, lcfg.max_rays, replace=False))
+            o, d = o[ridx], d[ridx]
         return {"origin": o, "direction": d}, {"total": n}
     if layer == "occupancy":
         return {}, {k: v for k, v in map_stats(m).items() if isinstance(v, (int, float, str, bool))}

@@ -90,7 +90,8 @@ class ShardFilter:
         t, h = self.tile_m, max(0, int(cfg.halo_tiles))
         if self.tiles:
             base = set(self.tiles)
-        elif self.lo is not None and np.all(np.isfinite(self.lo[:2])) and np.all(np.isfinite(self.hi[:2])):
+        elif (self.lo is not None and self.hi is not None and np.all(np.isfinite(self.lo[:2]))
+              and np.all(np.isfinite(self.hi[:2]))):
             i0, j0 = math.floor(self.lo[0] / t), math.floor(self.lo[1] / t)
             i1, j1 = math.ceil(self.hi[0] / t) - 1, math.ceil(self.hi[1] / t) - 1
             if (i1 - i0 + 1 + 2 * h) * (j1 - j0 + 1 + 2 * h) > MAX_TILE_SUBSCRIPTIONS:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -99,7 +99,7 @@ def write_capture(capture: tuple[dict[str, np.ndarray], dict], path: str | Path)
     path.mkdir(parents=True, exist_ok=True)
     tmp = path / "arrays.npz.tmp"
     with open(tmp, "wb") as f:
-        np.savez(f, **arrays)
+        np.savez(f, **cast(dict[str, Any], arrays))   # numpy's stub reads a key as allow_pickle
         f.flush()
         os.fsync(f.fileno())
     tmp.replace(path / "arrays.npz")

@@ -129,6 +129,7 @@ class SnapshotStore:
                         "instance_next_id": state.trackers.next_id, "instances": trackers,
                         "world_from_robot": fleet.transforms.runtime() if fleet is not None else {}}
             capture = capture_map(state.map)     # copies, under the lock; written after it
+        assert state.space_reply is not None     # set with the map (create_map, restore)
         path = write_snapshot(root, capture, state.space_reply, meta, state.cfg.snapshots.keep,
                               arrays={INSTANCE_KEYS: tracker_keys})
         state.snap_version, state.snap_trackers = version, generation

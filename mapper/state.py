@@ -30,7 +30,10 @@ import numpy as np
 from common.wire import WireLimits
 
 if TYPE_CHECKING:
+    import zenoh
+
     from common.feature_space import FeatureSpace
+    from common.keys import KeySpace
     from mapper.service_config import MapperConfig
     from semantic_map.map import RayFrontsMap
 
@@ -78,7 +81,7 @@ class RobotState:
     edge_cpu: tuple | None = None    # (first, last) edge process CPU s (frame meta ``cpu_s``) of mapped frames
     edge_cpu_frames: int = 0         # mapped frames between them
     seq_regressions: int = 0         # mapped frames whose seq was not above the last one (edge restart)
-    fleet: object = None             # mapper.robots_job.FleetRobot (rates, re-projection, shard counts)
+    fleet: Any = None                # mapper.robots_job.FleetRobot (rates, re-projection, shard counts; Any: no cycle)
     edge_state: str = ""             # the edge's own state (robots/<robot>/edge_status): running, refused, ...
     edge_reason: str = ""            # why, for refused / failed
     pose: np.ndarray | None = None   # (4, 4) world pose of its last mapped frame (after world_from_robot)
@@ -170,8 +173,8 @@ class MapperState:
                         "latency_ms": Percentiles(), "query_ms": Percentiles(), "decode_ms": Percentiles()}
         self.warn = RateLimitedLog()
         self.limits = WireLimits(max_message_bytes=int(cfg.queues.max_message_mb * (1 << 20)))
-        self.session = None
-        self.keys = None
+        self.session: zenoh.Session | None = None
+        self.keys: KeySpace | None = None
         self.wake = threading.Event()          # map worker: a frame or a robot changed
         self.space_wake = threading.Event()    # feature-space thread: a robot needs its space (re)fetched
         self.standing_due = threading.Event()  # query server: standing queries are due
@@ -179,8 +182,9 @@ class MapperState:
         self.flush_cv = threading.Condition()
         self.flush_asked = 0                   # tickets handed out (under flush_cv)
         self.flush_served = 0                  # tickets the map worker has served (under flush_cv)
-        self.fleet = None                      # mapper.robots_job.RobotsJob (set by the service)
-        self.fleet_search = None               # mapper.fleet_search.FleetSearchServer (set by the service)
+        # mapper.robots_job.RobotsJob (set by the service; Any: that module imports this one)
+        self.fleet: Any = None
+        self.fleet_search: Any = None          # mapper.fleet_search.FleetSearchServer (set by the service)
         self._overflow: RobotState | None = None   # stands in for ids over fleet.max_robots
 
     @property

@@ -43,10 +43,13 @@ from __future__ import annotations
 import math
 import weakref
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from semantic_map import OccupancyView
 
 #: per-viewpoint samples for the gain count (the lattice is coarsened above this)
 GAIN_SAMPLES_PER_AXIS = 25
@@ -74,7 +77,7 @@ class Goal:
                     rays=[[float(v) for v in d] for d in self.rays], ray_z=float(self.ray_z))
 
 
-def points_in_polygon(xy: np.ndarray, polygon) -> np.ndarray:
+def points_in_polygon(xy: np.ndarray, polygon: Sequence[Sequence[float]] | np.ndarray) -> np.ndarray:
     """(N,) bool: points (N, 2) inside the simple polygon [[x, y], ...] (even-odd rule;
     points on an edge may fall either side)."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
@@ -295,7 +298,7 @@ def _viewpoints(grid, vox: float, centres: np.ndarray, standoff: float) -> list[
     return out
 
 
-def unknown_volume(grid, vox: float, centres: np.ndarray, radius: float) -> np.ndarray:
+def unknown_volume(grid: OccupancyView, vox: float, centres: np.ndarray, radius: float) -> np.ndarray:
     """(N,) unknown volume (m³) within ``radius`` of each point (N, 3), counted on the map's
     voxels (a lattice of every ``step``-th voxel for large radii, see the module docstring)."""
     c = np.asarray(centres, np.float64).reshape(-1, 3)
@@ -343,8 +346,9 @@ def _best_first(score: np.ndarray, dist: np.ndarray, k: int) -> np.ndarray:
     return cand[np.lexsort((dist[cand], neg[cand]))]
 
 
-def look_next(grid, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
-              ray_scores: np.ndarray, targets: list[str], from_xyz=None, *, ray_z: np.ndarray | None = None,
+def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
+              ray_scores: np.ndarray, targets: list[str], from_xyz: Sequence[float] | np.ndarray | None = None, *,
+              ray_z: np.ndarray | None = None,
               ray_radius_m: float = 1.0, standoff_m: float = 1.0, sensing_radius_m: float = 3.0,
               max_goals: int = 10, max_candidates: int = 64, max_rays: int = 5,
               explore_share: float = 0.25, cache: LookNextCache | None = None) -> list[Goal]:

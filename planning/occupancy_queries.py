@@ -21,9 +21,14 @@ from __future__ import annotations
 
 import math
 import weakref
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
+import numpy.typing as npt
 import torch
+
+if TYPE_CHECKING:
+    from semantic_map import OccupancyView
 
 FREE, OCCUPIED, UNKNOWN = 0, 1, -1
 #: default bound on output cells of one request
@@ -96,7 +101,7 @@ def _block_states(grid, i0: tuple[int, int, int], n: tuple[int, int, int]) -> np
     return out
 
 
-def state_grid(grid, vox: float, box_min, box_max, stride: int = 1,
+def state_grid(grid: OccupancyView, vox: float, box_min: npt.ArrayLike, box_max: npt.ArrayLike, stride: int = 1,
                max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray, float]:
     """Dense states of the box ``[box_min, box_max]`` (m) at ``stride·vox`` resolution.
 
@@ -115,7 +120,8 @@ def state_grid(grid, vox: float, box_min, box_max, stride: int = 1,
     return fine, np.asarray(i0, np.float64) * vox, float(vox * s)
 
 
-def costmap_slice(grid, vox: float, xy_min, xy_max, z_band, stride: int = 1,
+def costmap_slice(grid: OccupancyView, vox: float, xy_min: npt.ArrayLike, xy_max: npt.ArrayLike,
+                  z_band: Sequence[float] | np.ndarray, stride: int = 1,
                   max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray, float]:
     """2D costmap of the z band ``[z0, z1]`` (m) over ``[xy_min, xy_max]`` at ``stride·vox``.
 
@@ -168,7 +174,7 @@ def _pack(ijk: np.ndarray) -> np.ndarray:
     return ((ijk[:, 0] + b) << 42) | ((ijk[:, 1] + b) << 21) | (ijk[:, 2] + b)
 
 
-def occupied_cells(grid, rebuild: bool = True) -> _Occupied | None:
+def occupied_cells(grid: OccupancyView, rebuild: bool = True) -> _Occupied | None:
     """The grid's occupied cells at its current ``revision`` (:class:`_Occupied`), kept per
     grid: after writes, only the written voxels are read again (the grid's ``changes`` log);
     after a prune or a reload, or with no log, all occupied voxels are read (``rebuild``;
@@ -250,7 +256,7 @@ def _clearance_indexed(occ: np.ndarray, tree, vox: float, p: np.ndarray, ijk: np
     return np.where(dist <= radius, dist, np.inf)
 
 
-def point_states(grid, vox: float, points, radius: float,
+def point_states(grid: OccupancyView, vox: float, points: npt.ArrayLike, radius: float,
                  max_cells: int = MAX_CELLS) -> tuple[np.ndarray, np.ndarray]:
     """State of the map voxel holding each point (N, 3) (m) and the distance (m) from the
     point to the nearest occupied voxel (its cube, so 0 inside one) within ``radius``;

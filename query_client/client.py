@@ -16,7 +16,7 @@ import logging
 import os
 import threading
 import uuid
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, cast
 
 import numpy as np
 
@@ -126,7 +126,7 @@ class Client(PlannerCalls, FleetCalls):
         self._renewer: threading.Thread | None = None
 
         cfg = zenoh_cfg if zenoh_cfg is not None else ZenohConfig(connect_timeout_ms=connect_timeout_ms)
-        ch = {}
+        ch: dict[str, Any] = {}
         if connect is not None:
             ch["connect"] = [connect] if isinstance(connect, str) else list(connect)
         if prefix is not None:
@@ -151,7 +151,7 @@ class Client(PlannerCalls, FleetCalls):
     def _get_one(self, key: str, payload: bytes | None, timeout: float | None) -> bytes:
         import zenoh
 
-        kw = {"timeout": float(timeout or self.timeout), "consolidation": zenoh.ConsolidationMode.NONE}
+        kw: dict[str, Any] = {"timeout": float(timeout or self.timeout), "consolidation": zenoh.ConsolidationMode.NONE}
         if payload is not None:
             kw["payload"] = payload
         errs = []
@@ -174,8 +174,8 @@ class Client(PlannerCalls, FleetCalls):
         ``([(payload bytes, attachment bytes or None)], [error texts])``."""
         import zenoh
 
-        kw = {"timeout": float(timeout or self.timeout), "consolidation": zenoh.ConsolidationMode.NONE,
-              "target": zenoh.QueryTarget.ALL}
+        kw: dict[str, Any] = {"timeout": float(timeout or self.timeout),
+                              "consolidation": zenoh.ConsolidationMode.NONE, "target": zenoh.QueryTarget.ALL}
         if payload is not None:
             kw["payload"] = payload
         oks, errs = [], []
@@ -477,7 +477,7 @@ class Client(PlannerCalls, FleetCalls):
         self._stop.set()
         for h in list(self._watches):
             h.cancel()
-        s, self.session = self.session, None
+        s, self.session = self.session, cast(Any, None)    # closed: no call works after close()
         if s is not None:
             try:
                 s.close()

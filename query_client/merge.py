@@ -114,7 +114,7 @@ def merge_results(replies: list[tuple[QueryResult, dict]], top_k: int) -> QueryR
         csz = np.concatenate([r.cluster_size for r in results]).astype(np.int64)
         cext = np.concatenate([r.cluster_extent for r in results]).astype(np.float64).reshape(-1, 3)
         shard = np.concatenate([np.full(len(r.cluster_score), i) for i, r in enumerate(results)])
-        mins = [i.get("score_min") for i in infos if i.get("score_min") is not None]
+        mins = [m for i in infos if (m := i.get("score_min")) is not None]
         rel = float(next((i["cluster_rel_score"] for i in infos if "cluster_rel_score" in i), 0.9))
         hi = float(cs.max())
         lo = float(min(mins)) if mins else float(cs.min())

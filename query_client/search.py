@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import uuid
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -25,7 +25,10 @@ from common.search_messages import (
     encode_occupancy_request,
     encode_search_request,
 )
-from query_client.standing import StandingHandle
+from query_client.standing import ShardLatest, StandingHandle
+
+if TYPE_CHECKING:
+    from common.keys import KeySpace
 
 log = logging.getLogger("rayfronts.query_client")
 
@@ -59,6 +62,14 @@ class PlannerCalls:
 
     _query_error: type[Exception] = RuntimeError     # Client sets its QueryError
     robot: str | None = None
+    # what Client provides (query_client.client; declared here for the type checker)
+    keys: KeySpace
+    _get_all: Callable[[str, bytes | None, float | None], tuple[list, list[str]]]
+    _collect: Callable[[str, list, list[str], Callable], list[tuple]]
+    _missing: Callable[[set[str]], list[str]]
+    _missing_infos: Callable[[set[str]], list[dict]]
+    _standing: Callable[..., ShardLatest]
+    _follow_mapper: Callable[..., Any]
 
     def _search_key(self) -> str:
         return self.keys.robot_search(self.robot) if self.robot else self.keys.mapper_search
@@ -187,8 +198,9 @@ class PlannerCalls:
         """Dense states (nx, ny, nz) of a box at ``stride`` map voxels per cell."""
         return self._occupancy(OccupancyRequest("box", list(box_min), list(box_max), stride=stride), timeout)
 
-    def occupancy_slice(self, xy_min: Sequence[float], xy_max: Sequence[float], z_band: Sequence[float],
-                        stride: int = 1, timeout: float | None = None) -> OccupancyReply:
+    def occupancy_slice(self, xy_min: Sequence[float] | np.ndarray, xy_max: Sequence[float] | np.ndarray,
+                        z_band: Sequence[float] | np.ndarray, stride: int = 1,
+                        timeout: float | None = None) -> OccupancyReply:
         """2D costmap (nx, ny) of the z band: occupied if any, free if all free, else unknown."""
         return self._occupancy(OccupancyRequest("slice", list(xy_min), list(xy_max), list(z_band), stride=stride),
                                timeout)

@@ -16,6 +16,13 @@ Conventions (frames, units, voxel indexing) are those of ``docs/conventions.md``
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from semantic_map.config import MapConfig
+    from semantic_map.map import RayFrontsMap
+    from semantic_map.occupancy.base import OccupancyView
+
 __all__ = ["RayFrontsMap", "MapConfig", "OccupancyView"]
 
 

@@ -28,7 +28,9 @@ Similarity = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 class PreparedRows(Protocol):
     """Feature rows prepared for scoring (``FeatureSpace.prepare``, the query copy's
-    ``HalfFeatures``): they score queries themselves."""
+    ``HalfFeatures``): they score queries themselves; ``len()`` is the row count."""
+
+    def __len__(self) -> int: ...
 
     def similarity(self, queries: torch.Tensor) -> torch.Tensor:
         """(Q, N) float32 similarity of the (Q, D) ``queries`` to the rows."""

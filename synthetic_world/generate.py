@@ -249,7 +249,8 @@ def _add_parked_cars(town: _Town, side: _Side) -> None:
         aa = rng.uniform(*rng_along)
         ctr = side.at(aa, 2.95)
         yaw_c = side.yaw + rng.uniform(-0.05, 0.05)
-        cars = [(p.shape.center[0], p.shape.center[1]) for p in town.parts if p.class_name == "car"]
+        cars = [(p.shape.center[0], p.shape.center[1]) for p in town.parts
+                if p.class_name == "car" and isinstance(p.shape, (Box, Sphere))]   # cars are boxes
         if all(not (abs(ctr[0] - q[0]) < 5.0 and abs(ctr[1] - q[1]) < 2.5) for q in cars):
             col = tuple(int(v) for v in rng.choice([(190, 40, 40), (40, 70, 170), (230, 230, 230),
                                                     (30, 30, 35), (200, 170, 40)]))

@@ -19,7 +19,7 @@ class Part:
     shape: primitives.Shape
     class_name: str
     instance: str
-    color: tuple[int, int, int] | None = None
+    color: tuple[int, ...] | None = None                 # RGB 0-255
 
 
 @dataclass

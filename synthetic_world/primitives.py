@@ -148,6 +148,7 @@ def box_hit(o: np.ndarray, d: tuple[np.ndarray, np.ndarray, np.ndarray], prm: np
             lo, hi = np.fmin(t1, t2), np.fmax(t1, t2)
             tn = lo if tn is None else np.fmax(tn, lo)
             tf = hi if tf is None else np.fmin(tf, hi)
+    assert tn is not None and tf is not None             # set by the three slabs above
     return np.where((tn <= tf) & (tn > _EPS_T), tn, np.inf)
 
 

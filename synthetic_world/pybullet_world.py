@@ -394,8 +394,8 @@ class PybulletWorld:
         frm = start.copy()
         live = np.arange(len(frm))
         cls_of = np.zeros(max(self._body_class) + 1, np.uint8)
-        for uid, c in self._body_class.items():
-            cls_of[uid] = c
+        for body_uid, c in self._body_class.items():
+            cls_of[body_uid] = c
         for _ in range(max_hits):
             if len(live) == 0:
                 return

@@ -110,7 +110,7 @@ def render_scene(scene: Any, pose: np.ndarray, K: np.ndarray, hw: tuple[int, int
     kinds, kidx, params = scene._kind, scene._kidx, scene._params
     for i in np.nonzero(visible)[0]:
         a, b, c, e = r0[i], r1[i], c0[i], c1[i]
-        d = tuple(x[a:b, c:e].ravel() for x in comp)
+        d = (comp[0][a:b, c:e].ravel(), comp[1][a:b, c:e].ravel(), comp[2][a:b, c:e].ravel())
         t = HIT[kinds[i]](o, d, params[kinds[i]][kidx[i]]).reshape(b - a, e - c)
         cur = depth[a:b, c:e]
         m = t < cur

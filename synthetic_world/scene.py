@@ -43,7 +43,7 @@ class World:
     Build with :meth:`generate` (deterministic by seed) or :meth:`from_primitives`."""
 
     def __init__(self, parts: Sequence[Part], classes: Sequence[str] | None = None,
-                 class_colors: Sequence[tuple[int, int, int]] | None = None, layout: Layout | None = None,
+                 class_colors: Sequence[tuple[int, ...]] | None = None, layout: Layout | None = None,
                  seed: int | None = None):
         self.classes: list[str] = list(classes if classes is not None else CLASS_NAMES)
         if not self.classes or self.classes[0] != "sky":
@@ -51,10 +51,10 @@ class World:
         if len(set(self.classes)) != len(self.classes):
             raise ValueError(f"duplicate class names in {self.classes}")
         if class_colors is None:
-            default = dict(zip(CLASS_NAMES, CLASS_COLORS, strict=True))
+            default: dict[str, tuple[int, ...]] = dict(zip(CLASS_NAMES, CLASS_COLORS, strict=True))
             rng = np.random.default_rng(12345)
             class_colors = [default.get(n, tuple(int(x) for x in rng.integers(40, 230, 3))) for n in self.classes]
-        self.class_colors: list[tuple[int, int, int]] = [tuple(int(v) for v in c) for c in class_colors]
+        self.class_colors: list[tuple[int, ...]] = [tuple(int(v) for v in c) for c in class_colors]
         if len(self.class_colors) != len(self.classes):
             raise ValueError("class_colors must have one colour per class")
         if not parts:
@@ -68,7 +68,7 @@ class World:
 
     @classmethod
     def from_primitives(cls, parts: Sequence[Part], classes: Sequence[str] | None = None,
-                        class_colors: Sequence[tuple[int, int, int]] | None = None) -> "World":
+                        class_colors: Sequence[tuple[int, ...]] | None = None) -> "World":
         """A world from an explicit list of :class:`Part` (tests, custom scenes)."""
         return cls(parts, classes, class_colors)
 

@@ -82,6 +82,21 @@ def test_query_result_roundtrip_and_shape_checks():
         decode_query_result(encode_message("rayfronts.query_result", 1, body))
 
 
+def test_query_result_mapper_only_fields_stay_off_the_wire():
+    r = QueryResult(id="q", query="tree", voxel_xyz=np.zeros((1, 3)), voxel_score=np.array([0.7]))
+    plain = encode_query_result(r)
+    r.half_angle_deg, r.score_min = 12.5, -0.25
+    wire = encode_query_result(r)
+    assert wire == plain                                     # the same bytes with or without them
+    d = r.to_dict()
+    assert list(d)[-2:] == ["half_angle_deg", "score_min"] and d["score_min"] == -0.25
+    g = decode_query_result(wire)
+    assert g.half_angle_deg is None and g.score_min is None
+    assert "half_angle_deg" not in g.to_dict() and "score_min" not in g.to_dict()
+    assert set(r.to_dict()) - set(g.to_dict()) == {"half_angle_deg", "score_min"}
+    assert "score_min" not in repr(r)
+
+
 def test_layers_feature_space_snapshot():
     layer, arrays, meta = decode_layer(encode_layer("voxels", {"xyz": np.ones((4, 3)), "rgb": np.full((4, 3), 7)},
                                                     {"total": 10}))

@@ -167,7 +167,7 @@ def run_all(out_dir: Path, quick: bool = False, only: str = "", timeout: float =
               file=sys.stderr)
         return 2
     out_dir.mkdir(parents=True, exist_ok=True)
-    status = {}
+    status: dict[str, dict] = {}
     for name, full, small in ALL:
         if want and name not in want:
             continue

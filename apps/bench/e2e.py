@@ -163,7 +163,9 @@ def _encoder_alone(res: str, pca_dim: int, n: int, pca_path: Path, items=(), edg
             if cmp is not None:   # outside the timed work below: subtract it
                 t2, c2 = time.perf_counter(), time.process_time()
                 sizes_f16.append(len(encode_frame(out, feature_codec="f16", jpeg_quality=jq)))
-                cmp.add(out.features, decode_frame(data).features)
+                back = decode_frame(data).features
+                assert out.features is not None and back is not None    # both carry features
+                cmp.add(out.features, back)
                 t0 += time.perf_counter() - t2
                 c0 += time.process_time() - c2
         dt, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -348,6 +350,8 @@ def _stream(args, out: dict, work: Path, pca_path: Path, shm: str, start, stop_a
                      "source.depth_limit=20", f"pca.basis={pca_path}", f"pca.out_dim={args.pca_dim}",
                      *args.edge_set)
         st = _wait_drained(c, edge, args.frames, deadline_s=600)
+        if st is None:
+            raise RuntimeError("the mapper answered no stats request in 600 s")
         router_cpu1 = _cpu_s(router)
         sub.undeclare()
     fr = st["frames"]
@@ -396,7 +400,7 @@ def _wait_drained(c, edge, n_frames: int, deadline_s: float, settle_s: float = 3
     from query_client.vocabulary import settled
 
     end = time.monotonic() + deadline_s
-    st, last, still_since = None, None, None
+    st, last, still_since = None, None, 0.0        # still_since: set whenever last is
     while time.monotonic() < end:
         time.sleep(0.5)
         try:
@@ -449,6 +453,8 @@ def _queries(args, out: dict, work: Path, pca_path: Path, shm: str, start) -> No
                 break
             except Exception:
                 time.sleep(1.0)
+        if st is None:
+            raise RuntimeError("the mapper answered no stats request in 300 s")
         out["query_map_voxels"] = st["map"]["n_voxels"]
         out["query_map_rays"] = st["map"]["n_rays"]
         rtts, server = [], []

@@ -134,6 +134,8 @@ def run(args: argparse.Namespace) -> dict:
         enc, _, n = edge_encoder(["encoder.kind=label", f"encoder.label_stride={args.label_stride}",
                                   f"encoder.device={dev}"] + ([f"threads={args.threads}"] if args.threads else []),
                                  LABEL_CLASSES)
+        from encoders.label import LabelEncoder
+        assert isinstance(enc, LabelEncoder)
         labs = [_label_image(h, w, rng) for _ in range(4)]
         i = iter(range(10 ** 9))
         with timed("encode", frames=args.frames):
@@ -154,6 +156,8 @@ def run(args: argparse.Namespace) -> dict:
                  f"encoder.output={args.output}", f"encoder.dtype={args.dtype}", f"encoder.device={dev}",
                  f"encoder.gauss_std={args.gauss_std}"] + ([f"threads={args.threads}"] if args.threads else [])
         enc, ecfg, n = edge_encoder(items)
+        from encoders.naradio import NaradioEncoder
+        assert isinstance(enc, NaradioEncoder)
         res["build_s"] = round(time.perf_counter() - t0, 3)
         res.update(torch_threads=n, checkpoint=enc.checkpoint_path, output=args.output)
         rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
@@ -163,7 +167,6 @@ def run(args: argparse.Namespace) -> dict:
         feat, gl = enc.encode_with_global(rgb, global_space="features")
         if not args.no_in_memory:
             # the same weights built in memory (no file): timed in alternation with the loaded model
-            from encoders.naradio import NaradioEncoder
             from encoders.radio import read_checkpoint
 
             mem = NaradioEncoder(ecfg.encoder, device=dev, ckpt=read_checkpoint(enc.checkpoint_path))

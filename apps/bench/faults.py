@@ -31,7 +31,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import IO, TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
@@ -116,7 +116,7 @@ def reject_costs(repeats: int = 5) -> dict:
         return round(best * 1e3, 3), reason
 
     real_ms, _ = best_ms(sample_frame_bytes(), hostile=False)
-    rows = {}
+    rows: dict[str, dict] = {}
     for name, data in hostile_frame_headers():
         ms, reason = best_ms(data, hostile=True)
         rows[name] = {"cpu_ms": ms, "reason": reason, "bytes": len(data)}
@@ -148,6 +148,7 @@ def _ms(xs) -> dict:
 
 class _Procs:
     def __init__(self, work: Path, env: dict):
+        self.items: list[tuple[subprocess.Popen, IO[bytes]]]     # (process, its log file)
         self.work, self.env, self.items = work, env, []
 
     def start(self, name: str, args: list[str], nice: int = 0) -> subprocess.Popen:

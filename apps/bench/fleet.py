@@ -42,6 +42,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -107,6 +108,7 @@ class _Procs:
     def __init__(self, work: Path):
         from apps.demo import zenoh_env
 
+        self.items: list[tuple[subprocess.Popen, IO[bytes]]]     # (process, its log file)
         self.work, self.env, self.items = work, zenoh_env(), []
 
     def start(self, name: str, *args: str) -> subprocess.Popen:

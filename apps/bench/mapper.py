@@ -102,6 +102,7 @@ class FeedSide:
                 for c in done:
                     if c.error is not None:
                         raise c.error
+                    assert c.timings is not None          # a frame without an error has its timings
                     self._add(c.timings)
             else:
                 for p, d, rgb, f in frames:

@@ -135,6 +135,7 @@ class Section:
 
     def __exit__(self, *exc) -> None:
         b = _point()
+        assert self._a is not None, "Section exited without being entered"
         r = _span(self._a, b)
         r["calling_thread_cpu_s"] = round(b["thread_cpu"] - self._a["thread_cpu"], 4)
         r["cpu_utilisation"] = round(r["cpu_s"] / r["wall_s"], 3) if r["wall_s"] > 0 else None

@@ -112,7 +112,7 @@ class _Queries:
         t = time.perf_counter()
         if self.n and args.query_source == "text":
             from mapper.query_answer import warm_up_text
-            warm_up_text(self.fs, [r.text for r in self.reqs])
+            warm_up_text(self.fs, [r.text for r in self.reqs if r.text is not None])   # all, from text
         self.warm_up_s = time.perf_counter() - t
 
     def sample(self, m) -> dict:

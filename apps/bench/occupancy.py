@@ -12,6 +12,7 @@ import math
 import statistics
 import time
 from functools import partial
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,7 +73,7 @@ def make_frames(n_frames: int, rays: int = 20000, vox: float = 0.05, max_range: 
     return frames
 
 
-def _ms(fn) -> tuple[float, object]:
+def _ms(fn) -> tuple[float, Any]:
     t0 = time.perf_counter()
     out = fn()
     return (time.perf_counter() - t0) * 1e3, out

@@ -73,7 +73,7 @@ def _space(dim: int):
     return FeatureSpace("label", "bench", in_dim, pca=pca)
 
 
-def build_map(n: int, dim: int, n_rays: int, fs: FeatureSpace, seed: int = 0) -> RayFrontsMap:
+def build_map(n: int, dim: int, n_rays: int, fs: FeatureSpace, seed: int = 0) -> tuple[MapperConfig, RayFrontsMap]:
     """A RayFrontsMap (default mapper config) holding ``n`` voxels and ``n_rays`` rays."""
     import torch
 
@@ -242,7 +242,7 @@ def run(args: argparse.Namespace) -> dict:
         n = _count(spec)
         t = time.perf_counter()
         cfg, m = build_map(n, args.dim, args.rays, fs)
-        row = {"build_s": time.perf_counter() - t}
+        row: dict = {"build_s": time.perf_counter() - t}
         with meta.timed(f"in_process_{spec}"):
             row["in_process"] = in_process(cfg, m, fs, args, n)
         if args.client:

@@ -101,7 +101,8 @@ def standing_latency(cfg, m, fs, snap, trackers, dim: int, frames: int, rounds: 
     from common.search_messages import SearchRequest
     from mapper.search_answer import answer_search
 
-    one_ms, three_ms = [], []
+    one_ms: list[float] = []
+    three_ms: list[float] = []
     for i in range(2 * rounds):
         _add_frames(m, dim, 1, frames + i, frames + 2 * rounds)
         snap.sync(m, 2 + i, 2 + i)

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -69,6 +70,7 @@ class LiveMapper:
         basis = self.work / "pca.npz"
         chain.pca.save(basis)
         self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self._procs: list[tuple[str, subprocess.Popen, Any]]     # (name, process, its log file)
         self._env, self._procs = zenoh_env(), []
         self.sent = self.step = 0
         s = chain.cfg
@@ -102,8 +104,9 @@ class LiveMapper:
                  error=RuntimeError)
         self.client = Client(ZenohConfig(mode="client", connect=[self.endpoint]))
         self._views = self.client.session.declare_publisher(self.client.keys.sim_views(self.robot))
-        wait_for(lambda: self._alive() and self._views.matching_status.matching, START_S,
-                 what="the mapper and the edge's sim camera", error=RuntimeError)
+        # zenoh's stub types matching_status as bool; it returns a MatchingStatus
+        wait_for(lambda: self._alive() and self._views.matching_status.matching,  # type: ignore[attr-defined]
+                 START_S, what="the mapper and the edge's sim camera", error=RuntimeError)
 
     def _alive(self) -> bool:
         for name, p, _ in self._procs:

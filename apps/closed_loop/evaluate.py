@@ -259,7 +259,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                         log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",
                                  seed, kind, mission.target, depth, p, r["success"], r["spl"], r["path_m"],
                                  r["steps"])
-                        if trace is not None:
+                        if trace is not None and rerun_path:     # a trace is kept only with a rerun path
                             from apps.closed_loop.recording import record_episode
 
                             record_episode(rerun_path, world, mission, trace, r)

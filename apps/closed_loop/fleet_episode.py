@@ -205,14 +205,16 @@ def _allocate(bids: dict[int, tuple[Decision, bool]], fl: _Fleet, names: list[st
               footprint: float) -> dict[int, Decision]:
     """The two allocation rounds of the module docstring; returns robot index -> decision."""
     path_m = _cost_fn(fl, names)
-    slots = [RobotSlot(names[i], tuple(float(v) for v in fl.runs[i].pos)) for i in explorers]  # type: ignore[misc]
+    pos = {i: np.asarray(fl.runs[i].pos, np.float64) for i in explorers}
+    slots = [RobotSlot(names[i], (float(pos[i][0]), float(pos[i][1]), float(pos[i][2]))) for i in explorers]
     owner: dict[int, int] = {}
     props = []
     for i in explorers:
         d, evidence = bids[i]
         if d.goal_xy is None or d.goal_cell is None:
             continue
-        near = min(fl.obs[i].look_next, key=lambda g: np.linalg.norm(np.asarray(g["position"][:2]) - d.goal_xy[:2]),
+        gxy = d.goal_xy
+        near = min(fl.obs[i].look_next, key=lambda g: np.linalg.norm(np.asarray(g["position"][:2]) - gxy[:2]),
                    default=None)
         z = float(near["position"][2]) if near is not None else float(fl.runs[i].pos[2])
         g = Goal(np.r_[np.asarray(d.goal_xy[:2], np.float64), z], 0.0, 1.0 if evidence else 0.0,
@@ -243,13 +245,13 @@ def _allocate(bids: dict[int, tuple[Decision, bool]], fl: _Fleet, names: list[st
     second = allocate_goals([s for s in slots if names.index(s.robot) in losers], list(pool.values()),
                             footprint_m=footprint, path_m=path_m)
     for i in losers:
-        g = second.goals[names[i]]
+        won = second.goals[names[i]]
         fl.states[i].goal = None          # its own bid lost: it decides afresh next step
-        if g is None:
+        if won is None:
             out[i] = Decision(why="no goal left for this robot")
             continue
-        cell, _, _ = fl.navs[i].nearest_reachable(g.position)
-        out[i] = Decision(goal_cell=cell, goal_xy=g.position[:2].copy(), why="allocated", score=g.score)
+        cell, _, _ = fl.navs[i].nearest_reachable(won.position)
+        out[i] = Decision(goal_cell=cell, goal_xy=won.position[:2].copy(), why="allocated", score=won.score)
     return out
 
 
@@ -266,6 +268,7 @@ def _decisions(policy: str, fl: _Fleet, names: list[str], mission: Mission, foot
         if d is not None and d.declare is not None:
             out[i] = d
         elif d is not None:
+            assert d.goal_cell is not None     # confirm() approaches a cell
             approach.append((float(fl.navs[i].dist_m[tuple(int(v) for v in d.goal_cell)]), i, d))
     if approach and not out:        # one robot at a time approaches what was found: the nearest
         _, i, d = min(approach, key=lambda x: x[:2])

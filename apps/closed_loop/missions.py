@@ -109,6 +109,7 @@ def oracle_tour(tg: TruthGrid, start: np.ndarray, instances: list, k: int, reach
     """(length m, (N, 2) path points, visited instances): from ``start`` to the nearest
     reachable instance, then the next nearest, ``k`` times (true free space, Dijkstra)."""
     pos = np.asarray(start[:2], np.float64)
+    seen: list
     pts, total, left, seen = [pos.copy()], 0.0, list(instances), []
     for _ in range(k):
         s = tg.cell_of(pos)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
+from typing import Sequence, SupportsInt
 
 import numpy as np
 
@@ -94,7 +95,7 @@ def follow(points: np.ndarray, done_m: float, step_m: float) -> tuple[np.ndarray
         return points[-1].copy(), 0.0
     target = min(total, done_m + step_m)
     cum = np.r_[0.0, np.cumsum(seg)]
-    i = int(min(np.searchsorted(cum, target, side="right") - 1, len(seg) - 1))
+    i = min(int(np.searchsorted(cum, target, side="right")) - 1, len(seg) - 1)
     t = (target - cum[i]) / seg[i] if seg[i] > 0 else 0.0
     return points[i] + (points[i + 1] - points[i]) * t, target
 
@@ -162,7 +163,7 @@ def distance_field(ok: np.ndarray, start: tuple[int, int]) -> tuple[np.ndarray, 
     return d.reshape(ok.shape), pred.reshape(ok.shape)
 
 
-def path_to(pred: np.ndarray, goal: tuple[int, int]) -> list[tuple[int, int]]:
+def path_to(pred: np.ndarray, goal: Sequence[SupportsInt]) -> list[tuple[int, int]]:
     """Cell path start .. goal from a :func:`distance_field` predecessor array."""
     shape = pred.shape
     flat = pred.ravel()

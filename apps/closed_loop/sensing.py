@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Literal, cast
 
 import numpy as np
 import torch
@@ -100,7 +101,8 @@ class EdgeChain:
 
         cfg.validate()
         ecfg = EdgeConfig()
-        ecfg = dataclasses.replace(ecfg, encoder=dataclasses.replace(ecfg.encoder, kind=cfg.encoder,
+        kind = cast(Literal["sim", "label"], cfg.encoder)         # validate() allows only these
+        ecfg = dataclasses.replace(ecfg, encoder=dataclasses.replace(ecfg.encoder, kind=kind,
                                                                      label_stride=cfg.label_stride))
         self.world, self.cfg = world, cfg
         # the simulated camera + encoder: the sim encoder turns the rendered scene's labels into

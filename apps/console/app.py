@@ -300,6 +300,7 @@ def _openapi_security(app: FastAPI, token: bool) -> None:
                 "cookie": {"type": "apiKey", "in": "cookie", "name": COOKIE,
                            "description": "set by opening the page as /?token=TOKEN"}}
             spec["security"] = [{"bearer": []}, {"cookie": []}] + ([] if token else [{}])
+        assert app.openapi_schema is not None     # set by make() above
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]

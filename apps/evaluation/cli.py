@@ -244,7 +244,7 @@ def build_config(args: argparse.Namespace) -> SrchvolConfig | SemsegConfig:
     from apps.evaluation.srchvol import SrchvolConfig
     from common.config import load_config, merge
 
-    schema = SrchvolConfig if args.action == "srchvol" else SemsegConfig
+    schema: type[SrchvolConfig | SemsegConfig] = SrchvolConfig if args.action == "srchvol" else SemsegConfig
     cfg = load_config(schema, args.config, ())
     data: dict = {}
     src = _source_overrides(args)
@@ -294,13 +294,15 @@ def run(args: argparse.Namespace) -> int:
             return _run_tune(args)
         cfg = build_config(args)
         if args.action == "srchvol":
-            from apps.evaluation.srchvol import run_srchvol
+            from apps.evaluation.srchvol import SrchvolConfig, run_srchvol
+            assert isinstance(cfg, SrchvolConfig)
             run_srchvol(cfg, args.out)
             print((__import__("pathlib").Path(args.out) / "table.md").read_text())
         else:
             import json
 
-            from apps.evaluation.semseg import run_semseg
+            from apps.evaluation.semseg import SemsegConfig, run_semseg
+            assert isinstance(cfg, SemsegConfig)
             s = run_semseg(cfg, args.out)
             print(json.dumps({k: v for k, v in s.items() if k != "per_class"}, indent=2))
         return 0

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -115,6 +115,7 @@ def ground_truth(frames: list[Frame], class_names: list[str], vox: float, gt_ran
             feats = torch.nn.functional.one_hot(lt, nc).permute(2, 0, 1).to(torch.float32)
         gmap.integrate(f.pose, K, d, None, feats, None)
     gmap.flush()
+    ijk: Any                               # the torch indices, then numpy int64
     ijk, _ = gmap.occupancy_view().active()
     ijk = ijk.numpy().astype(np.int64)
     if scene_volume == "bbox" and len(ijk):

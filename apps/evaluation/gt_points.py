@@ -41,6 +41,7 @@ def _read_ply_header(p: Path) -> tuple[str, list[_PlyElement], bytes]:
         raise ValueError(f"{p}: not a PLY file (no 'ply' magic / 'end_header')")
     nl = raw.find(b"\n", end)
     body = raw[nl + 1:]
+    elements: list[tuple[str, int, list[tuple[str, str | None]]]]
     fmt, elements = None, []            # [(name, count, [(prop, dtype | None for list)])]
     for line in raw[:end].decode("ascii", "replace").splitlines():
         t = line.split()

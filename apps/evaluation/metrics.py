@@ -13,7 +13,7 @@ All ratios are fractions in [0, 1]; an undefined ratio (0/0) is ``NaN``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -84,7 +84,7 @@ def normalized_count_mask(counts: np.ndarray, thresh: float = 0.05) -> np.ndarra
     return c / mx > thresh
 
 
-def srchvol_metrics(masks: dict[int, np.ndarray | None], gt: np.ndarray, classes: Sequence[int],
+def srchvol_metrics(masks: Mapping[int, np.ndarray | None], gt: np.ndarray, classes: Sequence[int],
                     default_prediction: bool = True) -> dict[int, dict[str, float]]:
     """Per class ``c`` in ``classes``: tp, fp, fn, tn, vol, scv, recall, scvr.
 
@@ -143,8 +143,8 @@ def auc_table(rows: list[dict], metric: str, stop: float = 0.5) -> float:
             continue
         vals.append(auc_stopping([r["step"] for r in rs], [r[metric] for r in rs],
                                  [r["observed_frac"] for r in rs], stop))
-    vals = np.asarray(vals, dtype=np.float64)
-    return float(np.nanmean(vals)) if np.isfinite(vals).any() else float("nan")
+    arr = np.asarray(vals, dtype=np.float64)
+    return float(np.nanmean(arr)) if np.isfinite(arr).any() else float("nan")
 
 
 # ----------------------------------------------------------------------------- segmentation

@@ -370,6 +370,7 @@ def cone_counts(grid: RowGrid, origins: npt.ArrayLike, dirs: npt.ArrayLike, half
         rows = torch.from_numpy(sel)
         cnt = raster_counts(g, len(sel), fn, partial(_exact_on_rows, exact, rows), _pad(g), cells)
         out = cnt if out is None else out + cnt
+    assert out is not None                 # the first axis of `order` always counts
     return out
 
 

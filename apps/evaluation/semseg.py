@@ -182,6 +182,7 @@ def run_semseg(cfg: SemsegConfig, out_dir: str | Path, world: World | None = Non
         pmap.integrate(f.pose, f.intrinsics, f.depth, f.rgb, feats, None)
         if ext is not None:
             continue
+        assert f.labels is not None        # checked above: without gt_points every frame has labels
         onehot = torch.nn.functional.one_hot(torch.as_tensor(f.labels.astype(np.int64)).clamp(0, nc - 1), nc)
         gmap.integrate(f.pose, f.intrinsics, f.depth, None, onehot.permute(2, 0, 1).to(torch.float32), None)
     pmap.flush()

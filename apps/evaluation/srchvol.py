@@ -47,7 +47,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable, Literal, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Literal, Sequence
 
 import numpy as np
 import torch
@@ -253,7 +253,7 @@ def search_volumes(snap: Snapshot, method: str, ctx: ScoringContext, un_idx: np.
     use_raster = (cfg.scoring == "raster" and (spherical or cfg.cone_shape == "reference" or 0 < half_angle < 90)
                   and ctx.grid.box_cells <= raster.MAX_BOX_CELLS)
     cells = ctx.cells[un_idx]
-    xyz = None if use_raster else ctx.centres[un_idx]
+    xyz: Any = None if use_raster else ctx.centres[un_idx]     # only the exact (non-raster) counts use it
     for c in classes:
         sel = snap.ray_labels == c
         if not sel.any():

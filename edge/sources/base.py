@@ -232,10 +232,13 @@ class FrameSource:
         return f"<{type(self).__name__} {self.name!r}: {len(self)} frames, {self.world_frame}>"
 
 
-def native_frame(index: int, stamp: float, pose: ArrayLike, K: ArrayLike, depth: np.ndarray, rgb: np.ndarray,
+def native_frame(index: int, stamp: float, pose: ArrayLike, K: ArrayLike | None, depth: np.ndarray, rgb: np.ndarray,
                  labels: np.ndarray | None = None, **meta: Any) -> Frame:
     """A native-resolution frame as ``_load`` returns it (robot/seq filled in by the base; ``stamp`` in
-    seconds, ``pose`` camera-to-world RDF, ``K`` at the depth resolution)."""
+    seconds, ``pose`` camera-to-world RDF, ``K`` at the depth resolution; a source sets its
+    ``native_K`` before it loads frames, so K None is a bug: ValueError)."""
+    if K is None:
+        raise ValueError(f"frame {index}: the source has no intrinsics (native_K) yet")
     return Frame(robot="", seq=0, stamp=float(stamp), pose=np.asarray(pose, dtype=np.float64),
                  intrinsics=np.asarray(K, dtype=np.float64), depth=depth, rgb=rgb, labels=labels,
                  meta={"index": int(index), **meta})
@@ -266,7 +269,7 @@ class DirectorySource(FrameSource):
         self.root = self._input_path("directory", directory=True)
 
 
-def filter_poses(poses: Sequence[np.ndarray], what: str, source: FrameSource) -> list[int]:
+def filter_poses(poses: Sequence[np.ndarray] | np.ndarray, what: str, source: FrameSource) -> list[int]:
     """Indices of finite rigid poses; the others are counted in ``source.skipped``."""
     ok = []
     for i, p in enumerate(poses):

@@ -23,7 +23,7 @@ from edge.sources.errors import SourceError
 
 
 def _find(info: dict, *keys):
-    for d in (info, info.get("source") if isinstance(info.get("source"), dict) else {}):
+    for d in (info, s if isinstance(s := info.get("source"), dict) else {}):
         for k in keys:
             if d.get(k):
                 return d[k]
@@ -47,7 +47,7 @@ class RecordingSource(DirectorySource):
         self.info = dict(self.reader.info or {})
         names = _find(self.info, "class_names", "classes")
         self.class_names = [str(n) for n in names] if names else None
-        src = self.info.get("source") if isinstance(self.info.get("source"), dict) else {}
+        src = s if isinstance(s := self.info.get("source"), dict) else {}
         self.name = f"recording:{self.root.name}"
         if src.get("type") == "synthetic_world":
             self.world_frame = "synthetic world frame, z up (x east, y north), ground at z = 0 (recorded)"

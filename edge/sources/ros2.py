@@ -85,7 +85,7 @@ from edge.sources.ros_msgs import (
 )
 
 if TYPE_CHECKING:
-    from common.zenoh_session import ZenohConfig
+    from common.zenoh_session import SessionGuard, ZenohConfig
 
 log = logging.getLogger(__name__)
 
@@ -165,11 +165,11 @@ class Ros2Source(FrameSource):
             resolve_intrinsics("ros2", None, cfg.intrinsics, (1, 1), "")  # validates the list
         self._zcfg = _ros_session_config(cfg, zenoh)
         self._stop = stop or threading.Event()
-        self._guard = None
+        self._guard: SessionGuard | None = None
         self._cond = threading.Condition()
-        self._inbox = {r: deque() for r in self.topics}
-        self._arrivals = Counter()
-        self._tstats = {t: Counter() for t in set(self.topics.values())}
+        self._inbox: dict[str, deque] = {r: deque() for r in self.topics}
+        self._arrivals: Counter[str] = Counter()
+        self._tstats: dict[str, Counter[str]] = {t: Counter() for t in set(self.topics.values())}
         self._types: dict[str, str] = {}  # topic -> decoded type
         self._last_arrival: dict[str, float] = {}
         self._stalled: set[str] = set()
@@ -177,8 +177,8 @@ class Ros2Source(FrameSource):
         self._rlog = RateLimitedLog(cfg.ros_log_every, log)
         self._rgb: deque = deque(maxlen=cfg.ros_queue)  # (stamp, ordinal, msg, type)
         self._pending: deque = deque()  # (index, stamp, depth, t_arrival)
-        self._info = None
-        self.body_axes = None
+        self._info: tuple[np.ndarray, tuple[int, int]] | None = None    # (K, (h, w)) of the first CameraInfo
+        self.body_axes: str | None = None
         self.frames_out = 0
         self.name = f"ros2:{cfg.ros_keys}:{self.topics['depth']}"
         self.world_frame = (f"the robot's world frame from {self.lookup.describe()} with {cfg.world_axes} axes, "
@@ -220,7 +220,7 @@ class Ros2Source(FrameSource):
 
     def _on_sample(self, role: str, sample) -> None:
         try:
-            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time())
+            item: tuple = (str(sample.key_expr), sample.payload.to_bytes(), time.time())
             topic = self.topics[role]
             with self._cond:
                 n = self._arrivals[role]

@@ -144,7 +144,9 @@ def resolve_intrinsics(who: str, info: tuple[np.ndarray, tuple[int, int]] | None
         K, info_hw = info
         if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise SourceError(f"{who}: CameraInfo on {info_topic} has an invalid K: {K.ravel()}")
-        return scale_intrinsics(K, info_hw, native_hw) if info_hw != native_hw and info_hw[0] > 0 else K
+        if native_hw is not None and info_hw != native_hw and info_hw[0] > 0:
+            return scale_intrinsics(K, info_hw, native_hw)
+        return K
     if intrinsics is not None:
         if len(intrinsics) != 4:
             raise SourceError(f"{who}: intrinsics must be [fx, fy, cx, cy], got {intrinsics}")
@@ -274,8 +276,8 @@ class TfTree:
         if dst not in prev:
             return None
         edges, n = [], dst
-        while prev[n] is not None:
-            n, e = prev[n]
+        while (step := prev[n]) is not None:
+            n, e = step
             edges.append(e)
         return edges[::-1]
 
@@ -312,7 +314,7 @@ class PoseLookup:
         self.track = GrowingTrack(*args, maxlen=maxlen) if cfg.pose_topic else None
         self.tree = TfTree(*args, maxlen=maxlen)
         self.pose_child = ""
-        self._chain = None
+        self._chain: TfChain | None = None
         self._chain_version = -1
 
     @property
@@ -327,6 +329,7 @@ class PoseLookup:
 
     def add_pose(self, msg: Any, msgtype: str, t: float) -> None:
         """A PoseStamped / Odometry message of type ``msgtype`` at time ``t`` (s)."""
+        assert self.track is not None, "add_pose without a pose topic"
         self.track.add(t, pose_from_msg(msg, msgtype))
         if msgtype == ODOMETRY and not self.pose_child:
             self.pose_child = msg.child_frame_id
@@ -358,6 +361,7 @@ class PoseLookup:
         """The raw 4×4 camera-body pose at time ``t`` (s), or None (see the class docstring)."""
         chain = self.chain()
         if self.track is None:
+            assert chain is not None                   # without a pose topic the tf chain is always needed
             return self.tree.lookup(chain, t)
         T = self.track.at(t)
         if T is None or chain is None:

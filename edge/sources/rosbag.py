@@ -249,7 +249,7 @@ class RosbagSource(FrameSource):
     def _iter_native(self, indices):
         plans = [self._plans[i] for i in indices]
         need_d = {p.index for p in plans}
-        need_r = defaultdict(int)
+        need_r: defaultdict[int, int] = defaultdict(int)
         for p in plans:
             need_r[p.rgb_ord] += 1
         got_d, got_r = {}, {}

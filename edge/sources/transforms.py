@@ -38,9 +38,9 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
         q[i] = 0.25 * s
         q[j] = (R[j, i] + R[i, j]) / s
         q[k] = (R[k, i] + R[i, k]) / s
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    qa = np.array(q)
+    qa /= np.linalg.norm(qa)
+    return -qa if qa[3] < 0 else qa
 
 
 def pose_from_tq(t: ArrayLike, q: ArrayLike) -> np.ndarray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -60,7 +61,8 @@ class MiniLMText(CachedTextEncoder):
         self.model_dir = d
         self.batch_size = int(batch_size)
         self.max_length = int(max_length)
-        self.tokenizer = self.model = None
+        self.tokenizer: Any = None
+        self.model: Any = None
         if self._disk_dir_for(d) is not None:
             # with the disk cache (RAYFRONTS_TEXT_CACHE) the model loads on the first string
             # the cache does not hold; the identity names the weights, so new weights miss

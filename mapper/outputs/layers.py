@@ -43,6 +43,7 @@ class LayerPublisher:
         state = self.state
         for layer in LAYERS:
             try:
+                assert state.session is not None and state.keys is not None    # started
                 state.session.put(state.keys.layers(layer), self.layer_bytes(layer))
             except Exception as e:
                 state.warn("layers", "publishing layer %s failed: %s", layer, e)

@@ -68,9 +68,9 @@ class RerunLogger:
         self._queries: list[str] = []     # entity names of the queries seen, oldest first
         self._selected: str | None = None
         self._robots: list[str] = []
-        self._eye = None
+        self._eye: tuple[list, list] | None = None      # camera (position, look target)
         bp = build_blueprint(None, [], [])
-        sinks = []
+        sinks: list = []
         if file:
             sinks.append(rr.FileSink(str(file)))
         if serve_grpc or serve_web:
@@ -292,6 +292,7 @@ class RerunOutput:
         state = self.state
         try:
             with state.lock:
+                assert state.map is not None and state.space is not None     # a query answered: both exist
                 self.logger.log_query(res, state.map, state.space, req, state.mapped)
         except Exception as e:
             state.warn("rerun", "rerun query logging failed: %s", e)

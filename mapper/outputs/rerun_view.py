@@ -41,7 +41,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -142,21 +142,23 @@ def build_blueprint(selected: str | None, queries: Iterable[str], robots: Sequen
     scale and one camera view per robot."""
     import rerun.blueprint as rrb
 
+    overrides: dict[Any, rrb.EntityBehavior]          # rerun's key type: EntityPath | str
     overrides = {paths.QUERIES(q): rrb.EntityBehavior(visible=False) for q in queries if q != selected}
-    kw = {}
+    kw: dict[str, Any] = {}
     if eye is not None:
         pos, target = eye
         kw["eye_controls"] = rrb.EyeControls3D(position=pos, look_target=target, eye_up=[0.0, 0.0, 1.0])
     title = f"map + query '{selected}'" if selected else "map"
     view3d = rrb.Spatial3DView(name=title, origin=paths.WORLD, contents=[f"+ {paths.WORLD}/**"], overrides=overrides,
                                **kw)
-    side = []
+    side: list[rrb.View] = []
     if selected:
         side.append(rrb.TextDocumentView(name="query", origin=f"{paths.SCALE(selected)}/legend"))
         side.append(rrb.Spatial2DView(name="colour scale", origin=f"{paths.SCALE(selected)}/colour_scale"))
     for r in robots:
         side.append(rrb.Spatial2DView(name=f"camera {r}", origin=paths.ROBOTS(r, paths.IMAGE),
                                       contents=["+ $origin/rgb", "+ $origin/depth"]))
+    layout: rrb.View | rrb.Container
     if not side:
         layout = view3d
     else:

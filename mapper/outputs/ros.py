@@ -200,15 +200,15 @@ class RosOutput:
                        "rays": (f"{p}/rays", MARKER_ARRAY)}
         self.query_topic_prefix = f"{p}/query"
         self.query_text_topic = f"{p}/query_text"
-        self.session = None
-        self._own_session = None
+        self.session: zenoh.Session | None = None          # set by start()
+        self._own_session: zenoh.Session | None = None
         self._pubs: dict[str, _Pub] = {}
         self._entities: list = []
         self._eid = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._thread = None
-        self._last_version = None
+        self._thread: threading.Thread | None = None
+        self._last_version: tuple[int, int] | None = None
         self.published: dict[str, int] = {}
         self.errors = 0
         self.search = None
@@ -239,6 +239,7 @@ class RosOutput:
         if self.cfg.keys != RMW_ZENOH:
             return ""
         self._eid += 1
+        assert self.session is not None, "RosOutput.start() opens the session first"
         key = liveliness_token(self.domain, str(self.session.zid()), 0, 0 if kind == "NN" else self._eid, kind,
                                self.cfg.node, topic=topic, msgtype=msgtype,
                                type_hash=self.cdr.type_hash(msgtype, self.cfg.distro) if msgtype else "",
@@ -261,13 +262,17 @@ class RosOutput:
         pub = self._pubs.get(topic)
         if pub is None:
             key = self._key(topic, msgtype)
+            assert self.session is not None, "RosOutput.start() opens the session first"
+            zpub: Any                                    # a Publisher or an AdvancedPublisher (_Pub.zpub)
             if latched:
                 import zenoh
                 from zenoh import ext
 
                 zpub = ext.declare_advanced_publisher(
                     self.session, key, reliability=zenoh.Reliability.RELIABLE, cache=ext.CacheConfig(max_samples=1),
-                    publisher_detection=True, sample_miss_detection=ext.MissDetectionConfig(sporadic_heartbeat=0.5))
+                    publisher_detection=True,
+                    # zenoh's stub requires heartbeat too; at runtime either one may be given
+                    sample_miss_detection=ext.MissDetectionConfig(sporadic_heartbeat=0.5))  # type: ignore[call-arg]
             else:
                 zpub = self.session.declare_publisher(key)
             self._entities.append(zpub)
@@ -286,6 +291,7 @@ class RosOutput:
             self._own_session = open_session(ZenohConfig(mode="client", connect=list(self.cfg.connect)),
                                              stop=state.stop, default_mode="client")
         self.session = self._own_session or state.session
+        assert self.session is not None and state.keys is not None, "start the mapper (or set ros.connect) first"
         self._token("NN")
         for topic, msgtype in self.topics.values():
             self._publisher(topic, msgtype)
@@ -299,6 +305,7 @@ class RosOutput:
             for topic, msgtype in self.search.topics.values():
                 self._publisher(topic, msgtype, latched=msgtype == OCCUPANCY_GRID)
             self._entities += self.search.start()
+            assert self.robots is not None            # made with the search
             self._entities += self.robots.start()
             if self.msg_serv is not None:
                 self._entities += self.msg_serv.start()

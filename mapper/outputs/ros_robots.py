@@ -63,8 +63,9 @@ SEARCH_KEYS = ("targets", "background", "area", "box", "z_band", "threshold", "m
 MAX_REMEMBERED = 1000
 #: platform defaults: the search z band (world z, m; None = every height) and the costmap z
 #: band (ground: world z; aerial: relative to the robot's z)
-PLATFORMS = {"ground": {"search_z": [-0.5, 3.0], "costmap_z": [0.5, 1.5], "relative": False},
-             "aerial": {"search_z": None, "costmap_z": [-1.0, 1.0], "relative": True}}
+PLATFORMS: dict[str, dict[str, Any]] = {
+    "ground": {"search_z": [-0.5, 3.0], "costmap_z": [0.5, 1.5], "relative": False},
+    "aerial": {"search_z": None, "costmap_z": [-1.0, 1.0], "relative": True}}
 
 
 @dataclass
@@ -301,7 +302,7 @@ def unknown_near_obstacles(states: np.ndarray, radius_cells: float) -> np.ndarra
     return binary_dilation(st == 1, structure=disc) & (st == -1)
 
 
-def grid_path(cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> list[tuple[int, int]] | None:
+def grid_path(cost: np.ndarray, start: tuple[int, ...], goal: tuple[int, ...]) -> list[tuple[int, ...]] | None:
     """Cheapest 8-connected path of cells from ``start`` to ``goal`` (both included): a step
     costs its length (1, diagonals √2) times ``cost`` (nx, ny) of the cell it enters (inf:
     not entered; the goal may be entered whatever its cost: 1). None when there is none (or
