@@ -38,10 +38,10 @@ import numpy as np
 import torch
 
 from common.cones import cone_union_volume
-from common.conventions import voxel_center, voxel_index
+from common.conventions import voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from planning.beyond import triangulate
-from planning.instances import Instance, InstanceTracker, pack_ijk
+from planning.instances import InstanceTracker, InstanceViews, pack_ijk, request_views, tracked_views
 from planning.look_next import LookNextCache, look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import score_rows, softmax_share
 from semantic_map.query_copy import one_thread
@@ -319,51 +319,43 @@ def _identity_probabilities(snap, fs, prep, q: torch.Tensor, targets: list[str],
     return out
 
 
-def _request_view(inst: Instance, rk: np.ndarray, rijk: np.ndarray, rconf: np.ndarray, vox: float,
-                  min_voxels: int) -> dict | None:
-    """Identity instance ``inst`` as the request sees it: its voxels above the request's
-    threshold (``rk`` their packed keys ascending, ``rijk`` / ``rconf`` in the same order) give
-    ``voxels``, ``centroid``, box and ``confidence``; None when fewer than ``min_voxels``."""
-    if not len(rk) or not len(inst.keys):
-        return None
-    pos = np.minimum(np.searchsorted(rk, inst.keys), len(rk) - 1)
-    idx = pos[rk[pos] == inst.keys]
-    if len(idx) < max(1, min_voxels):
-        return None
-    ijk = rijk[idx]
-    d = inst.as_dict()
-    d.update(centroid=[float(v) for v in (ijk.mean(0) + 0.5) * vox],
-             box_min=[float(v) for v in voxel_center(ijk.min(0), vox)],
-             box_max=[float(v) for v in voxel_center(ijk.max(0), vox)],
-             confidence=float(rconf[idx].max()), voxels=int(len(idx)))
-    return d
-
-
-def _found(views: list[dict], req: SearchRequest) -> list[dict]:
-    """The request's instances inside its area / z band, best first, at most ``max_instances``."""
+def _found(views: list[tuple[InstanceViews, str]], req: SearchRequest) -> list[dict]:
+    """The request's instances (each target's :class:`InstanceViews` and name) inside its area /
+    z band, best first (confidence to 3 decimals, voxels, id), at most ``max_instances``;
+    only those are turned into the reply's rows."""
     poly, zb = req.polygon(), req.z_band
+    cand: list[tuple[tuple, InstanceViews, int, str]] = []
+    for v, name in views:
+        if not len(v):
+            continue
+        ok = np.ones(len(v), bool)
+        if poly is not None:
+            ok &= points_in_polygon(v.centroid[:, :2], poly)
+        if zb is not None:
+            ok &= ~((v.box_max[:, 2] < zb[0]) | (v.box_min[:, 2] > zb[1]))
+        conf, vox = v.confidence.tolist(), v.voxels.tolist()
+        cand += [((-round(conf[k], 3), -vox[k], v.instances[k].id), v, k, name) for k in np.flatnonzero(ok).tolist()]
+    cand.sort(key=lambda c: c[0])
     out = []
-    for d in views:
-        if poly is not None and not points_in_polygon(np.asarray([d["centroid"][:2]]), poly)[0]:
-            continue
-        if zb is not None and (d["box_max"][2] < zb[0] or d["box_min"][2] > zb[1]):
-            continue
+    for _, v, k, name in cand[:req.max_instances]:
+        d = v.as_dict(k)
+        d["target"] = name
         out.append(d)
-    out.sort(key=lambda d: (-round(d["confidence"], 3), -d["voxels"], d["id"]))
-    return out[:req.max_instances]
+    return out
 
 
 def _instances(snap, fs, vprep, q: torch.Tensor, vs: np.ndarray, req: SearchRequest, phrases: list[str],
                n_bg: int, cfg, trackers: TrackerStore, map_version: int) -> tuple[list[dict], list[dict]]:
     """``(found, events)``: every target's identity tracker (:func:`identity_key`) updated
     with the voxels whose identity probability is above ``search.identity_threshold``, then
-    seen through the request's probabilities ``vs`` (T, N) and threshold (docs/identity.md).
+    seen through the request's probabilities ``vs`` (T, N) and threshold (docs/identity.md;
+    when those are the identity's, the tracker's own instances).
     ``q``: the targets' rows then ``phrases``' (the request's ``n_bg`` background phrases first)."""
     scfg = cfg.search
     ident = _identity_probabilities(snap, fs, vprep, q, list(req.targets), req.embeddings is None, phrases,
                                     list(scfg.background), scfg.temperature, cfg.device, request=(vs, n_bg))
     token = (int(map_version), int(snap.frames_mapped))
-    views: list[dict] = []
+    views: list[tuple[InstanceViews, str]] = []
     events: list[dict] = []
     with trackers.mutex:
         for ti, name in enumerate(req.targets):
@@ -373,16 +365,16 @@ def _instances(snap, fs, vprep, q: torch.Tensor, vs: np.ndarray, req: SearchRequ
             ev = trackers.update(key, _voxel_ijk(snap, rows), ident[ti, rows], snap.frames_mapped, token)
             events += [dict(e, target=name) for e in ev]
             current = tracker.current()
+            if ident is vs and req.threshold == scfg.identity_threshold:
+                # the request sees exactly the voxels the tracker was fed: its instances as they are
+                views.append((tracked_views(current), name))
+                continue
             rrows = np.flatnonzero(vs[ti] > req.threshold)
             rijk = _voxel_ijk(snap, rrows)
             rk = pack_ijk(rijk)
             o = np.argsort(rk, kind="stable")
-            rk, rijk, rconf = rk[o], rijk[o], vs[ti, rrows][o]        # once, not per instance
-            for inst in current:
-                d = _request_view(inst, rk, rijk, rconf, snap.vox, scfg.min_instance_voxels)
-                if d is not None:
-                    d["target"] = name
-                    views.append(d)
+            views.append((request_views(current, rk[o], rijk[o], vs[ti, rrows][o], snap.vox,
+                                        scfg.min_instance_voxels), name))
     return _found(views, req), events
 
 

@@ -364,3 +364,73 @@ class InstanceTracker:
         if target is not None:
             return list(self.instances.get(target, []))
         return sorted((i for v in self.instances.values() for i in v), key=lambda x: x.id)
+
+
+@dataclass
+class InstanceViews:
+    """Instances as one request sees them, as arrays (row ``k`` describes ``instances[k]``):
+    ``centroid``, ``box_min`` / ``box_max`` (voxel centres, m, float64, (K, 3)),
+    ``confidence`` (K,) the max voxel confidence and ``voxels`` (K,) the count of the
+    instance's voxels the request sees. :meth:`as_dicts` gives the reply's rows."""
+
+    instances: list[Instance]
+    centroid: np.ndarray
+    box_min: np.ndarray
+    box_max: np.ndarray
+    confidence: np.ndarray
+    voxels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.instances)
+
+    def as_dict(self, k: int) -> dict:
+        """Row ``k`` as :meth:`Instance.as_dict` with the request's figures."""
+        d = self.instances[k].as_dict()
+        d.update(centroid=[float(v) for v in self.centroid[k]], box_min=[float(v) for v in self.box_min[k]],
+                 box_max=[float(v) for v in self.box_max[k]], confidence=float(self.confidence[k]),
+                 voxels=int(self.voxels[k]))
+        return d
+
+
+def tracked_views(instances: list[Instance]) -> InstanceViews:
+    """The instances with their own figures: what a request sees when its voxels are exactly
+    those the tracker was fed (the same probabilities and threshold as the identity's)."""
+    k = len(instances)
+    return InstanceViews(list(instances),
+                         np.asarray([i.centroid for i in instances], np.float64).reshape(k, 3),
+                         np.asarray([i.box_min for i in instances], np.float64).reshape(k, 3),
+                         np.asarray([i.box_max for i in instances], np.float64).reshape(k, 3),
+                         np.asarray([i.confidence for i in instances], np.float64).reshape(k),
+                         np.asarray([i.voxels for i in instances], np.int64).reshape(k))
+
+
+def request_views(instances: list[Instance], rk: np.ndarray, rijk: np.ndarray, rconf: np.ndarray, vox: float,
+                  min_voxels: int) -> InstanceViews:
+    """Each instance seen through a request's voxels: ``rk`` their packed keys ascending,
+    ``rijk`` (M, 3) / ``rconf`` (M,) in the same order. An instance keeps the voxels of its
+    own (``Instance.keys``) that are among them; it is left out with fewer than
+    ``max(1, min_voxels)``. One sorted search for all instances' keys, per-instance
+    reductions over the hits."""
+    k = len(instances)
+    lens = np.asarray([len(i.keys) for i in instances], np.int64).reshape(k)
+    if not len(rk) or not lens.sum():
+        return tracked_views([])
+    allk = np.concatenate([i.keys for i in instances])
+    owner = np.repeat(np.arange(k, dtype=np.int64), lens)
+    pos = np.minimum(np.searchsorted(rk, allk), len(rk) - 1)
+    hit = rk[pos] == allk
+    owner, pos = owner[hit], pos[hit]                  # grouped by instance (owner ascending)
+    cnt = np.bincount(owner, minlength=k)
+    seen = np.flatnonzero(cnt)
+    starts = np.r_[0, np.cumsum(cnt[seen])[:-1]].astype(np.int64)
+    ijk = rijk[pos]
+    isum = np.add.reduceat(ijk, starts, axis=0) if len(seen) else np.zeros((0, 3), np.int64)
+    lo = np.minimum.reduceat(ijk, starts, axis=0) if len(seen) else np.zeros((0, 3), np.int64)
+    hi = np.maximum.reduceat(ijk, starts, axis=0) if len(seen) else np.zeros((0, 3), np.int64)
+    cmax = np.maximum.reduceat(rconf[pos], starts) if len(seen) else np.zeros((0,), np.float64)
+    ok = cnt[seen] >= max(1, int(min_voxels))
+    n = cnt[seen][ok]
+    return InstanceViews([instances[int(i)] for i in seen[ok]],
+                         (isum[ok].astype(np.float64) / n[:, None] + 0.5) * vox,
+                         voxel_center(lo[ok], vox), voxel_center(hi[ok], vox),
+                         np.asarray(cmax[ok], np.float64), n.astype(np.int64))
