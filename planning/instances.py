@@ -215,6 +215,7 @@ class InstanceTracker:
         self.instances: dict[str, list[Instance]] = {}
         self.missing: dict[str, list[tuple[Instance, int]]] = {}   # target -> (instance, updates unseen)
         self.updates = 0
+        self.inputs = 0                  # +1 per update, repeat or load_state: the input as last fed
         self._components: dict[str, tuple[np.ndarray, np.ndarray]] = {}   # target -> (keys, labels) last seen
         self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
 
@@ -234,6 +235,7 @@ class InstanceTracker:
             raise ValueError(f"{len(ijk)} voxels but {len(conf)} confidences")
         frame = int(frame)
         self.updates += 1
+        self.inputs += 1
         keys = pack_ijk(ijk)
         same = self._last.get(target)
         if (same is not None and same[2] == frame and target in self.instances and np.array_equal(same[0], keys)
@@ -319,6 +321,13 @@ class InstanceTracker:
         self.missing[target] = [(p, n) for p, n in unseen if n <= self.grace]
         return events
 
+    def repeat(self) -> list[InstanceEvent]:
+        """An update with the same input as the last one (the caller knows it is): it changes
+        nothing but the update count and has no events, as :meth:`update` would find."""
+        self.updates += 1
+        self.inputs += 1
+        return []
+
     def state(self) -> tuple[list[dict], np.ndarray]:
         """``(instances, keys)``: every current and missing instance as
         :meth:`Instance.as_dict` plus ``missed`` (updates unseen, 0 = current) and ``n_keys``,
@@ -356,6 +365,7 @@ class InstanceTracker:
         for v in instances.values():
             v.sort(key=lambda x: x.id)
         self.instances, self.missing = instances, missing
+        self.inputs += 1
         self._components.clear()
         self._last.clear()
 
