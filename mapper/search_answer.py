@@ -26,6 +26,7 @@ World frame, metres, z up; timings in milliseconds.
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
 import threading
@@ -71,14 +72,17 @@ class _Scored:
     """What a search computes from the query copy for one set of phrases, kept while the copy
     stays at one revision (several robots' standing searches, a planner's repeated search):
     voxel probabilities ``vs``, ray scores ``rs`` / cosines ``rcos``, identity
-    probabilities ``ident`` and, per target, what the identity tracker was last fed from
-    them (``fed``: tracker, key, token, threshold, its input count after the feed). Each is what a fresh
+    probabilities ``ident``, per target what the identity tracker was last fed from them
+    (``fed``: tracker, key, token, threshold, its input count after the feed) and the
+    tracker's instances as seen then (``views``), and the ``beyond`` part per area. Each is what a fresh
     computation at that revision gives (the same code on the same rows)."""
 
     def __init__(self, vs: np.ndarray, rs: np.ndarray, rcos: np.ndarray) -> None:
         self.vs, self.rs, self.rcos = vs, rs, rcos
         self.ident: np.ndarray | None = None
         self.fed: dict[int, tuple] = {}
+        self.views: dict[int, tuple] = {}            # target -> (tracker, its version, InstanceViews)
+        self.beyond: dict[tuple, dict] = {}           # the request's area and settings -> beyond
 
 
 class _ScoredStore:
@@ -485,16 +489,18 @@ def _instances(snap, fs, vprep, q: torch.Tensor, sc: _Scored, req: SearchRequest
                 ev = trackers.update(key, _voxel_ijk(snap, rows), ident[ti, rows], snap.frames_mapped, token)
             sc.fed[ti] = (weakref.ref(tracker), key, token, float(scfg.identity_threshold), tracker.inputs)
             events += [dict(e, target=name) for e in ev]
-            current = tracker.current()
             if ident is vs and req.threshold == scfg.identity_threshold:
                 # the request sees exactly the voxels the tracker was fed: its instances as they are
-                views.append((tracked_views(current), name))
+                kept = sc.views.get(ti)
+                if kept is None or kept[0]() is not tracker or kept[1] != tracker.version:
+                    kept = sc.views[ti] = (weakref.ref(tracker), tracker.version, tracked_views(tracker.current()))
+                views.append((kept[2], name))
                 continue
             rrows = np.flatnonzero(vs[ti] > req.threshold)
             rijk = _voxel_ijk(snap, rrows)
             rk = pack_ijk(rijk)
             o = np.argsort(rk, kind="stable")
-            views.append((request_views(current, rk[o], rijk[o], vs[ti, rrows][o], snap.vox,
+            views.append((request_views(tracker.current(), rk[o], rijk[o], vs[ti, rrows][o], snap.vox,
                                         scfg.min_instance_voxels), name))
     return _found(views, req), events
 
@@ -566,7 +572,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
             with one_thread():                  # many small torch ops (on a loaded machine every
                 # parallel region would wait on a descheduled worker)
                 f = m.frontiers().centres.detach().cpu().numpy().astype(np.float64).reshape(-1, 3)
-                f = f[_in_area(f, req.polygon(), req.z_band)]
+                if req.polygon() is not None or req.z_band is not None:
+                    f = f[_in_area(f, req.polygon(), req.z_band)]
                 radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.fronts.beta)
                 return look_next(m.occupancy, float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
                                  snap.ray_dirs[rkeep], rs[:, rkeep].T, list(req.targets), req.from_xyz,
@@ -581,8 +588,13 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     tm["look_next"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     angle_err = scfg.angle_err_deg if scfg.angle_err_deg > 0 else float(cfg.map.angle_bin_size) / 2
-    with one_thread():
-        beyond = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
+    bkey = (hashlib.sha1(np.packbits(rkeep).tobytes()).hexdigest(), len(rkeep), angle_err, float(snap.half_angle),
+            scfg.beyond_rays, scfg.max_gap_m, qcfg.search_range_m, qcfg.search_rays, qcfg.search_cell_m,
+            qcfg.search_samples)
+    if bkey not in sc.beyond:
+        with one_thread():
+            sc.beyond[bkey] = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
+    beyond = copy.deepcopy(sc.beyond[bkey])
     tm["beyond"] = (time.perf_counter() - t) * 1e3
     tm["total"] = (time.perf_counter() - t0) * 1e3
     return SearchReply(id=req.id, found=found, look_next=goals, beyond=beyond, events=events,

@@ -216,6 +216,7 @@ class InstanceTracker:
         self.missing: dict[str, list[tuple[Instance, int]]] = {}   # target -> (instance, updates unseen)
         self.updates = 0
         self.inputs = 0                  # +1 per update, repeat or load_state: the input as last fed
+        self.version = 0                 # +1 per update or load_state: the instances as they are
         self._components: dict[str, tuple[np.ndarray, np.ndarray]] = {}   # target -> (keys, labels) last seen
         self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
 
@@ -236,6 +237,7 @@ class InstanceTracker:
         frame = int(frame)
         self.updates += 1
         self.inputs += 1
+        self.version += 1
         keys = pack_ijk(ijk)
         same = self._last.get(target)
         if (same is not None and same[2] == frame and target in self.instances and np.array_equal(same[0], keys)
@@ -366,6 +368,7 @@ class InstanceTracker:
             v.sort(key=lambda x: x.id)
         self.instances, self.missing = instances, missing
         self.inputs += 1
+        self.version += 1
         self._components.clear()
         self._last.clear()
 
