@@ -158,3 +158,23 @@ def test_best_first_is_the_lexsort_prefix():
         sc = rng.integers(0, 4, n) / 4.0 if t % 2 else rng.random(n)        # many score ties
         d = rng.integers(0, 5, n).astype(float) if t % 3 else rng.random(n)  # distance ties too
         assert np.array_equal(ln._best_first(sc, d, k), np.lexsort((d, -sc))[:k])
+
+
+def test_candidates_equal_the_three_lexsort_prefixes():
+    """Look-next's candidate lists from one pass over the frontiers (issue 46) against each
+    list sorted in full: by score, by ray_z, by distance (ties by index throughout)."""
+    rng = np.random.default_rng(5)
+    compared = 0
+    for t in range(300):
+        n, k = int(rng.integers(1, 400)), int(rng.integers(1, 80))
+        sc = np.where(rng.random(n) < rng.uniform(0, 0.5), rng.integers(1, 4, n) / 4.0, 0.0)   # few > 0, ties
+        z = np.where(rng.random(n) < rng.uniform(0, 0.3), rng.random(n), 0.0)
+        if t % 7 == 0:
+            z[rng.integers(0, n)] = -0.5                         # a negative value: the full path
+        d = rng.integers(0, 6, n).astype(float) if t % 2 else rng.random(n)          # distance ties
+        got = ln._candidates(sc, z, d, k)
+        want = [np.lexsort((d, -sc))[:k], np.lexsort((d, -z))[:k], np.lexsort((d, np.zeros(n)))[:k]]
+        for g, w in zip(got, want, strict=True):
+            assert np.array_equal(g, w), t
+        compared += int(0 < (sc > 0).sum() < k)
+    assert compared > 50                                         # the path mixing both parts ran
