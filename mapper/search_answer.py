@@ -64,6 +64,8 @@ def look_next_cache(m) -> LookNextCache:
 
 #: requests' scores kept per query copy at its current revision (:class:`_Scored`)
 SCORED_ENTRIES = 8
+#: beyond parts kept per :class:`_Scored` (areas and settings; the oldest out first)
+BEYOND_AREAS = 16
 #: search volumes of the last best-ray sets (:func:`_search_volume`)
 VOLUME_ENTRIES = 32
 
@@ -594,6 +596,8 @@ def answer_search(snap, fs, req: SearchRequest, cfg, trackers: TrackerStore,
     if bkey not in sc.beyond:
         with one_thread():
             sc.beyond[bkey] = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
+        while len(sc.beyond) > BEYOND_AREAS:
+            sc.beyond.pop(next(iter(sc.beyond)))
     beyond = copy.deepcopy(sc.beyond[bkey])
     tm["beyond"] = (time.perf_counter() - t) * 1e3
     tm["total"] = (time.perf_counter() - t0) * 1e3

@@ -28,25 +28,10 @@ def _phrases(fs, req, background, *a):
 
 @pytest.fixture
 def world(monkeypatch):
-    from apps.bench.query import _space, build_map
-    from synthetic_world import World
+    from tests.support.search_world import search_world
 
     monkeypatch.setattr(sa, "embed_phrases", _phrases)
-    fs = _space(DIM)
-    cfg, m = build_map(6000, DIM, 60, fs)
-    m.cfg.depth_limit = 8.0                     # small frames: a few frontiers and rays
-    w = World.generate(0)
-    hw = (24, 32)
-    K = w.camera(hw, 90.0)
-    poses = w.trajectory("ground", 6, seed=0)
-    g = torch.Generator().manual_seed(2)
-
-    def frames(a: int, b: int) -> None:
-        for p in poses[a:b]:
-            r = w.render(p, K, hw)
-            m.integrate(p, K, r.depth.astype(np.float32), r.rgb, torch.randn((DIM, 6, 8), generator=g))
-        m.flush()
-
+    fs, cfg, m, frames = search_world(DIM, 6000, 60)
     frames(0, 2)
     return fs, cfg, m, frames
 
@@ -60,6 +45,7 @@ REQUESTS = [dict(targets=["car"], from_xyz=ROBOTS[0]), dict(targets=["car"], fro
 
 def test_searches_sharing_a_version_equal_each_answered_with_nothing_kept(world, monkeypatch):
     fs, cfg, m, frames = world
+    monkeypatch.setattr(sa, "BEYOND_AREAS", 1)           # three areas below: the kept ones are dropped
     snap = QueryCopy()
     kept, alone = sa.TrackerStore(), sa.TrackerStore()
     repeats = []
@@ -88,6 +74,7 @@ def test_searches_sharing_a_version_equal_each_answered_with_nothing_kept(world,
                 checked[k] += len(want[k])
     assert all(v > 0 for v in checked.values()), checked          # there was something to compare
     assert sa._SCORED[snap].hits >= 3 * 3 and len(repeats) >= 3 * 2  # and the kept work was used
+    assert all(len(e.beyond) == 1 for e in sa._SCORED[snap].entries.values())
 
 
 def test_kept_scores_follow_the_copy_revision(world):
