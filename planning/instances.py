@@ -65,12 +65,96 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
     shape = ijk.max(0) - lo + 1
     if float(np.prod(shape.astype(np.float64))) <= max(DENSE_MIN_CELLS, DENSE_CELLS_PER_VOXEL * n):
         return _relabel(_dense_labels(ijk - lo, (int(shape[0]), int(shape[1]), int(shape[2]))), keys)
-    # sparse: edges between key-sorted voxels by one sorted search per half-offset (packing is
-    # linear: ``key + delta`` is the neighbour's key unless an axis leaves the packable range,
-    # checked below), components by scipy's graph traversal
+    split = _split_labels(ijk)
+    if split is not None:
+        return _relabel(split, keys)
+    return _sparse_labels(ijk, keys)
+
+
+#: a spread-out set's dense parts: blocks of side ``2^SPLIT_SHIFT`` voxels holding at least
+#: :data:`SPLIT_DENSE_VOXELS` of its voxels, at most :data:`SPLIT_MAX_BOXES` groups of them
+SPLIT_SHIFT = 4
+SPLIT_DENSE_VOXELS = 256
+SPLIT_MAX_BOXES = 16
+
+
+def _split_labels(ijk: np.ndarray) -> np.ndarray | None:
+    """Component ids (any numbering) of a spread-out voxel set: each group of touching dense
+    blocks gives a box (its blocks' bounding box); the voxels inside a compact box are
+    labelled on a dense grid, the others by :func:`_sparse_labels`, and the two are joined by
+    the edges from the others to the boxes' voxels (the only edges neither saw). None when
+    there is no compact box, too many, or two boxes closer than two voxels."""
+    bk = pack_ijk(ijk >> SPLIT_SHIFT)                              # floor division (arithmetic shift)
+    ub, cnt = np.unique(bk, return_counts=True)
+    db = ub[cnt >= SPLIT_DENSE_VOXELS]
+    if not len(db) or len(db) == len(ub):
+        return None
+    bijk = np.stack([((db >> s) & ((1 << 21) - 1)) - (1 << 20) for s in (42, 21, 0)], 1)
+    grp = connected_26(bijk)
+    if grp.max() + 1 > SPLIT_MAX_BOXES:
+        return None
+    boxes: list[tuple[np.ndarray, np.ndarray]] = []
+    for g in range(int(grp.max()) + 1):
+        b = bijk[grp == g]
+        lo, hi = b.min(0) << SPLIT_SHIFT, ((b.max(0) + 1) << SPLIT_SHIFT) - 1
+        if any(((lo - 1 <= h) & (hi + 1 >= q)).all() for q, h in boxes):
+            return None                                            # boxes that may touch
+        boxes.append((lo, hi))
+    lab = np.full(len(ijk), -1, np.int64)
+    used = 0
+    inside: list[np.ndarray] = []
+    for lo, hi in boxes:
+        sel = np.flatnonzero(((ijk >= lo) & (ijk <= hi)).all(1))
+        shape = hi - lo + 1
+        if not len(sel) or float(np.prod(shape.astype(np.float64))) > max(DENSE_MIN_CELLS,
+                                                                          DENSE_CELLS_PER_VOXEL * len(sel)):
+            continue
+        gl = _dense_labels(ijk[sel] - lo, (int(shape[0]), int(shape[1]), int(shape[2]))) - 1   # ndimage: 1..L
+        lab[sel] = gl + used
+        used += int(gl.max()) + 1
+        inside.append(sel)
+    if not inside:
+        return None
+    r = np.flatnonzero(lab < 0)
+    if not len(r):
+        return lab
+    lab[r] = _sparse_labels(ijk[r], pack_ijk(ijk[r])) + used
+    d = np.concatenate(inside)
+    dk = pack_ijk(ijk[d])
+    o = np.argsort(dk, kind="stable")
+    dk, dl = dk[o], lab[d][o]
+    near = np.zeros(len(r), bool)                                  # the others within a voxel of a box
+    for lo, hi in boxes:
+        near |= ((ijk[r] >= lo - 1) & (ijk[r] <= hi + 1)).all(1)
+    rn = r[near]
+    ea, eb = [lab[:0]], [lab[:0]]
+    for off in np.concatenate([_HALF_26, -_HALF_26]):
+        nb = ijk[rn] + off
+        ok = ((nb >= -(1 << 20)) & (nb < (1 << 20))).all(1)
+        nk = pack_ijk(nb[ok])
+        pos = np.minimum(np.searchsorted(dk, nk), len(dk) - 1)
+        hit = dk[pos] == nk
+        ea.append(lab[rn[ok][hit]])
+        eb.append(dl[pos[hit]])
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    n_lab = int(lab.max()) + 1
+    a, b = np.concatenate(ea), np.concatenate(eb)
+    _, joined = connected_components(coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n_lab, n_lab)),
+                                     directed=False)
+    return joined.astype(np.int64)[lab]
+
+
+def _sparse_labels(ijk: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """:func:`connected_26` of distinct voxels ``ijk`` (N, 3) with packed ``keys`` by sorted
+    searches: edges between key-sorted voxels by one sorted search per half-offset (packing is
+    linear: ``key + delta`` is the neighbour's key unless an axis leaves the packable range,
+    checked below), components by scipy's graph traversal."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(ijk)
     order = np.argsort(keys, kind="stable")
     sk = keys[order]
     biased = ijk[order] + (1 << 20)
