@@ -26,6 +26,7 @@ World frame, metres, z up; timings in milliseconds.
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
 import threading
@@ -38,10 +39,10 @@ import numpy as np
 import torch
 
 from common.cones import cone_union_volume
-from common.conventions import voxel_center, voxel_index
+from common.conventions import voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from planning.beyond import triangulate
-from planning.instances import Instance, InstanceTracker, pack_ijk
+from planning.instances import InstanceTracker, InstanceViews, pack_ijk, request_views, tracked_views
 from planning.look_next import Goal, LookNextCache, look_next, points_in_polygon, ray_outlier_z
 from semantic_map.query import PreparedRows, score_rows, softmax_share
 from semantic_map.query_copy import one_thread
@@ -66,6 +67,111 @@ def look_next_cache(m: RayFrontsMap) -> LookNextCache:
     if c is None:
         c = _LOOK_NEXT[m] = LookNextCache()
     return c
+
+
+#: requests' scores kept per query copy at its current revision (:class:`_Scored`)
+SCORED_ENTRIES = 8
+#: beyond parts kept per :class:`_Scored` (areas and settings; the oldest out first)
+BEYOND_AREAS = 16
+#: search volumes of the last best-ray sets (:func:`_search_volume`)
+VOLUME_ENTRIES = 32
+
+
+class _Scored:
+    """What a search computes from the query copy for one set of phrases, kept while the copy
+    stays at one revision (several robots' standing searches, a planner's repeated search):
+    voxel probabilities ``vs``, ray scores ``rs`` / cosines ``rcos``, identity
+    probabilities ``ident``, per target what the identity tracker was last fed from them
+    (``fed``: tracker, key, token, threshold, its input count after the feed) and the
+    tracker's instances as seen then (``views``), and the ``beyond`` part per area. Each is what a fresh
+    computation at that revision gives (the same code on the same rows)."""
+
+    def __init__(self, vs: np.ndarray, rs: np.ndarray, rcos: np.ndarray) -> None:
+        self.vs, self.rs, self.rcos = vs, rs, rcos
+        self.ident: np.ndarray | None = None
+        self.fed: dict[int, tuple] = {}
+        self.views: dict[int, tuple] = {}            # target -> (tracker, its version, InstanceViews)
+        self.beyond: dict[tuple, dict] = {}           # the request's area and settings -> beyond
+
+
+class _ScoredStore:
+    """:class:`_Scored` entries of one query copy, all of one revision (at most
+    :data:`SCORED_ENTRIES`, least recently used first out)."""
+
+    def __init__(self) -> None:
+        self.revision = -1
+        self.entries: OrderedDict[tuple, _Scored] = OrderedDict()
+        self.hits = 0                        # requests answered from a kept entry (for tests)
+
+    def get(self, revision: int, key: tuple) -> _Scored | None:
+        if revision != self.revision:
+            self.revision = revision
+            self.entries.clear()
+        e = self.entries.get(key)
+        if e is not None:
+            self.entries.move_to_end(key)
+            self.hits += 1
+        return e
+
+    def put(self, key: tuple, e: _Scored) -> None:
+        self.entries[key] = e
+        while len(self.entries) > SCORED_ENTRIES:
+            self.entries.popitem(last=False)
+
+
+_SCORED: "weakref.WeakKeyDictionary[object, _ScoredStore]" = weakref.WeakKeyDictionary()
+_SCORED_LOCK = threading.Lock()
+
+
+def _scored_key(snap, fs, q_all: torch.Tensor, req: SearchRequest, phrases: list[str], n_bg: int,
+                cfg) -> tuple | None:
+    """The key of a request's :class:`_Scored` (None: the copy has no revision to hold it to)."""
+    if getattr(snap, "revision", None) is None:
+        return None
+    scfg = cfg.search
+    qb = q_all.detach().to(torch.float32).cpu().contiguous().numpy()
+    return (fs.id, str(cfg.device), float(scfg.temperature), hashlib.sha1(qb.tobytes()).hexdigest(), qb.shape,
+            tuple(req.targets), req.embeddings is None, tuple(phrases), int(n_bg), tuple(scfg.background))
+
+
+def _scored(snap, key: tuple | None, compute: Callable[[], _Scored]) -> _Scored:
+    """The request's scores at the copy's revision: kept, else computed and kept."""
+    if key is None:
+        return compute()
+    with _SCORED_LOCK:
+        store = _SCORED.get(snap)
+        if store is None:
+            store = _SCORED[snap] = _ScoredStore()
+        e = store.get(int(snap.revision), key)
+    if e is None:
+        e = compute()
+        with _SCORED_LOCK:
+            if store.revision == int(snap.revision):
+                store.put(key, e)
+    return e
+
+
+_VOLUMES: OrderedDict[tuple, float] = OrderedDict()
+
+
+def _search_volume(o: np.ndarray, d: np.ndarray, half_angle: float, qcfg) -> float:
+    """:func:`common.cones.cone_union_volume` of the best rays' cones, kept for the last
+    :data:`VOLUME_ENTRIES` inputs (the same best rays over several searches)."""
+    key = (hashlib.sha1(np.ascontiguousarray(o, np.float64).tobytes() + np.ascontiguousarray(d, np.float64).tobytes())
+           .hexdigest(), o.shape, float(half_angle), float(qcfg.search_range_m), float(qcfg.search_cell_m),
+           int(qcfg.search_samples))
+    with _SCORED_LOCK:
+        v = _VOLUMES.get(key) if VOLUME_ENTRIES > 0 else None
+        if v is not None:
+            _VOLUMES.move_to_end(key)
+            return v
+    v = float(cone_union_volume(o, d, half_angle, qcfg.search_range_m, qcfg.search_cell_m,
+                                max_cells=qcfg.search_samples))
+    with _SCORED_LOCK:
+        _VOLUMES[key] = v
+        while len(_VOLUMES) > VOLUME_ENTRIES:
+            _VOLUMES.popitem(last=False)
+    return v
 
 
 class TrackerStore:
@@ -138,7 +244,14 @@ class TrackerStore:
         frame) returns the events of the update it repeats, so every search of one map
         version reports what that version changed."""
         t = self._t[key]
-        ev = [e.as_dict() for e in t.update(str(key[1]), ijk, conf, frame)]
+        return self._record(key, [e.as_dict() for e in t.update(str(key[1]), ijk, conf, frame)], token)
+
+    def repeat(self, key: tuple, token: tuple) -> list[dict]:
+        """:meth:`update` with the same voxels, confidences and frame as the tracker's last
+        update (known to the caller): what it returns, without comparing the input again."""
+        return self._record(key, [e.as_dict() for e in self._t[key].repeat()], token)
+
+    def _record(self, key: tuple, ev: list[dict], token: tuple) -> list[dict]:
         last = self._events.get(key)
         if last is None or last[0] != token:
             self.generation += 1
@@ -328,71 +441,79 @@ def _identity_probabilities(snap: QueryCopy, fs: FeatureSpace, prep: PreparedRow
     return out
 
 
-def _request_view(inst: Instance, rk: np.ndarray, rijk: np.ndarray, rconf: np.ndarray, vox: float,
-                  min_voxels: int) -> dict | None:
-    """Identity instance ``inst`` as the request sees it: its voxels above the request's
-    threshold (``rk`` their packed keys ascending, ``rijk`` / ``rconf`` in the same order) give
-    ``voxels``, ``centroid``, box and ``confidence``; None when fewer than ``min_voxels``."""
-    if not len(rk) or not len(inst.keys):
-        return None
-    pos = np.minimum(np.searchsorted(rk, inst.keys), len(rk) - 1)
-    idx = pos[rk[pos] == inst.keys]
-    if len(idx) < max(1, min_voxels):
-        return None
-    ijk = rijk[idx]
-    d = inst.as_dict()
-    d.update(centroid=[float(v) for v in (ijk.mean(0) + 0.5) * vox],
-             box_min=[float(v) for v in voxel_center(ijk.min(0), vox)],
-             box_max=[float(v) for v in voxel_center(ijk.max(0), vox)],
-             confidence=float(rconf[idx].max()), voxels=int(len(idx)))
-    return d
-
-
-def _found(views: list[dict], req: SearchRequest) -> list[dict]:
-    """The request's instances inside its area / z band, best first, at most ``max_instances``."""
+def _found(views: list[tuple[InstanceViews, str]], req: SearchRequest) -> list[dict]:
+    """The request's instances (each target's :class:`InstanceViews` and name) inside its area /
+    z band, best first (confidence to 3 decimals, voxels, id), at most ``max_instances``;
+    only those are turned into the reply's rows."""
     poly, zb = req.polygon(), req.z_band
+    parts: list[tuple[InstanceViews, str, np.ndarray]] = []
+    for v, name in views:
+        ok = np.ones(len(v), bool)
+        if poly is not None and len(v):
+            ok &= points_in_polygon(v.centroid[:, :2], poly)
+        if zb is not None and len(v):
+            ok &= ~((v.box_max[:, 2] < zb[0]) | (v.box_min[:, 2] > zb[1]))
+        parts.append((v, name, np.flatnonzero(ok)))
+    if not parts or not req.max_instances:
+        return []
+    conf = np.asarray([round(c, 3) for v, _, k in parts for c in v.confidence[k].tolist()], np.float64)
+    size = np.concatenate([v.voxels[k] for v, _, k in parts])
+    ids = np.asarray([v.instances[i].id for v, _, k in parts for i in k.tolist()], np.int64)
+    part = np.repeat(np.arange(len(parts)), [len(k) for _, _, k in parts])
+    row = np.concatenate([k for _, _, k in parts])
     out = []
-    for d in views:
-        if poly is not None and not points_in_polygon(np.asarray([d["centroid"][:2]]), poly)[0]:
-            continue
-        if zb is not None and (d["box_max"][2] < zb[0] or d["box_min"][2] > zb[1]):
-            continue
+    for c in np.lexsort((ids, -size, -conf))[:req.max_instances].tolist():   # stable, as a sort by key
+        v, name, _ = parts[int(part[c])]
+        d = v.as_dict(int(row[c]))
+        d["target"] = name
         out.append(d)
-    out.sort(key=lambda d: (-round(d["confidence"], 3), -d["voxels"], d["id"]))
-    return out[:req.max_instances]
+    return out
 
 
-def _instances(snap: QueryCopy, fs: FeatureSpace, vprep: PreparedRows, q: torch.Tensor, vs: np.ndarray,
+def _instances(snap: QueryCopy, fs: FeatureSpace, vprep: PreparedRows, q: torch.Tensor, sc: _Scored,
                req: SearchRequest, phrases: list[str], n_bg: int, cfg: MapperConfig, trackers: TrackerStore,
                map_version: int) -> tuple[list[dict], list[dict]]:
     """``(found, events)``: every target's identity tracker (:func:`identity_key`) updated
     with the voxels whose identity probability is above ``search.identity_threshold``, then
-    seen through the request's probabilities ``vs`` (T, N) and threshold (docs/identity.md).
+    seen through the request's probabilities ``sc.vs`` (T, N) and threshold (docs/identity.md;
+    when those are the identity's, the tracker's own instances). A tracker last fed from
+    ``sc`` at this token is not fed the same voxels again (it would change nothing).
     ``q``: the targets' rows then ``phrases``' (the request's ``n_bg`` background phrases first)."""
     scfg = cfg.search
-    ident = _identity_probabilities(snap, fs, vprep, q, list(req.targets), req.embeddings is None, phrases,
-                                    list(scfg.background), scfg.temperature, cfg.device, request=(vs, n_bg))
+    vs = sc.vs
+    if sc.ident is None:
+        sc.ident = _identity_probabilities(snap, fs, vprep, q, list(req.targets), req.embeddings is None, phrases,
+                                           list(scfg.background), scfg.temperature, cfg.device, request=(vs, n_bg))
+    ident = sc.ident
     token = (int(map_version), int(snap.frames_mapped))
-    views: list[dict] = []
+    views: list[tuple[InstanceViews, str]] = []
     events: list[dict] = []
     with trackers.mutex:
         for ti, name in enumerate(req.targets):
             key = identity_key(req, ti)
             tracker = trackers.get(key, snap.vox, scfg.min_instance_voxels, scfg.instance_grace)
-            rows = np.flatnonzero(ident[ti] > scfg.identity_threshold)
-            ev = trackers.update(key, _voxel_ijk(snap, rows), ident[ti, rows], snap.frames_mapped, token)
+            fed = (key, token, float(scfg.identity_threshold), tracker.inputs)
+            last = sc.fed.get(ti)
+            if last is not None and last[0]() is tracker and last[1:] == fed:
+                ev = trackers.repeat(key, token)           # the same input as its last update
+            else:
+                rows = np.flatnonzero(ident[ti] > scfg.identity_threshold)
+                ev = trackers.update(key, _voxel_ijk(snap, rows), ident[ti, rows], snap.frames_mapped, token)
+            sc.fed[ti] = (weakref.ref(tracker), key, token, float(scfg.identity_threshold), tracker.inputs)
             events += [dict(e, target=name) for e in ev]
-            current = tracker.current()
+            if ident is vs and req.threshold == scfg.identity_threshold:
+                # the request sees exactly the voxels the tracker was fed: its instances as they are
+                kept = sc.views.get(ti)
+                if kept is None or kept[0]() is not tracker or kept[1] != tracker.version:
+                    kept = sc.views[ti] = (weakref.ref(tracker), tracker.version, tracked_views(tracker.current()))
+                views.append((kept[2], name))
+                continue
             rrows = np.flatnonzero(vs[ti] > req.threshold)
             rijk = _voxel_ijk(snap, rrows)
             rk = pack_ijk(rijk)
             o = np.argsort(rk, kind="stable")
-            rk, rijk, rconf = rk[o], rijk[o], vs[ti, rrows][o]        # once, not per instance
-            for inst in current:
-                d = _request_view(inst, rk, rijk, rconf, snap.vox, scfg.min_instance_voxels)
-                if d is not None:
-                    d["target"] = name
-                    views.append(d)
+            views.append((request_views(tracker.current(), rk[o], rijk[o], vs[ti, rrows][o], snap.vox,
+                                        scfg.min_instance_voxels), name))
     return _found(views, req), events
 
 
@@ -421,8 +542,7 @@ def _beyond(snap: QueryCopy, rs: np.ndarray, targets: list[str], scfg: SearchSec
     sel = np.array(list(dict.fromkeys(i for _, i in best_all))[:qcfg.search_rays], np.int64)
     vol = 0.0
     if len(sel):
-        vol = float(cone_union_volume(o[sel], d[sel], snap.half_angle, qcfg.search_range_m, qcfg.search_cell_m,
-                                      max_cells=qcfg.search_samples))
+        vol = _search_volume(o[sel], d[sel], snap.half_angle, qcfg)
     return dict(rays=rays[:max(10, 2 * len(targets))], estimates=ests[:10], search_volume_m3=vol)
 
 
@@ -445,12 +565,17 @@ def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: Ma
     t = time.perf_counter()
     vprep, rprep = snap.prepared(fs, cfg.device)
     T = len(req.targets)
-    vs = _voxel_probabilities(snap, fs, vprep, q, T, scfg.temperature, cfg.device)
-    with one_thread():                          # a few thousand rays: no parallel region
-        rs, rcos = _ray_scores(rprep, q, T, scfg.temperature)
+
+    def score() -> _Scored:
+        vs = _voxel_probabilities(snap, fs, vprep, q, T, scfg.temperature, cfg.device)
+        with one_thread():                      # a few thousand rays: no parallel region
+            return _Scored(vs, *_ray_scores(rprep, q, T, scfg.temperature))
+
+    sc = _scored(snap, _scored_key(snap, fs, q_all, req, phrases, len(background), cfg), score)
+    rs, rcos = sc.rs, sc.rcos
     tm["similarity"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
-    found, events = _instances(snap, fs, vprep, q_all, vs, req, phrases, len(background), cfg, trackers,
+    found, events = _instances(snap, fs, vprep, q_all, sc, req, phrases, len(background), cfg, trackers,
                                map_version)
     tm["instances"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
@@ -463,7 +588,8 @@ def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: Ma
             with one_thread():                  # many small torch ops (on a loaded machine every
                 # parallel region would wait on a descheduled worker)
                 f = m.frontiers().centres.detach().cpu().numpy().astype(np.float64).reshape(-1, 3)
-                f = f[_in_area(f, req.polygon(), req.z_band)]
+                if req.polygon() is not None or req.z_band is not None:
+                    f = f[_in_area(f, req.polygon(), req.z_band)]
                 radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.cfg.beta)
                 return look_next(m.occupancy_view(), float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
                                  snap.ray_dirs[rkeep], rs[:, rkeep].T, list(req.targets), req.from_xyz,
@@ -478,8 +604,15 @@ def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: Ma
     tm["look_next"] = (time.perf_counter() - t) * 1e3
     t = time.perf_counter()
     angle_err = scfg.angle_err_deg if scfg.angle_err_deg > 0 else float(cfg.map.angle_bin_size) / 2
-    with one_thread():
-        beyond = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
+    bkey = (hashlib.sha1(np.packbits(rkeep).tobytes()).hexdigest(), len(rkeep), angle_err, float(snap.half_angle),
+            scfg.beyond_rays, scfg.max_gap_m, qcfg.search_range_m, qcfg.search_rays, qcfg.search_cell_m,
+            qcfg.search_samples)
+    if bkey not in sc.beyond:
+        with one_thread():
+            sc.beyond[bkey] = _beyond(snap, rs, list(req.targets), scfg, qcfg, angle_err, rkeep)
+        while len(sc.beyond) > BEYOND_AREAS:
+            sc.beyond.pop(next(iter(sc.beyond)))
+    beyond = copy.deepcopy(sc.beyond[bkey])
     tm["beyond"] = (time.perf_counter() - t) * 1e3
     tm["total"] = (time.perf_counter() - t0) * 1e3
     return SearchReply(id=req.id, found=found, look_next=goals, beyond=beyond, events=events,

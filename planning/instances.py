@@ -65,12 +65,96 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
     shape = ijk.max(0) - lo + 1
     if float(np.prod(shape.astype(np.float64))) <= max(DENSE_MIN_CELLS, DENSE_CELLS_PER_VOXEL * n):
         return _relabel(_dense_labels(ijk - lo, (int(shape[0]), int(shape[1]), int(shape[2]))), keys)
-    # sparse: edges between key-sorted voxels by one sorted search per half-offset (packing is
-    # linear: ``key + delta`` is the neighbour's key unless an axis leaves the packable range,
-    # checked below), components by scipy's graph traversal
+    split = _split_labels(ijk)
+    if split is not None:
+        return _relabel(split, keys)
+    return _sparse_labels(ijk, keys)
+
+
+#: a spread-out set's dense parts: blocks of side ``2^SPLIT_SHIFT`` voxels holding at least
+#: :data:`SPLIT_DENSE_VOXELS` of its voxels, at most :data:`SPLIT_MAX_BOXES` groups of them
+SPLIT_SHIFT = 4
+SPLIT_DENSE_VOXELS = 256
+SPLIT_MAX_BOXES = 16
+
+
+def _split_labels(ijk: np.ndarray) -> np.ndarray | None:
+    """Component ids (any numbering) of a spread-out voxel set: each group of touching dense
+    blocks gives a box (its blocks' bounding box); the voxels inside a compact box are
+    labelled on a dense grid, the others by :func:`_sparse_labels`, and the two are joined by
+    the edges from the others to the boxes' voxels (the only edges neither saw). None when
+    there is no compact box, too many, or two boxes closer than two voxels."""
+    bk = pack_ijk(ijk >> SPLIT_SHIFT)                              # floor division (arithmetic shift)
+    ub, cnt = np.unique(bk, return_counts=True)
+    db = ub[cnt >= SPLIT_DENSE_VOXELS]
+    if not len(db) or len(db) == len(ub):
+        return None
+    bijk = np.stack([((db >> s) & ((1 << 21) - 1)) - (1 << 20) for s in (42, 21, 0)], 1)
+    grp = connected_26(bijk)
+    if grp.max() + 1 > SPLIT_MAX_BOXES:
+        return None
+    boxes: list[tuple[np.ndarray, np.ndarray]] = []
+    for g in range(int(grp.max()) + 1):
+        b = bijk[grp == g]
+        lo, hi = b.min(0) << SPLIT_SHIFT, ((b.max(0) + 1) << SPLIT_SHIFT) - 1
+        if any(((lo - 1 <= h) & (hi + 1 >= q)).all() for q, h in boxes):
+            return None                                            # boxes that may touch
+        boxes.append((lo, hi))
+    lab = np.full(len(ijk), -1, np.int64)
+    used = 0
+    inside: list[np.ndarray] = []
+    for lo, hi in boxes:
+        sel = np.flatnonzero(((ijk >= lo) & (ijk <= hi)).all(1))
+        shape = hi - lo + 1
+        if not len(sel) or float(np.prod(shape.astype(np.float64))) > max(DENSE_MIN_CELLS,
+                                                                          DENSE_CELLS_PER_VOXEL * len(sel)):
+            continue
+        gl = _dense_labels(ijk[sel] - lo, (int(shape[0]), int(shape[1]), int(shape[2]))) - 1   # ndimage: 1..L
+        lab[sel] = gl + used
+        used += int(gl.max()) + 1
+        inside.append(sel)
+    if not inside:
+        return None
+    r = np.flatnonzero(lab < 0)
+    if not len(r):
+        return lab
+    lab[r] = _sparse_labels(ijk[r], pack_ijk(ijk[r])) + used
+    d = np.concatenate(inside)
+    dk = pack_ijk(ijk[d])
+    o = np.argsort(dk, kind="stable")
+    dk, dl = dk[o], lab[d][o]
+    near = np.zeros(len(r), bool)                                  # the others within a voxel of a box
+    for lo, hi in boxes:
+        near |= ((ijk[r] >= lo - 1) & (ijk[r] <= hi + 1)).all(1)
+    rn = r[near]
+    ea, eb = [lab[:0]], [lab[:0]]
+    for off in np.concatenate([_HALF_26, -_HALF_26]):
+        nb = ijk[rn] + off
+        ok = ((nb >= -(1 << 20)) & (nb < (1 << 20))).all(1)
+        nk = pack_ijk(nb[ok])
+        pos = np.minimum(np.searchsorted(dk, nk), len(dk) - 1)
+        hit = dk[pos] == nk
+        ea.append(lab[rn[ok][hit]])
+        eb.append(dl[pos[hit]])
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    n_lab = int(lab.max()) + 1
+    a, b = np.concatenate(ea), np.concatenate(eb)
+    _, joined = connected_components(coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(n_lab, n_lab)),
+                                     directed=False)
+    return joined.astype(np.int64)[lab]
+
+
+def _sparse_labels(ijk: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """:func:`connected_26` of distinct voxels ``ijk`` (N, 3) with packed ``keys`` by sorted
+    searches: edges between key-sorted voxels by one sorted search per half-offset (packing is
+    linear: ``key + delta`` is the neighbour's key unless an axis leaves the packable range,
+    checked below), components by scipy's graph traversal."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(ijk)
     order = np.argsort(keys, kind="stable")
     sk = keys[order]
     biased = ijk[order] + (1 << 20)
@@ -215,6 +299,8 @@ class InstanceTracker:
         self.instances: dict[str, list[Instance]] = {}
         self.missing: dict[str, list[tuple[Instance, int]]] = {}   # target -> (instance, updates unseen)
         self.updates = 0
+        self.inputs = 0                  # +1 per update, repeat or load_state: the input as last fed
+        self.version = 0                 # +1 per update or load_state: the instances as they are
         self._components: dict[str, tuple[np.ndarray, np.ndarray]] = {}   # target -> (keys, labels) last seen
         self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
 
@@ -234,6 +320,8 @@ class InstanceTracker:
             raise ValueError(f"{len(ijk)} voxels but {len(conf)} confidences")
         frame = int(frame)
         self.updates += 1
+        self.inputs += 1
+        self.version += 1
         keys = pack_ijk(ijk)
         same = self._last.get(target)
         if (same is not None and same[2] == frame and target in self.instances and np.array_equal(same[0], keys)
@@ -319,6 +407,13 @@ class InstanceTracker:
         self.missing[target] = [(p, n) for p, n in unseen if n <= self.grace]
         return events
 
+    def repeat(self) -> list[InstanceEvent]:
+        """An update with the same input as the last one (the caller knows it is): it changes
+        nothing but the update count and has no events, as :meth:`update` would find."""
+        self.updates += 1
+        self.inputs += 1
+        return []
+
     def state(self) -> tuple[list[dict], np.ndarray]:
         """``(instances, keys)``: every current and missing instance as
         :meth:`Instance.as_dict` plus ``missed`` (updates unseen, 0 = current) and ``n_keys``,
@@ -356,6 +451,8 @@ class InstanceTracker:
         for v in instances.values():
             v.sort(key=lambda x: x.id)
         self.instances, self.missing = instances, missing
+        self.inputs += 1
+        self.version += 1
         self._components.clear()
         self._last.clear()
 
@@ -364,3 +461,73 @@ class InstanceTracker:
         if target is not None:
             return list(self.instances.get(target, []))
         return sorted((i for v in self.instances.values() for i in v), key=lambda x: x.id)
+
+
+@dataclass
+class InstanceViews:
+    """Instances as one request sees them, as arrays (row ``k`` describes ``instances[k]``):
+    ``centroid``, ``box_min`` / ``box_max`` (voxel centres, m, float64, (K, 3)),
+    ``confidence`` (K,) the max voxel confidence and ``voxels`` (K,) the count of the
+    instance's voxels the request sees. :meth:`as_dicts` gives the reply's rows."""
+
+    instances: list[Instance]
+    centroid: np.ndarray
+    box_min: np.ndarray
+    box_max: np.ndarray
+    confidence: np.ndarray
+    voxels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.instances)
+
+    def as_dict(self, k: int) -> dict:
+        """Row ``k`` as :meth:`Instance.as_dict` with the request's figures."""
+        d = self.instances[k].as_dict()
+        d.update(centroid=[float(v) for v in self.centroid[k]], box_min=[float(v) for v in self.box_min[k]],
+                 box_max=[float(v) for v in self.box_max[k]], confidence=float(self.confidence[k]),
+                 voxels=int(self.voxels[k]))
+        return d
+
+
+def tracked_views(instances: list[Instance]) -> InstanceViews:
+    """The instances with their own figures: what a request sees when its voxels are exactly
+    those the tracker was fed (the same probabilities and threshold as the identity's)."""
+    k = len(instances)
+    return InstanceViews(list(instances),
+                         np.asarray([i.centroid for i in instances], np.float64).reshape(k, 3),
+                         np.asarray([i.box_min for i in instances], np.float64).reshape(k, 3),
+                         np.asarray([i.box_max for i in instances], np.float64).reshape(k, 3),
+                         np.asarray([i.confidence for i in instances], np.float64).reshape(k),
+                         np.asarray([i.voxels for i in instances], np.int64).reshape(k))
+
+
+def request_views(instances: list[Instance], rk: np.ndarray, rijk: np.ndarray, rconf: np.ndarray, vox: float,
+                  min_voxels: int) -> InstanceViews:
+    """Each instance seen through a request's voxels: ``rk`` their packed keys ascending,
+    ``rijk`` (M, 3) / ``rconf`` (M,) in the same order. An instance keeps the voxels of its
+    own (``Instance.keys``) that are among them; it is left out with fewer than
+    ``max(1, min_voxels)``. One sorted search for all instances' keys, per-instance
+    reductions over the hits."""
+    k = len(instances)
+    lens = np.asarray([len(i.keys) for i in instances], np.int64).reshape(k)
+    if not len(rk) or not lens.sum():
+        return tracked_views([])
+    allk = np.concatenate([i.keys for i in instances])
+    owner = np.repeat(np.arange(k, dtype=np.int64), lens)
+    pos = np.minimum(np.searchsorted(rk, allk), len(rk) - 1)
+    hit = rk[pos] == allk
+    owner, pos = owner[hit], pos[hit]                  # grouped by instance (owner ascending)
+    cnt = np.bincount(owner, minlength=k)
+    seen = np.flatnonzero(cnt)
+    starts = np.r_[0, np.cumsum(cnt[seen])[:-1]].astype(np.int64)
+    ijk = rijk[pos]
+    isum = np.add.reduceat(ijk, starts, axis=0) if len(seen) else np.zeros((0, 3), np.int64)
+    lo = np.minimum.reduceat(ijk, starts, axis=0) if len(seen) else np.zeros((0, 3), np.int64)
+    hi = np.maximum.reduceat(ijk, starts, axis=0) if len(seen) else np.zeros((0, 3), np.int64)
+    cmax = np.maximum.reduceat(rconf[pos], starts) if len(seen) else np.zeros((0,), np.float64)
+    ok = cnt[seen] >= max(1, int(min_voxels))
+    n = cnt[seen][ok]
+    return InstanceViews([instances[int(i)] for i in seen[ok]],
+                         (isum[ok].astype(np.float64) / n[:, None] + 0.5) * vox,
+                         voxel_center(lo[ok], vox), voxel_center(hi[ok], vox),
+                         np.asarray(cmax[ok], np.float64), n.astype(np.int64))

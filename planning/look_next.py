@@ -346,6 +346,28 @@ def _best_first(score: np.ndarray, dist: np.ndarray, k: int) -> np.ndarray:
     return cand[np.lexsort((dist[cand], neg[cand]))]
 
 
+def _candidates(fscore: np.ndarray, fz: np.ndarray, fdist: np.ndarray, k: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(_best_first(fscore, fdist, k), _best_first(fz, fdist, k), _best_first(0, fdist, k))``
+    with one pass over all frontiers: scores are >= 0 and few are > 0, so past the positive
+    ones each list continues with the nearest zero-score frontiers, which lie among the
+    ``k + (number of positives)`` nearest of all (by distance, then index)."""
+    n = len(fdist)
+    if n == 0 or fscore.min() < 0 or fz.min() < 0:
+        return _best_first(fscore, fdist, k), _best_first(fz, fdist, k), _best_first(np.zeros(n), fdist, k)
+    pos = np.flatnonzero((fscore > 0) | (fz > 0))
+    near = _best_first(np.zeros(n), fdist, k + len(pos))
+
+    def best(sc: np.ndarray) -> np.ndarray:
+        p = pos[sc[pos] > 0]
+        top = p[_best_first(sc[p], fdist[p], k)]
+        if len(top) >= k:
+            return top
+        return np.concatenate([top, near[sc[near] == 0][:k - len(top)]])
+
+    return best(fscore), best(fz), near[:k]
+
+
 def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
               ray_scores: np.ndarray, targets: list[str], from_xyz: Sequence[float] | np.ndarray | None = None, *,
               ray_z: np.ndarray | None = None,
@@ -388,10 +410,10 @@ def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origin
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
     fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
     k = max(max_candidates, max_goals)
-    order = _best_first(fscore, fdist, k)
-    extra = [_best_first(fz, fdist, k)] if fz.any() else []
+    order, by_z, nearest = _candidates(fscore, fz, fdist, k)
+    extra = [by_z] if fz.any() else []
     if start is not None:
-        extra.append(_best_first(np.zeros(len(f)), fdist, k))     # the nearest: the way on
+        extra.append(nearest)                                     # the nearest: the way on
     if extra:
         order = np.asarray(list(dict.fromkeys(np.concatenate([order, *extra]).tolist())), np.int64)
     goals: list[Goal] = []

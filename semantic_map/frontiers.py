@@ -50,6 +50,7 @@ class FrontierTable:
         self.counts = torch.empty(0, dtype=torch.int64, device=self.device)
         self._removed: list[torch.Tensor] = []
         self._removed_known = True
+        self._centres: tuple | None = None      # (keys tensor, (its version, beta), its centres)
 
     @property
     def beta(self) -> float:
@@ -59,8 +60,14 @@ class FrontierTable:
         return self.keys.numel()
 
     def centres(self) -> torch.Tensor:
-        """(F, 3) float32 coarse cell centres (m)."""
-        return voxel_center(cell_keys.unpack(self.keys), self.beta)
+        """(F, 3) float32 coarse cell centres (m), a new tensor; computed once per key tensor
+        (the table replaces its keys, it never writes into them; a write in place is seen by
+        the tensor's version counter)."""
+        k = self.keys
+        c = self._centres
+        if c is None or c[0] is not k or c[1] != (k._version, self.beta):
+            c = self._centres = (k, (k._version, self.beta), voxel_center(cell_keys.unpack(k), self.beta))
+        return c[2].clone()
 
     def region(self, lo: torch.Tensor, hi: torch.Tensor, r: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Fine inclusive box covering whole coarse cells around fine box [lo, hi] grown by r."""

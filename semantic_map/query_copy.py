@@ -283,6 +283,7 @@ class QueryCopy:
         self._sem: SemanticVoxels | None = None   # the SemanticVoxels the copy follows
         self.take_ms = 0.0
         self.changed_rows = 0                 # rows copied by the last sync (-1: everything)
+        self.revision = 0                     # +1 per sync / take: what was computed at one revision holds
 
     @staticmethod
     def _grow(buf: torch.Tensor, n: int, tail: tuple[int, ...], dtype: torch.dtype, device: torch.device,
@@ -348,6 +349,7 @@ class QueryCopy:
             self.changed_rows = int(rows.numel())
         self._sem = sem
         self.n_voxels = n
+        self.revision += 1
         self._copy_rest(m, gen, frames_mapped)
         self.take_ms = (time.perf_counter() - t) * 1e3
         return self
@@ -363,6 +365,7 @@ class QueryCopy:
         self._prep = {}
         self._sem = None
         self.changed_rows = -1
+        self.revision += 1
         self._copy_rest(m, gen, frames_mapped)
         self.take_ms = (time.perf_counter() - t) * 1e3
         return self

@@ -118,29 +118,14 @@ def test_standing_searches_of_three_robots_equal_their_one_by_one_answers():
     """As the standing loop runs them after a map update: three robots' searches for one target
     on one map version, sharing the copy's score caches and the map's look-next cache, equal
     each robot's search answered alone from a fresh copy and an empty look-next cache."""
-    from apps.bench.query import _space, build_map
     from apps.bench.search import ROBOTS
     from common.search_messages import SearchRequest
     from mapper import search_answer as sa
     from semantic_map.query_copy import QueryCopy
-    from synthetic_world import World
+    from tests.support.search_world import search_world
 
-    fs = _space(24)
-    cfg, m = build_map(3000, 24, 60, fs)
+    fs, cfg, m, frames = search_world(24, 3000, 60)
     cfg.search.background = []                  # embeddings only: no text model to load
-    m.cfg.depth_limit = 8.0                     # small frames: a few frontiers and rays
-    w = World.generate(0)
-    hw = (24, 32)
-    K = w.camera(hw, 90.0)
-    poses = w.trajectory("ground", 6, seed=0)
-    g = torch.Generator().manual_seed(2)
-
-    def frames(a: int, b: int) -> None:
-        for p in poses[a:b]:
-            r = w.render(p, K, hw)
-            m.integrate(p, K, r.depth.astype(np.float32), r.rgb, torch.randn((24, 6, 8), generator=g))
-        m.flush()
-
     frames(0, 2)
     emb = np.random.default_rng(1).standard_normal((2, fs.lang_dim)).astype(np.float32)
     snap = QueryCopy()

@@ -104,3 +104,17 @@ def test_frontier_incremental_random_updates_match_full_recompute():
         ft.update(grid, ijk.min(0).values, ijk.max(0).values, min_unobserved=4, min_free=2, min_occupied=0)
         full = subsample(grid.frontiers(4, 2, 0), 3, 1)[0]
         assert torch.equal(cell_keys.unpack(ft.keys), full)
+        # the kept centres (issue 46) follow every change of the table: equal to a fresh computation
+        assert len(full) and torch.equal(ft.centres(), (full.to(torch.float32) + 0.5) * 1.5)
+
+
+def test_frontier_centres_follow_replaced_and_written_keys():
+    ft = FrontierTable(0.5, 2, 0)
+    ft.keys = cell_keys.pack(torch.tensor([[0, 0, 0], [1, 2, 3]]))
+    a = ft.centres()
+    a += 100.0                                            # a caller's copy: the table's stays
+    assert torch.equal(ft.centres(), torch.tensor([[0.5, 0.5, 0.5], [1.5, 2.5, 3.5]]))
+    ft.keys[1] = cell_keys.pack(torch.tensor([[4, 4, 4]]))[0]       # written in place
+    assert torch.equal(ft.centres(), torch.tensor([[0.5, 0.5, 0.5], [4.5, 4.5, 4.5]]))
+    ft.keys = cell_keys.pack(torch.tensor([[2, 0, 0]]))             # replaced
+    assert torch.equal(ft.centres(), torch.tensor([[2.5, 0.5, 0.5]]))

@@ -158,3 +158,65 @@ def test_best_first_is_the_lexsort_prefix():
         sc = rng.integers(0, 4, n) / 4.0 if t % 2 else rng.random(n)        # many score ties
         d = rng.integers(0, 5, n).astype(float) if t % 3 else rng.random(n)  # distance ties too
         assert np.array_equal(ln._best_first(sc, d, k), np.lexsort((d, -sc))[:k])
+
+
+def test_candidates_equal_the_three_lexsort_prefixes():
+    """Look-next's candidate lists from one pass over the frontiers (issue 46) against each
+    list sorted in full: by score, by ray_z, by distance (ties by index throughout)."""
+    rng = np.random.default_rng(5)
+    compared = 0
+    for t in range(300):
+        n, k = int(rng.integers(1, 400)), int(rng.integers(1, 80))
+        sc = np.where(rng.random(n) < rng.uniform(0, 0.5), rng.integers(1, 4, n) / 4.0, 0.0)   # few > 0, ties
+        z = np.where(rng.random(n) < rng.uniform(0, 0.3), rng.random(n), 0.0)
+        if t % 7 == 0:
+            z[rng.integers(0, n)] = -0.5                         # a negative value: the full path
+        d = rng.integers(0, 6, n).astype(float) if t % 2 else rng.random(n)          # distance ties
+        got = ln._candidates(sc, z, d, k)
+        want = [np.lexsort((d, -sc))[:k], np.lexsort((d, -z))[:k], np.lexsort((d, np.zeros(n)))[:k]]
+        for g, w in zip(got, want, strict=True):
+            assert np.array_equal(g, w), t
+        compared += int(0 < (sc > 0).sum() < k)
+    assert compared > 50                                         # the path mixing both parts ran
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_connected_26_split_into_dense_boxes_matches_bfs(seed: int, monkeypatch):
+    """A spread-out set with dense blobs (issue 46: the bench map's cube among a world's
+    scattered voxels): the blobs' boxes labelled on dense grids, the rest by sorted searches,
+    joined by the edges between them (lines leading out of the blobs, voxels on the boxes'
+    faces), against brute force; also blobs whose boxes touch (the split declines)."""
+    monkeypatch.setattr(inst, "SPLIT_SHIFT", 2)              # blocks of 4^3 voxels
+    monkeypatch.setattr(inst, "SPLIT_DENSE_VOXELS", 12)
+    ran = []
+    real = inst._split_labels
+    monkeypatch.setattr(inst, "_split_labels", lambda ijk: ran.append(real(ijk) is not None) or real(ijk))
+    rng = np.random.default_rng(300 + seed)
+    parts = []
+    for b in range(int(rng.integers(1, 4))):
+        at = rng.integers(-40, 40, 3) if seed % 3 else np.array([b * 9, 0, 0])      # seed % 3 == 0: touching
+        parts.append(at + np.argwhere(rng.random((9, 9, 9)) < 0.35))
+        line = at + np.cumsum(rng.integers(-1, 2, (int(rng.integers(3, 12)), 3)), 0)   # a walk out of the blob
+        parts.append(line)
+    parts.append(rng.integers(-3000, 3000, (200, 3)))         # scattered far away
+    parts.append(rng.integers(-60, 60, (150, 3)))             # scattered near the blobs
+    ijk = np.unique(np.concatenate(parts), axis=0)
+    ijk = ijk[rng.permutation(len(ijk))]
+    assert np.array_equal(inst.connected_26(ijk), _bfs_components(ijk))
+    assert ran and (ran[0] if seed % 3 else True)             # the split labelled it (apart from touching boxes)
+
+
+def test_connected_26_split_declines_boxes_that_overlap(monkeypatch):
+    """An L of dense blocks whose box holds another dense block linked to the L by a chain of
+    voxels: two boxes over the same voxels would label the chain twice, apart."""
+    monkeypatch.setattr(inst, "SPLIT_SHIFT", 2)
+    monkeypatch.setattr(inst, "SPLIT_DENSE_VOXELS", 12)
+    cube = np.argwhere(np.ones((4, 4, 4), bool))
+    L = [(0, 0, 0), (1, 0, 0), (2, 0, 0), (3, 0, 0), (0, 1, 0), (0, 2, 0), (0, 3, 0)]
+    parts = [cube + 4 * np.array(b) for b in L] + [cube + 4 * np.array((3, 3, 0))]
+    parts.append(np.array([[12, y, 2] for y in range(4, 12)]))                # the chain: block (3, 3) to (3, 0)
+    parts.append(np.array([[5000, 0, 0], [-5000, 7, 1]]))     # far away: no dense grid for the whole
+    ijk = np.unique(np.concatenate(parts), axis=0)
+    want = _bfs_components(ijk)
+    assert want.max() == 2                                    # the L, the block and its chain, two far voxels
+    assert np.array_equal(inst.connected_26(ijk), want)
