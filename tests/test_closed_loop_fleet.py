@@ -165,7 +165,7 @@ def test_eval_search_with_robots_writes_the_fleet_rows(tmp_path):
     doc = json.loads(out.read_text())
     assert set(doc["policies"]) == {"coordinated", "uncoordinated", "frontier-only"}
     assert doc["settings"]["robots"] == 2 and doc["settings"]["start"] == "together"
-    assert {"commit", "argv"} <= set(doc["meta"]) and "--robots" in doc["meta"]["argv"]
+    assert {"commit", "argv", "machine", "load_before"} <= set(doc["meta"]) and doc["machine"]["cores"] >= 1
     assert doc["seeds"]["set"] == "development" and len(doc["episodes"]) == 3
     for r in doc["episodes"]:
         assert r["robots"] == 2 and len(r["paths_m"]) == 2 and r["steps"] == 2
