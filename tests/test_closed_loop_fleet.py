@@ -165,7 +165,7 @@ def test_eval_search_with_robots_writes_the_fleet_rows(tmp_path):
     doc = json.loads(out.read_text())
     assert set(doc["policies"]) == {"coordinated", "uncoordinated", "frontier-only"}
     assert doc["settings"]["robots"] == 2 and doc["settings"]["start"] == "together"
-    assert {"commit", "argv"} <= set(doc["meta"]) and "--robots" in doc["meta"]["argv"]
+    assert {"commit", "argv", "machine", "load_before"} <= set(doc["meta"]) and doc["machine"]["cores"] >= 1
     assert doc["seeds"]["set"] == "development" and len(doc["episodes"]) == 3
     for r in doc["episodes"]:
         assert r["robots"] == 2 and len(r["paths_m"]) == 2 and r["steps"] == 2
@@ -176,3 +176,17 @@ def test_eval_search_with_robots_writes_the_fleet_rows(tmp_path):
     assert "| duplicated coverage |" in md and "| 3 | coordinated | 2 | together |" in md
     for bad in (["--robots", "2", "--policies", "rayfronts"], ["--robots", "0"]):
         assert cli.run(p.parse_args(["search", *bad, "--json", str(tmp_path / "x.json")])) == 2
+
+
+def test_single_robot_runs_keep_their_json_and_csv_columns():
+    """``--robots 1`` with the single-robot policies: the JSON settings and CSV columns are
+    those of before the fleet (no fleet keys), so its outputs stay byte for byte the same."""
+    from apps.closed_loop.evaluate import FLEET_ROW_FIELDS, ROW_FIELDS, SearchEvalConfig, _settings_fields
+
+    one = _settings_fields(SearchEvalConfig(policies=["rayfronts", "frontier"]).validate())
+    assert not {"robots", "start", "footprint_m"} & set(one) and one["policies"] == ["rayfronts", "frontier"]
+    two = _settings_fields(SearchEvalConfig(robots=2, policies=["coordinated"]).validate())
+    assert two["robots"] == 2 and two["start"] == "together" and two["footprint_m"] == 8.0
+    assert not set(FLEET_ROW_FIELDS) & set(ROW_FIELDS)
+    with pytest.raises(ValueError, match="--robots 2: rayfronts drive one robot"):
+        SearchEvalConfig(robots=2, policies=["rayfronts", "coordinated"]).validate()

@@ -266,7 +266,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                             recorded = True
     sensor = cfg.sensor_config()
     return {"policies": summarize_policies(rows, cfg.policies),
-            "settings": {**dataclasses.asdict(cfg), "vox_m": settings0.vox_m, "preset": settings0.preset,
+            "settings": {**_settings_fields(cfg), "vox_m": settings0.vox_m, "preset": settings0.preset,
                          "min_ray_z": MIN_RAY_Z, "background_phrases": _phrases(settings0),
                          "sensor": dataclasses.asdict(sensor),
                          "missions_defined": {k: {"targets": TARGETS[cfg.world][k], "budget_steps": v[1], "k": v[2],
@@ -279,6 +279,16 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                         "cores": os.cpu_count(), "load_avg_1_5_15_start": [round(x, 2) for x in load0],
                         "load_avg_1_5_15_end": [round(x, 2) for x in os.getloadavg()]},
             "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+
+
+def _settings_fields(cfg: SearchEvalConfig) -> dict:
+    """The run's config for the JSON; the fleet's fields only when a fleet policy ran (a
+    single-robot run's JSON stays as it was before fleets)."""
+    d = dataclasses.asdict(cfg)
+    if not any(p in FLEET_POLICIES for p in cfg.policies):
+        for k in ("robots", "start", "footprint_m"):
+            d.pop(k)
+    return d
 
 
 def _phrases(settings: LoopSettings) -> list[str] | str:
@@ -337,8 +347,9 @@ def fleet_table_markdown(rows: list[dict]) -> str:
 
 
 ROW_FIELDS = ["seed", "episode", "platform", "depth_limit_m", "kind", "target", "policy", "success", "spl", "path_m",
-              "shortest_m", "steps", "found", "k", "false_finds", "collided", "cpu_ms_per_step", "search_ms_p50",
-              "robots", "start_mode", "finder", "duplicated_coverage"]
+              "shortest_m", "steps", "found", "k", "false_finds", "collided", "cpu_ms_per_step", "search_ms_p50"]
+#: the CSV's extra columns when the run has fleet episodes
+FLEET_ROW_FIELDS = ["robots", "start_mode", "finder", "duplicated_coverage"]
 
 
 def write_outputs(doc: dict, json_path: str | Path) -> list[Path]:
@@ -349,7 +360,8 @@ def write_outputs(doc: dict, json_path: str | Path) -> list[Path]:
     md, cs = p.with_suffix(".md"), p.with_suffix(".csv")
     md.write_text(table_markdown(doc))
     with cs.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=ROW_FIELDS, extrasaction="ignore")
+        fleet = any("robots" in r for r in doc["episodes"])
+        w = csv.DictWriter(f, fieldnames=ROW_FIELDS + (FLEET_ROW_FIELDS if fleet else []), extrasaction="ignore")
         w.writeheader()
         w.writerows(doc["episodes"])
     return [p, md, cs, *_plots(doc, p)]
