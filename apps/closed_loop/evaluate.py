@@ -211,7 +211,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
     line to record (``meta.argv``). ``partial_path``: after every episode the document so far
     is written there (``"partial": true``, ``meta`` of the run so far: commit, command line,
     machine, load), so a run cut off keeps its finished episodes; removed at the end."""
-    from apps.bench.meta import run_meta
+    from apps.bench.meta import git_commit, run_meta
 
     cfg.validate()
     settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background,
@@ -220,6 +220,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
     rows: list[dict] = []
     t0, c0 = time.perf_counter(), time.process_time()
     load0 = os.getloadavg()
+    head = git_commit()       # the code that runs, whatever is committed during a long run
     recorded = False
     with run_meta(argv) as meta:
         for seed in cfg.seeds:
@@ -242,7 +243,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                                  r["steps"])
                         if partial_path is not None:
                             _write_json(partial_path, {**_document(cfg, rows, settings0, load0, t0, c0),
-                                                       "partial": True, "meta": _meta_so_far(argv, load0)})
+                                                       "partial": True, "meta": _meta_so_far(head, argv, load0)})
                         if trace is not None:
                             from apps.closed_loop.recording import record_episode
 
@@ -253,11 +254,12 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
     return {**_document(cfg, rows, settings0, load0, t0, c0), "meta": meta}
 
 
-def _meta_so_far(argv: list[str] | None, load0: tuple) -> dict:
-    """A partial document's ``meta``: commit, command line, machine, load at start and now, UTC."""
-    from apps.bench.meta import git_commit, loadavg, machine
+def _meta_so_far(head: dict, argv: list[str] | None, load0: tuple) -> dict:
+    """A partial document's ``meta``: ``head`` (commit and dirty at the start), command line,
+    machine, load at start and now, UTC."""
+    from apps.bench.meta import loadavg, machine
 
-    return {**git_commit(), "argv": argv, "machine": machine(), "load_before": [round(x, 2) for x in load0],
+    return {**head, "argv": argv, "machine": machine(), "load_before": [round(x, 2) for x in load0],
             "load_now": loadavg(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 
