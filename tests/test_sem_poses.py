@@ -31,7 +31,7 @@ def test_sem_poses_heads_for_a_target_seen_from_afar_where_frontier_does_not():
     w = World.from_primitives(parts)
     tower = w.instances_of(w.class_id("water tower"))
     start = np.array([0.0, 0.0, 1.5])
-    mission = Mission("landmark", "water tower", tower, 1, start, 10.0, 5.0, 4, 12.0)
+    mission = Mission("landmark", "water tower", tower, 1, start, 10.0, 5.0, 8, 12.0)
     cfg = SearchEvalConfig(resolution=96)            # the evaluation's defaults: sim encoder, realistic sensor
     chain = EdgeChain(w, cfg.sensor_config(0), fit_at=start)
     settings = LoopSettings(background=cfg.background, depth_limit_m=10.0)
@@ -39,7 +39,7 @@ def test_sem_poses_heads_for_a_target_seen_from_afar_where_frontier_does_not():
     for policy in ("frontier", "sem-poses"):
         trace = Trace()
         row = run_episode(w, mission, policy, settings, chain=chain, trace=trace)
-        assert not row["collided"] and row["steps"] == 4
+        assert not row["collided"] and row["steps"] >= 6
         runs[policy] = trace
     fr, sp = runs["frontier"], runs["sem-poses"]
     assert not any(why.startswith("pose") for why in fr.why)

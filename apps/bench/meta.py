@@ -170,16 +170,19 @@ def reset() -> None:
 
 @contextmanager
 def run_meta(argv: list[str] | None = None) -> Iterator[dict]:
-    """Wrap one benchmark run: yields a dict that holds the ``meta`` block on exit."""
+    """Wrap one benchmark run: yields a dict that holds the ``meta`` block on exit (its
+    ``commit`` / ``dirty`` as at the start: the code that ran, whatever is committed during
+    a long run)."""
     reset()
     out: dict = {}
+    head = git_commit()
     a = _point()
     try:
         yield out
     finally:
         b = _point()
         span = _span(a, b)
-        out.update({"machine": machine(), **git_commit(), "argv": list(argv) if argv is not None else None,
+        out.update({"machine": machine(), **head, "argv": list(argv) if argv is not None else None,
                     "load_before": span.pop("load_before"), "load_after": span.pop("load_after"),
                     "process": span, "torch_threads": torch_threads(), "os_threads_at_end": os_threads(),
                     "sections": sections(),

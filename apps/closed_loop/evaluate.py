@@ -226,11 +226,13 @@ def seed_missions(cfg: SearchEvalConfig, world, robot: Platform, seed: int) -> l
     return out
 
 
-def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: list[str] | None = None) -> dict:
+def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: list[str] | None = None,
+                    partial_path: str | Path | None = None) -> dict:
     """Run every episode (module docstring); returns the JSON document. ``argv``: the command
-    line to record (``meta.argv``)."""
-    from apps.bench.meta import run_meta
-    from apps.closed_loop.seeds import seed_sets
+    line to record (``meta.argv``). ``partial_path``: after every episode the document so far
+    is written there (``"partial": true``, ``meta`` of the run so far: commit, command line,
+    machine, load), so a run cut off keeps its finished episodes; removed at the end."""
+    from apps.bench.meta import git_commit, run_meta
 
     cfg.validate()
     settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background,
@@ -239,6 +241,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
     rows: list[dict] = []
     t0, c0 = time.perf_counter(), time.process_time()
     load0 = os.getloadavg()
+    head = git_commit()       # the code that runs, whatever is committed during a long run
     recorded = False
     with run_meta(argv) as meta:
         for seed in cfg.seeds:
@@ -259,11 +262,41 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                         log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",
                                  seed, kind, mission.target, depth, p, r["success"], r["spl"], r["path_m"],
                                  r["steps"])
+                        if partial_path is not None:
+                            _write_json(partial_path, {**_document(cfg, rows, settings0, load0, t0, c0),
+                                                       "partial": True, "meta": _meta_so_far(head, argv, load0)})
                         if trace is not None and rerun_path:     # a trace is kept only with a rerun path
                             from apps.closed_loop.recording import record_episode
 
                             record_episode(rerun_path, world, mission, trace, r)
                             recorded = True
+    if partial_path is not None:
+        Path(partial_path).unlink(missing_ok=True)
+    return {**_document(cfg, rows, settings0, load0, t0, c0), "meta": meta}
+
+
+def _meta_so_far(head: dict, argv: list[str] | None, load0: tuple) -> dict:
+    """A partial document's ``meta``: ``head`` (commit and dirty at the start), command line,
+    machine, load at start and now, UTC."""
+    from apps.bench.meta import loadavg, machine
+
+    return {**head, "argv": argv, "machine": machine(), "load_before": [round(x, 2) for x in load0],
+            "load_now": loadavg(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+
+
+def _write_json(path: str | Path, doc: dict) -> None:
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps(doc, indent=2, default=float))
+    tmp.replace(p)
+
+
+def _document(cfg: SearchEvalConfig, rows: list[dict], settings0: LoopSettings, load0: tuple, t0: float,
+              c0: float) -> dict:
+    """The JSON document of ``rows`` (all but ``meta``)."""
+    from apps.closed_loop.seeds import seed_sets
+
     sensor = cfg.sensor_config()
     return {"policies": summarize_policies(rows, cfg.policies),
             "settings": {**_settings_fields(cfg), "vox_m": settings0.vox_m, "preset": settings0.preset,
@@ -274,7 +307,6 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                                               for k, v in MISSIONS.items()}},
             "episodes": rows,
             "seeds": seed_sets(cfg.world, list(cfg.seeds)),
-            "meta": meta,
             "machine": {"python": _platform.python_version(), "cpu": _platform.processor() or _platform.machine(),
                         "cores": os.cpu_count(), "load_avg_1_5_15_start": [round(x, 2) for x in load0],
                         "load_avg_1_5_15_end": [round(x, 2) for x in os.getloadavg()]},

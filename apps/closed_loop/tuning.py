@@ -14,6 +14,8 @@ per cut (overall and per mission kind), the choice and its SPL, the run's ``meta
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 from apps.closed_loop.evaluate import SearchEvalConfig, run_search_eval
 from apps.closed_loop.seeds import HELD_OUT_SEEDS
@@ -29,8 +31,12 @@ def choose_cut(per_cut: dict[float, dict]) -> tuple[float, float]:
     return best, far_spl(per_cut[best])
 
 
-def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | None = None) -> dict:
-    """Run the procedure (module docstring) on ``cfg``'s seeds and missions; returns the JSON."""
+def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | None = None,
+                   partial_path: str | None = None) -> dict:
+    """Run the procedure (module docstring) on ``cfg``'s seeds and missions; returns the JSON.
+    ``partial_path``: the cut being run writes its finished episodes there as it goes
+    (:func:`run_search_eval`), and each finished cut's summary is kept beside it
+    (``<partial_path>.cut<C>.json``), so a run cut off keeps what it did."""
     held = set(HELD_OUT_SEEDS.get(cfg.world, [])) & set(cfg.seeds)
     if held:
         raise ValueError(f"seeds {sorted(held)} are held-out seeds; tune on development seeds "
@@ -39,7 +45,10 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
         raise ValueError("give at least one cut with --cuts")
     per_cut, docs = {}, {}
     for c in cuts:
-        doc = run_search_eval(dataclasses.replace(cfg, policies=["sem-poses"], sem_poses_min_z=float(c)), argv=argv)
+        doc = run_search_eval(dataclasses.replace(cfg, policies=["sem-poses"], sem_poses_min_z=float(c)), argv=argv,
+                              partial_path=partial_path)
+        if partial_path is not None:
+            Path(f"{partial_path}.cut{float(c)}.json").write_text(json.dumps(doc, indent=2, default=float))
         per_cut[float(c)] = doc["policies"]["sem-poses"]
         docs[float(c)] = doc
     chosen, spl = choose_cut(per_cut)

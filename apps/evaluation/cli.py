@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -199,11 +200,17 @@ def _search_config(args: argparse.Namespace):
                             footprint_m=float(getattr(args, "footprint", 8.0))).validate()
 
 
+def partial_json(json_path: str) -> str:
+    """Where a run writes its finished episodes as it goes (``FILE.partial.json`` beside
+    ``--json FILE``; removed when the run ends)."""
+    return str(Path(json_path).with_suffix(".partial.json"))
+
+
 def _run_search(args: argparse.Namespace) -> int:
     from apps.closed_loop.evaluate import run_search_eval, table_markdown, write_outputs
 
     cfg = _search_config(args)
-    doc = run_search_eval(cfg, args.rerun, argv=["rayfronts", *sys.argv[1:]])
+    doc = run_search_eval(cfg, args.rerun, argv=["rayfronts", *sys.argv[1:]], partial_path=partial_json(args.json))
     paths = write_outputs(doc, args.json)
     print(table_markdown(doc))
     print("wrote " + ", ".join(str(p) for p in paths) + (f", {args.rerun}" if args.rerun else ""))
@@ -212,13 +219,12 @@ def _run_search(args: argparse.Namespace) -> int:
 
 def _run_tune(args: argparse.Namespace) -> int:
     import json
-    from pathlib import Path
 
     from apps.closed_loop.tuning import tune_sem_poses
 
     cfg = _search_config(args)
     cuts = [float(x) for x in args.cuts.split(",") if x.strip()]
-    doc = tune_sem_poses(cfg, cuts, argv=["rayfronts", *sys.argv[1:]])
+    doc = tune_sem_poses(cfg, cuts, argv=["rayfronts", *sys.argv[1:]], partial_path=partial_json(args.json))
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(doc, indent=2, default=float))
     print(f"chosen sem-poses cut: {doc['chosen']} (far-target SPL {doc['chosen_spl']:.3f}); wrote {args.json}")
