@@ -54,14 +54,6 @@ STANDING_PERIOD_S = 1.0
 ROBOTS_PERIOD_S = 0.2
 
 
-def goal_of(d: dict) -> Goal:
-    """A :class:`planning.look_next.Goal` from its ``as_dict`` form (a search reply's goal)."""
-    return Goal(position=np.asarray(d["position"], np.float64), heading_rad=float(d["heading_rad"]),
-                score=float(d["score"]), gain_m3=float(d["gain_m3"]), distance_m=float(d.get("distance_m", 0.0)),
-                target=d.get("target"), frontier=np.asarray(d["frontier"], np.float64),
-                rays=np.asarray(d.get("rays", []), np.float32).reshape(-1, 3), ray_z=float(d.get("ray_z", 0.0)))
-
-
 def _xyz(v) -> tuple[float, float, float]:
     return float(v[0]), float(v[1]), float(v[2])
 
@@ -164,6 +156,11 @@ class FleetSearchServer:
                       "position": pos, "unreachable": len(self.unreachable.of(n))}
         return names, out
 
+    def _answered_state(self, req: FleetSearchRequest) -> tuple:
+        """What a standing answer depends on: ``(map generation, fleet signature, unreachable
+        generation)``."""
+        return self.state.map_gen, self._signature(req), self.unreachable.generation
+
     def _signature(self, req: FleetSearchRequest) -> tuple:
         try:
             names, info = self.fleet(req, strict=False)
@@ -208,7 +205,7 @@ class FleetSearchServer:
             utility, method = 0.0, "greedy"
             if slots:
                 found = [FoundInstance(str(f["target"]), _xyz(f["centroid"])) for f in rep.found]
-                a = allocate_goals(slots, [goal_of(d) for d in rep.look_next], footprint_m=fp,
+                a = allocate_goals(slots, [Goal.from_dict(d) for d in rep.look_next], footprint_m=fp,
                                    unreachable_tol_m=float(s.cfg.search.fleet_unreachable_tol_m), found=found,
                                    target_count=req.target_count)
                 utility, method = float(a.utility), a.method
@@ -254,7 +251,7 @@ class FleetSearchServer:
                     self.leases.drop(req.id)
                 raise
             self.standing[req.id] = req
-            self._seen[req.id] = (self.state.map_gen, self._signature(req), self.unreachable.generation)
+            self._seen[req.id] = self._answered_state(req)
             self.fan_out(rep)
             return encode_fleet_search_reply(rep)
         return encode_fleet_search_reply(self.answer(req, flush=True))
@@ -294,7 +291,7 @@ class FleetSearchServer:
         """Answer standing fleet search ``req`` and publish it (its key, each robot's
         ``fleet_goal`` key, the followers)."""
         s = self.state
-        sig = (s.map_gen, self._signature(req), self.unreachable.generation)
+        sig = self._answered_state(req)
         rep = self.answer(req, reuse=reuse, strict=False)
         self._seen[req.id] = sig
         s.session.put(s.keys.mapper_fleet_searches(req.id), encode_fleet_search_reply(rep),
@@ -322,9 +319,8 @@ class FleetSearchServer:
     def due(self, sid: str, req: FleetSearchRequest) -> tuple[bool, bool]:
         """``(due, reuse)``: whether standing ``sid`` is answered now, and whether its search of
         this map generation may be reused (only the robots or unreachable positions changed)."""
-        s = self.state
         seen = self._seen.get(sid)
-        sig = (s.map_gen, self._signature(req), self.unreachable.generation)
+        sig = self._answered_state(req)
         if seen == sig:
             return False, False
         if seen is not None and seen[1:] != sig[1:]:
@@ -352,7 +348,7 @@ class FleetSearchServer:
                     self.publish(req, reuse=reuse)
                 except Exception as e:
                     s.warn(f"fleet:{sid}", "standing fleet search %s failed: %s", sid, e)
-                    self._seen[sid] = (s.map_gen, self._signature(req), self.unreachable.generation)
+                    self._seen[sid] = self._answered_state(req)
 
     def on_fleet_search(self, query) -> None:
         """Zenoh callback of ``<p>/mapper/fleet_search``."""

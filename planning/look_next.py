@@ -76,6 +76,15 @@ class Goal:
                     target=self.target, frontier=[float(v) for v in self.frontier],
                     rays=[[float(v) for v in d] for d in self.rays], ray_z=float(self.ray_z))
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "Goal":
+        """The goal of its :meth:`as_dict` form (a search reply's ``look_next`` entry); a field
+        left out reads 0 (``frontier``: the position, ``rays``: none, ``target``: None)."""
+        pos = np.asarray(d["position"], np.float64)
+        return cls(pos, float(d.get("heading_rad", 0.0)), float(d.get("score", 0.0)), float(d.get("gain_m3", 0.0)),
+                   float(d.get("distance_m", 0.0)), d.get("target"), np.asarray(d.get("frontier", pos), np.float64),
+                   np.asarray(d.get("rays", []), np.float32).reshape(-1, 3), float(d.get("ray_z", 0.0)))
+
 
 def points_in_polygon(xy: np.ndarray, polygon: Sequence[Sequence[float]] | np.ndarray) -> np.ndarray:
     """(N,) bool: points (N, 2) inside the simple polygon [[x, y], ...] (even-odd rule;

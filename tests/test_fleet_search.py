@@ -181,13 +181,13 @@ def site(tmp_path_factory, pca_file):
 
 def _allocation(rep: FleetSearchReply, unreachable: dict | None = None) -> dict:
     """What ``allocate_goals`` gives on the reply's own candidates, positions and found list."""
-    from mapper.fleet_search import goal_of
     from planning.fleet_allocation import FoundInstance, RobotSlot, allocate_goals
+    from planning.look_next import Goal
 
     slots = [RobotSlot(r, tuple(i["position"]), tuple(map(tuple, (unreachable or {}).get(r, []))))
              for r, i in rep.robots.items() if i["state"] in ("assigned", "idle")]      # the fleet's order
     found = [FoundInstance(f["target"], tuple(f["centroid"])) for f in rep.found]
-    a = allocate_goals(slots, [goal_of(d) for d in rep.candidates], footprint_m=rep.footprint_m,
+    a = allocate_goals(slots, [Goal.from_dict(d) for d in rep.candidates], footprint_m=rep.footprint_m,
                        unreachable_tol_m=1.0, found=found, target_count=1)
     return {r: None if g is None else [float(v) for v in g.position] for r, g in a.goals.items()}
 

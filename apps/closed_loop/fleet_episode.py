@@ -149,14 +149,6 @@ def duplicated_coverage(seen: list[set]) -> tuple[float, int]:
     return sum(c > 1 for c in counts.values()) / len(counts), len(counts)
 
 
-def _goal(g: dict) -> Goal:
-    """A look-next goal dict (as on the wire) as a :class:`planning.look_next.Goal`."""
-    pos = np.asarray(g["position"], np.float64)
-    return Goal(pos, float(g.get("heading_rad", 0.0)), float(g.get("score", 0.0)), float(g.get("gain_m3", 0.0)),
-                float(g.get("distance_m", 0.0)), g.get("target"), np.asarray(g.get("frontier", pos), np.float64),
-                ray_z=float(g.get("ray_z", 0.0)))
-
-
 def _found_instances(obs: Observation, declared: set) -> list[FoundInstance]:
     return [FoundInstance(str(f["target"]), tuple(float(v) for v in f["centroid"]))  # type: ignore[arg-type]
             for f in obs.found if f["id"] in declared]
@@ -166,7 +158,7 @@ def _discounted(obs: Observation, found: list[FoundInstance], k: int) -> Observa
     """``obs`` with the evidence off the goals aimed at ``found`` (planning.fleet_allocation)."""
     if not found:
         return obs
-    conv = [_goal(g) for g in obs.look_next]
+    conv = [Goal.from_dict(g) for g in obs.look_next]
     goals = discount_found(conv, found, target_count=k)
     look = [g if h is c else dict(g, score=0.0, ray_z=0.0, target=None)
             for g, c, h in zip(obs.look_next, conv, goals, strict=True)]
@@ -239,7 +231,7 @@ def _allocate(bids: dict[int, tuple[Decision, bool]], fl: _Fleet, names: list[st
     pool: dict[tuple, Goal] = {}
     for i in explorers:
         for g in fl.obs[i].look_next:
-            goal = _goal(g)
+            goal = Goal.from_dict(g)
             if all(np.linalg.norm(goal.position - q) >= footprint for q in kept):
                 pool.setdefault(tuple(np.round(goal.position, 2)), goal)
     second = allocate_goals([s for s in slots if names.index(s.robot) in losers], list(pool.values()),
