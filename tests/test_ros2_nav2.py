@@ -564,7 +564,9 @@ def test_path_to_the_goal_over_free_cells_is_shortest(world_map):
         xyz = np.array([0.0, 23.4, 1.5])
         rig.place("r1", xyz)
         rig.out.robots.update("r1")
-        wait_for(lambda: rig.rec.of("/r1/rayfronts/search/path") or None, 30, what="the path")
+        wait_for(lambda: all(rig.rec.of(t) for t in ("/r1/rayfronts/search/path", "/r1/rayfronts/costmap",
+                                                     "/r1/goal_pose")) or None, 30,
+                 what="the path, the costmap and the goal")
         path = deserialize_message(rig.rec.of("/r1/rayfronts/search/path")[-1], Path)
         og = deserialize_message(rig.rec.of("/r1/rayfronts/costmap")[-1], OccupancyGrid)
         goal = _stamped(rig.rec.of("/r1/goal_pose")[-1])
