@@ -87,13 +87,13 @@ class LatestSlot:
 class EdgeStats:
     """The edge's counters (logged at the end of a run); times in milliseconds."""
 
-    frames_read: int = 0
-    frames_skipped: int = 0          # frames the source could not read/decode (skipped, counted)
-    frames_encoded: int = 0
-    frames_sent: int = 0
-    frames_replaced: int = 0
-    bytes_sent: int = 0
-    put_errors: int = 0
+    frames_read: int = 0             #: frames the source gave
+    frames_skipped: int = 0          #: frames the source could not read/decode (skipped, counted)
+    frames_encoded: int = 0          #: frames through the encoder and PCA
+    frames_sent: int = 0             #: frames put on the wire
+    frames_replaced: int = 0         #: encoded frames replaced by a newer one before sending
+    bytes_sent: int = 0              #: wire bytes of the sent frames
+    put_errors: int = 0              #: failed Zenoh puts
     encode_ms_last: float = 0.0
     put_ms_last: float = 0.0
 

@@ -59,10 +59,10 @@ FLAT_META_KEY = "rayfronts.radio_config"
 class RadioConfig:
     """Architecture of a RADIO ViT; :meth:`preset` for v2.5 b/l, any size for tests."""
 
-    embed_dim: int = 768
-    depth: int = 12
-    num_heads: int = 12
-    patch_size: int = 16
+    embed_dim: int = 768                #: token width
+    depth: int = 12                     #: transformer blocks
+    num_heads: int = 12                 #: attention heads per block
+    patch_size: int = 16                #: pixels per patch side
     pos_grid: int = 128                 #: side of the CPE table (cpe_max_size / patch)
     num_cls_tokens: int = 4             #: one class token per unique teacher
     num_registers: int = 4

@@ -203,13 +203,17 @@ class Ingest:
         except Exception as e:  # never raise out of a callback
             state.reject(key_robot, "internal", repr(e))
 
+    def _sender(self, sample: zenoh.Sample) -> str | None:
+        """The robot a per-robot key's sample comes from (None: not a robot key)."""
+        assert self.state.keys is not None             # subscribed in start()
+        return self.state.keys.robot_from_key(str(sample.key_expr))
+
     def on_alive(self, sample: zenoh.Sample) -> None:
         state = self.state
         try:
             import zenoh
 
-            assert state.keys is not None              # subscribed in start()
-            robot = state.keys.robot_from_key(str(sample.key_expr))
+            robot = self._sender(sample)
             if robot is None:
                 return
             with state.robots_lock:
@@ -238,8 +242,7 @@ class Ingest:
         try:
             from common.messages import decode_edge_status
 
-            assert state.keys is not None              # subscribed in start()
-            robot = state.keys.robot_from_key(str(sample.key_expr))
+            robot = self._sender(sample)
             if robot is None:
                 return
             try:

@@ -50,19 +50,19 @@ from synthetic_world.depth_sensor import DepthSensorModel
 class SensorConfig:
     """Camera and edge settings of the closed loop (``resolution`` in pixels, angles in degrees)."""
 
-    resolution: int = 224
-    views: int = 4
-    tilt_deg: float = 25.0
-    drone_tilt_deg: float = 10.0
-    encoder: str = "label"
-    label_stride: int = 8
-    pca_dim: int = 32
-    feature_codec: str = "q16z"
-    sky_no_return: bool = True
-    sensor: str = "exact"
+    resolution: int = 224               #: square image side, pixels
+    views: int = 4                      #: views per step, evenly spaced in yaw
+    tilt_deg: float = 25.0              #: ground robot's camera pitch below the horizon
+    drone_tilt_deg: float = 10.0        #: the drone's camera pitch
+    encoder: str = "label"              #: ``label`` (exact) or ``sim`` (ViT-like, encoders.sim)
+    label_stride: int = 8               #: label encoder's output stride, pixels per feature cell
+    pca_dim: int = 32                   #: PCA channels on the wire
+    feature_codec: str = "q16z"         #: wire codec of the features (common.wire.frame)
+    sky_no_return: bool = True          #: exact sensor: sky pixels give no return (NaN)
+    sensor: str = "exact"               #: ``exact`` or ``realistic`` (``depth_model``)
     depth_model: DepthSensorModel = field(default_factory=DepthSensorModel)
-    sensor_seed: int = 0
-    pca_fit: str = "classes"
+    sensor_seed: int = 0                #: seed of the realistic sensor's noise and dropouts
+    pca_fit: str = "classes"            #: PCA basis from ``classes`` or the robot's ``first_views``
 
     def validate(self) -> "SensorConfig":
         """Raise ``ValueError`` naming a bad choice."""
