@@ -356,7 +356,7 @@ class FleetSearchServer:
 
     def on_unreachable(self, query) -> None:
         """Zenoh callback of ``<p>/mapper/robots/*/unreachable``."""
-        reply_to(query, "unreachable report", lambda data: self.unreachable_payload(data, self.search._asker(query)),
+        reply_to(query, "unreachable report", lambda data: self.unreachable_payload(data, self.search.asker(query)),
                  self.search.shard_info)
 
 

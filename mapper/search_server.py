@@ -156,7 +156,7 @@ class SearchServer:
         keys = self.state.keys
         return keys.robot_searches(req.owner, req.id) if req.owner else keys.mapper_searches(req.id)
 
-    def _asker(self, query) -> str:
+    def asker(self, query) -> str:
         """The robot a robot-scoped planner key names (its certificate may ask only its own)."""
         robot = self.state.keys.asker_from_key(query.key_expr)
         if robot is None:
@@ -176,7 +176,7 @@ class SearchServer:
 
     def on_robot_search(self, query) -> None:
         """Zenoh callback of ``<p>/mapper/robots/*/search``: a robot's own search."""
-        reply_to(query, "search", lambda data: self.search_payload(data, self._asker(query)), self.shard_info)
+        reply_to(query, "search", lambda data: self.search_payload(data, self.asker(query)), self.shard_info)
 
     def occupancy(self, data: bytes) -> OccupancyReply:
         """Answer an encoded occupancy request (under the map lock)."""
@@ -212,7 +212,7 @@ class SearchServer:
         (the same answer for a robot: occupancy is not per robot)."""
         def answer(data: bytes) -> bytes:
             if str(query.key_expr) != self.state.keys.mapper_occupancy:
-                self._asker(query)
+                self.asker(query)
             return encode_occupancy_reply(self.occupancy(data))
 
         reply_to(query, "occupancy request", answer, self.shard_info)
