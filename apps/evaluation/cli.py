@@ -114,6 +114,12 @@ def _search_parser(sub) -> None:
                     help="the fleet's starts: next to each other at the mission start (default) or spread out 12 m")
     se.add_argument("--footprint", type=float, default=8.0, metavar="M",
                     help="least distance (m) between two robots' goals, coordinated and frontier-only (default 8)")
+    mg = sub.add_parser("merge", help="one eval search table from runs split by seed or policy",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description=__import__("apps.closed_loop.merge", fromlist=["x"]).__doc__)
+    mg.add_argument("parts", nargs="+", metavar="PART.json", help="eval search JSON files of the same settings")
+    mg.add_argument("--json", required=True, metavar="FILE", help="the merged document (.md/.csv/.png beside)")
+    mg.add_argument("--allow-partial", action="store_true", help="accept FILE.partial.json parts (marked partial)")
     tu = sub.add_parser("tune-sem-poses", help="choose sem-poses' margin z cut on the development seeds",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.tuning", fromlist=["x"]).__doc__)
@@ -217,6 +223,30 @@ def _run_search(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_merge(args: argparse.Namespace) -> int:
+    import json
+
+    from apps.closed_loop.evaluate import table_markdown, write_outputs
+    from apps.closed_loop.merge import merge_documents
+
+    docs = []
+    for p in args.parts:
+        try:
+            docs.append(json.loads(Path(p).read_text()))
+        except (OSError, ValueError) as e:
+            print(f"rayfronts eval merge: cannot read {p}: {e}", file=sys.stderr)
+            return 2
+    try:
+        doc = merge_documents(docs, allow_partial=args.allow_partial)
+    except ValueError as e:
+        print(f"rayfronts eval merge: {e}", file=sys.stderr)
+        return 2
+    paths = write_outputs(doc, args.json)
+    print(table_markdown(doc))
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def _run_tune(args: argparse.Namespace) -> int:
     import json
 
@@ -296,6 +326,8 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.action == "search":
             return _run_search(args)
+        if args.action == "merge":
+            return _run_merge(args)
         if args.action == "tune-sem-poses":
             return _run_tune(args)
         cfg = build_config(args)
