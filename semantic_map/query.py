@@ -86,6 +86,9 @@ def softmax_share(scores: torch.Tensor, rest_lse: torch.Tensor | None, temperatu
         return x
     if rest_lse is None:
         return torch.softmax(x, dim=0)
+    if x.shape[0] == 1:     # exp(x - logaddexp(x, lse)) = sigmoid(x - lse): two passes, not five
+        x -= rest_lse.to(torch.float32)
+        return x.sigmoid_()
     total = torch.logaddexp(torch.logsumexp(x, dim=0), rest_lse.to(torch.float32))
     x -= total
     return x.exp_()
