@@ -202,8 +202,10 @@ else
   else
     say "installing the project and building its C++ extensions ($CMAKE_BUILD_PARALLEL_LEVEL jobs; 0.5-1 min on 2 idle cores, longer under load)"
     rc=0
+    # RAYFRONTS_PREBUILT set empty: a build dir that once reused the cache keeps the define in
+    # its CMakeCache.txt and would install the old extensions again instead of compiling
     FILTER='(^ *\[ *[0-9]+%\]|^ *\[[0-9]+/[0-9]+\]|^ *\*\*\* (Configuring|Building|Installing)|will NOT be built|CMake Error|error:|Successfully installed|ERROR)' \
-      filtered "$VPY" -m pip install "${PIP_EXT[@]}" || rc=$?
+      filtered "$VPY" -m pip install "${PIP_EXT[@]}" -Ccmake.define.RAYFRONTS_PREBUILT= || rc=$?
     if [ "$rc" = 0 ] && [ -z "${RAYFRONTS_NO_EXT_CACHE:-}" ] && ls "$SITE"/semantic_map/_*.so >/dev/null 2>&1; then
       mkdir -p "$EXT_CACHE" && cp "$SITE"/semantic_map/_*.so "$EXT_CACHE"/ && say "cached the built extensions in $EXT_CACHE"
     fi

@@ -61,6 +61,15 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
     if n == 0:
         return np.zeros((0,), np.int64)
     keys = pack_ijk(ijk)
+    if n >= KERNEL_MIN_VOXELS:
+        import semantic_map
+
+        order = np.argsort(keys, kind="stable")
+        got = semantic_map.voxel_components_26(keys[order])
+        if got is not None:                    # the C++ union-find (same labels, numbered alike)
+            lab = np.empty(n, np.int64)
+            lab[order] = got
+            return lab
     lo = ijk.min(0)
     shape = ijk.max(0) - lo + 1
     if float(np.prod(shape.astype(np.float64))) <= max(DENSE_MIN_CELLS, DENSE_CELLS_PER_VOXEL * n):
@@ -70,6 +79,10 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
         return _relabel(split, keys)
     return _sparse_labels(ijk, keys)
 
+
+#: sets of at least this many voxels are labelled by the map's C++ kernel when it is built
+#: (``semantic_map.voxel_components_26``), smaller ones (and all without it) by the paths below
+KERNEL_MIN_VOXELS = 64
 
 #: a spread-out set's dense parts: blocks of side ``2^SPLIT_SHIFT`` voxels holding at least
 #: :data:`SPLIT_DENSE_VOXELS` of its voxels, at most :data:`SPLIT_MAX_BOXES` groups of them

@@ -10,7 +10,8 @@ Outside this package the map is reached through ``RayFrontsMap``'s methods only 
 ``occupancy``, ``sem``, ``fronts``, ``ray_store`` ..., are its own; ``tests/test_map_api.py``):
 layers (``voxels``, ``frontiers``, ``rays``, ``voxel_xyz``, ``ray_geometry`` ...), the
 read-only ``occupancy_view``, ``stats`` / ``memory_parts``, ``export_state`` /
-``RayFrontsMap.from_state`` for snapshots.
+``RayFrontsMap.from_state`` for snapshots. ``voxel_components_26`` is the map's C++ kernel
+for the 26-connected components of a sorted voxel key set (the planners' instance labelling).
 
 Conventions (frames, units, voxel indexing) are those of ``docs/conventions.md``.
 """
@@ -23,7 +24,7 @@ if TYPE_CHECKING:
     from semantic_map.map import RayFrontsMap
     from semantic_map.occupancy.base import OccupancyView
 
-__all__ = ["RayFrontsMap", "MapConfig", "OccupancyView"]
+__all__ = ["RayFrontsMap", "MapConfig", "OccupancyView", "voxel_components_26"]
 
 
 def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` loads no map
@@ -36,4 +37,7 @@ def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` 
     if name == "OccupancyView":  # what RayFrontsMap.occupancy_view() hands out (read-only)
         from semantic_map.occupancy.base import OccupancyView
         return OccupancyView
+    if name == "voxel_components_26":  # the C++ labelling of a voxel key set (None: kernels off)
+        from semantic_map.kernels import components_26_sorted
+        return components_26_sorted
     raise AttributeError(name)

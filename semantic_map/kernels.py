@@ -14,6 +14,7 @@ import os
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
+import numpy as np
 import torch
 
 from semantic_map import cell_keys
@@ -71,6 +72,16 @@ def disabled() -> Iterator[None]:
 
 def _np(t: torch.Tensor, dtype: torch.dtype):
     return t.detach().to(dtype).contiguous().numpy()
+
+
+def components_26_sorted(keys: np.ndarray) -> np.ndarray | None:
+    """Kernel-only: (N,) int64 26-connected component of each voxel of strictly ascending
+    packed keys ``keys`` (N,) (:mod:`semantic_map.cell_keys` layout), numbered ``0..C-1`` by
+    each component's lowest key; None when the kernels are missing or disabled (the caller
+    takes its own path: ``planning.instances.connected_26``)."""
+    if _rfkernels is None or not _enabled or not hasattr(_rfkernels, "components_26_sorted"):
+        return None
+    return _rfkernels.components_26_sorted(np.ascontiguousarray(keys, np.int64))
 
 
 def unique_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

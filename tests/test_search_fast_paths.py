@@ -10,7 +10,9 @@ import pytest
 
 import planning.instances as inst
 import planning.look_next as ln
+import semantic_map
 from common.conventions import voxel_center
+from semantic_map import kernels
 
 
 def _bfs_components(ijk: np.ndarray) -> np.ndarray:
@@ -48,19 +50,54 @@ def _random_voxels(rng, n: int, side: int, spread: int = 0) -> np.ndarray:
     return np.unique(ijk, axis=0)[rng.permutation(len(np.unique(ijk, axis=0)))]
 
 
+@pytest.fixture(params=["kernel", "numpy"])
+def labelling(request):
+    """connected_26 with the map's C++ labelling kernel (sets of KERNEL_MIN_VOXELS or more),
+    then with the kernels off (the numpy paths: dense grid, split boxes, sorted searches)."""
+    if request.param == "kernel":
+        assert kernels.available(), f"the C++ kernels are not built: {kernels.IMPORT_ERROR}"
+        yield request.param
+    else:
+        with kernels.disabled():
+            yield request.param
+
+
 @pytest.mark.parametrize("seed", range(6))
-def test_connected_26_matches_bfs(seed: int):
+def test_connected_26_matches_bfs(seed: int, labelling: str):
     rng = np.random.default_rng(seed)
     ijk = _random_voxels(rng, 600, 12, spread=0 if seed % 2 else 5000)
     assert np.array_equal(inst.connected_26(ijk), _bfs_components(ijk))
 
 
-def test_connected_26_no_edge_across_the_packable_range():
+_RANGE_ENDS = [[0, 0, (1 << 20) - 1], [0, 1, -(1 << 20)], [0, 0, -(1 << 20)], [0, -1, (1 << 20) - 1],
+               [5, (1 << 20) - 1, 0], [6, -(1 << 20), 0], [(1 << 20) - 1, 3, 3], [(1 << 20) - 1, 4, 4],
+               [-(1 << 20), 3, 3], [7, 7, 7], [7, 8, 8]]
+
+
+def test_connected_26_no_edge_across_the_packable_range(labelling: str):
     """Voxels at the range's ends: ``key + delta`` would carry into the next axis there."""
-    lo, hi = -(1 << 20), (1 << 20) - 1
-    ijk = np.array([[0, 0, hi], [0, 1, lo], [0, 0, lo], [0, -1, hi], [5, hi, 0], [6, lo, 0], [hi, 3, 3],
-                    [hi, 4, 4], [lo, 3, 3], [7, 7, 7], [7, 8, 8]], np.int64)
+    ijk = np.array(_RANGE_ENDS, np.int64)
     assert np.array_equal(inst.connected_26(ijk), _bfs_components(ijk))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_labelling_kernel_on_sorted_keys_matches_bfs(seed: int):
+    """The kernel itself (``semantic_map.voxel_components_26``) on any set size, with the
+    range's ends mixed in (a neighbouring row past the range must not wrap), and its refusal
+    of keys that are not strictly ascending."""
+    assert kernels.available(), f"the C++ kernels are not built: {kernels.IMPORT_ERROR}"
+    rng = np.random.default_rng(70 + seed)
+    ijk = np.unique(np.concatenate([_random_voxels(rng, 40 + 200 * seed, 8, spread=50 * seed),
+                                    np.array(_RANGE_ENDS, np.int64)]), axis=0)
+    keys = inst.pack_ijk(ijk)
+    order = np.argsort(keys)
+    got = semantic_map.voxel_components_26(keys[order])
+    assert got is not None and got.dtype == np.int64
+    assert np.array_equal(got, _bfs_components(ijk[order]))
+    with pytest.raises(ValueError, match="strictly ascending"):
+        semantic_map.voxel_components_26(keys[order][::-1].copy())
+    with pytest.raises(ValueError, match="strictly ascending"):
+        semantic_map.voxel_components_26(np.repeat(keys[order][:3], 2))
 
 
 class _ReferenceTracker:
@@ -181,7 +218,7 @@ def test_candidates_equal_the_three_lexsort_prefixes():
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_connected_26_split_into_dense_boxes_matches_bfs(seed: int, monkeypatch):
+def test_connected_26_split_into_dense_boxes_matches_bfs(seed: int, monkeypatch, labelling: str):
     """A spread-out set with dense blobs (issue 46: the bench map's cube among a world's
     scattered voxels): the blobs' boxes labelled on dense grids, the rest by sorted searches,
     joined by the edges between them (lines leading out of the blobs, voxels on the boxes'
@@ -203,10 +240,13 @@ def test_connected_26_split_into_dense_boxes_matches_bfs(seed: int, monkeypatch)
     ijk = np.unique(np.concatenate(parts), axis=0)
     ijk = ijk[rng.permutation(len(ijk))]
     assert np.array_equal(inst.connected_26(ijk), _bfs_components(ijk))
-    assert ran and (ran[0] if seed % 3 else True)             # the split labelled it (apart from touching boxes)
+    if labelling == "numpy":
+        assert ran and (ran[0] if seed % 3 else True)         # the split labelled it (apart from touching boxes)
+    else:
+        assert not ran                                        # the kernel labelled it whole
 
 
-def test_connected_26_split_declines_boxes_that_overlap(monkeypatch):
+def test_connected_26_split_declines_boxes_that_overlap(monkeypatch, labelling: str):
     """An L of dense blocks whose box holds another dense block linked to the L by a chain of
     voxels: two boxes over the same voxels would label the chain twice, apart."""
     monkeypatch.setattr(inst, "SPLIT_SHIFT", 2)

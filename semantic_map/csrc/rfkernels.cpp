@@ -23,6 +23,10 @@
 // * voxel_keys_f32/_f64(xyz, vox): packed keys of floor(xyz / vox) (float64 division).
 // * surface_samples(...): semantic surface points and the unique occupied voxels of a
 //   frame (semantic_map.depth_geometry), with the torch code's float64 operations.
+// * components_26_sorted(keys): 26-connected components of a voxel set given as strictly
+//   ascending packed keys (semantic_map.cell_keys layout), numbered 0..C-1 by each
+//   component's lowest key, as planning.instances.connected_26's numpy path: union-find over
+//   the 13 half-neighbours, found by one forward pointer per neighbouring (i, j) row (O(N)).
 // * half_scores(...) (half_scores.cpp): the query snapshot's float16 text-query product; the
 //   one kernel that is not bit-identical to its torch twin (float32 instead of float16
 //   rounding: within the documented score tolerance, closer to the exact cosine).
@@ -385,11 +389,62 @@ nb::tuple segment_cells_unique(F64x3In o, F64x3In e, double cell, I64In chunk_lo
     return nb::make_tuple(to_numpy(std::move(uniq), {u}), rg.lo, rg.hi);
 }
 
+// 26-connected components of strictly ascending packed voxel keys (file comment).
+nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
+    const size_t n = keys.shape(0);
+    std::vector<int64_t> label(n);
+    {
+        nb::gil_scoped_release release;
+        const int64_t* k = keys.data();
+        for (size_t p = 1; p < n; ++p)
+            if (k[p] <= k[p - 1]) throw std::invalid_argument("components_26_sorted: keys must be strictly ascending");
+        constexpr int64_t M = (int64_t(1) << 21) - 1;
+        std::vector<int64_t> parent(n);
+        std::iota(parent.begin(), parent.end(), int64_t(0));
+        auto find = [&](int64_t x) {
+            while (parent[x] != x) {
+                parent[x] = parent[parent[x]];
+                x = parent[x];
+            }
+            return x;
+        };
+        auto unite = [&](int64_t a, int64_t b) {
+            a = find(a);
+            b = find(b);
+            if (a < b) parent[b] = a;
+            else if (b < a) parent[a] = b;
+        };
+        auto pack = [](int64_t a, int64_t b, int64_t c) { return (a << 42) | (b << 21) | c; };
+        const int rows[4][2] = {{0, 1}, {1, -1}, {1, 0}, {1, 1}};   // (di, dj) of the half-neighbour rows
+        size_t ptr[4] = {0, 0, 0, 0};
+        for (size_t p = 0; p < n; ++p) {
+            const int64_t a = k[p] >> 42, b = (k[p] >> 21) & M, c = k[p] & M;
+            if (c < M && p + 1 < n && k[p + 1] == k[p] + 1) unite(int64_t(p), int64_t(p + 1));   // (0, 0, 1)
+            for (int r = 0; r < 4; ++r) {
+                const int64_t a2 = a + rows[r][0], b2 = b + rows[r][1];
+                if (a2 > M || b2 < 0 || b2 > M) continue;
+                const int64_t lo = pack(a2, b2, c > 0 ? c - 1 : 0), hi = pack(a2, b2, c < M ? c + 1 : M);
+                size_t q = ptr[r];
+                while (q < n && k[q] < lo) ++q;
+                ptr[r] = q;
+                for (; q < n && k[q] <= hi; ++q) unite(int64_t(p), int64_t(q));
+            }
+        }
+        int64_t next = 0;
+        for (size_t p = 0; p < n; ++p) {
+            const int64_t r = find(int64_t(p));
+            label[p] = r == int64_t(p) ? next++ : label[r];
+        }
+    }
+    return to_numpy(std::move(label), {n});
+}
+
 }  // namespace
 
 NB_MODULE(_rfkernels, m) {
     m.doc() = "CPU kernels for the RayFronts mapper (hash unique, ray-frontier candidates); see semantic_map.kernels";
     m.def("unique_i64", &unique_i64, nb::arg("keys"));
+    m.def("components_26_sorted", &components_26_sorted, nb::arg("keys"));
     m.def("group_pairs", &group_pairs, nb::arg("group"), nb::arg("idx"), nb::arg("wt"), nb::arg("n_groups"),
           nb::arg("n_src"));
     m.def("sample_pairs", &sample_pairs, nb::arg("group"), nb::arg("pix"), nb::arg("H"), nb::arg("W"), nb::arg("h"),
