@@ -496,7 +496,8 @@ def test_declarations_name_the_true_object_a_false_find_was(loop):
     assert [r["verdict"] for r in rows] == ["find", "false"]
     for r in rows:
         dist = [box_distance(np.asarray(r["centroid"]), i.aabb_min, i.aabb_max) for i in w.instances]
-        best = w.instances[int(np.argmin(dist))]
+        vol = [float(np.prod(np.asarray(i.aabb_max) - np.asarray(i.aabb_min))) for i in w.instances]
+        best = w.instances[int(np.lexsort((vol, dist))[0])]
         assert r["nearest_m"] == pytest.approx(min(dist), abs=0.01) and r["nearest_id"] == best.id
         assert r["nearest_class"] == w.classes[best.class_id]
     assert rows[1]["nearest_m"] == 0.0          # the centre of its own box
@@ -504,6 +505,25 @@ def test_declarations_name_the_true_object_a_false_find_was(loop):
     md = table_markdown(doc)
     assert "False finds" in md and f"{w.classes[other.class_id]} #{other.id}" in md
     assert f"car #{car.id}" not in md
+
+
+def test_a_false_find_inside_a_site_names_the_object_not_the_site():
+    """A declaration inside a small object's box that lies within a large one (a duck on the
+    pybullet monastery's site, whose box spans ±60 m) names the object; outside every box,
+    the nearest box."""
+    from types import SimpleNamespace
+
+    from apps.closed_loop.episode import _declaration_row, _Run
+
+    site = SimpleNamespace(id=1, class_id=1, aabb_min=np.array([-60.0, -60, 0]), aabb_max=np.array([60.0, 60, 30]))
+    duck = SimpleNamespace(id=7, class_id=2, aabb_min=np.array([35.5, 38.5, 0]), aabb_max=np.array([36.5, 39.5, 1]))
+    far = SimpleNamespace(id=9, class_id=3, aabb_min=np.array([100.0, 0, 0]), aabb_max=np.array([101.0, 1, 5]))
+    w = SimpleNamespace(instances=[site, duck, far], classes=["sky", "monastery", "duck", "tower"])
+    run = _Run(np.zeros(3))
+    r = _declaration_row(w, {"centroid": [36.0, 39.0, 0.5]}, "false", run)
+    assert (r["nearest_class"], r["nearest_id"], r["nearest_m"]) == ("duck", 7, 0.0)
+    r = _declaration_row(w, {"centroid": [70.0, 0.5, 1.0]}, "false", run)
+    assert (r["nearest_class"], r["nearest_id"], r["nearest_m"]) == ("monastery", 1, 10.0)
 
 
 def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_path):

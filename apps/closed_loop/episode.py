@@ -135,10 +135,15 @@ class _Run:
 def _declaration_row(world: World, inst: dict, verdict: str, run: _Run) -> dict:
     """What a declaration was: ``step`` (1-based), ``verdict`` ('find' | 'again' | 'false'),
     the declared ``centroid`` and the TRUE world instance nearest to it (``nearest_class``,
-    ``nearest_id``, ``nearest_m``: distance from the centroid to its box; what a false find
-    really was)."""
+    ``nearest_id``, ``nearest_m``: distance from the centroid to its box, ties — a point
+    inside several boxes, e.g. a duck's within the whole site's building — to the smallest
+    box; what a false find really was)."""
     c = np.asarray(inst["centroid"], np.float64)
-    near = min(world.instances, key=lambda i: box_distance(c, i.aabb_min, i.aabb_max))
+
+    def volume(i) -> float:
+        return float(np.prod(np.maximum(np.asarray(i.aabb_max, np.float64) - np.asarray(i.aabb_min, np.float64), 0.0)))
+
+    near = min(world.instances, key=lambda i: (box_distance(c, i.aabb_min, i.aabb_max), volume(i)))
     return {"step": run.steps, "verdict": verdict, "centroid": [round(float(v), 2) for v in c],
             "nearest_class": world.classes[near.class_id], "nearest_id": int(near.id),
             "nearest_m": round(float(box_distance(c, near.aabb_min, near.aabb_max)), 2)}
