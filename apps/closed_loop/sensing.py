@@ -25,6 +25,8 @@ Semantics (``encoder``): ``sim`` the simulated ViT-like encoder (class confusion
 blur, noise: :mod:`encoders.sim`), ``label`` the exact labels. PCA basis
 (``pca_fit``): ``first_views`` fitted on the robot's own first views — the
 encoder's output for views rendered all around the first mission's start —,
+``vocabulary`` on the text embeddings of a generic vocabulary less the world's class names
+(:mod:`apps.closed_loop.generic_vocabulary`: a basis fitted offline, no view of this world),
 ``classes`` on views around the world centre plus one cell of each of the world's
 classes.
 
@@ -62,7 +64,7 @@ class SensorConfig:
     sensor: str = "exact"               #: ``exact`` or ``realistic`` (``depth_model``)
     depth_model: DepthSensorModel = field(default_factory=DepthSensorModel)
     sensor_seed: int = 0                #: seed of the realistic sensor's noise and dropouts
-    pca_fit: str = "classes"            #: PCA basis from ``classes`` or the robot's ``first_views``
+    pca_fit: str = "classes"            #: PCA basis: ``classes``, ``first_views`` or ``vocabulary``
 
     def validate(self) -> "SensorConfig":
         """Raise ``ValueError`` naming a bad choice."""
@@ -79,7 +81,7 @@ class SensorConfig:
 #: the depth sensors of the loop (module docstring)
 SENSORS = ("realistic", "exact")
 #: where the PCA basis comes from (module docstring)
-PCA_FITS = ("first_views", "classes")
+PCA_FITS = ("first_views", "vocabulary", "classes")
 
 
 class EdgeChain:
@@ -91,7 +93,9 @@ class EdgeChain:
     first views; yaws evenly spaced, tilted down 0 and 0.3 rad in turn) — nothing of the
     world's class list. ``"classes"``: views around the
     world centre plus one cell of each of the world's classes (:meth:`class_cells`), as an
-    operator who knew every class of the site would fit it."""
+    operator who knew every class of the site would fit it. ``"vocabulary"``: the encoder's
+    text embeddings of :func:`~apps.closed_loop.generic_vocabulary.vocabulary_without` the
+    world's classes (no view rendered)."""
 
     def __init__(self, world: World, cfg: SensorConfig, fit_views: int = 8, fit_at: np.ndarray | None = None):
         from common.feature_space import FeatureSpace
@@ -116,6 +120,15 @@ class EdgeChain:
         centre = np.array([0.0, 0.0, 1.5]) if classes or fit_at is None else np.asarray(fit_at, np.float64)
         fit = OnlinePCAFitter(cfg.pca_dim, max_frames=fit_views + 1)
         with torch.inference_mode():
+            if cfg.pca_fit == "vocabulary":
+                from apps.closed_loop.generic_vocabulary import vocabulary_without
+
+                text = getattr(self.encoder, "text", None)           # the sim and label encoders' MiniLM
+                if text is None:
+                    raise ValueError(f"pca_fit=vocabulary needs an encoder with a text model, not {cfg.encoder!r}")
+                words = text.encode(vocabulary_without(list(world.classes))).float()   # (V, C)
+                fit.add(words.T.reshape(words.shape[1], -1, 1))
+                fit_views = 0
             for k in range(fit_views):
                 pose = camera_pose(centre, 2 * math.pi * k / fit_views, 0.3 * (k % 2))
                 r = self.render(pose)

@@ -156,7 +156,8 @@ def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> Non
     se.add_argument("--encoder", choices=["sim", "label"], default="sim",
                     help="image encoder: simulated ViT-like features (default) or the exact labels")
     se.add_argument("--pca-fit", choices=list(PCA_FITS), default="first_views",
-                    help="PCA basis: the robot's first views (default) or views plus one cell per world class")
+                    help="PCA basis: the robot's first views (default), a generic vocabulary's text embeddings "
+                         "without the world's class names, or views plus one cell per world class")
     se.add_argument("--sem-poses-min-z", type=float, default=None, metavar="Z",
                     help="sem-poses' margin z cut (default: policies.SEM_POSES_MIN_Z)")
     se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
