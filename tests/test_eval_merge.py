@@ -66,7 +66,11 @@ def test_refusals_name_what_is_wrong():
     half = dict(copy.deepcopy(two), partial=True)
     with pytest.raises(ValueError, match="partial"):
         merge_documents([one, half])
-    assert merge_documents([one, half], allow_partial=True)["partial"] is True
+    cut = dict(_part(run, [19, 20], ["rayfronts"]), partial=True)
+    cut["episodes"] = [r for r in cut["episodes"] if r["seed"] == 19]        # seed 20 never finished
+    got = merge_documents([one, cut], allow_partial=True)
+    assert got["partial"] is True and got["settings"]["seeds"] == [18, 19]
+    assert [p["seeds"] for p in got["merged_from"]] == [[18], [19]]
     with pytest.raises(ValueError, match="nothing to merge"):
         merge_documents([])
     with pytest.raises(ValueError, match="not an eval search document"):

@@ -13,7 +13,8 @@ line, machine, load) kept under ``merged_from``.
 
 Refused with one line: runs whose settings differ in anything but the seeds and policies,
 an episode present twice, a fleet run beside runs of another fleet size, a partial file
-(``FILE.partial.json``) unless ``allow_partial``.
+(``FILE.partial.json``) unless ``allow_partial`` (then only the seeds it has rows of count
+as run, and the result says ``"partial": true``).
 """
 from __future__ import annotations
 
@@ -46,7 +47,10 @@ def merge_documents(docs: list[dict], allow_partial: bool = False) -> dict:
         if diff:
             raise ValueError(f"part {i}: settings differ from part 1 in {', '.join(diff)} "
                              f"(only {' and '.join(SPLIT_BY)} may differ)")
-    seeds = sorted({int(s) for d in docs for s in d["settings"]["seeds"]})
+    def part_seeds(d: dict) -> list[int]:        # a partial part holds the seeds it finished
+        return sorted({int(r["seed"]) for r in d["episodes"]}) if d.get("partial") else list(d["settings"]["seeds"])
+
+    seeds = sorted({int(s) for d in docs for s in part_seeds(d)})
     policies = list(docs[0]["settings"]["policies"])
     if any(list(d["settings"]["policies"]) != policies for d in docs):     # split by policy: the built-in order
         known = list(POLICIES) + list(FLEET_POLICIES)
@@ -64,7 +68,7 @@ def merge_documents(docs: list[dict], allow_partial: bool = False) -> dict:
     rows.sort(key=lambda r: (seeds.index(r["seed"]), kinds.index(r["kind"]), r["episode"],
                              depths.index(float(r["depth_limit_m"])) if float(r["depth_limit_m"]) in depths else 0,
                              policies.index(r["policy"])))
-    parts = [{"seeds": d["settings"]["seeds"], "policies": d["settings"]["policies"], "meta": d.get("meta"),
+    parts = [{"seeds": part_seeds(d), "policies": d["settings"]["policies"], "meta": d.get("meta"),
               "machine": d.get("machine"), "wall_s": d.get("wall_s"), "cpu_s": d.get("cpu_s"),
               "partial": bool(d.get("partial"))} for d in docs]
     out = {"policies": summarize_policies(rows, policies),
