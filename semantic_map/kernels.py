@@ -79,7 +79,7 @@ def components_26_sorted(keys: np.ndarray) -> np.ndarray | None:
     packed keys ``keys`` (N,) (:mod:`semantic_map.cell_keys` layout), numbered ``0..C-1`` by
     each component's lowest key; None when the kernels are missing or disabled (the caller
     takes its own path: ``planning.instances.connected_26``)."""
-    if _rfkernels is None or not _enabled or not hasattr(_rfkernels, "components_26_sorted"):
+    if not enabled() or not hasattr(_rfkernels, "components_26_sorted"):
         return None
     return _rfkernels.components_26_sorted(np.ascontiguousarray(keys, np.int64))
 

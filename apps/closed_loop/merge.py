@@ -47,6 +47,7 @@ def merge_documents(docs: list[dict], allow_partial: bool = False) -> dict:
         if diff:
             raise ValueError(f"part {i}: settings differ from part 1 in {', '.join(diff)} "
                              f"(only {' and '.join(SPLIT_BY)} may differ)")
+
     def part_seeds(d: dict) -> list[int]:        # a partial part holds the seeds it finished
         return sorted({int(r["seed"]) for r in d["episodes"]}) if d.get("partial") else list(d["settings"]["seeds"])
 

@@ -121,18 +121,12 @@ class EdgeChain:
         fit = OnlinePCAFitter(cfg.pca_dim, max_frames=fit_views + 1)
         with torch.inference_mode():
             if cfg.pca_fit == "vocabulary":
-                from apps.closed_loop.generic_vocabulary import vocabulary_without
-
-                text = getattr(self.encoder, "text", None)           # the sim and label encoders' MiniLM
-                if text is None:
-                    raise ValueError(f"pca_fit=vocabulary needs an encoder with a text model, not {cfg.encoder!r}")
-                words = text.encode(vocabulary_without(list(world.classes))).float()   # (V, C)
-                fit.add(words.T.reshape(words.shape[1], -1, 1))
-                fit_views = 0
-            for k in range(fit_views):
-                pose = camera_pose(centre, 2 * math.pi * k / fit_views, 0.3 * (k % 2))
-                r = self.render(pose)
-                fit.add(self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")[0])
+                fit.add(self._vocabulary_cells())
+            else:
+                for k in range(fit_views):
+                    pose = camera_pose(centre, 2 * math.pi * k / fit_views, 0.3 * (k % 2))
+                    r = self.render(pose)
+                    fit.add(self.encoder.encode_with_global(r.rgb, r.labels, global_space="features")[0])
             if classes:
                 fit.add(self.class_cells())
         self.pca = fit.fit()
@@ -146,6 +140,17 @@ class EdgeChain:
         gen = getattr(self.encoder, "generator", None)
         if gen is not None:
             gen.manual_seed(int(getattr(self.encoder, "seed", 0)))
+
+    def _vocabulary_cells(self) -> torch.Tensor:
+        """(C, V, 1): the text embeddings of the generic vocabulary less the world's classes
+        (:func:`~apps.closed_loop.generic_vocabulary.vocabulary_without`), as feature cells."""
+        from apps.closed_loop.generic_vocabulary import vocabulary_without
+
+        text = getattr(self.encoder, "text", None)           # the sim and label encoders' MiniLM
+        if text is None:
+            raise ValueError(f"pca_fit=vocabulary needs an encoder with a text model, not {self.cfg.encoder!r}")
+        words = text.encode(vocabulary_without(list(self.world.classes))).float()   # (V, C)
+        return words.T.reshape(words.shape[1], -1, 1)
 
     def class_cells(self, side_px: int = 32) -> torch.Tensor:
         """(K, C): the encoder's feature of an image showing only class k (``side_px`` square,

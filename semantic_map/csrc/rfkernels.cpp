@@ -398,7 +398,7 @@ nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
         const int64_t* k = keys.data();
         for (size_t p = 1; p < n; ++p)
             if (k[p] <= k[p - 1]) throw std::invalid_argument("components_26_sorted: keys must be strictly ascending");
-        constexpr int64_t M = (int64_t(1) << 21) - 1;
+        constexpr int64_t off = int64_t(1) << 20, mask = (int64_t(1) << 21) - 1;
         std::vector<int64_t> parent(n);
         std::iota(parent.begin(), parent.end(), int64_t(0));
         auto find = [&](int64_t x) {
@@ -414,16 +414,15 @@ nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
             if (a < b) parent[b] = a;
             else if (b < a) parent[a] = b;
         };
-        auto pack = [](int64_t a, int64_t b, int64_t c) { return (a << 42) | (b << 21) | c; };
         const int rows[4][2] = {{0, 1}, {1, -1}, {1, 0}, {1, 1}};   // (di, dj) of the half-neighbour rows
         size_t ptr[4] = {0, 0, 0, 0};
-        for (size_t p = 0; p < n; ++p) {
-            const int64_t a = k[p] >> 42, b = (k[p] >> 21) & M, c = k[p] & M;
-            if (c < M && p + 1 < n && k[p + 1] == k[p] + 1) unite(int64_t(p), int64_t(p + 1));   // (0, 0, 1)
+        for (size_t p = 0; p < n; ++p) {      // signed voxel indices, as pack_key takes them
+            const int64_t a = (k[p] >> 42) - off, b = ((k[p] >> 21) & mask) - off, c = (k[p] & mask) - off;
+            if (c < kIdxHi && p + 1 < n && k[p + 1] == k[p] + 1) unite(int64_t(p), int64_t(p + 1));   // (0, 0, 1)
             for (int r = 0; r < 4; ++r) {
                 const int64_t a2 = a + rows[r][0], b2 = b + rows[r][1];
-                if (a2 > M || b2 < 0 || b2 > M) continue;
-                const int64_t lo = pack(a2, b2, c > 0 ? c - 1 : 0), hi = pack(a2, b2, c < M ? c + 1 : M);
+                if (a2 > kIdxHi || b2 < kIdxLo || b2 > kIdxHi) continue;
+                const int64_t lo = pack_key(a2, b2, std::max(c - 1, kIdxLo)), hi = pack_key(a2, b2, std::min(c + 1, kIdxHi));
                 size_t q = ptr[r];
                 while (q < n && k[q] < lo) ++q;
                 ptr[r] = q;
