@@ -238,13 +238,15 @@ class TrackerStore:
             self._events.pop(old, None)
         return t
 
-    def update(self, key: tuple, ijk: np.ndarray, conf: np.ndarray, frame: int, token: tuple) -> list[dict]:
-        """Update ``key``'s tracker (:meth:`get` first) with its identity voxels; returns the
+    def update(self, key: tuple, ijk: np.ndarray | None, conf: np.ndarray, frame: int, token: tuple,
+               keys: np.ndarray | None = None) -> list[dict]:
+        """Update ``key``'s tracker (:meth:`get` first) with its identity voxels (``ijk``, or
+        their packed ``keys``: :meth:`planning.instances.InstanceTracker.update`); returns the
         events of the tracker's last update: a repeat at the same ``token`` (map version and
         frame) returns the events of the update it repeats, so every search of one map
         version reports what that version changed."""
         t = self._t[key]
-        return self._record(key, [e.as_dict() for e in t.update(str(key[1]), ijk, conf, frame)], token)
+        return self._record(key, [e.as_dict() for e in t.update(str(key[1]), ijk, conf, frame, keys=keys)], token)
 
     def repeat(self, key: tuple, token: tuple) -> list[dict]:
         """:meth:`update` with the same voxels, confidences and frame as the tracker's last
@@ -397,6 +399,14 @@ def _voxel_ijk(snap: QueryCopy, rows: np.ndarray) -> np.ndarray:
     return voxel_index(snap.voxel_xyz(rows).astype(np.float64), snap.vox)
 
 
+def _voxel_keys(snap: QueryCopy, rows: np.ndarray) -> np.ndarray:
+    """(len(rows),) :func:`planning.instances.pack_ijk` keys of snapshot rows (the snapshot's
+    own keys when it gives them)."""
+    if len(rows) and hasattr(snap, "voxel_keys"):
+        return snap.voxel_keys(rows)
+    return pack_ijk(_voxel_ijk(snap, rows))
+
+
 def _in_area(xyz: np.ndarray, poly, z_band) -> np.ndarray:
     ok = np.ones(len(xyz), bool)
     if poly is not None and len(xyz):
@@ -498,7 +508,8 @@ def _instances(snap: QueryCopy, fs: FeatureSpace, vprep: PreparedRows, q: torch.
                 ev = trackers.repeat(key, token)           # the same input as its last update
             else:
                 rows = np.flatnonzero(ident[ti] > scfg.identity_threshold)
-                ev = trackers.update(key, _voxel_ijk(snap, rows), ident[ti, rows], snap.frames_mapped, token)
+                ev = trackers.update(key, None, ident[ti, rows], snap.frames_mapped, token,
+                                     keys=_voxel_keys(snap, rows))
             sc.fed[ti] = (weakref.ref(tracker), key, token, float(scfg.identity_threshold), tracker.inputs)
             events += [dict(e, target=name) for e in ev]
             if ident is vs and req.threshold == scfg.identity_threshold:

@@ -53,6 +53,32 @@ def pack_ijk(ijk: np.ndarray) -> np.ndarray:
     return (a[:, 0] << 42) | (a[:, 1] << 21) | a[:, 2]
 
 
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    """(N,) int64 keys of :func:`pack_ijk` → (N, 3) int64 voxel indices."""
+    k = np.asarray(keys, np.int64).reshape(-1)
+    out = np.empty((len(k), 3), np.int64)
+    np.right_shift(k, 42, out=out[:, 0])
+    np.right_shift(k, 21, out=out[:, 1])
+    out[:, 2] = k
+    out &= (1 << 21) - 1
+    out -= 1 << 20
+    return out
+
+
+def labels_of_sorted(keys: np.ndarray) -> np.ndarray:
+    """:func:`connected_26` of the voxels of strictly ascending packed ``keys`` (N,): their
+    labels in that order (the map's C++ kernel when built, else the paths of
+    :func:`connected_26`)."""
+    keys = np.asarray(keys, np.int64).reshape(-1)
+    if len(keys) >= KERNEL_MIN_VOXELS:
+        import semantic_map
+
+        got = semantic_map.voxel_components_26(keys)
+        if got is not None:
+            return got
+    return connected_26(unpack_keys(keys))
+
+
 def connected_26(ijk: np.ndarray) -> np.ndarray:
     """26-connected components of a set of distinct voxel indices (N, 3) → (N,) int64 label
     per voxel, labels ``0..C-1`` numbered by each component's lowest voxel key."""
@@ -314,7 +340,7 @@ class InstanceTracker:
         self.updates = 0
         self.inputs = 0                  # +1 per update, repeat or load_state: the input as last fed
         self.version = 0                 # +1 per update or load_state: the instances as they are
-        self._components: dict[str, tuple[np.ndarray, np.ndarray]] = {}   # target -> (keys, labels) last seen
+        self._components: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}   # target -> (keys, key order, labels in key order) last seen
         self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
 
     def _new_id(self) -> int:
@@ -324,18 +350,23 @@ class InstanceTracker:
         self.next_id += 1
         return i
 
-    def update(self, target: str, ijk: np.ndarray, confidence: np.ndarray, frame: int) -> list[InstanceEvent]:
+    def update(self, target: str, ijk: np.ndarray, confidence: np.ndarray, frame: int,
+               keys: np.ndarray | None = None) -> list[InstanceEvent]:
         """Track ``target``'s voxels above threshold at map frame ``frame``: ``ijk`` (N, 3)
-        distinct voxel indices, ``confidence`` (N,) in [0, 1]. Returns the events."""
-        ijk = np.asarray(ijk, np.int64).reshape(-1, 3)
+        distinct voxel indices, ``confidence`` (N,) in [0, 1]; or ``ijk=None`` and their
+        :func:`pack_ijk` ``keys`` (N,) (the same update). Returns the events."""
+        if keys is None:
+            ijk = np.asarray(ijk, np.int64).reshape(-1, 3)
+            keys = pack_ijk(ijk)
+        else:
+            keys = np.asarray(keys, np.int64).reshape(-1)
         conf = np.asarray(confidence, np.float64).reshape(-1)
-        if len(conf) != len(ijk):
-            raise ValueError(f"{len(ijk)} voxels but {len(conf)} confidences")
+        if len(conf) != len(keys):
+            raise ValueError(f"{len(keys)} voxels but {len(conf)} confidences")
         frame = int(frame)
         self.updates += 1
         self.inputs += 1
         self.version += 1
-        keys = pack_ijk(ijk)
         same = self._last.get(target)
         if (same is not None and same[2] == frame and target in self.instances and np.array_equal(same[0], keys)
                 and np.array_equal(same[1], conf)):
@@ -345,25 +376,27 @@ class InstanceTracker:
         self._last[target] = (keys, conf.copy(), frame)
         last = self._components.get(target)
         if last is not None and np.array_equal(last[0], keys):
-            labels = last[1]                       # same voxels as the last update (same map version)
+            order, labels = last[1], last[2]       # same voxels as the last update (same map version)
         else:
-            labels = connected_26(ijk)
-            self._components[target] = (keys, labels)
+            order = np.argsort(keys, kind="stable")     # the one sort: labels come in key order
+            labels = labels_of_sorted(keys[order])
+            self._components[target] = (keys, order, labels)
         sizes = np.bincount(labels) if len(labels) else np.zeros((0,), np.int64)
         keep = np.flatnonzero(sizes >= self.min_voxels)
         remap = np.full(len(sizes), -1, np.int64)
         remap[keep] = np.arange(len(keep))
-        sel = remap[labels] >= 0 if len(labels) else np.zeros((0,), bool)
-        ijk, conf, keys, labels = ijk[sel], conf[sel], keys[sel], remap[labels[sel]]
+        sel = np.flatnonzero(remap[labels] >= 0) if len(labels) else np.zeros((0,), np.int64)
+        order, labels = order[sel], remap[labels[sel]]    # kept voxels, keys ascending
+        skeys, sconf = keys[order], conf[order]
         sizes = sizes[keep]
         cur = self.instances.get(target, [])
         gone = self.missing.get(target, [])
         prev = cur + [g for g, _ in gone]            # missing instances stay matchable (grace)
         n_groups = len(sizes)
-        by_group = np.lexsort((keys, labels))           # grouped, keys ascending within a group
-        bounds = np.searchsorted(labels[by_group], np.arange(n_groups + 1))
-        by_key = np.argsort(keys, kind="stable")
-        pi, pj, pc = _overlap_pairs(prev, keys[by_key], labels[by_key], n_groups)
+        by_group = np.argsort(labels, kind="stable")      # grouped, keys ascending within a group
+        bounds = np.zeros(n_groups + 1, np.int64)
+        np.cumsum(sizes, out=bounds[1:])
+        pi, pj, pc = _overlap_pairs(prev, skeys, labels, n_groups)
         # each previous instance goes to its largest overlapping group (ties: lowest group label)
         goes_to = np.full(len(prev), -1, np.int64)
         if len(pi):
@@ -379,16 +412,16 @@ class InstanceTracker:
         heirs_of: dict[int, list[Instance]] = {}
         for i in np.flatnonzero(goes_to >= 0):
             heirs_of.setdefault(int(goes_to[i]), []).append(prev[i])
-        gkeys = keys[by_group]
-        gijk = ijk[by_group]
-        counts = np.diff(bounds)
+        gkeys = skeys[by_group]
+        gijk = unpack_keys(gkeys)
+        counts = sizes
         starts = bounds[:-1]
         if n_groups:
             isum = np.add.reduceat(gijk, starts, axis=0).astype(np.float64)
             centroid = (isum / counts[:, None] + 0.5) * self.vox
             bmin = voxel_center(np.minimum.reduceat(gijk, starts, axis=0), self.vox)
             bmax = voxel_center(np.maximum.reduceat(gijk, starts, axis=0), self.vox)
-            cmax = np.maximum.reduceat(conf[by_group], starts)
+            cmax = np.maximum.reduceat(sconf[by_group], starts)
         events: list[InstanceEvent] = []
         out: list[Instance] = []
         for j in range(n_groups):

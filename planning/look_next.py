@@ -22,7 +22,8 @@ For each frontier (coarse cell centre from the map's frontier table):
 * ``heading_rad``: yaw of the score-weighted mean direction of the supporting rays of the
   target (if it has a horizontal component), else yaw toward the frontier centre; when the
   score rounds to 0 and ``ray_z`` > 0, the rays and weights are those of ``ray_z`` (the
-  supporting ``rays`` listed are then the outliers);
+  supporting ``rays`` listed are then the outliers); at most ``max_rays`` rays, best first
+  (ties by ray index);
 * ``gain_m3``: unknown volume within ``sensing_radius_m`` of the viewpoint, counted on the
   occupancy grid (on a lattice of every ``step``-th voxel when the sphere is large, each
   sample standing for ``(step·vox)^3``);
@@ -40,6 +41,7 @@ distance), the ``max_candidates`` best by ``ray_z`` and, with ``from_xyz``, the
 """
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from dataclasses import dataclass, field
@@ -203,6 +205,7 @@ class LookNextCache:
         self.pairs: tuple[np.ndarray, np.ndarray] | None = None
         self.views: dict[int, np.ndarray | None] = {}
         self.gains: dict[tuple, float] = {}
+        self.dist: dict[tuple, np.ndarray] = {}      # start -> frontiers' distances from it
         self.hits = 0                        # calls that reused the pairs (for tests and timings)
 
     def bind(self, grid, f: np.ndarray, o: np.ndarray, geo: tuple[float, float, float, float]) -> None:
@@ -215,6 +218,8 @@ class LookNextCache:
         old = self.geo if self.geo else (None,) * 4
         if not same_o:
             self.tree = None
+        if not same_f:
+            self.dist = {}
         if not (same_f and same_o and old[0] == geo[0]):
             self.pairs = None
         else:
@@ -226,6 +231,17 @@ class LookNextCache:
         self.f = self.f if same_f else f.copy()
         self.o = self.o if same_o else o.copy()
         self.geo, self.grid = geo, (weakref.ref(grid), rev)
+
+    def distances(self, f: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """(F,) distances (m) of the bound frontiers ``f`` from ``start``, kept for the last
+        few starts while the frontiers stay (a planner's repeated search, several robots)."""
+        key = tuple(float(v) for v in start)
+        d = self.dist.get(key)
+        if d is None:
+            d = self.dist[key] = np.linalg.norm(f - start, axis=1)
+            while len(self.dist) > DISTANCE_STARTS:
+                self.dist.pop(next(iter(self.dist)))
+        return d
 
     def fill_views(self, grid, vox: float, f: np.ndarray, order: np.ndarray, standoff: float) -> None:
         """Viewpoints of frontiers ``f[order]`` not kept yet (one grid read for them)."""
@@ -246,6 +262,9 @@ class LookNextCache:
         for g, key in zip(goals, keys, strict=True):
             g.gain_m3 = float(self.gains[key])
 
+
+#: starts whose frontier distances :class:`LookNextCache` keeps (robots searching at once)
+DISTANCE_STARTS = 8
 
 #: fewer rays than this in the area: no ray_z (a median and spread of a handful say nothing)
 MIN_RAYS_FOR_Z = 10
@@ -270,10 +289,6 @@ def ray_outlier_z(values: np.ndarray, resolution: float = 0.0) -> np.ndarray:
     return z
 
 
-def _rays_near(point: np.ndarray, tree, radius: float) -> np.ndarray:
-    return np.asarray(tree.query_ball_point(point, r=radius), np.int64) if tree is not None else np.zeros(0, np.int64)
-
-
 def _viewpoints(grid, vox: float, centres: np.ndarray, standoff: float) -> list[np.ndarray | None]:
     """Per frontier centre (K, 3): the centre of the free voxel nearest it within
     ``standoff`` whose 26 neighbours are not occupied; None if there is none. One grid read
@@ -285,37 +300,51 @@ def _viewpoints(grid, vox: float, centres: np.ndarray, standoff: float) -> list[
     off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
     vals = _values(grid, (c[:, None, :] + off[None]).reshape(-1, 3)).reshape(len(c), n, n, n)
     occ = vals > 0
-    near = np.zeros_like(occ)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                near |= np.roll(occ, (dx, dy, dz), (1, 2, 3))
+    near = occ.copy()                          # occupied among the 26 neighbours (or itself)
+    for axis in (1, 2, 3):                     # separable: a 3-wide max along each axis in turn
+        grown = near.copy()
+        lo = [slice(None)] * 4
+        hi = [slice(None)] * 4
+        lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+        grown[tuple(lo)] |= near[tuple(hi)]
+        grown[tuple(hi)] |= near[tuple(lo)]
+        near = grown
     ok = (vals < 0) & ~near
-    ok[:, [0, -1]] = False                     # neighbours outside the read (and roll wrap-around)
+    ok[:, [0, -1]] = False                     # neighbours outside the read
     ok[:, :, [0, -1]] = False
     ok[:, :, :, [0, -1]] = False
-    out: list[np.ndarray | None] = []
-    for k in range(len(c)):
-        idx = np.argwhere(ok[k])
-        if not len(idx):
-            out.append(None)
-            continue
-        cand = (c[k] + idx - (r + 1) + 0.5) * vox
-        d = np.linalg.norm(cand - centres[k], axis=1)
-        keep = np.flatnonzero(d <= standoff + 1e-9)
-        out.append(cand[keep[np.argmin(d[keep])]] if len(keep) else None)
+    ok = ok.reshape(len(c), -1)
+    cells = np.flatnonzero(ok.any(0))          # offsets free somewhere: the only ones to measure
+    out: list[np.ndarray | None] = [None] * len(c)
+    if not len(cells):
+        return out
+    cand = (c[:, None, :] + off[None, cells] + 0.5) * vox                  # (K, M, 3) cell centres
+    d = np.linalg.norm(cand - np.asarray(centres, np.float64).reshape(-1, 3)[:, None, :], axis=2)
+    d[~(ok[:, cells] & (d <= standoff + 1e-9))] = np.inf
+    best = np.argmin(d, axis=1)                # the nearest (ties: the first in C order, as argwhere)
+    for k in np.flatnonzero(np.isfinite(d[np.arange(len(c)), best])):
+        out[int(k)] = cand[k, best[k]]
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _gain_lattice(vox: float, radius: float) -> tuple[int, np.ndarray]:
+    """``(step, offsets)``: :func:`unknown_volume`'s sample lattice (voxel offsets within
+    ``radius`` on every ``step``-th voxel; read-only)."""
+    r_vox = max(0, int(math.ceil(radius / vox)))
+    step = max(1, int(math.ceil((2 * r_vox + 1) / GAIN_SAMPLES_PER_AXIS)))
+    ax = np.arange(-(r_vox // step), r_vox // step + 1) * step
+    off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    off = off[np.linalg.norm(off * vox, axis=1) <= radius + 1e-9]
+    off.setflags(write=False)
+    return step, off
 
 
 def unknown_volume(grid: OccupancyView, vox: float, centres: np.ndarray, radius: float) -> np.ndarray:
     """(N,) unknown volume (m³) within ``radius`` of each point (N, 3), counted on the map's
     voxels (a lattice of every ``step``-th voxel for large radii, see the module docstring)."""
     c = np.asarray(centres, np.float64).reshape(-1, 3)
-    r_vox = max(0, int(math.ceil(radius / vox)))
-    step = max(1, int(math.ceil((2 * r_vox + 1) / GAIN_SAMPLES_PER_AXIS)))
-    ax = np.arange(-(r_vox // step), r_vox // step + 1) * step
-    off = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
-    off = off[np.linalg.norm(off * vox, axis=1) <= radius + 1e-9]
+    step, off = _gain_lattice(float(vox), float(radius))
     out = np.zeros(len(c))
     per = max(1, (1 << 20) // max(1, len(off)))
     for s in range(0, len(c), per):
@@ -417,7 +446,7 @@ def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origin
         bz = _support_from_pairs(len(f), c.pairs, zs)
         fz = bz.max(1)
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
-    fdist = np.zeros(len(f)) if start is None else np.linalg.norm(f - start, axis=1)
+    fdist = np.zeros(len(f)) if start is None else c.distances(f, start)
     k = max(max_candidates, max_goals)
     order, by_z, nearest = _candidates(fscore, fz, fdist, k)
     extra = [by_z] if fz.any() else []
@@ -426,28 +455,38 @@ def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origin
     if extra:
         order = np.asarray(list(dict.fromkeys(np.concatenate([order, *extra]).tolist())), np.int64)
     goals: list[Goal] = []
-    seen: set = set()
     c.fill_views(grid, vox, f, order, standoff_m)
-    for i in order:
-        v = c.views[int(i)]
+    picked, views = [], []
+    seen: set = set()
+    for i in order.tolist():
+        v = c.views[i]
         if v is None:
             continue
-        key = tuple(np.floor(v / vox).astype(np.int64))
-        if key in seen:
-            continue
-        seen.add(key)
+        key = tuple(np.floor(v / vox).astype(np.int64).tolist())
+        if key not in seen:                                      # one goal per viewpoint voxel
+            seen.add(key)
+            picked.append(i)
+            views.append(v)
+    if picked:
+        pv = np.asarray(views, np.float64).reshape(-1, 3)
+        dist = np.zeros(len(picked)) if start is None else np.linalg.norm(pv - start, axis=1)
+        near = (rays_tree.query_ball_point(f[picked], r=ray_radius_m, return_sorted=True)
+                if rays_tree is not None else [[] for _ in picked])
+    zpos = None
+    for n, i in enumerate(picked):
+        v = views[n]
         t = int(np.argmax(best[i])) if best.shape[1] and fscore[i] > 0 else -1
         by = scores
         if round(float(fscore[i]), 3) == 0 and fz[i] > 0:      # no probability to speak of: the outlier rays
-            t, by = int(np.argmax(bz[i])), np.maximum(zs, 0.0)
-        sup = _rays_near(f[i], rays_tree, ray_radius_m)
+            zpos = np.maximum(zs, 0.0) if zpos is None else zpos
+            t, by = int(np.argmax(bz[i])), zpos
+        sup = np.asarray(near[n], np.int64)
         if t >= 0 and len(sup):
             sup = sup[np.argsort(-by[sup, t], kind="stable")][:max_rays]
             sd, sw = dirs[sup], by[sup, t]
         else:
             sd, sw = np.zeros((0, 3)), np.zeros((0,))
-        goals.append(Goal(v, _heading(v, f[i], sd, sw), float(fscore[i]), 0.0,
-                          0.0 if start is None else float(np.linalg.norm(v - start)),
+        goals.append(Goal(v, _heading(v, f[i], sd, sw), float(fscore[i]), 0.0, float(dist[n]),
                           targets[t] if t >= 0 else None, f[i], sd.astype(np.float32), float(fz[i])))
     c.fill_gains(grid, vox, goals, sensing_radius_m)
     return _ranked(goals, max_goals, int(max_goals * explore_share) if start is not None else 0)

@@ -402,13 +402,17 @@ class QueryCopy:
         k = self._vkeys[: self.n_voxels][torch.as_tensor(np.asarray(rows, np.int64))]
         return _np(voxel_center(cell_keys.unpack(k), self.vox)).astype(np.float32, copy=False).reshape(-1, 3)
 
+    def voxel_keys(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows),) int64 packed voxel keys of snapshot rows (:mod:`semantic_map.cell_keys`)."""
+        r = torch.as_tensor(np.asarray(rows, np.int64))
+        return _np(self._vkeys[: self.n_voxels].index_select(0, r.to(self._vkeys.device))).astype(np.int64, copy=False)
+
     def voxel_ijk(self, rows: np.ndarray) -> np.ndarray:
         """(len(rows), 3) int64 voxel indices of snapshot rows (unpacked from their keys:
         ``voxel_index(voxel_xyz(rows))`` without the round trip through the centres)."""
         from semantic_map import cell_keys
 
-        r = torch.as_tensor(np.asarray(rows, np.int64))
-        k = _np(self._vkeys[: self.n_voxels].index_select(0, r.to(self._vkeys.device))).astype(np.int64, copy=False)
+        k = self.voxel_keys(rows)
         out = np.empty((len(k), 3), np.int64)
         b = cell_keys.BITS
         np.right_shift(k, 2 * b, out=out[:, 0])

@@ -149,3 +149,45 @@ def test_standing_searches_of_three_robots_equal_their_one_by_one_answers():
         alone = QueryCopy()
         alone.sync(m, 2, 2)
         assert ask(alone, xyz, 2) == got
+
+
+def _viewpoint_by_hand(g, centre: np.ndarray, standoff: float) -> np.ndarray | None:
+    """The look-next viewpoint of one frontier centre, cell by cell: the centre of the free
+    voxel nearest ``centre`` within ``standoff`` whose 26 neighbours are not occupied (ties:
+    the lowest (i, j, k))."""
+    c = np.floor(centre / VOX).astype(np.int64)
+    r = int(np.ceil(standoff / VOX))
+    best, best_d = None, np.inf
+    for i in range(-r, r + 1):
+        for j in range(-r, r + 1):
+            for k in range(-r, r + 1):
+                cell = c + (i, j, k)
+                box = (cell + np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3))
+                vals = np.asarray(g.query(torch.as_tensor(box)))
+                if vals[13] >= 0 or (vals > 0).any():
+                    continue
+                p = (cell + 0.5) * VOX
+                dist = float(np.linalg.norm(p - centre))
+                if dist <= standoff + 1e-9 and dist < best_d:
+                    best, best_d = p, dist
+    return best
+
+
+def test_viewpoints_equal_a_cell_by_cell_search():
+    """The vectorised viewpoint search (one grid read, one distance array for all frontiers)
+    against a per-cell search of each frontier's neighbourhood."""
+    from planning.look_next import _viewpoints
+
+    rng = np.random.default_rng(3)
+    g = make_occupancy(VOX, -5, 30, backend="vdb")
+    g.update(rng.integers(-10, 10, (2500, 3)), rng.choice([-3, 2], 2500, p=[0.8, 0.2]))
+    centres = rng.uniform(-4, 4, (60, 3))
+    got = _viewpoints(g, VOX, centres, 1.0)
+    found = 0
+    for c, v in zip(centres, got, strict=True):
+        want = _viewpoint_by_hand(g, c, 1.0)
+        assert (v is None) == (want is None)
+        if want is not None:
+            assert np.array_equal(v, want)
+            found += 1
+    assert 10 < found < len(centres)          # both cases met

@@ -152,3 +152,26 @@ def test_a_search_seeing_the_identity_voxels_equals_the_general_path(monkeypatch
     snap.sync(m, 2, 2)
     fast, full = ask(False, 2), ask(True, 2)
     assert len(fast["found"]) >= 10 and len(fast["events"]) >= 1 and fast == full
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_tracker_fed_packed_keys_equals_fed_indices(seed: int):
+    """The mapper feeds its trackers the copy's packed keys (no unpacking, one sort inside):
+    the same events and instances, update after update, as the same voxels given as indices
+    (in another order, with small groups below ``min_voxels`` among them)."""
+    rng = np.random.default_rng(seed)
+    by_ijk, by_keys = inst.InstanceTracker(0.25, 3, grace=1), inst.InstanceTracker(0.25, 3, grace=1)
+    base = np.unique(rng.integers(-10, 10, (1500, 3)), axis=0)
+    for f in range(4):
+        keep = np.flatnonzero(rng.random(len(base)) < 0.5)
+        ijk, conf = base[keep], rng.random(len(keep))
+        p = rng.permutation(len(keep))
+        ev_a = by_ijk.update("t", ijk, conf, f)
+        ev_b = by_keys.update("t", None, conf[p], f, keys=inst.pack_ijk(ijk)[p])
+        assert [e.as_dict() for e in ev_a] == [e.as_dict() for e in ev_b]
+        assert len(ev_a) > 0
+        got_a = [(i.as_dict(), i.keys.tolist()) for i in by_ijk.current("t")]
+        got_b = [(i.as_dict(), i.keys.tolist()) for i in by_keys.current("t")]
+        assert got_a == got_b and len(got_a) >= 3
+    with pytest.raises(ValueError, match="confidences"):
+        by_keys.update("t", None, np.ones(2), 9, keys=inst.pack_ijk(base[:3]))

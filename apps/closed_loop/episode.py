@@ -34,7 +34,7 @@ from apps.closed_loop.sensing import EdgeChain
 from synthetic_world import World
 
 #: the values of :attr:`LoopSettings.background`
-BACKGROUNDS = ("generic", "world", "default")
+BACKGROUNDS = ("generic", "vocabulary", "world", "default")
 #: ``background="generic"``: a fixed list of things found anywhere outdoors, the same for every
 #: world (never the world's class list); docs/pybullet_world.md#semantics
 GENERIC_BACKGROUND = ("ground", "road", "grass", "wall", "building", "tree", "sky")
@@ -57,7 +57,10 @@ class LoopSettings:
     #: ``rayfronts eval tune-sem-poses``)
     sem_poses_min_z: float | None = None
     #: the searches' background phrases: "generic" = :data:`GENERIC_BACKGROUND` (what
-    #: ``rayfronts eval search`` uses by default), "world" = every class of the world but the target
+    #: ``rayfronts eval search`` uses by default), "vocabulary" = the generic vocabulary less
+    #: every class name of the world (:func:`~apps.closed_loop.generic_vocabulary.vocabulary_without`:
+    #: a target then competes with the nearest common noun — "tower" for a radio tower read as a
+    #: water tower — never with the name of the class it is confused with), "world" = every class of the world but the target
     #: (what the paper's querying softmaxes over: all class names), "default" = the mapper's
     #: ``search.background`` (building, road, ground, tree, sky: a radio tower then reads as a
     #: water tower, nothing else in the softmax being closer)
@@ -69,6 +72,10 @@ class LoopSettings:
             raise ValueError(f"background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
         if self.background == "generic":
             return list(GENERIC_BACKGROUND)
+        if self.background == "vocabulary":
+            from apps.closed_loop.generic_vocabulary import vocabulary_without
+
+            return vocabulary_without(list(world.classes))
         return list(world.classes) if self.background == "world" else None
 
 

@@ -329,6 +329,8 @@ def _phrases(settings: LoopSettings) -> list[str] | str:
         return "every class of the world but the target"
     if settings.background == "default":
         return "the mapper's search.background"
+    if settings.background == "vocabulary":
+        return "the generic vocabulary less every class name of the world"
     return list(GENERIC_BACKGROUND)
 
 

@@ -149,8 +149,9 @@ def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> Non
                     help=f"comma list of mission kinds: {', '.join(MISSIONS)} (default {missions})")
     se.add_argument("--budget-scale", type=float, default=1.0, help="scale the step budgets (default 1)")
     se.add_argument("--background", choices=list(BACKGROUNDS), default="generic",
-                    help="the searches' background phrases: a fixed generic list (default), every class of the world "
-                         "but the target, or the mapper's search.background")
+                    help="the searches' background phrases: a fixed generic list (default), the generic vocabulary "
+                         "less the world's class names, every class of the world but the target, or the mapper's "
+                         "search.background")
     se.add_argument("--sensor", choices=list(SENSORS), default="realistic",
                     help="depth sensor: range, noise and dropouts like a real one (default) or the exact depth")
     se.add_argument("--encoder", choices=["sim", "label"], default="sim",
