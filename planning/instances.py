@@ -340,7 +340,8 @@ class InstanceTracker:
         self.updates = 0
         self.inputs = 0                  # +1 per update, repeat or load_state: the input as last fed
         self.version = 0                 # +1 per update or load_state: the instances as they are
-        self._components: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}   # target -> (keys, key order, labels in key order) last seen
+        # target -> (keys, their ascending order, labels in that order) last seen
+        self._components: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
 
     def _new_id(self) -> int:

@@ -238,7 +238,8 @@ class LookNextCache:
         key = tuple(float(v) for v in start)
         d = self.dist.get(key)
         if d is None:
-            d = self.dist[key] = np.linalg.norm(f - start, axis=1)
+            rel = f - start
+            d = self.dist[key] = np.sqrt(np.einsum("ij,ij->i", rel, rel))
             while len(self.dist) > DISTANCE_STARTS:
                 self.dist.pop(next(iter(self.dist)))
         return d
@@ -384,6 +385,18 @@ def _best_first(score: np.ndarray, dist: np.ndarray, k: int) -> np.ndarray:
     return cand[np.lexsort((dist[cand], neg[cand]))]
 
 
+def _nearest(dist: np.ndarray, k: int) -> np.ndarray:
+    """``_best_first(np.zeros(len(dist)), dist, k)``: the ``k`` nearest by distance, then index."""
+    if k >= len(dist):
+        return np.argsort(dist, kind="stable")
+    if k <= 0:
+        return np.zeros((0,), np.int64)
+    dthr = np.partition(dist, k - 1)[k - 1]
+    closer = np.flatnonzero(dist < dthr)
+    cand = np.concatenate([closer, np.flatnonzero(dist == dthr)[:k - len(closer)]])
+    return cand[np.lexsort((cand, dist[cand]))]
+
+
 def _candidates(fscore: np.ndarray, fz: np.ndarray, fdist: np.ndarray, k: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(_best_first(fscore, fdist, k), _best_first(fz, fdist, k), _best_first(0, fdist, k))``
@@ -394,7 +407,7 @@ def _candidates(fscore: np.ndarray, fz: np.ndarray, fdist: np.ndarray, k: int
     if n == 0 or fscore.min() < 0 or fz.min() < 0:
         return _best_first(fscore, fdist, k), _best_first(fz, fdist, k), _best_first(np.zeros(n), fdist, k)
     pos = np.flatnonzero((fscore > 0) | (fz > 0))
-    near = _best_first(np.zeros(n), fdist, k + len(pos))
+    near = _nearest(fdist, k + len(pos))
 
     def best(sc: np.ndarray) -> np.ndarray:
         p = pos[sc[pos] > 0]
@@ -404,6 +417,24 @@ def _candidates(fscore: np.ndarray, fz: np.ndarray, fdist: np.ndarray, k: int
         return np.concatenate([top, near[sc[near] == 0][:k - len(top)]])
 
     return best(fscore), best(fz), near[:k]
+
+
+def _one_per_voxel(order: np.ndarray, views: dict[int, np.ndarray | None], vox: float
+                   ) -> tuple[list[int], list[np.ndarray]]:
+    """The frontiers of ``order`` with a viewpoint, the first of each viewpoint voxel, and
+    their viewpoints."""
+    picked, out = [], []
+    seen: set = set()
+    for i in order.tolist():
+        v = views[i]
+        if v is None:
+            continue
+        key = tuple(np.floor(v / vox).astype(np.int64).tolist())
+        if key not in seen:
+            seen.add(key)
+            picked.append(i)
+            out.append(v)
+    return picked, out
 
 
 def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origins: np.ndarray, ray_dirs: np.ndarray,
@@ -456,17 +487,7 @@ def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origin
         order = np.asarray(list(dict.fromkeys(np.concatenate([order, *extra]).tolist())), np.int64)
     goals: list[Goal] = []
     c.fill_views(grid, vox, f, order, standoff_m)
-    picked, views = [], []
-    seen: set = set()
-    for i in order.tolist():
-        v = c.views[i]
-        if v is None:
-            continue
-        key = tuple(np.floor(v / vox).astype(np.int64).tolist())
-        if key not in seen:                                      # one goal per viewpoint voxel
-            seen.add(key)
-            picked.append(i)
-            views.append(v)
+    picked, views = _one_per_voxel(order, c.views, vox)
     if picked:
         pv = np.asarray(views, np.float64).reshape(-1, 3)
         dist = np.zeros(len(picked)) if start is None else np.linalg.norm(pv - start, axis=1)

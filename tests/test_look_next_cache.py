@@ -191,3 +191,14 @@ def test_viewpoints_equal_a_cell_by_cell_search():
             assert np.array_equal(v, want)
             found += 1
     assert 10 < found < len(centres)          # both cases met
+
+
+def test_nearest_frontiers_equal_the_general_ranking():
+    """The nearest-frontier list (one partition of the distances) against the general
+    score-then-distance ranking with every score 0, ties in distance included."""
+    from planning.look_next import _best_first, _nearest
+
+    rng = np.random.default_rng(5)
+    for n, k in [(0, 3), (5, 9), (400, 1), (400, 64), (3000, 200)]:
+        dist = rng.integers(0, 40, n).astype(np.float64) * 0.5       # many equal distances
+        assert np.array_equal(_nearest(dist, k), _best_first(np.zeros(n), dist, k))

@@ -60,7 +60,8 @@ class LoopSettings:
     #: ``rayfronts eval search`` uses by default), "vocabulary" = the generic vocabulary less
     #: every class name of the world (:func:`~apps.closed_loop.generic_vocabulary.vocabulary_without`:
     #: a target then competes with the nearest common noun — "tower" for a radio tower read as a
-    #: water tower — never with the name of the class it is confused with), "world" = every class of the world but the target
+    #: water tower — never with the name of the class it is confused with), "world" = every
+    #: class of the world but the target
     #: (what the paper's querying softmaxes over: all class names), "default" = the mapper's
     #: ``search.background`` (building, road, ground, tree, sky: a radio tower then reads as a
     #: water tower, nothing else in the softmax being closer)
