@@ -338,29 +338,34 @@ def _target_softmax(sim: torch.Tensor, n_targets: int, temperature: float) -> np
     return p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False)
 
 
-def _ray_scores(prep: PreparedRows, q: torch.Tensor, n_targets: int, temperature: float
+def _ray_scores(prep: PreparedRows, q: torch.Tensor, n_targets: int, temperature: float, nearest: int = 0
                 ) -> tuple[np.ndarray, np.ndarray]:
     """(T, N) softmax probabilities of the targets over targets + background, and (T, N)
-    the rows' :func:`distinct_cosines` (one similarity pass for both)."""
+    the rows' :func:`distinct_cosines` (``nearest`` phrases; one similarity pass for both)."""
     if len(prep) == 0:
         return np.zeros((n_targets, 0), np.float32), np.zeros((n_targets, 0), np.float32)
     sim = score_rows(prep, q, None)
-    return _target_softmax(sim, n_targets, temperature), distinct_cosines(sim.detach().cpu().numpy(), q, n_targets)
+    return (_target_softmax(sim, n_targets, temperature),
+            distinct_cosines(sim.detach().cpu().numpy(), q, n_targets, nearest))
 
 
-def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int) -> np.ndarray:
+def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int, nearest: int = 0) -> np.ndarray:
     """(T, N): each row's cosine to what sets each target apart from the other phrases — the
     part ``u`` of the target's unit embedding that no combination of the other phrases'
     unit embeddings explains (least squares), from the rows' cosines ``sim`` (Q, N) to the
     ``Q`` phrases ``q``: ``(cos_t − Σ_j a_j cos_j) / |u|``. A ray toward a class similar to
     the target (a radio tower for a water tower) reads ~0, one that holds a share of the
     target reads that share; the raw cosine where there is no other phrase, 0 where the
-    others explain the target wholly."""
+    others explain the target wholly. ``nearest`` > 0: only the target's ``nearest`` closest
+    other phrases (cosine of the embeddings; ties by order) explain it — a vocabulary of a
+    hundred phrases spans the whole feature space and would explain every target."""
     s = np.asarray(sim, np.float64)
     qn = torch.nn.functional.normalize(q.to(torch.float64), dim=1).cpu().numpy()
     out = np.zeros((n_targets, s.shape[1]), np.float32)
     for t in range(n_targets):
         rest = np.r_[0:t, t + 1:len(qn)]
+        if 0 < nearest < len(rest):
+            rest = np.sort(rest[np.argsort(-(qn[rest] @ qn[t]), kind="stable")[:nearest]])
         if not len(rest):
             out[t] = s[t]
             continue
@@ -580,7 +585,7 @@ def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: Ma
     def score() -> _Scored:
         vs = _voxel_probabilities(snap, fs, vprep, q, T, scfg.temperature, cfg.device)
         with one_thread():                      # a few thousand rays: no parallel region
-            return _Scored(vs, *_ray_scores(rprep, q, T, scfg.temperature))
+            return _Scored(vs, *_ray_scores(rprep, q, T, scfg.temperature, scfg.distinct_phrases))
 
     sc = _scored(snap, _scored_key(snap, fs, q_all, req, phrases, len(background), cfg), score)
     rs, rcos = sc.rs, sc.rcos

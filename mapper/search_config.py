@@ -32,6 +32,10 @@ class SearchSection(StandingLimits):
                                                     "within this of the median ray's is not an outlier (ray_z 0): "
                                                     "the features cross the wire as float16, whose rounding moves "
                                                     "a cosine by up to ~2^-11; 0 = off")
+    distinct_phrases: int = field_(8, "ray_z's evidence is a ray's cosine to what sets a target apart from its this "
+                                      "many nearest other phrases (by text embedding; the others explain nothing "
+                                      "of it): a large background, a vocabulary, would otherwise explain the whole "
+                                      "target and leave no evidence; 0 = every other phrase")
     beyond_rays: int = field_(20, "best rays per target considered for triangulation")
     max_gap_m: float = field_(2.0, "two rays triangulate when they pass within this distance")
     angle_err_deg: float = field_(0.0, "direction uncertainty of a ray (estimate radius); 0 = half the map's "
@@ -55,6 +59,8 @@ class SearchSection(StandingLimits):
         if not self.ray_cosine_resolution >= 0.0:         # NaN too
             raise ConfigError(f"search.ray_cosine_resolution={self.ray_cosine_resolution}: must be >= 0 "
                               "(0 = every deviation from the median counts)")
+        if self.distinct_phrases < 0:
+            raise ConfigError(f"search.distinct_phrases={self.distinct_phrases}: must be >= 0 (0 = every other phrase)")
         if not 0.0 < self.identity_threshold < 1.0:
             raise ConfigError(f"search.identity_threshold={self.identity_threshold}: must be a probability in (0, 1)")
         if self.instance_grace < 0:

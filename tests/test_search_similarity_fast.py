@@ -286,3 +286,32 @@ def test_distinct_cosines_against_the_projection_and_a_similar_class_reads_zero(
     assert np.allclose(distinct_cosines(sim[:1], q[:1], 1), sim[:1], atol=1e-6)    # no other phrase
     twin = torch.cat([q[:1], q[:1]])                                 # the others explain it wholly
     assert not distinct_cosines(np.vstack([sim[:1], sim[:1]]), twin, 1).any()
+
+
+def test_distinct_cosines_against_the_nearest_phrases_of_a_vocabulary():
+    """A background of more phrases than the features have dimensions (a vocabulary) explains
+    every target wholly: no ray keeps any evidence. Against the target's few nearest phrases
+    (``search.distinct_phrases``) the evidence is that of those phrases alone (the projection
+    computed here on the vectors), and among rays toward what resembles the target, those
+    holding a share of it stand out."""
+    from mapper.search_answer import distinct_cosines
+
+    rng = np.random.default_rng(4)
+    D = 16
+    water = rng.normal(size=D)
+    water /= np.linalg.norm(water)
+    vocab = rng.normal(size=(40, D))                                 # spans the space
+    vocab /= np.linalg.norm(vocab, axis=1, keepdims=True)
+    q = torch.as_tensor(np.vstack([water, vocab]), dtype=torch.float64)
+    near = np.argsort(-(vocab @ water), kind="stable")[:5]
+    mix = rng.dirichlet(np.ones(5), 50) @ vocab[near]                   # rays toward what resembles it
+    rays = mix + 0.02 * rng.normal(size=(50, D)) + np.outer(np.r_[np.zeros(45), np.full(5, 0.3)], water)
+    f = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    sim = (f @ q.numpy().T).T
+    assert np.abs(distinct_cosines(sim, q, 1)).max() < 1e-6          # the whole vocabulary: nothing left
+    got = distinct_cosines(sim, q, 1, nearest=5)
+    rest = vocab[np.sort(near)]
+    u = water - rest.T @ np.linalg.lstsq(rest.T, water, rcond=None)[0]
+    assert np.allclose(got[0], f @ (u / np.linalg.norm(u)), atol=1e-5)
+    assert got[0, 45:].min() > got[0, :45].max()                     # the target's rays stand out
+    assert np.array_equal(distinct_cosines(sim, q, 1, nearest=40), distinct_cosines(sim, q, 1))
