@@ -317,6 +317,36 @@ def _overlap_pairs(prev: list[Instance], sorted_keys: np.ndarray, sorted_labels:
     return code // n_groups, code % n_groups, cnt.astype(np.int64)
 
 
+def _groups(keys: np.ndarray, labels: np.ndarray, conf: np.ndarray, min_voxels: int) -> tuple:
+    """The groups of at least ``min_voxels`` of voxels with strictly ascending packed ``keys``,
+    component ``labels`` (0..C-1) and confidences ``conf`` (all in key order), renumbered
+    0..G-1 in label order: ``(kept, labels, by_group, counts, index sums, minima, maxima,
+    max conf)`` — positions of the kept voxels, their new labels, positions in ``kept``
+    ordered by group then key, and per group (G,) / (G, 3) int64 / (G,) float64. The map's
+    C++ kernel when built (``semantic_map.voxel_instance_groups``), else numpy; the same."""
+    import semantic_map
+
+    got = semantic_map.voxel_instance_groups(keys, labels, conf, min_voxels) if len(keys) >= KERNEL_MIN_VOXELS else None
+    if got is not None:
+        return got
+    sizes = np.bincount(labels) if len(labels) else np.zeros((0,), np.int64)
+    keep = np.flatnonzero(sizes >= min_voxels)
+    remap = np.full(len(sizes), -1, np.int64)
+    remap[keep] = np.arange(len(keep))
+    sel = np.flatnonzero(remap[labels] >= 0) if len(labels) else np.zeros((0,), np.int64)
+    kl = remap[labels[sel]]
+    by_group = np.argsort(kl, kind="stable")          # grouped, keys ascending within a group
+    counts = sizes[keep].astype(np.int64)
+    if not len(counts):
+        z = np.zeros((0, 3), np.int64)
+        return sel, kl, by_group, counts, z, z, z, np.zeros((0,), np.float64)
+    starts = np.zeros(len(counts), np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    gijk = unpack_keys(keys[sel][by_group])
+    return (sel, kl, by_group, counts, np.add.reduceat(gijk, starts, axis=0), np.minimum.reduceat(gijk, starts, axis=0),
+            np.maximum.reduceat(gijk, starts, axis=0), np.maximum.reduceat(conf[sel][by_group], starts))
+
+
 class InstanceTracker:
     """Stable instance ids per target across map updates (see the module docstring).
 
@@ -382,26 +412,20 @@ class InstanceTracker:
             order = np.argsort(keys, kind="stable")     # the one sort: labels come in key order
             labels = labels_of_sorted(keys[order])
             self._components[target] = (keys, order, labels)
-        sizes = np.bincount(labels) if len(labels) else np.zeros((0,), np.int64)
-        keep = np.flatnonzero(sizes >= self.min_voxels)
-        remap = np.full(len(sizes), -1, np.int64)
-        remap[keep] = np.arange(len(keep))
-        sel = np.flatnonzero(remap[labels] >= 0) if len(labels) else np.zeros((0,), np.int64)
-        order, labels = order[sel], remap[labels[sel]]    # kept voxels, keys ascending
-        skeys, sconf = keys[order], conf[order]
-        sizes = sizes[keep]
+        skeys = keys[order]
+        sel, labels, by_group, counts, isum, imin, imax, cmax = _groups(skeys, labels, conf[order], self.min_voxels)
+        skeys = skeys[sel]                                # kept voxels, keys ascending, their groups
         cur = self.instances.get(target, [])
         gone = self.missing.get(target, [])
         prev = cur + [g for g, _ in gone]            # missing instances stay matchable (grace)
-        n_groups = len(sizes)
-        by_group = np.argsort(labels, kind="stable")      # grouped, keys ascending within a group
+        n_groups = len(counts)
         bounds = np.zeros(n_groups + 1, np.int64)
-        np.cumsum(sizes, out=bounds[1:])
+        np.cumsum(counts, out=bounds[1:])
         pi, pj, pc = _overlap_pairs(prev, skeys, labels, n_groups)
         # each previous instance goes to its largest overlapping group (ties: lowest group label)
         goes_to = np.full(len(prev), -1, np.int64)
         if len(pi):
-            o = np.lexsort((pj, -sizes[pj], pi))
+            o = np.lexsort((pj, -counts[pj], pi))
             first = np.flatnonzero(np.r_[True, pi[o][1:] != pi[o][:-1]])
             goes_to[pi[o][first]] = pj[o][first]
         # a group without heirs splits from the previous instance overlapping it most (ties: lowest i)
@@ -414,15 +438,10 @@ class InstanceTracker:
         for i in np.flatnonzero(goes_to >= 0):
             heirs_of.setdefault(int(goes_to[i]), []).append(prev[i])
         gkeys = skeys[by_group]
-        gijk = unpack_keys(gkeys)
-        counts = sizes
-        starts = bounds[:-1]
         if n_groups:
-            isum = np.add.reduceat(gijk, starts, axis=0).astype(np.float64)
-            centroid = (isum / counts[:, None] + 0.5) * self.vox
-            bmin = voxel_center(np.minimum.reduceat(gijk, starts, axis=0), self.vox)
-            bmax = voxel_center(np.maximum.reduceat(gijk, starts, axis=0), self.vox)
-            cmax = np.maximum.reduceat(sconf[by_group], starts)
+            centroid = (isum.astype(np.float64) / counts[:, None] + 0.5) * self.vox
+            bmin = voxel_center(imin, self.vox)
+            bmax = voxel_center(imax, self.vox)
         events: list[InstanceEvent] = []
         out: list[Instance] = []
         for j in range(n_groups):

@@ -11,7 +11,8 @@ Outside this package the map is reached through ``RayFrontsMap``'s methods only 
 layers (``voxels``, ``frontiers``, ``rays``, ``voxel_xyz``, ``ray_geometry`` ...), the
 read-only ``occupancy_view``, ``stats`` / ``memory_parts``, ``export_state`` /
 ``RayFrontsMap.from_state`` for snapshots. ``voxel_components_26`` is the map's C++ kernel
-for the 26-connected components of a sorted voxel key set (the planners' instance labelling).
+for the 26-connected components of a sorted voxel key set (the planners' instance labelling),
+``voxel_instance_groups`` the one for the kept groups' statistics of such a labelled set.
 
 Conventions (frames, units, voxel indexing) are those of ``docs/conventions.md``.
 """
@@ -24,7 +25,7 @@ if TYPE_CHECKING:
     from semantic_map.map import RayFrontsMap
     from semantic_map.occupancy.base import OccupancyView
 
-__all__ = ["RayFrontsMap", "MapConfig", "OccupancyView", "voxel_components_26"]
+__all__ = ["RayFrontsMap", "MapConfig", "OccupancyView", "voxel_components_26", "voxel_instance_groups"]
 
 
 def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` loads no map
@@ -40,4 +41,7 @@ def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` 
     if name == "voxel_components_26":  # the C++ labelling of a voxel key set (None: kernels off)
         from semantic_map.kernels import components_26_sorted
         return components_26_sorted
+    if name == "voxel_instance_groups":  # the C++ group step of instance tracking (None: kernels off)
+        from semantic_map.kernels import instance_groups
+        return instance_groups
     raise AttributeError(name)

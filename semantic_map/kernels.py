@@ -84,6 +84,18 @@ def components_26_sorted(keys: np.ndarray) -> np.ndarray | None:
     return _rfkernels.components_26_sorted(np.ascontiguousarray(keys, np.int64))
 
 
+def instance_groups(keys: np.ndarray, labels: np.ndarray, conf: np.ndarray, min_voxels: int) -> tuple | None:
+    """Kernel-only: the group step of ``planning.instances.InstanceTracker.update`` for voxels
+    of strictly ascending packed ``keys`` with component ``labels`` and confidences ``conf``
+    (all in key order): ``(kept, labels, by_group, counts, index sums, minima, maxima, max
+    conf)`` of the groups of at least ``min_voxels`` (``planning.instances._groups``); None
+    when the kernels are missing or disabled."""
+    if not enabled() or not hasattr(_rfkernels, "instance_groups"):
+        return None
+    return _rfkernels.instance_groups(np.ascontiguousarray(keys, np.int64), np.ascontiguousarray(labels, np.int64),
+                                      np.ascontiguousarray(conf, np.float64), int(min_voxels))
+
+
 def unique_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``torch.unique(keys, sorted=True, return_inverse=True, return_counts=True)`` for a
     1-D int64 tensor: (sorted unique, inverse (N,) int64, counts int64)."""

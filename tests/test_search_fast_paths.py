@@ -151,7 +151,7 @@ class _ReferenceTracker:
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_tracker_matches_reference(seed: int):
+def test_tracker_matches_reference(seed: int, labelling: str):
     rng = np.random.default_rng(100 + seed)
     fast, ref = inst.InstanceTracker(0.2, 2), _ReferenceTracker(0.2, 2)
     base = _random_voxels(rng, 500, 11, spread=0 if seed % 2 else 300)
@@ -170,6 +170,30 @@ def test_tracker_matches_reference(seed: int):
             assert (g.id, g.confidence, g.voxels, g.observations, g.first_seen, g.last_seen) == (
                 w["id"], w["confidence"], w["voxels"], w["observations"], w["first_seen"], w["last_seen"])
             assert g.keys.tolist() == w["keys"]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_group_kernel_equals_the_numpy_group_step(seed: int):
+    """The tracker's group step (kept groups, their order, index sums / minima / maxima and max
+    confidence) in C++ (``semantic_map.voxel_instance_groups``) and in numpy, on labelled
+    random sets with groups below ``min_voxels`` among them, and on an empty set."""
+    assert kernels.available(), f"the C++ kernels are not built: {kernels.IMPORT_ERROR}"
+    rng = np.random.default_rng(300 + seed)
+    ijk = _random_voxels(rng, 200 + 900 * seed, 14, spread=0 if seed % 2 else 400)
+    lone = np.stack([100 + 3 * np.arange(9), np.full(9, 100), np.full(9, -100)], 1)     # groups of one
+    keys = np.sort(inst.pack_ijk(np.concatenate([ijk, lone])))
+    labels = inst.labels_of_sorted(keys)
+    conf = rng.random(len(keys))
+    for min_voxels in (1, 3, 20):
+        got = semantic_map.voxel_instance_groups(keys, labels, conf, min_voxels)
+        with kernels.disabled():
+            want = inst._groups(keys, labels, conf, min_voxels)
+        assert len(want[3]) > 0 and (min_voxels == 1 or len(want[0]) < len(keys))
+        for g, w in zip(got, want, strict=True):
+            assert g.dtype == w.dtype and np.array_equal(g, w)
+    empty = np.zeros((0,), np.int64)
+    got = semantic_map.voxel_instance_groups(empty, empty, np.zeros(0), 3)
+    assert [len(a) for a in got] == [0] * 8
 
 
 @pytest.mark.parametrize("dense", [True, False])

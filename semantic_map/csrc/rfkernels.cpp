@@ -27,6 +27,9 @@
 //   ascending packed keys (semantic_map.cell_keys layout), numbered 0..C-1 by each
 //   component's lowest key, as planning.instances.connected_26's numpy path: union-find over
 //   the 13 half-neighbours, found by one forward pointer per neighbouring (i, j) row (O(N)).
+// * instance_groups(keys, labels, conf, min_voxels): the kept groups of a labelled voxel set
+//   (planning.instances.InstanceTracker.update's numpy group step): counting sort by group,
+//   index sums / minima / maxima and max confidence per group.
 // * half_scores(...) (half_scores.cpp): the query snapshot's float16 text-query product; the
 //   one kernel that is not bit-identical to its torch twin (float32 instead of float16
 //   rounding: within the documented score tolerance, closer to the exact cosine).
@@ -408,17 +411,22 @@ nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
             }
             return x;
         };
-        auto unite = [&](int64_t a, int64_t b) {
-            a = find(a);
-            b = find(b);
-            if (a < b) parent[b] = a;
-            else if (b < a) parent[a] = b;
+        // p's root is found once and kept (rp) while its later neighbours are joined to it
+        auto join = [&](int64_t& rp, int64_t q) {
+            const int64_t rq = find(q);
+            if (rq < rp) {
+                parent[rp] = rq;
+                rp = rq;
+            } else if (rp < rq) {
+                parent[rq] = rp;
+            }
         };
         const int rows[4][2] = {{0, 1}, {1, -1}, {1, 0}, {1, 1}};   // (di, dj) of the half-neighbour rows
         size_t ptr[4] = {0, 0, 0, 0};
         for (size_t p = 0; p < n; ++p) {      // signed voxel indices, as pack_key takes them
             const int64_t a = (k[p] >> 42) - off, b = ((k[p] >> 21) & mask) - off, c = (k[p] & mask) - off;
-            if (c < kIdxHi && p + 1 < n && k[p + 1] == k[p] + 1) unite(int64_t(p), int64_t(p + 1));   // (0, 0, 1)
+            int64_t rp = find(int64_t(p));
+            if (c < kIdxHi && p + 1 < n && k[p + 1] == k[p] + 1) join(rp, int64_t(p + 1));   // (0, 0, 1)
             for (int r = 0; r < 4; ++r) {
                 const int64_t a2 = a + rows[r][0], b2 = b + rows[r][1];
                 if (a2 > kIdxHi || b2 < kIdxLo || b2 > kIdxHi) continue;
@@ -426,7 +434,7 @@ nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
                 size_t q = ptr[r];
                 while (q < n && k[q] < lo) ++q;
                 ptr[r] = q;
-                for (; q < n && k[q] <= hi; ++q) unite(int64_t(p), int64_t(q));
+                for (; q < n && k[q] <= hi; ++q) join(rp, int64_t(q));
             }
         }
         int64_t next = 0;
@@ -438,12 +446,80 @@ nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
     return to_numpy(std::move(label), {n});
 }
 
+// Instances of a labelled voxel set (planning.instances.InstanceTracker.update's group step):
+// keys strictly ascending, labels from components_26_sorted (0..C-1), conf in key order.
+// Groups of at least min_voxels are kept and renumbered 0..G-1 in label order. Returns
+// (kept: positions in key order of the kept voxels, their new labels, by_group: positions in
+// `kept` ordered by group then key, counts, index sums (G, 3), minima (G, 3), maxima (G, 3),
+// max conf (G,)), as the numpy path computes them.
+nb::tuple instance_groups(I64In keys, I64In labels, F64In conf, int64_t min_voxels) {
+    const size_t n = keys.shape(0);
+    if (labels.shape(0) != n || conf.shape(0) != n) throw std::invalid_argument("instance_groups: lengths differ");
+    std::vector<int64_t> kept, klab, by_group, counts, isum, imin, imax;
+    std::vector<double> cmax;
+    {
+        nb::gil_scoped_release release;
+        const int64_t* k = keys.data();
+        const int64_t* lab = labels.data();
+        const double* c = conf.data();
+        int64_t n_lab = 0;
+        for (size_t p = 0; p < n; ++p) {
+            if (lab[p] < 0) throw std::invalid_argument("instance_groups: negative label");
+            n_lab = std::max(n_lab, lab[p] + 1);
+        }
+        std::vector<int64_t> size(size_t(n_lab), 0), remap(size_t(n_lab), -1);
+        for (size_t p = 0; p < n; ++p) ++size[lab[p]];
+        int64_t g_n = 0;
+        for (int64_t l = 0; l < n_lab; ++l)
+            if (size[l] >= min_voxels) remap[l] = g_n++;
+        const size_t G = size_t(g_n);
+        counts.assign(G, 0);
+        for (int64_t l = 0; l < n_lab; ++l)
+            if (remap[l] >= 0) counts[remap[l]] = size[l];
+        kept.reserve(n);
+        klab.reserve(n);
+        for (size_t p = 0; p < n; ++p)
+            if (remap[lab[p]] >= 0) {
+                kept.push_back(int64_t(p));
+                klab.push_back(remap[lab[p]]);
+            }
+        const size_t M = kept.size();
+        std::vector<int64_t> at(G, 0);
+        for (size_t g = 1; g < G; ++g) at[g] = at[g - 1] + counts[g - 1];
+        by_group.resize(M);
+        for (size_t m = 0; m < M; ++m) by_group[at[klab[m]]++] = int64_t(m);   // stable: key order in a group
+        constexpr int64_t off = int64_t(1) << 20, mask = (int64_t(1) << 21) - 1;
+        isum.assign(3 * G, 0);
+        imin.assign(3 * G, std::numeric_limits<int64_t>::max());
+        imax.assign(3 * G, std::numeric_limits<int64_t>::min());
+        cmax.assign(G, -std::numeric_limits<double>::infinity());
+        for (size_t m = 0; m < M; ++m) {
+            const size_t g = size_t(klab[m]);
+            const int64_t key = k[kept[m]];
+            const int64_t ijk[3] = {(key >> 42) - off, ((key >> 21) & mask) - off, (key & mask) - off};
+            for (int a = 0; a < 3; ++a) {
+                isum[3 * g + a] += ijk[a];
+                imin[3 * g + a] = std::min(imin[3 * g + a], ijk[a]);
+                imax[3 * g + a] = std::max(imax[3 * g + a], ijk[a]);
+            }
+            cmax[g] = std::max(cmax[g], c[kept[m]]);
+        }
+    }
+    const size_t M = kept.size(), G = counts.size();
+    return nb::make_tuple(to_numpy(std::move(kept), {M}), to_numpy(std::move(klab), {M}),
+                          to_numpy(std::move(by_group), {M}), to_numpy(std::move(counts), {G}),
+                          to_numpy(std::move(isum), {G, 3}), to_numpy(std::move(imin), {G, 3}),
+                          to_numpy(std::move(imax), {G, 3}), to_numpy(std::move(cmax), {G}));
+}
+
 }  // namespace
 
 NB_MODULE(_rfkernels, m) {
     m.doc() = "CPU kernels for the RayFronts mapper (hash unique, ray-frontier candidates); see semantic_map.kernels";
     m.def("unique_i64", &unique_i64, nb::arg("keys"));
     m.def("components_26_sorted", &components_26_sorted, nb::arg("keys"));
+    m.def("instance_groups", &instance_groups, nb::arg("keys"), nb::arg("labels"), nb::arg("conf"),
+          nb::arg("min_voxels"));
     m.def("group_pairs", &group_pairs, nb::arg("group"), nb::arg("idx"), nb::arg("wt"), nb::arg("n_groups"),
           nb::arg("n_src"));
     m.def("sample_pairs", &sample_pairs, nb::arg("group"), nb::arg("pix"), nb::arg("H"), nb::arg("W"), nb::arg("h"),
