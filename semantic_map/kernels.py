@@ -77,11 +77,11 @@ def _np(t: torch.Tensor, dtype: torch.dtype):
 def components_26_sorted(keys: np.ndarray) -> np.ndarray | None:
     """Kernel-only: (N,) int64 26-connected component of each voxel of strictly ascending
     packed keys ``keys`` (N,) (:mod:`semantic_map.cell_keys` layout), numbered ``0..C-1`` by
-    each component's lowest key; None when the kernels are missing or disabled (the caller
-    takes its own path: ``planning.instances.connected_26``)."""
+    each component's lowest key, on torch's thread count; None when the kernels are missing
+    or disabled (the caller takes its own path: ``planning.instances.connected_26``)."""
     if not enabled() or not hasattr(_rfkernels, "components_26_sorted"):
         return None
-    return _rfkernels.components_26_sorted(np.ascontiguousarray(keys, np.int64))
+    return _rfkernels.components_26_sorted(np.ascontiguousarray(keys, np.int64), max(1, torch.get_num_threads()))
 
 
 def instance_groups(keys: np.ndarray, labels: np.ndarray, conf: np.ndarray, min_voxels: int) -> tuple | None:

@@ -284,3 +284,21 @@ def test_connected_26_split_declines_boxes_that_overlap(monkeypatch, labelling: 
     want = _bfs_components(ijk)
     assert want.max() == 2                                    # the L, the block and its chain, two far voxels
     assert np.array_equal(inst.connected_26(ijk), want)
+
+
+def test_labelling_kernel_on_two_threads_equals_one_and_numpy():
+    """The labelling kernel splits a large set into spans of whole i-slabs, one per thread,
+    then joins the edges across the cuts: on a set large enough for two spans (components
+    crossing the cut among them) the labels equal one thread's and the numpy path's."""
+    from semantic_map import _rfkernels
+
+    assert kernels.available(), f"the C++ kernels are not built: {kernels.IMPORT_ERROR}"
+    rng = np.random.default_rng(9)
+    ijk = np.unique(rng.integers(0, 90, (260_000, 3)), axis=0)          # ~30 % dense: large components
+    keys = np.sort(inst.pack_ijk(ijk))
+    one = _rfkernels.components_26_sorted(keys, 1)
+    two = _rfkernels.components_26_sorted(keys, 2)
+    assert len(keys) >= 2 * 65536 and one.max() > 10
+    assert np.array_equal(one, two)
+    with kernels.disabled():
+        assert np.array_equal(inst.connected_26(inst.unpack_keys(keys)), two)

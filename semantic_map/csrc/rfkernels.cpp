@@ -26,7 +26,8 @@
 // * components_26_sorted(keys): 26-connected components of a voxel set given as strictly
 //   ascending packed keys (semantic_map.cell_keys layout), numbered 0..C-1 by each
 //   component's lowest key, as planning.instances.connected_26's numpy path: union-find over
-//   the 13 half-neighbours, found by one forward pointer per neighbouring (i, j) row (O(N)).
+//   the 13 half-neighbours, found by one forward pointer per neighbouring (i, j) row (O(N));
+//   on up to `threads` threads over spans of whole i-slabs, then the edges across the cuts.
 // * instance_groups(keys, labels, conf, min_voxels): the kept groups of a labelled voxel set
 //   (planning.instances.InstanceTracker.update's numpy group step): counting sort by group,
 //   index sums / minima / maxima and max confidence per group.
@@ -50,6 +51,7 @@
 #include <limits>
 #include <numeric>
 #include <stdexcept>
+#include <thread>
 #include <vector>
 
 namespace nb = nanobind;
@@ -393,7 +395,7 @@ nb::tuple segment_cells_unique(F64x3In o, F64x3In e, double cell, I64In chunk_lo
 }
 
 // 26-connected components of strictly ascending packed voxel keys (file comment).
-nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
+nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys, int threads) {
     const size_t n = keys.shape(0);
     std::vector<int64_t> label(n);
     {
@@ -421,21 +423,44 @@ nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys) {
                 parent[rq] = rp;
             }
         };
-        const int rows[4][2] = {{0, 1}, {1, -1}, {1, 0}, {1, 1}};   // (di, dj) of the half-neighbour rows
-        size_t ptr[4] = {0, 0, 0, 0};
-        for (size_t p = 0; p < n; ++p) {      // signed voxel indices, as pack_key takes them
-            const int64_t a = (k[p] >> 42) - off, b = ((k[p] >> 21) & mask) - off, c = (k[p] & mask) - off;
-            int64_t rp = find(int64_t(p));
-            if (c < kIdxHi && p + 1 < n && k[p + 1] == k[p] + 1) join(rp, int64_t(p + 1));   // (0, 0, 1)
-            for (int r = 0; r < 4; ++r) {
-                const int64_t a2 = a + rows[r][0], b2 = b + rows[r][1];
-                if (a2 > kIdxHi || b2 < kIdxLo || b2 > kIdxHi) continue;
-                const int64_t lo = pack_key(a2, b2, std::max(c - 1, kIdxLo)), hi = pack_key(a2, b2, std::min(c + 1, kIdxHi));
-                size_t q = ptr[r];
-                while (q < n && k[q] < lo) ++q;
-                ptr[r] = q;
-                for (; q < n && k[q] <= hi; ++q) join(rp, int64_t(q));
+        // join each voxel p in [p_lo, p_hi) to its half-neighbours q in [q_lo, q_hi); spans of
+        // whole i-slabs touch disjoint parents, so they run side by side
+        auto unite_span = [&](size_t p_lo, size_t p_hi, size_t q_lo, size_t q_hi) {
+            const int rows[4][2] = {{0, 1}, {1, -1}, {1, 0}, {1, 1}};   // (di, dj) of the half-neighbour rows
+            size_t ptr[4] = {q_lo, q_lo, q_lo, q_lo};
+            for (size_t p = p_lo; p < p_hi; ++p) {      // signed voxel indices, as pack_key takes them
+                const int64_t a = (k[p] >> 42) - off, b = ((k[p] >> 21) & mask) - off, c = (k[p] & mask) - off;
+                int64_t rp = find(int64_t(p));
+                if (c < kIdxHi && p + 1 < q_hi && p + 1 >= q_lo && k[p + 1] == k[p] + 1) join(rp, int64_t(p + 1));
+                for (int r = 0; r < 4; ++r) {
+                    const int64_t a2 = a + rows[r][0], b2 = b + rows[r][1];
+                    if (a2 > kIdxHi || b2 < kIdxLo || b2 > kIdxHi) continue;
+                    const int64_t lo = pack_key(a2, b2, std::max(c - 1, kIdxLo));
+                    const int64_t hi = pack_key(a2, b2, std::min(c + 1, kIdxHi));
+                    size_t q = ptr[r];
+                    while (q < q_hi && k[q] < lo) ++q;
+                    ptr[r] = q;
+                    for (; q < q_hi && k[q] <= hi; ++q) join(rp, int64_t(q));
+                }
             }
+        };
+        // spans: about n / T voxels each, cut where the i index changes
+        const size_t T = std::max<size_t>(1, std::min<size_t>(size_t(std::max(threads, 1)), n / 65536));
+        std::vector<size_t> cut{0};
+        for (size_t t = 1; t < T; ++t) {
+            size_t m = std::max(cut.back() + 1, t * n / T);
+            while (m < n && (k[m] >> 42) == (k[m - 1] >> 42)) ++m;
+            if (m < n) cut.push_back(m);
+        }
+        cut.push_back(n);
+        std::vector<std::thread> pool;
+        for (size_t s = 1; s + 1 < cut.size(); ++s) pool.emplace_back(unite_span, cut[s], cut[s + 1], cut[s], cut[s + 1]);
+        unite_span(cut[0], cut[1], cut[0], cut[1]);
+        for (auto& th : pool) th.join();
+        for (size_t s = 1; s + 1 < cut.size(); ++s) {   // the edges across a cut: last slab before it -> after it
+            size_t first = cut[s] - 1;
+            while (first > cut[s - 1] && (k[first - 1] >> 42) == (k[cut[s] - 1] >> 42)) --first;
+            unite_span(first, cut[s], cut[s], cut[s + 1]);
         }
         int64_t next = 0;
         for (size_t p = 0; p < n; ++p) {
@@ -517,7 +542,7 @@ nb::tuple instance_groups(I64In keys, I64In labels, F64In conf, int64_t min_voxe
 NB_MODULE(_rfkernels, m) {
     m.doc() = "CPU kernels for the RayFronts mapper (hash unique, ray-frontier candidates); see semantic_map.kernels";
     m.def("unique_i64", &unique_i64, nb::arg("keys"));
-    m.def("components_26_sorted", &components_26_sorted, nb::arg("keys"));
+    m.def("components_26_sorted", &components_26_sorted, nb::arg("keys"), nb::arg("threads") = 1);
     m.def("instance_groups", &instance_groups, nb::arg("keys"), nb::arg("labels"), nb::arg("conf"),
           nb::arg("min_voxels"));
     m.def("group_pairs", &group_pairs, nb::arg("group"), nb::arg("idx"), nb::arg("wt"), nb::arg("n_groups"),
