@@ -414,10 +414,11 @@ class InstanceTracker:
             self._components[target] = (keys, order, labels)
         skeys = keys[order]
         sel, labels, by_group, counts, isum, imin, imax, cmax = _groups(skeys, labels, conf[order], self.min_voxels)
-        skeys = skeys[sel]                                # kept voxels, keys ascending, their groups
         cur = self.instances.get(target, [])
         gone = self.missing.get(target, [])
         prev = cur + [g for g, _ in gone]            # missing instances stay matchable (grace)
+        gkeys = skeys[sel[by_group]]                      # kept voxels by group, keys ascending in each
+        skeys = skeys[sel] if prev else skeys[:0]         # kept voxels, keys ascending (for the overlaps)
         n_groups = len(counts)
         bounds = np.zeros(n_groups + 1, np.int64)
         np.cumsum(counts, out=bounds[1:])
@@ -437,7 +438,6 @@ class InstanceTracker:
         heirs_of: dict[int, list[Instance]] = {}
         for i in np.flatnonzero(goes_to >= 0):
             heirs_of.setdefault(int(goes_to[i]), []).append(prev[i])
-        gkeys = skeys[by_group]
         if n_groups:
             centroid = (isum.astype(np.float64) / counts[:, None] + 0.5) * self.vox
             bmin = voxel_center(imin, self.vox)
