@@ -338,15 +338,43 @@ def _target_softmax(sim: torch.Tensor, n_targets: int, temperature: float) -> np
     return p[:n_targets].detach().cpu().numpy().astype(np.float32, copy=False)
 
 
-def _ray_scores(prep: PreparedRows, q: torch.Tensor, n_targets: int, temperature: float, nearest: int = 0
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _ray_scores(prep: PreparedRows, q: torch.Tensor, n_targets: int, temperature: float, nearest: int = 0,
+                evidence: str = "distinct") -> tuple[np.ndarray, np.ndarray]:
     """(T, N) softmax probabilities of the targets over targets + background, and (T, N)
-    the rows' :func:`distinct_cosines` (``nearest`` phrases; one similarity pass for both)."""
+    the rows' ray evidence: :func:`distinct_cosines` or (``evidence="margin"``)
+    :func:`margin_cosines` against ``nearest`` phrases (one similarity pass for all)."""
     if len(prep) == 0:
         return np.zeros((n_targets, 0), np.float32), np.zeros((n_targets, 0), np.float32)
     sim = score_rows(prep, q, None)
-    return (_target_softmax(sim, n_targets, temperature),
-            distinct_cosines(sim.detach().cpu().numpy(), q, n_targets, nearest))
+    s = sim.detach().cpu().numpy()
+    evidence_of = margin_cosines if evidence == "margin" else distinct_cosines
+    ev = evidence_of(s, q, n_targets, nearest)
+    return _target_softmax(sim, n_targets, temperature), ev
+
+
+def _nearest_phrases(qn: np.ndarray, t: int, nearest: int) -> np.ndarray:
+    """Indices of the phrases other than ``t`` (rows of unit embeddings ``qn``), only the
+    ``nearest`` closest to it when ``nearest`` > 0 (cosine; ties by order), ascending."""
+    rest = np.r_[0:t, t + 1:len(qn)]
+    if 0 < nearest < len(rest):
+        rest = np.sort(rest[np.argsort(-(qn[rest] @ qn[t]), kind="stable")[:nearest]])
+    return rest
+
+
+def margin_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int, nearest: int = 0) -> np.ndarray:
+    """(T, N): each row's cosine to each target less its best cosine to the target's
+    ``nearest`` closest other phrases (0: all others), from the rows' cosines ``sim`` (Q, N)
+    to the ``Q`` phrases ``q``: the target's margin over what resembles it. A ray toward a
+    similar class (a radio tower for a water tower) reads below a ray of sky — the similar
+    phrase ("tower") gains on it more than the target does — one holding a share of the target
+    reads above; the raw cosine where there is no other phrase."""
+    s = np.asarray(sim, np.float64)
+    qn = torch.nn.functional.normalize(q.to(torch.float64), dim=1).cpu().numpy()
+    out = np.zeros((n_targets, s.shape[1]), np.float32)
+    for t in range(n_targets):
+        rest = _nearest_phrases(qn, t, nearest)
+        out[t] = s[t] - s[rest].max(0) if len(rest) else s[t]
+    return out
 
 
 def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int, nearest: int = 0) -> np.ndarray:
@@ -363,9 +391,7 @@ def distinct_cosines(sim: np.ndarray, q: torch.Tensor, n_targets: int, nearest: 
     qn = torch.nn.functional.normalize(q.to(torch.float64), dim=1).cpu().numpy()
     out = np.zeros((n_targets, s.shape[1]), np.float32)
     for t in range(n_targets):
-        rest = np.r_[0:t, t + 1:len(qn)]
-        if 0 < nearest < len(rest):
-            rest = np.sort(rest[np.argsort(-(qn[rest] @ qn[t]), kind="stable")[:nearest]])
+        rest = _nearest_phrases(qn, t, nearest)
         if not len(rest):
             out[t] = s[t]
             continue
@@ -585,7 +611,7 @@ def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: Ma
     def score() -> _Scored:
         vs = _voxel_probabilities(snap, fs, vprep, q, T, scfg.temperature, cfg.device)
         with one_thread():                      # a few thousand rays: no parallel region
-            return _Scored(vs, *_ray_scores(rprep, q, T, scfg.temperature, scfg.distinct_phrases))
+            return _Scored(vs, *_ray_scores(rprep, q, T, scfg.temperature, scfg.distinct_phrases, scfg.ray_evidence))
 
     sc = _scored(snap, _scored_key(snap, fs, q_all, req, phrases, len(background), cfg), score)
     rs, rcos = sc.rs, sc.rcos

@@ -10,6 +10,10 @@ from mapper.leases import StandingLimits
 DEFAULT_BACKGROUND = ["building", "road", "ground", "tree", "sky"]
 
 
+#: the values of ``search.ray_evidence``
+RAY_EVIDENCE = ("distinct", "margin")
+
+
 @dataclass
 class SearchSection(StandingLimits):
     background: list[str] = field_(list(DEFAULT_BACKGROUND),
@@ -36,6 +40,10 @@ class SearchSection(StandingLimits):
                                       "many nearest other phrases (by text embedding; the others explain nothing "
                                       "of it): a large background, a vocabulary, would otherwise explain the whole "
                                       "target and leave no evidence; 0 = every other phrase")
+    ray_evidence: str = field_("distinct", "what ray_z z-scores: 'distinct', a ray's cosine to what sets the target "
+                                           "apart from its search.distinct_phrases nearest other phrases, or 'margin', "
+                                           "its cosine to the target less its best cosine to those phrases (a ray "
+                                           "toward a similar class reads below the sky's)")
     beyond_rays: int = field_(20, "best rays per target considered for triangulation")
     max_gap_m: float = field_(2.0, "two rays triangulate when they pass within this distance")
     angle_err_deg: float = field_(0.0, "direction uncertainty of a ray (estimate radius); 0 = half the map's "
@@ -59,6 +67,8 @@ class SearchSection(StandingLimits):
         if not self.ray_cosine_resolution >= 0.0:         # NaN too
             raise ConfigError(f"search.ray_cosine_resolution={self.ray_cosine_resolution}: must be >= 0 "
                               "(0 = every deviation from the median counts)")
+        if self.ray_evidence not in RAY_EVIDENCE:
+            raise ConfigError(f"search.ray_evidence={self.ray_evidence!r}: must be one of {', '.join(RAY_EVIDENCE)}")
         if self.distinct_phrases < 0:
             raise ConfigError(f"search.distinct_phrases={self.distinct_phrases}: must be >= 0 (0 = every other phrase)")
         if not 0.0 < self.identity_threshold < 1.0:

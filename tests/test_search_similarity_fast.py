@@ -315,3 +315,36 @@ def test_distinct_cosines_against_the_nearest_phrases_of_a_vocabulary():
     assert np.allclose(got[0], f @ (u / np.linalg.norm(u)), atol=1e-5)
     assert got[0, 45:].min() > got[0, :45].max()                     # the target's rays stand out
     assert np.array_equal(distinct_cosines(sim, q, 1, nearest=40), distinct_cosines(sim, q, 1))
+
+
+def test_margin_evidence_sets_the_target_apart_from_a_similar_class():
+    """``search.ray_evidence=margin``: a ray's cosine to the target less its best cosine to the
+    target's nearest other phrases (held to that computation on the cosines), on rays toward a
+    class similar to the target (a radio tower for a water tower: it shares a "tower" phrase's
+    direction) beside rays of sky and rays holding a small share of the target: against the
+    target's nearest phrase the target's rays read above the sky's, the similar class's below."""
+    from mapper.search_answer import margin_cosines
+    from planning.look_next import ray_outlier_z
+
+    rng = np.random.default_rng(6)
+    D = 24
+    basis = np.linalg.qr(rng.normal(size=(D, 5)))[0].T
+    tower, water_part, radio_part, sky, ground = basis
+    water_t, radio_t = tower + 0.5 * water_part, tower + 0.5 * radio_part         # the two classes
+    q = torch.as_tensor(np.vstack([water_t, tower, sky, ground]), dtype=torch.float64)   # target, "tower", ...
+    rays = [sky + 0.3 * ground + 0.02 * rng.normal(size=D) for _ in range(60)]
+    rays += [sky + 0.3 * ground + 0.4 * radio_t + 0.02 * rng.normal(size=D) for _ in range(4)]
+    rays += [sky + 0.3 * ground + 0.4 * water_t + 0.02 * rng.normal(size=D) for _ in range(4)]
+    f = np.vstack(rays)
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    qv = q.numpy() / np.linalg.norm(q.numpy(), axis=1, keepdims=True)
+    sim = qv @ f.T
+    got = margin_cosines(sim, q, 1, nearest=1)                      # "tower", the target's nearest phrase
+    assert np.allclose(got[0], sim[0] - sim[1], atol=1e-6)
+    both = margin_cosines(sim, q, 1, nearest=3)
+    assert np.allclose(both[0], sim[0] - sim[1:].max(0), atol=1e-6)
+    sky_rows, radio_rows, water_rows = np.arange(60), np.arange(60, 64), np.arange(64, 68)
+    assert got[0, water_rows].min() > got[0, sky_rows].max() > got[0, radio_rows].max()
+    z = ray_outlier_z(got[:1])[0]
+    assert z[water_rows].min() > 3.0 and z[radio_rows].max() < 0
+    assert np.allclose(margin_cosines(sim[:1], q[:1], 1), sim[:1])   # no other phrase: the raw cosine

@@ -66,6 +66,8 @@ class LoopSettings:
     #: ``search.background`` (building, road, ground, tree, sky: a radio tower then reads as a
     #: water tower, nothing else in the softmax being closer)
     background: str = "world"
+    #: what the ray policies' ``ray_z`` z-scores (``search.ray_evidence``): "distinct" or "margin"
+    ray_evidence: str = "distinct"
 
     def background_phrases(self, world: World) -> list[str] | None:
         """The phrases :attr:`background` names for ``world`` (None: the mapper's default)."""
@@ -270,7 +272,7 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
             from apps.closed_loop.world_model import LocalMapper, mapper_config
 
             cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                                settings.background_phrases(world))
+                                settings.background_phrases(world), settings.ray_evidence)
             mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m,
                                  score_poses=poses)
         _searching(world, mission, policy, robot, settings, chain, mapper, run, trace)

@@ -99,6 +99,7 @@ class SearchEvalConfig:
     sensor: str = "realistic"      # the depth sensor (SensorConfig.sensor)
     encoder: str = "sim"           # the image encoder (SensorConfig.encoder)
     pca_fit: str = "first_views"   # where the PCA basis comes from (SensorConfig.pca_fit)
+    ray_evidence: str = "distinct"  # what ray_z z-scores (LoopSettings.ray_evidence, search.ray_evidence)
     sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
     robots: int = 1                # the fleet's size (fleet policies: apps.closed_loop.fleet_episode)
     start: str = "together"        # the fleet's starts (fleet_episode.START_MODES)
@@ -133,6 +134,11 @@ class SearchEvalConfig:
         Platform.make(self.platform)
         if self.background not in BACKGROUNDS:
             raise ValueError(f"--background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
+        if self.ray_evidence not in ("distinct", "margin"):
+            raise ValueError(f"--ray-evidence must be distinct or margin, not {self.ray_evidence!r}")
+        if self.distributed and self.ray_evidence != "distinct":
+            raise ValueError("--distributed: the mapper process keeps its own search.ray_evidence; "
+                             "run --ray-evidence margin in process")
         if self.world not in WORLDS:
             raise ValueError(f"--world must be one of {', '.join(WORLDS)}, not {self.world!r}")
         if self.sensor not in SENSORS or self.pca_fit not in PCA_FITS or self.encoder not in ("sim", "label"):
@@ -192,7 +198,7 @@ def _episode(cfg: SearchEvalConfig, world, seed: int, mission, policy: str, sett
     from apps.closed_loop.world_model import mapper_config
 
     mcfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                         settings.background_phrases(world))
+                         settings.background_phrases(world), settings.ray_evidence)
     robot = Platform.make(settings.platform)
     with tempfile.TemporaryDirectory(dir=cfg.work_dir or None) as work, \
             LiveMapper(seed, "default", chain, mcfg, robot.costmap_band(settings.vox_m), settings.window_m,
@@ -236,6 +242,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
 
     cfg.validate()
     settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background,
+                             ray_evidence=cfg.ray_evidence,
                              sem_poses_min_z=cfg.sem_poses_min_z)
     robot = Platform.make(cfg.platform)
     rows: list[dict] = []

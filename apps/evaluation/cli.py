@@ -159,6 +159,9 @@ def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> Non
     se.add_argument("--pca-fit", choices=list(PCA_FITS), default="first_views",
                     help="PCA basis: the robot's first views (default), a generic vocabulary's text embeddings "
                          "without the world's class names, or views plus one cell per world class")
+    se.add_argument("--ray-evidence", choices=["distinct", "margin"], default="distinct",
+                    help="what the ray policies' ray_z z-scores: a ray's cosine to what sets the target apart from "
+                         "its nearest other phrases (default) or its margin over their best (search.ray_evidence)")
     se.add_argument("--sem-poses-min-z", type=float, default=None, metavar="Z",
                     help="sem-poses' margin z cut (default: policies.SEM_POSES_MIN_Z)")
     se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
@@ -202,7 +205,7 @@ def _search_config(args: argparse.Namespace):
                             budget_scale=args.budget_scale, resolution=args.resolution, step_m=args.step,
                             distributed=distributed, work_dir=getattr(args, "work_dir", ""),
                             background=args.background, world=args.world, sensor=args.sensor,
-                            encoder=args.encoder, pca_fit=args.pca_fit,
+                            encoder=args.encoder, pca_fit=args.pca_fit, ray_evidence=args.ray_evidence,
                             sem_poses_min_z=args.sem_poses_min_z, robots=robots,
                             start=getattr(args, "start", "together"),
                             footprint_m=float(getattr(args, "footprint", 8.0))).validate()
