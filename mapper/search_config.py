@@ -36,10 +36,10 @@ class SearchSection(StandingLimits):
                                                     "within this of the median ray's is not an outlier (ray_z 0): "
                                                     "the features cross the wire as float16, whose rounding moves "
                                                     "a cosine by up to ~2^-11; 0 = off")
-    distinct_phrases: int = field_(8, "ray_z's evidence is a ray's cosine to what sets a target apart from its this "
+    distinct_phrases: int = field_(0, "ray_z's evidence is a ray's cosine to what sets a target apart from its this "
                                       "many nearest other phrases (by text embedding; the others explain nothing "
-                                      "of it): a large background, a vocabulary, would otherwise explain the whole "
-                                      "target and leave no evidence; 0 = every other phrase")
+                                      "of it); 0 = every other phrase. Set it (e.g. 8) for a large background: a "
+                                      "vocabulary of a hundred phrases explains the whole target and leaves none")
     ray_evidence: str = field_("distinct", "what ray_z z-scores: 'distinct', a ray's cosine to what sets the target "
                                            "apart from its search.distinct_phrases nearest other phrases, or 'margin', "
                                            "its cosine to the target less its best cosine to those phrases (a ray "

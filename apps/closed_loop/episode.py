@@ -38,6 +38,8 @@ BACKGROUNDS = ("generic", "vocabulary", "world", "default")
 #: ``background="generic"``: a fixed list of things found anywhere outdoors, the same for every
 #: world (never the world's class list); docs/pybullet_world.md#semantics
 GENERIC_BACKGROUND = ("ground", "road", "grass", "wall", "building", "tree", "sky")
+#: ``background="vocabulary"``: ray evidence against the target's this many nearest phrases
+VOCABULARY_NEAREST = 8
 
 
 @dataclass
@@ -68,6 +70,11 @@ class LoopSettings:
     background: str = "world"
     #: what the ray policies' ``ray_z`` z-scores (``search.ray_evidence``): "distinct" or "margin"
     ray_evidence: str = "distinct"
+
+    def distinct_phrases(self) -> int:
+        """``search.distinct_phrases`` of the searches: the target's 8 nearest phrases with the
+        vocabulary background (a hundred phrases would explain every target), else all."""
+        return VOCABULARY_NEAREST if self.background == "vocabulary" else 0
 
     def background_phrases(self, world: World) -> list[str] | None:
         """The phrases :attr:`background` names for ``world`` (None: the mapper's default)."""
@@ -272,7 +279,8 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
             from apps.closed_loop.world_model import LocalMapper, mapper_config
 
             cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                                settings.background_phrases(world), settings.ray_evidence)
+                                settings.background_phrases(world), settings.ray_evidence,
+                                settings.distinct_phrases())
             mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m,
                                  score_poses=poses)
         _searching(world, mission, policy, robot, settings, chain, mapper, run, trace)

@@ -198,7 +198,8 @@ def _episode(cfg: SearchEvalConfig, world, seed: int, mission, policy: str, sett
     from apps.closed_loop.world_model import mapper_config
 
     mcfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                         settings.background_phrases(world), settings.ray_evidence)
+                         settings.background_phrases(world), settings.ray_evidence,
+                         settings.distinct_phrases())
     robot = Platform.make(settings.platform)
     with tempfile.TemporaryDirectory(dir=cfg.work_dir or None) as work, \
             LiveMapper(seed, "default", chain, mcfg, robot.costmap_band(settings.vox_m), settings.window_m,

@@ -347,7 +347,8 @@ def run_fleet_episode(world: World, mission: Mission, policy: str, settings: Loo
     robot = Platform.make(settings.platform)
     method, semantic, _, _ = FLEET_POLICIES[policy]
     cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                        settings.background_phrases(world), settings.ray_evidence)
+                        settings.background_phrases(world), settings.ray_evidence,
+                        settings.distinct_phrases())
     mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m)
     names = [robot_name(i) for i in range(fleet.robots)]
     starts = fleet_starts(world, robot, mission.start, fleet.robots, fleet.start, fleet.spread_m)

@@ -44,12 +44,12 @@ POINT_BUDGETS = dict(max_pts_per_frame=12000, max_empty_pts_per_frame=8000)
 
 
 def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int, preset: str = "online",
-                  background: list[str] | None = None, ray_evidence: str = "distinct"):
+                  background: list[str] | None = None, ray_evidence: str = "distinct", distinct_phrases: int = 0):
     """The mapper config of one policy's map: ``preset`` with ``method``'s overrides
     (semantic_map.config.METHODS), voxel size, depth limit and :data:`POINT_BUDGETS`; ray
     erosion scaled to the image width as the search-volume benchmark scales it;
     ``background``: the search's background phrases (None: the mapper's default);
-    ``ray_evidence``: ``search.ray_evidence``."""
+    ``ray_evidence``, ``distinct_phrases``: ``search.ray_evidence``, ``search.distinct_phrases``."""
     from mapper.service_config import load_mapper_config
     from semantic_map.config import map_config
 
@@ -59,7 +59,8 @@ def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int
                     method)
     if background is not None:
         cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, background=list(background)))
-    cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, ray_evidence=ray_evidence).validate())
+    cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, ray_evidence=ray_evidence,
+                                                              distinct_phrases=int(distinct_phrases)).validate())
     return dataclasses.replace(cfg, map=mc.validate())
 
 
