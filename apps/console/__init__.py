@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import socket
 import sys
 
 HELP = "operator console in a browser + HTTP/JSON API for planners"
@@ -82,11 +83,32 @@ def run(args: argparse.Namespace) -> int:
                          max_streams_per_client=args.max_streams_per_client)
         scheme = "https" if args.tls_cert else "http"
         shown = f"[{host}]" if ":" in host else host
-        print(f"console at {scheme}://{shown}:{port}/", flush=True)
+        try:   # listen first: the address line is printed once a connection can no longer be refused
+            sock = _listen(host, port)
+        except OSError as e:
+            print(f"rayfronts console: error: cannot listen on {host}:{port} (in use?): {e.strerror}", file=sys.stderr)
+            return 1
+        config = uvicorn.Config(app, log_level="warning", ssl_certfile=args.tls_cert, ssl_keyfile=args.tls_key,
+                                timeout_graceful_shutdown=2)
+        print(f"console at {scheme}://{shown}:{sock.getsockname()[1]}/", flush=True)
         try:
-            uvicorn.run(app, host=host, port=port, log_level="warning", ssl_certfile=args.tls_cert,
-                        ssl_keyfile=args.tls_key, timeout_graceful_shutdown=2)
-        except SystemExit as e:   # uvicorn exits 1 when the port is taken
-            print(f"rayfronts console: error: cannot listen on {host}:{port} (in use?)", file=sys.stderr)
+            uvicorn.Server(config).run(sockets=[sock])
+        except SystemExit as e:
             return int(e.code or 1)
+        finally:
+            sock.close()
     return 0
+
+
+def _listen(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to ``host:port`` and listening (port 0: any free one)."""
+    fam = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(fam, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(2048)
+    except OSError:
+        sock.close()
+        raise
+    return sock
