@@ -128,7 +128,7 @@ def _split_labels(ijk: np.ndarray) -> np.ndarray | None:
     db = ub[cnt >= SPLIT_DENSE_VOXELS]
     if not len(db) or len(db) == len(ub):
         return None
-    bijk = np.stack([((db >> s) & ((1 << 21) - 1)) - (1 << 20) for s in (42, 21, 0)], 1)
+    bijk = unpack_keys(db)
     grp = connected_26(bijk)
     if grp.max() + 1 > SPLIT_MAX_BOXES:
         return None
