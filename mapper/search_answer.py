@@ -26,6 +26,7 @@ World frame, metres, z up; timings in milliseconds.
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import logging
@@ -44,8 +45,9 @@ from common.search_messages import SearchReply, SearchRequest
 from planning.beyond import triangulate
 from planning.instances import InstanceTracker, InstanceViews, pack_ijk, request_views, tracked_views
 from planning.look_next import Goal, LookNextCache, look_next, points_in_polygon, ray_outlier_z
+from semantic_map import kernels
 from semantic_map.query import PreparedRows, score_rows, softmax_share
-from semantic_map.query_copy import one_thread
+from semantic_map.query_copy import PARALLEL_MIN_SCORES, one_thread
 
 if TYPE_CHECKING:
     from common.feature_space import FeatureSpace
@@ -155,8 +157,9 @@ _VOLUMES: OrderedDict[tuple, float] = OrderedDict()
 
 
 def _search_volume(o: np.ndarray, d: np.ndarray, half_angle: float, qcfg) -> float:
-    """:func:`common.cones.cone_union_volume` of the best rays' cones, kept for the last
-    :data:`VOLUME_ENTRIES` inputs (the same best rays over several searches)."""
+    """:func:`common.cones.cone_union_volume` of the best rays' cones (its per-cone step in
+    C++ when built), kept for the last :data:`VOLUME_ENTRIES` inputs (the same best rays over
+    several searches)."""
     key = (hashlib.sha1(np.ascontiguousarray(o, np.float64).tobytes() + np.ascontiguousarray(d, np.float64).tobytes())
            .hexdigest(), o.shape, float(half_angle), float(qcfg.search_range_m), float(qcfg.search_cell_m),
            int(qcfg.search_samples))
@@ -166,7 +169,7 @@ def _search_volume(o: np.ndarray, d: np.ndarray, half_angle: float, qcfg) -> flo
             _VOLUMES.move_to_end(key)
             return v
     v = float(cone_union_volume(o, d, half_angle, qcfg.search_range_m, qcfg.search_cell_m,
-                                max_cells=qcfg.search_samples))
+                                max_cells=qcfg.search_samples, weighted_union=kernels.cone_weighted_union()))
     with _SCORED_LOCK:
         _VOLUMES[key] = v
         while len(_VOLUMES) > VOLUME_ENTRIES:
@@ -179,9 +182,9 @@ class TrackerStore:
     Their ids come from one counter (``next_id``): ids are unique over all targets and never
     reused after a restart, a crash included.
 
-    With a ``reserve`` callback, ids are handed out from durably reserved blocks: before the
-    first id at or above ``reserved_below`` is returned, ``reserve(n)`` is called with the new
-    ceiling ``n`` (``id_block`` ids further) and must persist it; a restart continues from the
+    With a ``reserve`` callback, ids are handed out from durably reserved blocks: before an
+    id at or above ``reserved_below`` is returned, ``reserve(n)`` is called with the new
+    ceiling ``n`` (``id_block`` ids beyond the last id issued) and must persist it; a restart continues from the
     persisted ceiling (:class:`mapper.snapshot_store.SnapshotStore`), so an id sent after the
     newest snapshot is not issued again. A failing ``reserve`` is logged and counted
     (``reserve_errors``) and the id is still issued: an answer is not refused for a disk error.
@@ -206,17 +209,22 @@ class TrackerStore:
 
     def new_id(self) -> int:
         """The next instance id (thread-safe)."""
+        return self.new_ids(1)
+
+    def new_ids(self, n: int) -> int:
+        """Issue ``n`` consecutive instance ids and return the first (thread-safe; ``n`` = 0:
+        the next id, none issued)."""
         with self._lock:
             i = self.next_id
-            if self.reserve is not None and i >= self.reserved_below:
-                ceiling = i + self.id_block
+            if n > 0 and self.reserve is not None and i + n - 1 >= self.reserved_below:
+                ceiling = i + n - 1 + self.id_block
                 try:
                     self.reserve(ceiling)
                     self.reserved_below = ceiling
-                except Exception as e:   # the id is still issued; the next one tries again
+                except Exception as e:   # the ids are still issued; the next call tries again
                     self.reserve_errors += 1
                     log.error("could not reserve instance ids below %d: %s", ceiling, e)
-            self.next_id += 1
+            self.next_id += max(0, int(n))
             return i
 
     def continue_from(self, next_id: int) -> None:
@@ -228,7 +236,7 @@ class TrackerStore:
         """The tracker of ``key`` (created on first use; a map with another voxel size resets it)."""
         t = self._t.get(key)
         if t is None or t.vox != float(vox):
-            t = InstanceTracker(vox, min_voxels, id_source=self.new_id, grace=grace)
+            t = InstanceTracker(vox, min_voxels, id_source=self.new_ids, grace=grace)
             self._t[key] = t
             self._events.pop(key, None)
         t.min_voxels, t.grace = max(1, int(min_voxels)), max(0, int(grace))
@@ -282,7 +290,7 @@ class TrackerStore:
         restored: OrderedDict = OrderedDict()
         at = 0
         for d in desc["trackers"]:
-            t = InstanceTracker(float(d["vox"]), int(d["min_voxels"]), id_source=self.new_id, grace=int(d["grace"]))
+            t = InstanceTracker(float(d["vox"]), int(d["min_voxels"]), id_source=self.new_ids, grace=int(d["grace"]))
             n = sum(int(r["n_keys"]) for r in d["instances"])
             t.load_state(d["instances"], keys[at:at + n])
             t.updates = int(d["updates"])
@@ -415,7 +423,7 @@ def _voxel_probabilities(snap: QueryCopy, fs: FeatureSpace, prep: PreparedRows, 
     if lse is None:
         return _probabilities(prep, q, n_targets, temperature)
     s = score_rows(prep, q[:n_targets])
-    with one_thread():
+    with (one_thread() if s.numel() < PARALLEL_MIN_SCORES else contextlib.nullcontext()):
         p = softmax_share(s, lse, temperature)
     return p.detach().cpu().numpy().astype(np.float32, copy=False)
 
@@ -472,7 +480,7 @@ def _identity_probabilities(snap: QueryCopy, fs: FeatureSpace, prep: PreparedRow
         lse = lse_of(fs, q[list(rows)], temperature, device) if (lse_of is not None and rows) else None
         if lse is not None:
             s = score_rows(prep, q[ts])
-            with one_thread():
+            with (one_thread() if s.numel() < PARALLEL_MIN_SCORES else contextlib.nullcontext()):
                 for k, t in enumerate(ts):
                     out[t] = softmax_share(s[k:k + 1], lse, temperature)[0].detach().cpu().numpy()
             continue

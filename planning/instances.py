@@ -79,6 +79,21 @@ def labels_of_sorted(keys: np.ndarray) -> np.ndarray:
     return connected_26(unpack_keys(keys))
 
 
+def key_order(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(order, keys[order])`` with ``order = np.argsort(keys, kind="stable")`` of packed
+    voxel ``keys`` (N,) (the map's C++ radix sort when built and the keys' span allows it,
+    else numpy; the same)."""
+    keys = np.asarray(keys, np.int64).reshape(-1)
+    if len(keys) >= KERNEL_MIN_VOXELS:
+        import semantic_map
+
+        got = semantic_map.voxel_key_order(keys)
+        if got is not None:
+            return got
+    order = np.argsort(keys, kind="stable")
+    return order, keys[order]
+
+
 def connected_26(ijk: np.ndarray) -> np.ndarray:
     """26-connected components of a set of distinct voxel indices (N, 3) → (N,) int64 label
     per voxel, labels ``0..C-1`` numbered by each component's lowest voxel key."""
@@ -90,8 +105,8 @@ def connected_26(ijk: np.ndarray) -> np.ndarray:
     if n >= KERNEL_MIN_VOXELS:
         import semantic_map
 
-        order = np.argsort(keys, kind="stable")
-        got = semantic_map.voxel_components_26(keys[order])
+        order, sk = key_order(keys)
+        got = semantic_map.voxel_components_26(sk)
         if got is not None:                    # the C++ union-find (same labels, numbered alike)
             lab = np.empty(n, np.int64)
             lab[order] = got
@@ -320,8 +335,8 @@ def _overlap_pairs(prev: list[Instance], sorted_keys: np.ndarray, sorted_labels:
 def _groups(keys: np.ndarray, labels: np.ndarray, conf: np.ndarray, min_voxels: int) -> tuple:
     """The groups of at least ``min_voxels`` of voxels with strictly ascending packed ``keys``,
     component ``labels`` (0..C-1) and confidences ``conf`` (all in key order), renumbered
-    0..G-1 in label order: ``(kept, labels, by_group, counts, index sums, minima, maxima,
-    max conf)`` — positions of the kept voxels, their new labels, positions in ``kept``
+    0..G-1 in label order: ``(kept, labels, grouped, counts, index sums, minima, maxima,
+    max conf)`` — positions of the kept voxels, their new labels, the kept voxels' keys
     ordered by group then key, and per group (G,) / (G, 3) int64 / (G,) float64. The map's
     C++ kernel when built (``semantic_map.voxel_instance_groups``), else numpy; the same."""
     import semantic_map
@@ -337,13 +352,14 @@ def _groups(keys: np.ndarray, labels: np.ndarray, conf: np.ndarray, min_voxels: 
     kl = remap[labels[sel]]
     by_group = np.argsort(kl, kind="stable")          # grouped, keys ascending within a group
     counts = sizes[keep].astype(np.int64)
+    grouped = keys[sel][by_group]
     if not len(counts):
         z = np.zeros((0, 3), np.int64)
-        return sel, kl, by_group, counts, z, z, z, np.zeros((0,), np.float64)
+        return sel, kl, grouped, counts, z, z, z, np.zeros((0,), np.float64)
     starts = np.zeros(len(counts), np.int64)
     np.cumsum(counts[:-1], out=starts[1:])
-    gijk = unpack_keys(keys[sel][by_group])
-    return (sel, kl, by_group, counts, np.add.reduceat(gijk, starts, axis=0), np.minimum.reduceat(gijk, starts, axis=0),
+    gijk = unpack_keys(grouped)
+    return (sel, kl, grouped, counts, np.add.reduceat(gijk, starts, axis=0), np.minimum.reduceat(gijk, starts, axis=0),
             np.maximum.reduceat(gijk, starts, axis=0), np.maximum.reduceat(conf[sel][by_group], starts))
 
 
@@ -354,10 +370,11 @@ class InstanceTracker:
     ``grace``: updates a missing instance stays matchable before it is ``lost``.
     """
 
-    def __init__(self, vox: float, min_voxels: int = 1, id_source: Callable[[], int] | None = None,
+    def __init__(self, vox: float, min_voxels: int = 1, id_source: Callable[[int], int] | None = None,
                  grace: int = 0):
-        """``id_source``: where new ids come from (one counter shared by several trackers, kept
-        across restarts), default this tracker's own counter from 1."""
+        """``id_source(n)``: where new ids come from — it issues ``n`` consecutive ids and
+        returns the first (one counter shared by several trackers, kept across restarts),
+        default this tracker's own counter from 1."""
         if vox <= 0:
             raise ValueError(f"vox must be > 0, got {vox}")
         self.vox = float(vox)
@@ -374,11 +391,12 @@ class InstanceTracker:
         self._components: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._last: dict[str, tuple[np.ndarray, np.ndarray, int]] = {}    # target -> (keys, conf, frame) last seen
 
-    def _new_id(self) -> int:
+    def _new_ids(self, n: int) -> int:
+        """The first of ``n`` consecutive new ids."""
         if self._id_source is not None:
-            return self._id_source()
+            return self._id_source(n)
         i = self.next_id
-        self.next_id += 1
+        self.next_id += n
         return i
 
     def update(self, target: str, ijk: np.ndarray, confidence: np.ndarray, frame: int,
@@ -408,16 +426,15 @@ class InstanceTracker:
         last = self._components.get(target)
         if last is not None and np.array_equal(last[0], keys):
             order, labels = last[1], last[2]       # same voxels as the last update (same map version)
+            skeys = keys[order]
         else:
-            order = np.argsort(keys, kind="stable")     # the one sort: labels come in key order
-            labels = labels_of_sorted(keys[order])
+            order, skeys = key_order(keys)              # the one sort: labels come in key order
+            labels = labels_of_sorted(skeys)
             self._components[target] = (keys, order, labels)
-        skeys = keys[order]
-        sel, labels, by_group, counts, isum, imin, imax, cmax = _groups(skeys, labels, conf[order], self.min_voxels)
+        sel, labels, gkeys, counts, isum, imin, imax, cmax = _groups(skeys, labels, conf[order], self.min_voxels)
         cur = self.instances.get(target, [])
         gone = self.missing.get(target, [])
         prev = cur + [g for g, _ in gone]            # missing instances stay matchable (grace)
-        gkeys = skeys[sel[by_group]]                      # kept voxels by group, keys ascending in each
         skeys = skeys[sel] if prev else skeys[:0]         # kept voxels, keys ascending (for the overlaps)
         n_groups = len(counts)
         bounds = np.zeros(n_groups + 1, np.int64)
@@ -442,11 +459,17 @@ class InstanceTracker:
             centroid = (isum.astype(np.float64) / counts[:, None] + 0.5) * self.vox
             bmin = voxel_center(imin, self.vox)
             bmax = voxel_center(imax, self.vox)
+        # ids of the groups without heirs, in group order, taken as one block
+        fresh = np.ones(n_groups, bool)
+        fresh[list(heirs_of)] = False
+        first_id = self._new_ids(int(fresh.sum()))
+        new_ids = np.cumsum(fresh) - 1 + first_id
         events: list[InstanceEvent] = []
         out: list[Instance] = []
+        conf_l, count_l, bound_l = cmax.tolist(), counts.tolist(), bounds.tolist()
         for j in range(n_groups):
-            inst = Instance(0, target, centroid[j], bmin[j], bmax[j], float(cmax[j]), int(counts[j]), 1, frame,
-                            frame, gkeys[bounds[j]:bounds[j + 1]])
+            inst = Instance(0, target, centroid[j], bmin[j], bmax[j], conf_l[j], count_l[j], 1, frame,
+                            frame, gkeys[bound_l[j]:bound_l[j + 1]])
             heirs = heirs_of.get(j)
             if heirs:
                 heirs.sort(key=lambda p: (p.first_seen, p.id))
@@ -458,7 +481,7 @@ class InstanceTracker:
                 elif inst.voxels > old.voxels:
                     events.append(InstanceEvent("grow", old.id, target, frame, voxels=inst.voxels))
             else:
-                inst.id = self._new_id()
+                inst.id = int(new_ids[j])
                 if parent_of[j] >= 0:
                     events.append(InstanceEvent("split", inst.id, target, frame, parent=prev[parent_of[j]].id))
                 else:

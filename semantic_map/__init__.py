@@ -12,7 +12,8 @@ layers (``voxels``, ``frontiers``, ``rays``, ``voxel_xyz``, ``ray_geometry`` ...
 read-only ``occupancy_view``, ``stats`` / ``memory_parts``, ``export_state`` /
 ``RayFrontsMap.from_state`` for snapshots. ``voxel_components_26`` is the map's C++ kernel
 for the 26-connected components of a sorted voxel key set (the planners' instance labelling),
-``voxel_instance_groups`` the one for the kept groups' statistics of such a labelled set.
+``voxel_instance_groups`` the one for the kept groups' statistics of such a labelled set,
+``voxel_key_order`` the one sorting a voxel key set (its stable argsort).
 
 Conventions (frames, units, voxel indexing) are those of ``docs/conventions.md``.
 """
@@ -25,7 +26,8 @@ if TYPE_CHECKING:
     from semantic_map.map import RayFrontsMap
     from semantic_map.occupancy.base import OccupancyView
 
-__all__ = ["RayFrontsMap", "MapConfig", "OccupancyView", "voxel_components_26", "voxel_instance_groups"]
+__all__ = ["RayFrontsMap", "MapConfig", "OccupancyView", "voxel_components_26", "voxel_instance_groups",
+           "voxel_key_order"]
 
 
 def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` loads no map
@@ -44,4 +46,7 @@ def __getattr__(name: str):  # lazy, so that `from semantic_map import kernels` 
     if name == "voxel_instance_groups":  # the C++ group step of instance tracking (None: kernels off)
         from semantic_map.kernels import instance_groups
         return instance_groups
+    if name == "voxel_key_order":  # the C++ stable argsort of a voxel key set (None: kernels off)
+        from semantic_map.kernels import argsort_voxel_keys
+        return argsort_voxel_keys
     raise AttributeError(name)

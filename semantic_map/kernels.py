@@ -4,7 +4,8 @@ The extension is built by the project's CMake wherever a C++17 compiler exists (
 no OpenVDB). When it is missing, or disabled (``RAYFRONTS_KERNELS=0`` in the environment,
 :func:`set_enabled` / :func:`disabled`), every caller uses its torch path; both paths give
 identical results (the tests run both), except :func:`half_scores`, which rounds less than
-its torch twin (float32 instead of float16: within the query copy's ``SCORE_ATOL``). Kernels
+its torch twin (float32 instead of float16: within the query copy's ``SCORE_ATOL``), and
+:func:`cone_weighted_union`, which sums in another order (equal up to float64 rounding). Kernels
 run on CPU tensors only; tensors on other devices always take the torch path.
 """
 from __future__ import annotations
@@ -84,10 +85,37 @@ def components_26_sorted(keys: np.ndarray) -> np.ndarray | None:
     return _rfkernels.components_26_sorted(np.ascontiguousarray(keys, np.int64), max(1, torch.get_num_threads()))
 
 
+def cone_weighted_union() -> Callable[..., float] | None:
+    """Kernel-only: the C++ twin of ``common.cones._weighted_union`` (the per-cone step of the
+    sampled cone-union volume, for ``cone_union_volume(..., weighted_union=...)``) on torch's
+    thread count; None when the kernels are missing or disabled."""
+    if not enabled() or not hasattr(_rfkernels, "cone_weighted_union"):
+        return None
+    threads = max(1, torch.get_num_threads())
+
+    def run(local: np.ndarray, w: np.ndarray, frames: np.ndarray, o: np.ndarray, d: np.ndarray, range_m: float,
+            cos2: float) -> float:
+        f64 = [np.ascontiguousarray(a, np.float64) for a in (local, w, frames, o, d)]
+        return float(_rfkernels.cone_weighted_union(*f64, float(range_m), float(cos2), threads))
+
+    return run
+
+
+def argsort_voxel_keys(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Kernel-only: ``(order, keys[order])`` with ``order = np.argsort(keys, kind="stable")``
+    for packed voxel keys ``keys`` (N,) (:mod:`semantic_map.cell_keys` layout), by a radix
+    sort on torch's thread count; None when the kernels are missing or disabled, or when the
+    keys need more than 32 bits re-packed from their smallest index per axis (spans of
+    2^11, 2^11 and 2^10 voxels, say; the caller sorts then)."""
+    if not enabled() or not hasattr(_rfkernels, "argsort_voxel_keys"):
+        return None
+    return _rfkernels.argsort_voxel_keys(np.ascontiguousarray(keys, np.int64), max(1, torch.get_num_threads()))
+
+
 def instance_groups(keys: np.ndarray, labels: np.ndarray, conf: np.ndarray, min_voxels: int) -> tuple | None:
     """Kernel-only: the group step of ``planning.instances.InstanceTracker.update`` for voxels
     of strictly ascending packed ``keys`` with component ``labels`` and confidences ``conf``
-    (all in key order): ``(kept, labels, by_group, counts, index sums, minima, maxima, max
+    (all in key order): ``(kept, labels, grouped keys, counts, index sums, minima, maxima, max
     conf)`` of the groups of at least ``min_voxels`` (``planning.instances._groups``); None
     when the kernels are missing or disabled."""
     if not enabled() or not hasattr(_rfkernels, "instance_groups"):

@@ -58,6 +58,9 @@ SCORE_CACHE_MIN_BYTES = 64 << 20
 #: region's hand-off costs more than it saves; on a loaded machine a descheduled OpenMP
 #: worker stalls it), and the elementwise terms after it always do (one pass over N each)
 PARALLEL_MIN_ELEMENTS = 1 << 25
+#: a search's softmax over at least this many scores (targets × voxels, an exp per element)
+#: runs on torch's threads (elementwise: the same values on any thread count)
+PARALLEL_MIN_SCORES = 1 << 21
 
 
 def _np(x: np.ndarray | torch.Tensor) -> np.ndarray:

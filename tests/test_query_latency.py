@@ -93,6 +93,40 @@ def test_cone_union_samples_vs_fine_grid():
         cone_union_volume(o, dd, 30, 50, 2.0, method="nope")
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_cone_union_kernel_equals_numpy(threads: int):
+    """The mapper's C++ per-cone step (``semantic_map.kernels.cone_weighted_union``) against
+    the numpy one: the same volume up to float64 rounding on overlapping, nested, parallel
+    and disjoint cones, and exact for identical and disjoint ones."""
+    from semantic_map import kernels
+
+    assert kernels.available(), f"the C++ kernels are not built: {kernels.IMPORT_ERROR}"
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        union = kernels.cone_weighted_union()
+        assert union is not None
+        rng = np.random.default_rng(8)
+        for n in (2, 5, 12):
+            o = rng.normal(size=(n, 3)) * 8
+            dd = rng.normal(size=(n, 3))
+            dd[: max(2, n // 2)] = dd[0]                   # some parallel axes
+            o[1] = o[0] + dd[0] * 5 / np.linalg.norm(dd[0])  # one nested in another
+            dd /= np.linalg.norm(dd, axis=1, keepdims=True)
+            want = cone_union_volume(o, dd, 20, 40, 1.0, max_cells=120_000)
+            got = cone_union_volume(o, dd, 20, 40, 1.0, max_cells=120_000, weighted_union=union)
+            assert got == pytest.approx(want, rel=1e-12, abs=0) and got < n * 0.999 * cone_union_volume(
+                o[:1], dd[:1], 20, 40, 1.0)
+        d = np.repeat(np.array([[0.0, 0.0, 1.0]]), 3, 0)
+        exact1 = math.pi * 40 ** 3 * math.tan(math.radians(20)) ** 2 / 3
+        far = np.array([[0.0, 0, 0], [500.0, 0, 0], [0, 500.0, 0]])
+        assert cone_union_volume(far, d, 20, 40, 1.0, weighted_union=union) == pytest.approx(3 * exact1, rel=1e-9)
+        assert cone_union_volume(np.zeros((3, 3)), d, 20, 40, 1.0, weighted_union=union) == pytest.approx(exact1,
+                                                                                                          rel=1e-9)
+    finally:
+        torch.set_num_threads(old)
+
+
 # ------------------------------------------------------------------ answer vs brute force
 def test_answer_snapshot_matches_bruteforce():
     m, fs, cfg, X = query_map()

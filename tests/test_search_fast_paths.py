@@ -100,6 +100,40 @@ def test_labelling_kernel_on_sorted_keys_matches_bfs(seed: int):
         semantic_map.voxel_components_26(np.repeat(keys[order][:3], 2))
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_key_order_kernel_equals_numpy_argsort(threads: int):
+    """The radix sort (``semantic_map.voxel_key_order``) against ``np.argsort(kind="stable")``:
+    shuffled keys of small and of largest 32-bit spans on one and two threads (each pass's
+    parts meet at a cut), repeated keys keeping their order, one key, none; refused (None,
+    numpy sorts) past 32 bits, where :func:`planning.instances.key_order` is still numpy's."""
+    import torch
+
+    assert kernels.available(), f"the C++ kernels are not built: {kernels.IMPORT_ERROR}"
+    rng = np.random.default_rng(11)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for hi in [(5, 5, 5), (300, 40, 60), (2047, 2047, 1023), (1, 0, 4_000_000 // 1000)]:
+            n = 200_000 if hi[0] > 5 else 100
+            ijk = np.stack([rng.integers(-7, -7 + hi[a] + 1, n) for a in range(3)], 1)
+            ijk[0], ijk[1] = [-7, -7, -7], [-7 + h for h in hi]          # the whole span
+            keys = inst.pack_ijk(ijk)                                    # repeats among them
+            got = semantic_map.voxel_key_order(keys)
+            want = np.argsort(keys, kind="stable")
+            assert got is not None and got[0].dtype == np.int64 and got[1].dtype == np.int64
+            assert np.array_equal(got[0], want) and np.array_equal(got[1], keys[want])
+        for keys in (np.zeros((0,), np.int64), inst.pack_ijk(np.array([[3, -4, 5]]))):
+            got = semantic_map.voxel_key_order(keys)
+            assert np.array_equal(got[0], np.arange(len(keys))) and np.array_equal(got[1], keys)
+        wide = inst.pack_ijk(np.stack([rng.integers(0, 5000, 300), rng.integers(0, 5000, 300),
+                                       rng.integers(0, 5000, 300)], 1))
+        assert semantic_map.voxel_key_order(wide) is None
+        order, sk = inst.key_order(wide)
+        assert np.array_equal(order, np.argsort(wide, kind="stable")) and np.array_equal(sk, np.sort(wide))
+    finally:
+        torch.set_num_threads(old)
+
+
 class _ReferenceTracker:
     """The tracking rules (module docstring of planning.instances) with dense (P, C)
     overlaps, per-group loops and brute-force components."""

@@ -9,7 +9,8 @@
 // the same in both. torch's float16 matrix-vector product on a CPU without float16
 // arithmetic runs well below memory bandwidth (AMD EPYC, 10 M x 100: ~175 ms for 2 GB that
 // the memory delivers in ~70 ms); this kernel converts 8 halves per instruction (F16C) and
-// walks 4 rows at once, on `threads` threads (std::thread, GIL released).
+// walks 4 rows at once with two accumulators each (eight independent multiply-add chains),
+// summing the four rows' lanes together, on `threads` threads (std::thread, GIL released).
 //
 // Only on x86-64 CPUs with AVX2, FMA and F16C (checked at run time: half_scores_available);
 // elsewhere the Python side keeps torch's path.
@@ -48,57 +49,99 @@ bool cpu_has_simd() {
 }
 
 #ifdef RF_HALF_SCORES_X86
-// Sum of the 8 lanes in a fixed order (the same for every row).
-__attribute__((target("avx2,fma,f16c"))) inline float lane_sum(__m256 v) {
-    const __m128 s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps(v, 1));
-    const __m128 t = _mm_add_ps(s, _mm_movehl_ps(s, s));
-    return _mm_cvtss_f32(_mm_add_ss(t, _mm_shuffle_ps(t, t, 1)));
-}
-
+// Each row's sum in one fixed order, wherever the row lies (4 rows at once or alone): the
+// 8-wide blocks alternate between two accumulators (even, odd blocks), added lane-wise; the
+// first 4 products of the D % 8 tail go into lanes 0-3; the lanes are summed pairwise
+// ((0+1)+(2+3)) + ((4+5)+(6+7)); the last D % 4 products follow in order; then the scale
+// and the mean term as one fused multiply-add, s * a + qm * b.
 __attribute__((target("avx2,fma,f16c"))) inline __m256 load8(const int16_t* p) {
     return _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
 }
 
-// Row i's score from its 8-wide block sums: the lanes summed, then the D % 8 tail in order,
-// then the scale and the mean term.
-__attribute__((target("avx2,fma,f16c"))) inline void finish_row(const int16_t* h, size_t D, size_t D8,
-                                                                 const float* q, const float* a, const float* b,
-                                                                 float qm, float* out, size_t i, __m256 acc) {
-    float s = lane_sum(acc);
-    const int16_t* row = h + i * D;
-    for (size_t d = D8; d < D; ++d) s += _cvtsh_ss(static_cast<unsigned short>(row[d])) * q[d];
-    float v = s * a[i];
-    if (b) v = v + qm * b[i];
-    out[i] = v;
+// One row's 8-lane accumulator: its blocks, then the tail's first 4 products in lanes 0-3.
+__attribute__((target("avx2,fma,f16c"))) inline __m256 row_lanes(const int16_t* r, const float* q, size_t D8,
+                                                                  size_t D, __m256 even, __m256 odd) {
+    __m256 acc = _mm256_add_ps(even, odd);
+    if (D - D8 >= 4) {
+        const __m128 t = _mm_cvtph_ps(_mm_loadl_epi64(reinterpret_cast<const __m128i*>(r + D8)));
+        const __m128 lo = _mm_fmadd_ps(t, _mm_loadu_ps(q + D8), _mm256_castps256_ps128(acc));
+        acc = _mm256_insertf128_ps(acc, lo, 0);
+    }
+    return acc;
 }
 
-// Rows [lo, hi): dot products of 8-wide blocks (one accumulator per row, 4 rows at once).
+// The lane sums of four accumulators, [s0, s1, s2, s3], each ((0+1)+(2+3)) + ((4+5)+(6+7)).
+__attribute__((target("avx2,fma,f16c"))) inline __m128 lane_sums(__m256 c0, __m256 c1, __m256 c2, __m256 c3) {
+    const __m256 h = _mm256_hadd_ps(_mm256_hadd_ps(c0, c1), _mm256_hadd_ps(c2, c3));
+    return _mm_add_ps(_mm256_castps256_ps128(h), _mm256_extractf128_ps(h, 1));
+}
+
+// Rows [i, i + m) (m <= 4) finished from their lane sums s: the D % 4 last products, the terms.
+__attribute__((target("avx2,fma,f16c"))) inline void finish_rows(const int16_t* h, size_t D, size_t D4,
+                                                                  const float* q, const float* a, const float* b,
+                                                                  float qm, float* out, size_t i, size_t m,
+                                                                  __m128 s) {
+    alignas(16) float v[4], av[4] = {0, 0, 0, 0}, bv[4] = {0, 0, 0, 0};
+    _mm_store_ps(v, s);
+    for (size_t r = 0; r < m; ++r) {
+        const int16_t* row = h + (i + r) * D;
+        for (size_t d = D4; d < D; ++d) v[r] += _cvtsh_ss(static_cast<unsigned short>(row[d])) * q[d];
+        av[r] = a[i + r];
+        if (b) bv[r] = b[i + r];
+    }
+    __m128 o = _mm_mul_ps(_mm_load_ps(v), _mm_load_ps(av));
+    if (b) o = _mm_fmadd_ps(_mm_set1_ps(qm), _mm_load_ps(bv), o);
+    _mm_store_ps(v, o);
+    for (size_t r = 0; r < m; ++r) out[i + r] = v[r];
+}
+
+// Rows [lo, hi): 4 rows at once (8 accumulators), the remainder one by one, the same sums.
 __attribute__((target("avx2,fma,f16c"))) void score_rows(const int16_t* h, size_t D, const float* q,
                                                           const float* a, const float* b, float qm, float* out,
                                                           size_t lo, size_t hi) {
-    const size_t D8 = D - D % 8;
-    auto finish = [&](size_t i, __m256 acc) { finish_row(h, D, D8, q, a, b, qm, out, i, acc); };
+    const size_t D8 = D - D % 8, D4 = D - D % 4;
+    const size_t blocks = D8 / 8;
     size_t i = lo;
     for (; i + 4 <= hi; i += 4) {
         const int16_t* r0 = h + i * D;
-        __m256 c0 = _mm256_setzero_ps(), c1 = c0, c2 = c0, c3 = c0;
-        for (size_t d = 0; d < D8; d += 8) {
-            const __m256 qv = _mm256_loadu_ps(q + d);
-            c0 = _mm256_fmadd_ps(load8(r0 + d), qv, c0);
-            c1 = _mm256_fmadd_ps(load8(r0 + D + d), qv, c1);
-            c2 = _mm256_fmadd_ps(load8(r0 + 2 * D + d), qv, c2);
-            c3 = _mm256_fmadd_ps(load8(r0 + 3 * D + d), qv, c3);
+        const __m256 z = _mm256_setzero_ps();
+        __m256 e0 = z, e1 = z, e2 = z, e3 = z, o0 = z, o1 = z, o2 = z, o3 = z;
+        size_t blk = 0;
+        for (; blk + 2 <= blocks; blk += 2) {
+            const size_t d = blk * 8;
+            const __m256 qe = _mm256_loadu_ps(q + d), qo = _mm256_loadu_ps(q + d + 8);
+            e0 = _mm256_fmadd_ps(load8(r0 + d), qe, e0);
+            e1 = _mm256_fmadd_ps(load8(r0 + D + d), qe, e1);
+            e2 = _mm256_fmadd_ps(load8(r0 + 2 * D + d), qe, e2);
+            e3 = _mm256_fmadd_ps(load8(r0 + 3 * D + d), qe, e3);
+            o0 = _mm256_fmadd_ps(load8(r0 + d + 8), qo, o0);
+            o1 = _mm256_fmadd_ps(load8(r0 + D + d + 8), qo, o1);
+            o2 = _mm256_fmadd_ps(load8(r0 + 2 * D + d + 8), qo, o2);
+            o3 = _mm256_fmadd_ps(load8(r0 + 3 * D + d + 8), qo, o3);
         }
-        finish(i, c0);
-        finish(i + 1, c1);
-        finish(i + 2, c2);
-        finish(i + 3, c3);
+        if (blk < blocks) {
+            const size_t d = blk * 8;
+            const __m256 qe = _mm256_loadu_ps(q + d);
+            e0 = _mm256_fmadd_ps(load8(r0 + d), qe, e0);
+            e1 = _mm256_fmadd_ps(load8(r0 + D + d), qe, e1);
+            e2 = _mm256_fmadd_ps(load8(r0 + 2 * D + d), qe, e2);
+            e3 = _mm256_fmadd_ps(load8(r0 + 3 * D + d), qe, e3);
+        }
+        const __m128 s = lane_sums(row_lanes(r0, q, D8, D, e0, o0), row_lanes(r0 + D, q, D8, D, e1, o1),
+                                   row_lanes(r0 + 2 * D, q, D8, D, e2, o2), row_lanes(r0 + 3 * D, q, D8, D, e3, o3));
+        finish_rows(h, D, D4, q, a, b, qm, out, i, 4, s);
     }
     for (; i < hi; ++i) {
         const int16_t* r = h + i * D;
-        __m256 c = _mm256_setzero_ps();
-        for (size_t d = 0; d < D8; d += 8) c = _mm256_fmadd_ps(load8(r + d), _mm256_loadu_ps(q + d), c);
-        finish(i, c);
+        __m256 e = _mm256_setzero_ps(), o = e;
+        size_t blk = 0;
+        for (; blk + 2 <= blocks; blk += 2) {
+            e = _mm256_fmadd_ps(load8(r + blk * 8), _mm256_loadu_ps(q + blk * 8), e);
+            o = _mm256_fmadd_ps(load8(r + blk * 8 + 8), _mm256_loadu_ps(q + blk * 8 + 8), o);
+        }
+        if (blk < blocks) e = _mm256_fmadd_ps(load8(r + blk * 8), _mm256_loadu_ps(q + blk * 8), e);
+        const __m256 c = row_lanes(r, q, D8, D, e, o);
+        finish_rows(h, D, D4, q, a, b, qm, out, i, 1, lane_sums(c, c, c, c));
     }
 }
 #endif

@@ -31,6 +31,14 @@
 // * instance_groups(keys, labels, conf, min_voxels): the kept groups of a labelled voxel set
 //   (planning.instances.InstanceTracker.update's numpy group step): counting sort by group,
 //   index sums / minima / maxima and max confidence per group.
+// * cone_weighted_union(local, w, frames, o, d, range_m, cos2, threads): common.cones'
+//   _weighted_union (the per-cone step of the sampled cone-union volume): each cone's lattice
+//   points placed in the world, counted against every cone, weight / count summed; the same
+//   tests in float64 (products summed in another order: equal up to rounding).
+// * argsort_voxel_keys(keys, threads): np.argsort(keys, kind="stable") of packed voxel keys
+//   and the keys in that order, by an LSD radix sort of the keys re-packed relative to their
+//   smallest index per axis (when that fits 32 bits; else None and numpy sorts), on up to
+//   `threads` threads (each pass: per-thread histograms, then each thread scatters its part).
 // * half_scores(...) (half_scores.cpp): the query snapshot's float16 text-query product; the
 //   one kernel that is not bit-identical to its torch twin (float32 instead of float16
 //   rounding: within the documented score tolerance, closer to the exact cosine).
@@ -474,13 +482,13 @@ nb::ndarray<nb::numpy, int64_t> components_26_sorted(I64In keys, int threads) {
 // Instances of a labelled voxel set (planning.instances.InstanceTracker.update's group step):
 // keys strictly ascending, labels from components_26_sorted (0..C-1), conf in key order.
 // Groups of at least min_voxels are kept and renumbered 0..G-1 in label order. Returns
-// (kept: positions in key order of the kept voxels, their new labels, by_group: positions in
-// `kept` ordered by group then key, counts, index sums (G, 3), minima (G, 3), maxima (G, 3),
+// (kept: positions in key order of the kept voxels, their new labels, grouped: the kept keys
+// ordered by group then key, counts, index sums (G, 3), minima (G, 3), maxima (G, 3),
 // max conf (G,)), as the numpy path computes them.
 nb::tuple instance_groups(I64In keys, I64In labels, F64In conf, int64_t min_voxels) {
     const size_t n = keys.shape(0);
     if (labels.shape(0) != n || conf.shape(0) != n) throw std::invalid_argument("instance_groups: lengths differ");
-    std::vector<int64_t> kept, klab, by_group, counts, isum, imin, imax;
+    std::vector<int64_t> kept, klab, grouped, counts, isum, imin, imax;
     std::vector<double> cmax;
     {
         nb::gil_scoped_release release;
@@ -511,8 +519,8 @@ nb::tuple instance_groups(I64In keys, I64In labels, F64In conf, int64_t min_voxe
         const size_t M = kept.size();
         std::vector<int64_t> at(G, 0);
         for (size_t g = 1; g < G; ++g) at[g] = at[g - 1] + counts[g - 1];
-        by_group.resize(M);
-        for (size_t m = 0; m < M; ++m) by_group[at[klab[m]]++] = int64_t(m);   // stable: key order in a group
+        grouped.resize(M);
+        for (size_t m = 0; m < M; ++m) grouped[at[klab[m]]++] = k[kept[m]];   // stable: key order in a group
         constexpr int64_t off = int64_t(1) << 20, mask = (int64_t(1) << 21) - 1;
         isum.assign(3 * G, 0);
         imin.assign(3 * G, std::numeric_limits<int64_t>::max());
@@ -532,9 +540,145 @@ nb::tuple instance_groups(I64In keys, I64In labels, F64In conf, int64_t min_voxe
     }
     const size_t M = kept.size(), G = counts.size();
     return nb::make_tuple(to_numpy(std::move(kept), {M}), to_numpy(std::move(klab), {M}),
-                          to_numpy(std::move(by_group), {M}), to_numpy(std::move(counts), {G}),
+                          to_numpy(std::move(grouped), {M}), to_numpy(std::move(counts), {G}),
                           to_numpy(std::move(isum), {G, 3}), to_numpy(std::move(imin), {G, 3}),
                           to_numpy(std::move(imax), {G, 3}), to_numpy(std::move(cmax), {G}));
+}
+
+// common.cones._weighted_union (file comment): local (m, 3), w (m,), frames (n, 3, 3) rows,
+// o (n, 3) centred apexes, d (n, 3) unit axes; cones split over `threads` threads, each
+// thread's sum added in cone order.
+double cone_weighted_union(F64x3In local, F64In w, nb::ndarray<const double, nb::ndim<3>, nb::c_contig, nb::device::cpu> frames,
+                           F64x3In o, F64x3In d, double range_m, double cos2, int threads) {
+    const size_t m = local.shape(0), n = o.shape(0);
+    if (w.shape(0) != m) throw std::invalid_argument("cone_weighted_union: w must be (m,)");
+    if (d.shape(0) != n || frames.shape(0) != n || frames.shape(1) != 3 || frames.shape(2) != 3)
+        throw std::invalid_argument("cone_weighted_union: frames (n, 3, 3), o and d (n, 3) must agree");
+    std::vector<double> per_cone(n, 0.0);
+    {
+        nb::gil_scoped_release release;
+        const double* L = local.data();
+        const double* W = w.data();
+        const double* F = frames.data();
+        const double* O = o.data();
+        const double* D = d.data();
+        // the cones as columns (structure of arrays: the loop over cones vectorises)
+        std::vector<double> dx(n), dy(n), dz(n), ox(n), oy(n), oz(n), od(n), oo(n);
+        for (size_t j = 0; j < n; ++j) {
+            dx[j] = D[3 * j], dy[j] = D[3 * j + 1], dz[j] = D[3 * j + 2];
+            ox[j] = O[3 * j], oy[j] = O[3 * j + 1], oz[j] = O[3 * j + 2];
+            od[j] = ox[j] * dx[j] + oy[j] * dy[j] + oz[j] * dz[j];
+            oo[j] = ox[j] * ox[j] + oy[j] * oy[j] + oz[j] * oz[j];
+        }
+        auto in_cone = [&](double px, double py, double pz, double pp, size_t j) {
+            const double t = px * dx[j] + py * dy[j] + pz * dz[j] - od[j];
+            const double v2 = pp - 2.0 * (px * ox[j] + py * oy[j] + pz * oz[j]) + oo[j];
+            return int((t > 0) & (t <= range_m) & (t * t >= v2 * cos2));
+        };
+        auto cones = [&](size_t i0, size_t i1) {
+            for (size_t i = i0; i < i1; ++i) {
+                const double* R = F + 9 * i;
+                double sum = 0.0;
+                for (size_t l = 0; l < m; ++l) {
+                    const double* q = L + 3 * l;
+                    double p[3];
+                    for (int a = 0; a < 3; ++a) p[a] = q[0] * R[a] + q[1] * R[3 + a] + q[2] * R[6 + a] + O[3 * i + a];
+                    const double px = p[0], py = p[1], pz = p[2];
+                    const double pp = px * px + py * py + pz * pz;
+                    int c = 1 - in_cone(px, py, pz, pp, i);       // its own cone, whatever the rounding
+                    for (size_t j = 0; j < n; ++j) c += in_cone(px, py, pz, pp, j);
+                    sum += W[l] / double(c);
+                }
+                per_cone[i] = sum;
+            }
+        };
+        const size_t T = std::max<size_t>(1, std::min<size_t>({size_t(std::max(threads, 1)), n, m * n / 200000 + 1}));
+        std::vector<std::thread> pool;
+        for (size_t t = 1; t < T; ++t) pool.emplace_back(cones, t * n / T, (t + 1) * n / T);
+        cones(0, n / T);
+        for (auto& th : pool) th.join();
+    }
+    double total = 0.0;
+    for (size_t i = 0; i < n; ++i) total += per_cone[i];
+    return total;
+}
+
+// Stable argsort of packed voxel keys by LSD radix (file comment): (order, sorted keys), or
+// None when the keys re-packed relative to their smallest index per axis need over 32 bits.
+nb::object argsort_voxel_keys(I64In keys, int threads) {
+    const size_t n = keys.shape(0);
+    constexpr int64_t mask = (int64_t(1) << 21) - 1;
+    std::vector<int64_t> order(n), sorted(n);
+    bool fits = true;
+    {
+        nb::gil_scoped_release release;
+        const int64_t* k = keys.data();
+        int64_t lo[3] = {mask, mask, mask}, hi[3] = {0, 0, 0};
+        for (size_t p = 0; p < n; ++p) {
+            const int64_t f[3] = {(k[p] >> 42) & mask, (k[p] >> 21) & mask, k[p] & mask};
+            for (int a = 0; a < 3; ++a) {
+                lo[a] = std::min(lo[a], f[a]);
+                hi[a] = std::max(hi[a], f[a]);
+            }
+            if ((k[p] >> 63) != 0) throw std::invalid_argument("argsort_voxel_keys: negative key");
+        }
+        int bits[3] = {0, 0, 0};
+        for (int a = 0; a < 3 && n; ++a)
+            while ((int64_t(1) << bits[a]) <= hi[a] - lo[a]) ++bits[a];
+        const int total = bits[0] + bits[1] + bits[2];
+        fits = total <= 32 && n < (size_t(1) << 32);
+        if (fits && n) {
+            // (compact key << 32 | position): the position rides along, so a key sort is stable
+            std::vector<uint64_t> a(n), b(n);
+            const size_t T = std::max<size_t>(1, std::min<size_t>(size_t(std::max(threads, 1)), n / 65536));
+            auto parallel = [&](auto&& fn) {       // fn(lo, hi, t) over T contiguous parts
+                std::vector<std::thread> pool;
+                for (size_t t = 1; t < T; ++t) pool.emplace_back(fn, t * n / T, (t + 1) * n / T, t);
+                fn(size_t(0), n / T, size_t(0));
+                for (auto& th : pool) th.join();
+            };
+            parallel([&](size_t p0, size_t p1, size_t) {
+                for (size_t p = p0; p < p1; ++p) {
+                    const uint64_t c = (uint64_t(((k[p] >> 42) & mask) - lo[0]) << (bits[1] + bits[2])) |
+                                       (uint64_t(((k[p] >> 21) & mask) - lo[1]) << bits[2]) |
+                                       uint64_t((k[p] & mask) - lo[2]);
+                    a[p] = (c << 32) | uint64_t(p);
+                }
+            });
+            const int passes = (total + 10) / 11;
+            const int digit = passes ? (total + passes - 1) / passes : 0;
+            const size_t B = size_t(1) << digit;
+            std::vector<std::vector<size_t>> hist(T, std::vector<size_t>(B));
+            for (int pass = 0; pass < passes; ++pass) {
+                const int shift = 32 + pass * digit;
+                parallel([&](size_t p0, size_t p1, size_t t) {
+                    std::fill(hist[t].begin(), hist[t].end(), size_t(0));
+                    for (size_t p = p0; p < p1; ++p) ++hist[t][(a[p] >> shift) & (B - 1)];
+                });
+                size_t at = 0;                     // bucket-major, then part: stable
+                for (size_t d = 0; d < B; ++d)
+                    for (size_t t = 0; t < T; ++t) {
+                        const size_t c = hist[t][d];
+                        hist[t][d] = at;
+                        at += c;
+                    }
+                parallel([&](size_t p0, size_t p1, size_t t) {
+                    std::vector<size_t>& h = hist[t];
+                    for (size_t p = p0; p < p1; ++p) b[h[(a[p] >> shift) & (B - 1)]++] = a[p];
+                });
+                a.swap(b);
+            }
+            parallel([&](size_t p0, size_t p1, size_t) {
+                for (size_t p = p0; p < p1; ++p) {
+                    const size_t i = size_t(a[p] & 0xffffffffu);
+                    order[p] = int64_t(i);
+                    sorted[p] = k[i];
+                }
+            });
+        }
+    }
+    if (!fits) return nb::none();
+    return nb::make_tuple(to_numpy(std::move(order), {n}), to_numpy(std::move(sorted), {n}));
 }
 
 }  // namespace
@@ -543,6 +687,9 @@ NB_MODULE(_rfkernels, m) {
     m.doc() = "CPU kernels for the RayFronts mapper (hash unique, ray-frontier candidates); see semantic_map.kernels";
     m.def("unique_i64", &unique_i64, nb::arg("keys"));
     m.def("components_26_sorted", &components_26_sorted, nb::arg("keys"), nb::arg("threads") = 1);
+    m.def("cone_weighted_union", &cone_weighted_union, nb::arg("local"), nb::arg("w"), nb::arg("frames"), nb::arg("o"),
+          nb::arg("d"), nb::arg("range_m"), nb::arg("cos2"), nb::arg("threads") = 1);
+    m.def("argsort_voxel_keys", &argsort_voxel_keys, nb::arg("keys"), nb::arg("threads") = 1);
     m.def("instance_groups", &instance_groups, nb::arg("keys"), nb::arg("labels"), nb::arg("conf"),
           nb::arg("min_voxels"));
     m.def("group_pairs", &group_pairs, nb::arg("group"), nb::arg("idx"), nb::arg("wt"), nb::arg("n_groups"),
