@@ -218,7 +218,11 @@ class MapperService:
         return set_torch_threads(self.cfg, query=query)
 
     def run(self) -> int:
+        """Start, serve until stopped, close (the ``rayfronts mapper`` process)."""
+        from mapper.service_config import freeze_startup_objects
+
         self.start()
+        log.info("%d start-up objects frozen out of the garbage collector", freeze_startup_objects())
         try:
             while not self.stop.wait(0.5):
                 pass

@@ -42,6 +42,7 @@ distance), the ``max_candidates`` best by ``ray_z`` and, with ``from_xyz``, the
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import weakref
 from dataclasses import dataclass, field
@@ -188,9 +189,11 @@ def ray_support(frontiers: np.ndarray, ray_origins: np.ndarray, ray_scores: np.n
 
 class LookNextCache:
     """What :func:`look_next` computes without the targets, kept between calls: the rays'
-    KD-tree, the frontier–ray pairs within the ray radius, each examined frontier's viewpoint
-    and each viewpoint's gain. Valid while the frontiers, the ray origins, the parameters and
-    the grid (its object and ``revision``) are those it was filled with; otherwise
+    KD-tree, the frontier–ray pairs within the ray radius (and the frontiers' support from
+    the last few ray score sets), each examined frontier's viewpoint and each viewpoint's
+    gain, the frontiers' distances from the last few starts. Valid while the frontiers, the
+    ray origins, the parameters and the grid (its object and ``revision``) are those it was
+    filled with; otherwise
     :meth:`bind` empties what changed: the pairs and tree when the frontiers or rays changed,
     the viewpoints when the frontiers or the grid changed, the gains when the grid changed.
     Results are exactly those of a call without a cache (each is a function of its own
@@ -206,6 +209,9 @@ class LookNextCache:
         self.views: dict[int, np.ndarray | None] = {}
         self.gains: dict[tuple, float] = {}
         self.dist: dict[tuple, np.ndarray] = {}      # start -> frontiers' distances from it
+        self.f_cols: np.ndarray | None = None         # (3, F) the frontiers' coordinates by axis
+        # sha1 of (ray scores, ray z) -> the frontiers' support from them (several robots, one version)
+        self.support: dict[bytes, tuple[np.ndarray, ...]] = {}
         self.hits = 0                        # calls that reused the pairs (for tests and timings)
 
     def bind(self, grid, f: np.ndarray, o: np.ndarray, geo: tuple[float, float, float, float]) -> None:
@@ -219,9 +225,10 @@ class LookNextCache:
         if not same_o:
             self.tree = None
         if not same_f:
-            self.dist = {}
+            self.dist, self.f_cols = {}, None
         if not (same_f and same_o and old[0] == geo[0]):
             self.pairs = None
+            self.support = {}
         else:
             self.hits += 1
         if not (same_f and same_grid and old[1:3] == geo[1:3]):
@@ -232,14 +239,46 @@ class LookNextCache:
         self.o = self.o if same_o else o.copy()
         self.geo, self.grid = geo, (weakref.ref(grid), rev)
 
+    def frontier_support(self, n_f: int, scores: np.ndarray, zs: np.ndarray | None
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """``(best, fscore, bz, fz, pos)`` of :func:`look_next` for the bound pairs: each
+        frontier's best ray score per target (F, T) and over targets (F,), the same of the
+        rays' z (zeros without ``zs``), and the frontiers with a positive ``fscore`` or ``fz``
+        (None if either has a negative value); kept for the last few score sets while the
+        pairs stay (the robots of one map version ask with the same scores)."""
+        h = hashlib.sha1(np.ascontiguousarray(scores).tobytes())
+        h.update(b"-" if zs is None else np.ascontiguousarray(zs).tobytes())
+        key = h.digest() + repr((scores.shape, None if zs is None else zs.shape)).encode()
+        got = self.support.get(key)
+        if got is None:
+            assert self.pairs is not None
+            best = _support_from_pairs(n_f, self.pairs, scores)
+            fscore = best.max(1) if best.shape[1] else np.zeros(n_f)
+            bz, fz = np.zeros((n_f, scores.shape[1])), np.zeros(n_f)
+            if zs is not None:
+                bz = _support_from_pairs(n_f, self.pairs, zs)
+                fz = bz.max(1)
+            nonneg = n_f > 0 and fscore.min() >= 0 and fz.min() >= 0
+            pos = np.flatnonzero((fscore > 0) | (fz > 0)) if nonneg else None
+            got = self.support[key] = (best, fscore, bz, fz, pos)
+            while len(self.support) > DISTANCE_STARTS:
+                self.support.pop(next(iter(self.support)))
+        return got
+
     def distances(self, f: np.ndarray, start: np.ndarray) -> np.ndarray:
         """(F,) distances (m) of the bound frontiers ``f`` from ``start``, kept for the last
         few starts while the frontiers stay (a planner's repeated search, several robots)."""
         key = tuple(float(v) for v in start)
         d = self.dist.get(key)
         if d is None:
-            rel = f - start
-            d = self.dist[key] = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+            if self.f_cols is None or self.f_cols.shape[1] != len(f):
+                self.f_cols = np.ascontiguousarray(f.T)            # x, y, z rows: three flat passes
+            x = self.f_cols[0] - start[0]
+            d = x * x
+            for a in (1, 2):
+                np.subtract(self.f_cols[a], start[a], out=x)
+                d += x * x
+            d = self.dist[key] = np.sqrt(d, out=d)
             while len(self.dist) > DISTANCE_STARTS:
                 self.dist.pop(next(iter(self.dist)))
         return d
@@ -397,16 +436,18 @@ def _nearest(dist: np.ndarray, k: int) -> np.ndarray:
     return cand[np.lexsort((cand, dist[cand]))]
 
 
-def _candidates(fscore: np.ndarray, fz: np.ndarray, fdist: np.ndarray, k: int
+def _candidates(fscore: np.ndarray, fz: np.ndarray, fdist: np.ndarray, k: int, pos: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(_best_first(fscore, fdist, k), _best_first(fz, fdist, k), _best_first(0, fdist, k))``
     with one pass over all frontiers: scores are >= 0 and few are > 0, so past the positive
     ones each list continues with the nearest zero-score frontiers, which lie among the
-    ``k + (number of positives)`` nearest of all (by distance, then index)."""
+    ``k + (number of positives)`` nearest of all (by distance, then index). ``pos``: those
+    positives when known (both scores then >= 0)."""
     n = len(fdist)
-    if n == 0 or fscore.min() < 0 or fz.min() < 0:
+    if pos is None and (n == 0 or fscore.min() < 0 or fz.min() < 0):
         return _best_first(fscore, fdist, k), _best_first(fz, fdist, k), _best_first(np.zeros(n), fdist, k)
-    pos = np.flatnonzero((fscore > 0) | (fz > 0))
+    if pos is None:
+        pos = np.flatnonzero((fscore > 0) | (fz > 0))
     near = _nearest(fdist, k + len(pos))
 
     def best(sc: np.ndarray) -> np.ndarray:
@@ -466,20 +507,18 @@ def look_next(grid: OccupancyView, vox: float, frontiers: np.ndarray, ray_origin
     rays_tree = c.tree
     if c.pairs is None:
         c.pairs = ray_pairs(f, o, ray_radius_m, rays_tree)
-    best = _support_from_pairs(len(f), c.pairs, scores)
-    fscore = best.max(1) if best.shape[1] else np.zeros(len(f))
-    fz, bz, zs = np.zeros(len(f)), np.zeros((len(f), len(targets))), np.zeros((len(dirs), len(targets)))
-    if ray_z is not None and len(o) and len(targets):
+    zs = np.zeros((len(dirs), len(targets)))
+    with_z = ray_z is not None and len(o) and len(targets)
+    if with_z:
         zs = np.asarray(ray_z, np.float64)
         if zs.size != len(dirs) * len(targets):
             raise ValueError(f"ray_z has shape {zs.shape}, expected ({len(dirs)}, {len(targets)})")
         zs = zs.reshape(len(dirs), len(targets))
-        bz = _support_from_pairs(len(f), c.pairs, zs)
-        fz = bz.max(1)
+    best, fscore, bz, fz, pos = c.frontier_support(len(f), scores, zs if with_z else None)
     start = None if from_xyz is None else np.asarray(from_xyz, np.float64).reshape(3)
     fdist = np.zeros(len(f)) if start is None else c.distances(f, start)
     k = max(max_candidates, max_goals)
-    order, by_z, nearest = _candidates(fscore, fz, fdist, k)
+    order, by_z, nearest = _candidates(fscore, fz, fdist, k, pos)
     extra = [by_z] if fz.any() else []
     if start is not None:
         extra.append(nearest)                                     # the nearest: the way on

@@ -110,7 +110,7 @@ def test_bench_search_quick(tmp_path):
     frontiers, the three occupancy queries measured; the JSON carries the meta block."""
     f = tmp_path / "s.json"
     assert main(["bench", "search", "--voxels", "5k", "--queries", "2", "--rays", "50", "--frames", "2",
-                 "--json", str(f)]) == 0
+                 "--standing-rounds", "1", "--json", str(f)]) == 0
     d = json.loads(f.read_text())
     row = d["sizes"]["5k"]
     assert row["voxels"] >= 5000 and row["frontiers"] > 0 and row["look_next"] > 0

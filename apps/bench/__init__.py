@@ -62,7 +62,7 @@ ALL: list[tuple[str, list[str], list[str]]] = [
     ("query", ["query", "--voxels", "100k,1M,5M"], ["query", "--voxels", "20k", "--queries", "3", "--changes", "2",
                                                     "--rays", "200"]),
     ("search", ["search", "--voxels", "100k,1M,5M"], ["search", "--voxels", "20k", "--queries", "2", "--rays", "200",
-                                                      "--frames", "2"]),
+                                                      "--frames", "2", "--standing-rounds", "1"]),
     ("e2e_radio_b", ["e2e", "--model", "radio_v2.5-b", "--only", "stream", "--frames", "12"],
      ["e2e", "--model", "radio_v2.5-b", "--only", "stream", "--frames", "3", "--resolution", "64x64"]),
     ("e2e_480x640", ["e2e", "--resolution", "480x640", "--only", "stream"],
