@@ -207,6 +207,13 @@ def occupied_cells(grid: OccupancyView, rebuild: bool = True) -> _Occupied | Non
     return idx
 
 
+def index_current(grid: OccupancyView) -> bool:
+    """True if the grid's occupied-cell index (:func:`occupied_cells`) is at the grid's current
+    ``revision``: :func:`point_states` then reads it without a rebuild."""
+    idx = _OCCUPIED.get(grid)
+    return idx is not None and idx.revision == int(grid.revision)
+
+
 def _unpack(keys: np.ndarray) -> np.ndarray:
     b, m = 1 << 20, (1 << 21) - 1
     return np.stack([(keys >> 42) - b, ((keys >> 21) & m) - b, (keys & m) - b], 1).astype(np.int64)

@@ -81,10 +81,13 @@ def test_a_large_stale_index_waits_until_window_reads_cost_as_much():
     pts = np.array([[0.75, 0.1, 0.1], [1.4, 1.4, 1.4]])          # windows of 2 * 9^3 cells
     rounds = 0
     while oq.occupied_cells(g, rebuild=False) is None:
+        assert not oq.index_current(g)
         st, d = point_states(g, VOX, pts, 1.0)
         assert d[0] == pytest.approx(0.45) and d[1] == pytest.approx(np.sqrt(3) * 0.1)
         rounds += 1
     assert 15 < rounds < 30                               # 0.25 * 128k / 1458 cells per request: 22
+    assert oq.index_current(g)
     g.update(np.array([[1, 0, 0]]), 9)                    # written: followed without a rebuild
-    assert point_states(g, VOX, pts, 1.0)[1][0] == pytest.approx(0.15)
+    assert not oq.index_current(g)
+    assert point_states(g, VOX, pts, 1.0)[1][0] == pytest.approx(0.15) and oq.index_current(g)
     assert oq._OCCUPIED[g].based and len(oq._OCCUPIED[g].ijk) == 3
