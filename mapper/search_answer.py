@@ -43,7 +43,15 @@ from common.cones import cone_union_volume
 from common.conventions import voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from planning.beyond import triangulate
-from planning.instances import InstanceTracker, InstanceViews, pack_ijk, request_views, tracked_views
+from planning.instances import (
+    InstanceTracker,
+    InstanceViews,
+    key_order,
+    pack_ijk,
+    request_views,
+    tracked_views,
+    unpack_keys,
+)
 from planning.look_next import Goal, LookNextCache, look_next, points_in_polygon, ray_outlier_z
 from semantic_map import kernels
 from semantic_map.query import PreparedRows, score_rows, softmax_share
@@ -559,10 +567,8 @@ def _instances(snap: QueryCopy, fs: FeatureSpace, vprep: PreparedRows, q: torch.
                 views.append((kept[2], name))
                 continue
             rrows = np.flatnonzero(vs[ti] > req.threshold)
-            rijk = _voxel_ijk(snap, rrows)
-            rk = pack_ijk(rijk)
-            o = np.argsort(rk, kind="stable")
-            views.append((request_views(tracker.current(), rk[o], rijk[o], vs[ti, rrows][o], snap.vox,
+            o, rk = key_order(_voxel_keys(snap, rrows))
+            views.append((request_views(tracker.current(), rk, unpack_keys(rk), vs[ti, rrows][o], snap.vox,
                                         scfg.min_instance_voxels), name))
     return _found(views, req), events
 
