@@ -550,8 +550,10 @@ def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_pat
         r = run_episode(w, mission, p, LoopSettings(), chain=chain, trace=tr)
         assert not r["collided"] and 1 <= r["steps"] <= mission.budget_steps, (p, r)
         assert set(r) >= {"success", "spl", "path_m", "false_finds", "steps", "cpu_ms_per_step"}
-        pos = np.asarray(tr.positions)
-        assert not any(robot.collides(w, a, b, spacing=0.03) for a, b in zip(pos[:-1], pos[1:], strict=True)), p
+        pos, legs = np.asarray(tr.positions), np.asarray(tr.driven)
+        assert all(np.isclose(legs, q).all(1).any() for q in pos), p          # each step's end was driven
+        assert not any(robot.collides(w, a, b, spacing=0.03) for a, b in zip(legs[:-1], legs[1:], strict=True)), p
+        assert r["path_m"] == pytest.approx(float(np.linalg.norm(np.diff(legs, axis=0), axis=1).sum())), p
         assert r["path_m"] > 1.0, (p, r)
         again = Trace()
         r2 = run_episode(w, mission, p, LoopSettings(), chain=chain, trace=again)
@@ -776,3 +778,48 @@ def test_rayfronts_finds_the_far_water_tower_where_frontier_exploration_does_not
     assert 0 < rf["spl"] <= 1.0 and rf["path_m"] >= m.shortest_m
     fr = run_episode(w, dataclasses.replace(m, budget_steps=rf["steps"]), "frontier", s, chain=chain)
     assert not fr["success"] and not fr["collided"] and fr["steps"] == rf["steps"], fr
+
+
+def test_a_step_drives_its_route_not_the_chord():
+    """A step's route (``NavField.route_toward``) keeps to traversable cells around a corner,
+    while the straight line from the robot to the point reached cuts through cells the
+    clearance rule rejected; ``_Run.move`` drives the route leg by leg, so a body that the
+    chord would drive into the obstacle misses it, and the path counts the route's length
+    (the fault that made frontier exploration collide on pybullet seeds 100 and 105)."""
+    from types import SimpleNamespace
+
+    from apps.closed_loop.episode import _Run
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.planner import OCCUPIED
+
+    cell, radius = 0.5, 0.3
+    states = np.zeros((20, 20), np.int8)
+    states[6:, :8] = OCCUPIED                         # x ≥ 3 m, y < 4 m: a block with its corner at (3, 4)
+    at = np.array([1.25, 1.25, 0.5])
+    nav = NavField(states, np.zeros(2), cell, at, radius)
+    pts = nav.route_toward(np.array([16, 14]), 10.0, at)
+    legs = np.vstack([at[:2], pts])
+    assert len(pts) >= 3
+
+    def cells_on(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        s = np.linspace(0.0, 1.0, 200)[:, None]
+        return np.floor((a + (b - a) * s) / cell).astype(int)
+
+    on_route = np.vstack([cells_on(a, b) for a, b in zip(legs[:-1], legs[1:], strict=True)])
+    assert nav.ok[on_route[:, 0], on_route[:, 1]].all()
+    chord = cells_on(at[:2], pts[-1])
+    assert not nav.ok[chord[:, 0], chord[:, 1]].all()          # the chord crosses a rejected cell
+
+    def collides(_world, a: np.ndarray, b: np.ndarray) -> bool:   # a disc of the body's radius
+        p = a[None, :2] + (b - a)[None, :2] * np.linspace(0.0, 1.0, 400)[:, None]
+        near = np.clip(p, [3.0, -np.inf], [np.inf, 4.0])           # nearest point of the block
+        return bool((np.linalg.norm(p - near, axis=1) < radius).any())
+
+    body = SimpleNamespace(collides=collides)
+    route3 = np.c_[pts, np.full(len(pts), at[2])]
+    run = _Run(at.copy())
+    assert run.move(body, None, route3) and not run.collided
+    assert np.allclose(run.pos, route3[-1])
+    assert run.path_m == pytest.approx(float(np.linalg.norm(np.diff(legs, axis=0), axis=1).sum()))
+    straight = _Run(at.copy())
+    assert not straight.move(body, None, route3[-1]) and straight.collided and np.allclose(straight.pos, at)

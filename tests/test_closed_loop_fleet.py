@@ -37,30 +37,35 @@ def car():
     return w, chain, m, single, {}
 
 
-def _fleet(car, policy: str, n: int) -> tuple[dict, list]:
+def _fleet(car, policy: str, n: int) -> tuple[dict, list, list]:
     from apps.closed_loop.episode import LoopSettings
     from apps.closed_loop.fleet_episode import FleetSettings, run_fleet_episode
 
     w, chain, m, _, cache = car
     if (policy, n) not in cache:
         trace: list = []
-        cache[policy, n] = (run_fleet_episode(w, m, policy, LoopSettings(), FleetSettings(n), chain, trace=trace),
-                            trace)
+        routes: list = []
+        cache[policy, n] = (run_fleet_episode(w, m, policy, LoopSettings(), FleetSettings(n), chain, trace=trace,
+                                              routes=routes), trace, routes)
     return cache[policy, n]
 
 
-def _check_fleet_row(car, row: dict, trace: list, n: int) -> None:
+def _check_fleet_row(car, row: dict, trace: list, n: int, routes: list) -> None:
     """The fleet episode found the true car without collision or false find: every robot's
-    swept body re-checked against the exact geometry, the paths summed from the positions."""
+    swept body re-checked against the exact geometry along every leg it drove, the paths
+    summed from those legs, each step's position among them."""
     from apps.closed_loop.robot import Platform
 
     w, _, m, _, _ = car
     robot = Platform.make("ground")
     pos = np.stack(trace)                                           # (steps + 1, n, 3)
-    assert pos.shape[1] == n and row["robots"] == n and len(row["paths_m"]) == n
+    assert pos.shape[1] == n and row["robots"] == n and len(row["paths_m"]) == n and len(routes) == n
     for i in range(n):
-        assert not any(robot.collides(w, a, b, spacing=0.03) for a, b in zip(pos[:-1, i], pos[1:, i], strict=True))
-        assert row["paths_m"][i] == pytest.approx(float(np.linalg.norm(np.diff(pos[:, i], axis=0), axis=1).sum()))
+        legs = routes[i]
+        assert np.allclose(legs[0], pos[0, i]) and np.allclose(legs[-1], pos[-1, i])
+        assert all(np.isclose(legs, p).all(1).any() for p in pos[:, i])
+        assert not any(robot.collides(w, a, b, spacing=0.03) for a, b in zip(legs[:-1], legs[1:], strict=True))
+        assert row["paths_m"][i] == pytest.approx(float(np.linalg.norm(np.diff(legs, axis=0), axis=1).sum()))
     assert row["path_m"] == pytest.approx(sum(row["paths_m"]))
     assert row["success"] and row["found"] == 1 and row["false_finds"] == 0 and not row["collided"], row
     (d,) = [d for d in row["declarations"] if d["verdict"] == "find"]
@@ -72,23 +77,23 @@ def _check_fleet_row(car, row: dict, trace: list, n: int) -> None:
 def test_two_robots_find_the_far_car_in_fewer_steps_than_one(car):
     _, _, m, single, _ = car
     assert single["success"] and single["steps"] >= 20, single      # one robot searches a while
-    row, trace = _fleet(car, "coordinated", 2)
-    _check_fleet_row(car, row, trace, 2)
+    row, trace, routes = _fleet(car, "coordinated", 2)
+    _check_fleet_row(car, row, trace, 2, routes)
     assert row["steps"] < single["steps"]
 
 
 def test_three_robots_find_the_far_car_in_fewer_steps_than_one(car):
     _, _, _, single, _ = car
     assert single["success"]
-    row, trace = _fleet(car, "coordinated", 3)
-    _check_fleet_row(car, row, trace, 3)
+    row, trace, routes = _fleet(car, "coordinated", 3)
+    _check_fleet_row(car, row, trace, 3, routes)
     assert row["steps"] < single["steps"]
 
 
 def test_coordinated_fleet_duplicates_less_coverage_than_uncoordinated(car):
-    co, _ = _fleet(car, "coordinated", 2)
-    un, trace = _fleet(car, "uncoordinated", 2)
-    _check_fleet_row(car, un, trace, 2)
+    co, _, _ = _fleet(car, "coordinated", 2)
+    un, trace, routes = _fleet(car, "uncoordinated", 2)
+    _check_fleet_row(car, un, trace, 2, routes)
     assert co["observed_voxels"] > 1000 and un["observed_voxels"] > 1000    # both saw a good part of the town
     assert 0.0 < co["duplicated_coverage"] < un["duplicated_coverage"]
 

@@ -98,6 +98,7 @@ class Trace:
     found: list = field(default_factory=list)
     why: list = field(default_factory=list)
     voxels: list = field(default_factory=list)      # (N, 3) map voxel centres, subsampled, per step
+    driven: list = field(default_factory=list)      # every point passed: the start, then each route point
 
 
 def _check_declaration(inst: dict, mission: Mission, at: np.ndarray, counted: set, vox: float) -> str:
@@ -129,6 +130,7 @@ class _Run:
     search_ms: list = field(default_factory=list)
     stage_ms: dict = field(default_factory=lambda: {"sense": [], "map": [], "search": [], "plan": [], "step": [],
                                                     "render": [], "robot_step": []})
+    driven: list = field(default_factory=list)     # every point passed, from the first move's start
 
     def start_step(self, step: int, trace: Trace | None) -> float:
         """Count step ``step`` (0-based) and record the position in ``trace``; returns the
@@ -139,13 +141,19 @@ class _Run:
             trace.positions.append(self.pos.copy())
         return c0
 
-    def move(self, robot: Platform, world: World, nxt: np.ndarray) -> bool:
-        """Drive to ``nxt`` unless the body would touch the true world (then: collided)."""
-        if robot.collides(world, self.pos, nxt):
-            self.collided = True
-            return False
-        self.path_m += float(np.linalg.norm(nxt - self.pos))
-        self.pos = nxt
+    def move(self, robot: Platform, world: World, points: np.ndarray) -> bool:
+        """Drive through ``points`` ((3,) one point, or (K, 3) a route's points in order), leg
+        by leg, unless the body swept along a leg would touch the true world (then: collided,
+        and the robot stays where that leg starts)."""
+        for nxt in np.asarray(points, np.float64).reshape(-1, 3):
+            if robot.collides(world, self.pos, nxt):
+                self.collided = True
+                return False
+            if not self.driven:
+                self.driven.append(self.pos.copy())
+            self.path_m += float(np.linalg.norm(nxt - self.pos))
+            self.pos = nxt
+            self.driven.append(nxt.copy())
         return True
 
 
@@ -250,7 +258,8 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
             stuck += 1
         else:
             stuck = 0
-            if not run.move(robot, world, np.r_[nav.step_toward(d.goal_cell, settings.step_m, run.pos), run.pos[2]]):
+            xy = nav.route_toward(d.goal_cell, settings.step_m, run.pos)
+            if not run.move(robot, world, np.c_[xy, np.full(len(xy), run.pos[2])]):
                 return
         run.cpu.append((time.process_time() - c0) * 1e3)
         if len(run.counted) >= mission.k or stuck >= 3:
@@ -286,6 +295,7 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
         _searching(world, mission, policy, robot, settings, chain, mapper, run, trace)
     if trace is not None:
         trace.positions.append(run.pos.copy())
+        trace.driven = [p.copy() for p in (run.driven or [run.pos])]
     success = (len(run.counted) >= mission.k) and not run.collided
     return {"policy": policy, "success": bool(success), "spl": spl(success, mission.shortest_m, run.path_m),
             "path_m": run.path_m, "shortest_m": mission.shortest_m, "steps": run.steps,

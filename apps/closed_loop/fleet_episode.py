@@ -334,11 +334,13 @@ def _sense(fl: _Fleet, chain: EdgeChain, robot: Platform, mapper, names: list[st
 
 
 def run_fleet_episode(world: World, mission: Mission, policy: str, settings: LoopSettings, fleet: FleetSettings,
-                      chain: EdgeChain, trace: list | None = None) -> dict:
+                      chain: EdgeChain, trace: list | None = None, routes: list | None = None) -> dict:
     """Run fleet ``policy`` (:data:`FLEET_POLICIES`) with ``fleet.robots`` robots on ``mission``;
     returns the episode row (module docstring; also ``success``, ``false_finds``, ``finds``
     [(step, total path)], ``declarations``, ``collided``, ``cpu_ms_per_step``, ``end`` per
-    robot). ``trace``: a list that gets each step's robot positions ((N, 3) arrays)."""
+    robot). ``trace``: a list that gets each step's robot positions ((N, 3) arrays);
+    ``routes``: a list that gets, at the end, each robot's driven points ((K, 3): its start,
+    then every route point passed)."""
     from apps.closed_loop.world_model import LocalMapper, mapper_config
 
     if policy not in FLEET_POLICIES:
@@ -376,13 +378,15 @@ def run_fleet_episode(world: World, mission: Mission, policy: str, settings: Loo
                 fl.stuck[i] += 1
             else:
                 fl.stuck[i] = 0
-                nxt = np.r_[fl.navs[i].step_toward(d.goal_cell, settings.step_m, r.pos), r.pos[2]]
-                collided = collided or not r.move(robot, world, nxt)
+                xy = fl.navs[i].route_toward(d.goal_cell, settings.step_m, r.pos)
+                collided = collided or not r.move(robot, world, np.c_[xy, np.full(len(xy), r.pos[2])])
         cpu.append((time.process_time() - c0) * 1e3)
         if collided or len(tally.counted) >= mission.k or min(fl.stuck) >= 3:
             break
     if trace is not None:
         trace.append(np.stack([r.pos for r in fl.runs]))
+    if routes is not None:
+        routes.extend(np.asarray(r.driven or [r.pos], np.float64).reshape(-1, 3) for r in fl.runs)
     success = len(tally.counted) >= mission.k and not collided
     dup, observed = duplicated_coverage(fl.seen)
     paths = [float(r.path_m) for r in fl.runs]

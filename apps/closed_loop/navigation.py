@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from apps.closed_loop.planner import distance_field, follow, path_to, traversable
+from apps.closed_loop.planner import distance_field, path_to, route, traversable
 
 
 class NavField:
@@ -41,10 +41,12 @@ class NavField:
         i = int(np.lexsort((pl, np.round(d, 3)))[0])
         return self._cells[i], float(pl[i]), float(d[i])
 
-    def step_toward(self, cell: np.ndarray, step_m: float, at: np.ndarray) -> np.ndarray:
-        """The xy point reached moving at most ``step_m`` from ``at`` along the path to ``cell``
-        (the first leg goes from ``at`` to the centre of the first cell after the start's)."""
+    def route_toward(self, cell: np.ndarray, step_m: float, at: np.ndarray) -> np.ndarray:
+        """(K, 2) xy points passed moving at most ``step_m`` from ``at`` along the path to
+        ``cell`` (:func:`~apps.closed_loop.planner.route`: the cell centres passed, then the
+        point reached; the first leg goes from ``at`` to the centre of the first cell after the
+        start's). A robot drives them leg by leg: the legs join traversable cells."""
         path = path_to(self.pred, tuple(int(v) for v in cell))
         pts = [np.asarray(at[:2], np.float64)] + [self.origin + (np.asarray(c) + 0.5) * self.cell for c in path[1:]]
-        return follow(np.asarray(pts), 0.0, step_m)[0]
+        return route(np.asarray(pts), step_m)
 

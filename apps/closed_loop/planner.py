@@ -100,6 +100,17 @@ def follow(points: np.ndarray, done_m: float, step_m: float) -> tuple[np.ndarray
     return points[i] + (points[i + 1] - points[i]) * t, target
 
 
+def route(points: np.ndarray, step_m: float) -> np.ndarray:
+    """The points passed driving at most ``step_m`` along polyline ``points`` (N, D) from its
+    first point: the vertices passed, then the end (:func:`follow`'s point); the first point
+    left out. Driving it leg by leg keeps to the polyline (a straight line to the end would
+    cut its corners)."""
+    points = np.asarray(points, np.float64)
+    end, driven = follow(points, 0.0, step_m)
+    cum = np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))
+    return np.concatenate([points[1:][cum < driven], end[None]])
+
+
 def advance(path: list[tuple[int, ...]], origin: np.ndarray, cell: float, step_m: float) -> np.ndarray:
     """Point (metres, world) reached after moving at most ``step_m`` along the path's cell centres."""
     pts = (np.asarray(path, np.float64) + 0.5) * cell + np.asarray(origin, np.float64)
