@@ -211,7 +211,7 @@ class LookNextCache:
         self.dist: dict[tuple, np.ndarray] = {}      # start -> frontiers' distances from it
         self.f_cols: np.ndarray | None = None         # (3, F) the frontiers' coordinates by axis
         # sha1 of (ray scores, ray z) -> the frontiers' support from them (several robots, one version)
-        self.support: dict[bytes, tuple[np.ndarray, ...]] = {}
+        self.support: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = {}
         self.hits = 0                        # calls that reused the pairs (for tests and timings)
 
     def bind(self, grid, f: np.ndarray, o: np.ndarray, geo: tuple[float, float, float, float]) -> None:

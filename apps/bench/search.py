@@ -83,7 +83,8 @@ def _occupancy_latency(m, n: int) -> dict:
 
     vox = float(m.cfg.vox_size)
     rng = np.random.default_rng(0)
-    box, sl, pts, first = [], [], [], []
+    box, sl, pts = [], [], []
+    first: list[float] = []
     while len(first) < WARM_POINT_QUERIES or (len(first) < WARM_POINT_QUERIES_MAX
                                                and not index_current(m.occupancy_view())):
         q = rng.uniform([-30, -30, 0], [30, 30, 4], (1000, 3))   # a planner's first steps: the index
