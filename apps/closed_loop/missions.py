@@ -19,6 +19,8 @@ not an optimal tour). World frame z up, metres.
 from __future__ import annotations
 
 import math
+import weakref
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -89,9 +91,30 @@ class TruthGrid:
         return 0 <= c[0] < self.ok.shape[0] and 0 <= c[1] < self.ok.shape[1]
 
 
+#: per world (weakly held): the last few :func:`truth_grid` results, by platform, box and cell
+_TRUTH_GRIDS: "weakref.WeakKeyDictionary[World, OrderedDict]" = weakref.WeakKeyDictionary()
+TRUTH_GRIDS_PER_WORLD = 4
+
+
 def truth_grid(world: World, platform: Platform, lo: np.ndarray, hi: np.ndarray, cell: float = 0.5) -> TruthGrid:
-    states, origin = true_free_grid(world, platform, lo, hi, cell)
-    return TruthGrid(states == 0, origin, cell)
+    """The platform's true free cells over the xy box ``[lo, hi]`` (m) at ``cell`` (m)
+    (:func:`~apps.closed_loop.robot.true_free_grid`), kept for the last few boxes of a world
+    (worlds are not changed after they are built; each seed's missions ask for the same boxes)."""
+    key = (platform, tuple(float(v) for v in np.asarray(lo).ravel()), tuple(float(v) for v in np.asarray(hi).ravel()),
+           float(cell))
+    try:
+        kept = _TRUTH_GRIDS.setdefault(world, OrderedDict())
+    except TypeError:                         # a world that cannot be weakly referenced: no cache
+        kept = OrderedDict()
+    tg = kept.get(key)
+    if tg is None:
+        states, origin = true_free_grid(world, platform, lo, hi, cell)
+        tg = kept[key] = TruthGrid(states == 0, origin, cell)
+        tg.ok.setflags(write=False)               # shared by the missions that ask for this box
+        tg.origin.setflags(write=False)
+        while len(kept) > TRUTH_GRIDS_PER_WORLD:
+            kept.popitem(last=False)
+    return tg
 
 
 def _reach_cells(tg: TruthGrid, inst, reach_m: float) -> np.ndarray:
