@@ -261,7 +261,7 @@ class LookNextCache:
             nonneg = n_f > 0 and fscore.min() >= 0 and fz.min() >= 0
             pos = np.flatnonzero((fscore > 0) | (fz > 0)) if nonneg else None
             got = self.support[key] = (best, fscore, bz, fz, pos)
-            while len(self.support) > DISTANCE_STARTS:
+            while len(self.support) > SUPPORT_SETS:
                 self.support.pop(next(iter(self.support)))
         return got
 
@@ -305,6 +305,8 @@ class LookNextCache:
 
 #: starts whose frontier distances :class:`LookNextCache` keeps (robots searching at once)
 DISTANCE_STARTS = 8
+#: ray score sets whose frontier support :class:`LookNextCache` keeps (the searches of one map version)
+SUPPORT_SETS = 8
 
 #: fewer rays than this in the area: no ray_z (a median and spread of a handful say nothing)
 MIN_RAYS_FOR_Z = 10
