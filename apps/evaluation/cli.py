@@ -31,6 +31,9 @@ DESCRIPTION = """Benchmarks of the paper, run on this machine:
            SPL, path, false finds; writes --json FILE plus .md, .csv and plots beside it.
   tune-sem-poses  choose sem-poses' margin z cut on the development seeds (best far-target
            SPL); writes --json FILE.
+  merge    one search table from runs split by seed or policy.
+  fleet-compare  fleets of N robots against one robot on the same missions (steps, path,
+           the fewest steps any fleet could take, issue 44's aim); writes --json FILE.
 
 srchvol/semseg take --config FILE and trailing key=value overrides of their config (keys
 listed with 'rayfronts eval srchvol --help')."""
@@ -120,6 +123,12 @@ def _search_parser(sub) -> None:
     mg.add_argument("parts", nargs="+", metavar="PART.json", help="eval search JSON files of the same settings")
     mg.add_argument("--json", required=True, metavar="FILE", help="the merged document (.md/.csv/.png beside)")
     mg.add_argument("--allow-partial", action="store_true", help="accept FILE.partial.json parts (marked partial)")
+    fc = sub.add_parser("fleet-compare", help="fleets of N robots against one robot on the same missions",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description=__import__("apps.closed_loop.fleet_compare", fromlist=["x"]).__doc__)
+    fc.add_argument("runs", nargs="+", metavar="RUN.json",
+                    help="eval search JSON files: the --robots 1 rayfronts run and the fleet runs")
+    fc.add_argument("--json", required=True, metavar="FILE", help="the comparison (.md beside)")
     tu = sub.add_parser("tune-sem-poses", help="choose sem-poses' margin z cut on the development seeds",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.tuning", fromlist=["x"]).__doc__)
@@ -252,6 +261,32 @@ def _run_merge(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_fleet_compare(args: argparse.Namespace) -> int:
+    import json
+
+    from apps.closed_loop.fleet_compare import compare_fleets, compare_markdown
+
+    docs = []
+    for p in args.runs:
+        try:
+            docs.append(json.loads(Path(p).read_text()))
+        except (OSError, ValueError) as e:
+            print(f"rayfronts eval fleet-compare: cannot read {p}: {e}", file=sys.stderr)
+            return 2
+    try:
+        doc = compare_fleets(docs)
+    except (ValueError, KeyError, TypeError) as e:
+        print(f"rayfronts eval fleet-compare: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=2, default=float))
+    md = compare_markdown(doc)
+    out.with_suffix(".md").write_text(md)
+    print(md + f"wrote {out}, {out.with_suffix('.md')}")
+    return 0
+
+
 def _run_tune(args: argparse.Namespace) -> int:
     import json
 
@@ -333,6 +368,8 @@ def run(args: argparse.Namespace) -> int:
             return _run_search(args)
         if args.action == "merge":
             return _run_merge(args)
+        if args.action == "fleet-compare":
+            return _run_fleet_compare(args)
         if args.action == "tune-sem-poses":
             return _run_tune(args)
         cfg = build_config(args)
