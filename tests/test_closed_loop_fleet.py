@@ -195,3 +195,34 @@ def test_single_robot_runs_keep_their_json_and_csv_columns():
     assert not set(FLEET_ROW_FIELDS) & set(ROW_FIELDS)
     with pytest.raises(ValueError, match="--robots 2: rayfronts drive one robot"):
         SearchEvalConfig(robots=2, policies=["rayfronts", "coordinated"]).validate()
+
+
+def test_robots_side_by_side_declare_what_they_all_see_once(car):
+    """Three robots start next to the car, each within reach: in the same step every one of
+    them decides to declare it. The fleet declares it once (the first robot's), not three
+    times — a false instance would otherwise count three false finds."""
+    from apps.closed_loop.episode import LoopSettings
+    from apps.closed_loop.fleet_episode import FleetSettings, fleet_starts, run_fleet_episode
+    from apps.closed_loop.missions import xy_box_distance
+    from apps.closed_loop.robot import Platform
+
+    w, chain, m, _, _ = car
+    robot = Platform.make("ground")
+    box = m.instances[0]
+    near = None
+    for r, a in itertools.product((1.5, 2.0, 2.5), np.arange(16) * math.pi / 8):
+        c = np.clip(m.start[:2], box.aabb_min[:2], box.aabb_max[:2])   # the box side facing the start
+        p = np.array([c[0] + r * math.cos(a), c[1] + r * math.sin(a), m.start[2]])
+        if xy_box_distance(p, box.aabb_min, box.aabb_max) >= 1.0 and not robot.collides(w, p, p):
+            try:
+                starts = fleet_starts(w, robot, p, 3)
+            except ValueError:
+                continue
+            if max(xy_box_distance(s, box.aabb_min, box.aabb_max) for s in starts) <= m.reach_m - 0.6:
+                near = p
+                break
+    assert near is not None, "no start by the car where three robots fit within reach"
+    mission = dataclasses.replace(m, start=near)
+    row = run_fleet_episode(w, mission, "uncoordinated", LoopSettings(), FleetSettings(3), chain)
+    assert row["success"] and row["steps"] == 1, row
+    assert len(row["declarations"]) == 1 and row["declarations"][0]["verdict"] == "find", row["declarations"]

@@ -3,7 +3,10 @@ robot can drive (:class:`NavField`), where to go next and which found instance t
 
 Every map-based policy confirms the same way: an undeclared found instance of the target
 (the search's ``found``, stable ids) is driven to; once the robot is within ``reach_m``
-(xy) of its box it is declared; an approach that would lead back to where approaching that
+(xy) of its box it is declared — or, when the robot stands as near it as the map lets it
+(no reachable cell nearer) within ``STALL_DECLARE × reach_m``, declared from there (the
+mapped box of a large object is the part seen with its name, often behind a near side the
+robot is already close to); an approach that would lead back to where approaching that
 instance got no nearer (:func:`_stalled_at`) is not taken. They differ in how they explore
 until then:
 
@@ -105,6 +108,9 @@ def _set_aside(state: PolicyState, xy: np.ndarray, radius: float = 1.5) -> bool:
 
 #: at most this many stall points per instance (the oldest go first)
 MAX_STALLS = 32
+#: a found instance the robot can get no nearer to is declared within this many ``reach_m``
+#: of its mapped box (not tuned: half a reach more)
+STALL_DECLARE = 1.5
 
 
 def _stall(state: PolicyState, inst_id: int, at: np.ndarray, dist_m: float) -> None:
@@ -116,11 +122,14 @@ def _stall(state: PolicyState, inst_id: int, at: np.ndarray, dist_m: float) -> N
 
 
 def _stalled_at(state: PolicyState, inst_id: int, xy: np.ndarray, dist_m: float, radius_m: float = 1.0,
-                gain_m: float = 0.25) -> bool:
+                gain_m: float = 1.0) -> bool:
     """Whether an approach of ``inst_id`` to ``xy`` (``dist_m`` from its box) leads back to
     where it stalled — within ``radius_m`` of such a spot and not ``gain_m`` nearer the box
     than the robot was there: from there it got no nearer, and a robot sent back and forth
-    between that spot and the exploration goal it then took never arrives anywhere."""
+    between that spot and the exploration goal it then took never arrives anywhere. ``gain_m``
+    is two map cells: the reachable cell nearest a far box flickers by a cell with the depth
+    noise of each step's views, and a gain of 0.25 m let that flicker send a robot back and
+    forth between the approach and its exploration goal for 70 steps."""
     return any(np.linalg.norm(np.asarray(xy[:2]) - p) < radius_m and dist_m > d - gain_m
                for p, d in state.stalled.get(inst_id, []))
 
@@ -140,6 +149,9 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
         aim = np.clip(at[:2], lo[:2], hi[:2])
         cell, path_m, gap = nav.nearest_reachable(aim)
         if not _progress(nav, cell):
+            if here_m <= STALL_DECLARE * reach_m:     # as near as the map lets it: declare from here
+                state.bearing = None
+                return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']} (no nearer)")
             _stall(state, inst["id"], at, here_m)
             continue
         to = nav.origin + (cell + 0.5) * nav.cell
