@@ -19,7 +19,7 @@ SETTINGS = {"platform": "ground", "depth_limits": [20.0], "world": "pybullet", "
 def _one(rows: list[tuple[int, bool, int, float]]) -> dict:
     """The one-robot run: (seed, found, steps, path_m) per seed, policy rayfronts."""
     eps = [{"seed": s, "kind": "landmark", "episode": 0, "depth_limit_m": 20.0, "policy": "rayfronts",
-            "success": f, "steps": n, "path_m": p, "shortest_m": 30.0, "start": [0.0, 0.0, 1.5]}
+            "success": f, "steps": n, "path_m": p, "shortest_m": 30.0, "start": [0.0, 0.0, 1.5], "budget_steps": 120}
            for s, f, n, p in rows]
     return {"settings": {**SETTINGS, "seeds": [r[0] for r in rows], "policies": ["rayfronts"]}, "episodes": eps}
 
@@ -29,7 +29,8 @@ def _fleet(n: int, rows: list[tuple[int, str, bool, int, float, float]], start: 
     1.5·k m east of the mission start, the mission's shortest path 30 m."""
     eps = [{"seed": s, "kind": "landmark", "episode": 0, "depth_limit_m": 20.0, "policy": pol, "robots": n,
             "success": f, "steps": k, "path_m": p, "duplicated_coverage": c, "shortest_m": 30.0,
-            "start": [0.0, 0.0, 1.5], "starts": [[1.5 * i, 0.0, 1.5] for i in range(n)]}
+            "start": [0.0, 0.0, 1.5], "starts": [[1.5 * i, 0.0, 1.5] for i in range(n)], "budget_steps": 120,
+            "collided": not f and k < 120}
            for s, pol, f, k, p, c in rows]
     return {"settings": {**SETTINGS, "seeds": sorted({r[0] for r in rows}),
                          "policies": sorted({r[1] for r in rows}), "robots": n, "start": start, "footprint_m": 8.0},
@@ -69,7 +70,19 @@ def test_ratios_sums_and_the_aim_against_hand_worked_numbers():
     assert aim["checks"]["path_ratio"] is False and aim["checks"]["steps_ratio"] is True and aim["met"] is False
     md = compare_markdown(doc)
     assert "| 100 | 3 | coordinated | yes | 10 (20) | 0.50 | 0.70 | 55 (40) | 1.38 | 0.20 |" in md
-    assert "| 101 | 3 | uncoordinated | no | 120 (120, not found) | 1.00 |" in md
+    assert "| 101 | 3 | uncoordinated | no (ended at 120) | 120 (120, not found) | 1.00 |" in md
+
+
+def test_a_fleet_that_failed_early_counts_the_whole_budget():
+    """A collision at step 4 is no faster find: it counts the mission's 120 steps."""
+    one = _one([(105, True, 22, 38.0)])
+    three = _fleet(3, [(105, "uncoordinated", False, 4, 15.0, 0.6), (105, "coordinated", True, 22, 113.0, 0.6)])
+    doc = compare_fleets([one, three])
+    m = {r["policy"]: r for r in doc["missions"]}
+    assert m["uncoordinated"]["steps"] == 120 and m["uncoordinated"]["ended_at"] == 4
+    assert m["uncoordinated"]["steps_ratio"] == pytest.approx(120 / 22) and m["uncoordinated"]["collided"]
+    assert doc["summary"][0]["vs_uncoordinated"]["fewer"] == 1
+    assert "| 105 | 3 | uncoordinated | collided (ended at 4) |" in compare_markdown(doc)
 
 
 def test_the_aim_is_judged_on_the_largest_fleet():

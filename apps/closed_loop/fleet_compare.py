@@ -5,9 +5,10 @@ the one-robot run (``--robots 1``, policy ``rayfronts``) and fleet runs (``--rob
 the policies of :data:`apps.closed_loop.fleet_episode.FLEET_POLICIES`). A mission is a (seed,
 mission kind, episode, depth limit); per mission, fleet size and fleet policy:
 
-* ``steps_ratio``: the fleet's steps until the target was found ÷ one robot's (an episode that
-  ran out of budget counts its budget, so against a one-robot failure the ratio is an upper
-  bound: ``one_found`` false);
+* ``steps_ratio``: the fleet's steps until the target was found ÷ one robot's (a failed
+  episode counts the mission's whole budget, whether it ran out of steps, collided or got
+  stuck early — so against a one-robot failure the ratio is an upper bound: ``one_found``
+  false);
 * ``path_ratio``: the fleet's total path (all robots) ÷ one robot's path;
 * ``bound_steps``: the fewest steps in which any robot of the fleet could have reached the
   target, ⌈(shortest_m − d) / step_m⌉ with ``shortest_m`` the oracle's path from the mission
@@ -44,6 +45,11 @@ def _mission(r: dict) -> tuple:
 
 def _robots(doc: dict) -> int:
     return int(doc["settings"].get("robots", 1))
+
+
+def _steps(r: dict) -> int:
+    """Steps to find: the episode's, or the mission's budget when it failed (module docstring)."""
+    return int(r["steps"]) if r["success"] else int(r.get("budget_steps", r["steps"]))
 
 
 def bound_steps(shortest_m: float, starts: list, start: list, step_m: float) -> int:
@@ -93,17 +99,18 @@ def compare_fleets(docs: list[dict]) -> dict:
             continue
         b = bound_steps(r["shortest_m"], r.get("starts") or [r["start"]], r["start"], step_m)
         missions.append({"seed": m[0], "kind": m[1], "episode": m[2], "depth_limit_m": m[3], "robots": n,
-                         "policy": policy, "found": bool(r["success"]), "steps": int(r["steps"]),
+                         "policy": policy, "found": bool(r["success"]), "steps": _steps(r),
+                         "ended_at": int(r["steps"]), "collided": bool(r.get("collided", False)),
                          "path_m": float(r["path_m"]), "duplicated_coverage": float(r.get("duplicated_coverage", 0.0)),
-                         "one_found": bool(o["success"]), "one_steps": int(o["steps"]),
+                         "one_found": bool(o["success"]), "one_steps": _steps(o),
                          "one_path_m": float(o["path_m"]),
-                         "steps_ratio": int(r["steps"]) / max(1, int(o["steps"])),
+                         "steps_ratio": _steps(r) / max(1, _steps(o)),
                          "path_ratio": float(r["path_m"]) / max(1e-9, float(o["path_m"])),
-                         "bound_steps": b, "bound_ratio": b / max(1, int(o["steps"]))})
+                         "bound_steps": b, "bound_ratio": b / max(1, _steps(o))})
     summary = _summarize(missions)
     return {"missions": missions, "summary": summary, "aim": _aim(summary),
             "one_robot": {"missions": len(one), "found": sum(bool(r["success"]) for r in one.values()),
-                          "steps": sum(int(r["steps"]) for r in one.values()),
+                          "steps": sum(_steps(r) for r in one.values()),
                           "path_m": sum(float(r["path_m"]) for r in one.values())},
             "settings": {**base, "step_m": step_m,
                          **{k: fleets[0]["settings"].get(k) for k in FLEET_SETTINGS if fleets}},
@@ -160,7 +167,8 @@ def compare_markdown(doc: dict) -> str:
     lines = ["| seed | robots | policy | found | steps (one robot) | steps ratio | bound ratio | total path m "
              "(one robot) | path ratio | duplicated coverage |", "|---|---|---|---|---|---|---|---|---|---|"]
     for m in doc["missions"]:
-        lines.append(f"| {m['seed']} | {m['robots']} | {m['policy']} | {'yes' if m['found'] else 'no'} | "
+        found = "yes" if m["found"] else ("collided" if m["collided"] else "no") + f" (ended at {m['ended_at']})"
+        lines.append(f"| {m['seed']} | {m['robots']} | {m['policy']} | {found} | "
                      f"{m['steps']} ({m['one_steps']}{'' if m['one_found'] else ', not found'}) | "
                      f"{m['steps_ratio']:.2f} | {m['bound_ratio']:.2f} | {m['path_m']:.0f} ({m['one_path_m']:.0f}) | "
                      f"{m['path_ratio']:.2f} | {m['duplicated_coverage']:.2f} |")
