@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 
 from apps.closed_loop.fleet_episode import FLEET_POLICIES
+from apps.closed_loop.merge import settings_differences
 
 #: settings that may differ between the compared documents
 COMPARE_ACROSS = ("seeds", "policies", "robots")
@@ -68,8 +69,7 @@ def compare_fleets(docs: list[dict]) -> dict:
     skip = COMPARE_ACROSS + FLEET_SETTINGS
     base = {k: v for k, v in docs[0]["settings"].items() if k not in skip}
     for i, d in enumerate(docs[1:], 2):
-        other = {k: v for k, v in d["settings"].items() if k not in skip}
-        diff = sorted(k for k in set(base) | set(other) if base.get(k) != other.get(k))
+        diff = settings_differences(docs[0]["settings"], d["settings"], skip)
         if diff:
             raise ValueError(f"document {i}: settings differ from document 1 in {', '.join(diff)} "
                              f"(only {', '.join(COMPARE_ACROSS)} may differ)")
@@ -137,10 +137,8 @@ def _summarize(missions: list[dict]) -> list[dict]:
              "bound_ratio": sum(m["bound_steps"] for m in rows) / max(1, one_steps),
              "duplicated_coverage": sum(m["duplicated_coverage"] for m in rows) / len(rows)}
         if policy == "coordinated":
-            unc = {(m["seed"], m["kind"], m["episode"], m["depth_limit_m"]): m["steps"] for m in missions
-                   if m["robots"] == n and m["policy"] == "uncoordinated"}
-            pairs = [(m["steps"], unc[k]) for m in rows
-                     if (k := (m["seed"], m["kind"], m["episode"], m["depth_limit_m"])) in unc]
+            unc = {_mission(m): m["steps"] for m in missions if m["robots"] == n and m["policy"] == "uncoordinated"}
+            pairs = [(m["steps"], unc[_mission(m)]) for m in rows if _mission(m) in unc]
             if pairs:
                 s["vs_uncoordinated"] = {"fewer": sum(a < b for a, b in pairs), "same": sum(a == b for a, b in pairs),
                                          "more": sum(a > b for a, b in pairs), "steps": sum(a for a, _ in pairs),

@@ -27,6 +27,14 @@ from apps.closed_loop.seeds import seed_sets
 SPLIT_BY = ("seeds", "policies")
 
 
+def settings_differences(first: dict, other: dict, may_differ: tuple[str, ...]) -> list[str]:
+    """The settings keys (sorted) in which two ``eval search`` documents' ``settings`` differ,
+    leaving out ``may_differ``."""
+    a = {k: v for k, v in first.items() if k not in may_differ}
+    b = {k: v for k, v in other.items() if k not in may_differ}
+    return sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+
+
 def _episode_key(r: dict) -> tuple:
     return (r["seed"], r["kind"], r["episode"], float(r["depth_limit_m"]), r["policy"], r.get("robots", 1))
 
@@ -42,8 +50,7 @@ def merge_documents(docs: list[dict], allow_partial: bool = False) -> dict:
             raise ValueError(f"part {i + 1}: a partial run (its FILE.partial.json); pass --allow-partial to use it")
     base = {k: v for k, v in docs[0]["settings"].items() if k not in SPLIT_BY}
     for i, d in enumerate(docs[1:], 2):
-        other = {k: v for k, v in d["settings"].items() if k not in SPLIT_BY}
-        diff = sorted(k for k in set(base) | set(other) if base.get(k) != other.get(k))
+        diff = settings_differences(docs[0]["settings"], d["settings"], SPLIT_BY)
         if diff:
             raise ValueError(f"part {i}: settings differ from part 1 in {', '.join(diff)} "
                              f"(only {' and '.join(SPLIT_BY)} may differ)")

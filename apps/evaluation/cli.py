@@ -237,19 +237,28 @@ def _run_search(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_merge(args: argparse.Namespace) -> int:
+def _read_documents(paths: list[str], action: str) -> list[dict] | None:
+    """The JSON documents at ``paths``; None (after one line on stderr naming the file) when
+    one cannot be read."""
     import json
 
-    from apps.closed_loop.evaluate import table_markdown, write_outputs
-    from apps.closed_loop.merge import merge_documents
-
     docs = []
-    for p in args.parts:
+    for p in paths:
         try:
             docs.append(json.loads(Path(p).read_text()))
         except (OSError, ValueError) as e:
-            print(f"rayfronts eval merge: cannot read {p}: {e}", file=sys.stderr)
-            return 2
+            print(f"rayfronts eval {action}: cannot read {p}: {e}", file=sys.stderr)
+            return None
+    return docs
+
+
+def _run_merge(args: argparse.Namespace) -> int:
+    from apps.closed_loop.evaluate import table_markdown, write_outputs
+    from apps.closed_loop.merge import merge_documents
+
+    docs = _read_documents(args.parts, "merge")
+    if docs is None:
+        return 2
     try:
         doc = merge_documents(docs, allow_partial=args.allow_partial)
     except ValueError as e:
@@ -266,13 +275,9 @@ def _run_fleet_compare(args: argparse.Namespace) -> int:
 
     from apps.closed_loop.fleet_compare import compare_fleets, compare_markdown
 
-    docs = []
-    for p in args.runs:
-        try:
-            docs.append(json.loads(Path(p).read_text()))
-        except (OSError, ValueError) as e:
-            print(f"rayfronts eval fleet-compare: cannot read {p}: {e}", file=sys.stderr)
-            return 2
+    docs = _read_documents(args.runs, "fleet-compare")
+    if docs is None:
+        return 2
     try:
         doc = compare_fleets(docs)
     except (ValueError, KeyError, TypeError) as e:
