@@ -370,13 +370,11 @@ def run_fleet_episode(world: World, mission: Mission, policy: str, settings: Loo
         if trace is not None:
             trace.append(np.stack([r.pos for r in fl.runs]))
         search_ms += _sense(fl, chain, robot, mapper, names, settings, mission.target, semantic)
-        declared_now: set = set()
         for i, d in enumerate(_decisions(policy, fl, names, mission, fleet.footprint_m)):
             r = fl.runs[i]
             if d.declare is not None:
-                if d.declare["id"] in declared_now:      # robots side by side decided on it at once:
-                    continue                             # the first one's declaration is the fleet's
-                declared_now.add(d.declare["id"])
+                if d.declare["id"] in fl.states[i].declared:   # another robot declared it this step
+                    continue                                   # (robots side by side decide at once)
                 tally.declare(world, mission, fl, i, names[i], d.declare, steps, settings.vox_m)
             elif d.goal_cell is None:
                 fl.stuck[i] += 1
