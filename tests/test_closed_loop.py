@@ -545,6 +545,11 @@ def test_a_false_find_inside_a_site_names_the_object_not_the_site():
     assert (r["nearest_class"], r["nearest_id"], r["nearest_m"]) == ("duck", 7, 0.0)
     r = _declaration_row(w, {"centroid": [70.0, 0.5, 1.0]}, "false", run)
     assert (r["nearest_class"], r["nearest_id"], r["nearest_m"]) == ("monastery", 1, 10.0)
+    assert "confidence" not in r and "extent_m" not in r       # a bare centroid carries no more
+    inst = {"centroid": [36.0, 39.0, 0.5], "box_min": [35.5, 38.5, 0.0], "box_max": [36.5, 39.75, 1.0],
+            "confidence": 0.71234, "voxels": 12, "observations": 3}
+    r = _declaration_row(w, inst, "false", run)
+    assert (r["confidence"], r["voxels"], r["observations"], r["extent_m"]) == (0.7123, 12, 3, [1.0, 1.25, 1.0])
 
 
 def test_every_policy_runs_without_collision_and_deterministically(loop, tmp_path):

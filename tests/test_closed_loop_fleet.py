@@ -226,3 +226,47 @@ def test_robots_side_by_side_declare_what_they_all_see_once(car):
     row = run_fleet_episode(w, mission, "uncoordinated", LoopSettings(), FleetSettings(3), chain)
     assert row["success"] and row["steps"] == 1, row
     assert len(row["declarations"]) == 1 and row["declarations"][0]["verdict"] == "find", row["declarations"]
+
+
+def test_a_cluster_of_bids_goes_to_the_robot_nearest_it():
+    """Round 1 of the allocation on an open costmap: robots A (x = 0) and B (x = 10) bid goals
+    4 m apart (one frontier region, footprint 8 m), A's own bid at x = 30 and B's at x = 26,
+    both by evidence; robot C (x = -10) bids a region of its own. The region goes to the
+    robot with the shortest path to any bid of it — B, to its own bid — even were A's bid
+    the one kept; the loser A takes another region (round 2), C keeps its bid. Then with B's
+    bid moved beyond A's (B at x = 10, bid x = 34; A's bid x = 30): B is nearest A's bid
+    (20 m against A's 30 m), so B takes A's bid, holding it as its own goal."""
+    from apps.closed_loop.fleet_episode import _allocate, _Fleet
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.planner import FREE
+    from apps.closed_loop.policies import Decision, PolicyState
+    from apps.closed_loop.world_model import Observation
+
+    cell, origin = 0.5, np.array([-40.0, -40.0])
+    states = np.full((160, 160), FREE, np.int8)
+    look = [{"position": [x, y, 1.0], "score": 0.0, "gain_m3": 50.0, "distance_m": 0.0, "ray_z": 0.0,
+             "target": None, "heading_rad": 0.0} for x, y in ((30.0, 0.0), (26.0, 0.0), (-30.0, 0.0), (0.0, 30.0))]
+
+    def fleet(at_x: list[float]):
+        runs = [argparse.Namespace(pos=np.array([x, 0.0, 1.0])) for x in at_x]
+        navs = [NavField(states, origin, cell, r.pos, 0.3) for r in runs]
+        obs = [Observation([], look, states, origin, cell) for _ in runs]
+        return _Fleet(runs=runs, states=[PolicyState() for _ in runs], navs=navs, obs=obs)
+
+    def bid(fl, i: int, x: float, y: float = 0.0, evidence: bool = True):
+        c, _, _ = fl.navs[i].nearest_reachable(np.array([x, y]))
+        fl.states[i].goal = (np.array([x, y]), 1.0, evidence)
+        return Decision(goal_cell=c, goal_xy=np.array([x, y]), why="rays", score=1.0), evidence
+
+    names = ["a", "b", "c"]
+    fl = fleet([0.0, 10.0, -10.0])
+    out = _allocate({0: bid(fl, 0, 30.0), 1: bid(fl, 1, 26.0), 2: bid(fl, 2, -30.0)}, fl, names, [0, 1, 2], 8.0)
+    assert np.allclose(out[1].goal_xy, [26.0, 0.0]) and np.allclose(out[2].goal_xy, [-30.0, 0.0])
+    assert out[0].why == "allocated" and np.linalg.norm(out[0].goal_xy - [26.0, 0.0]) >= 8.0
+    assert fl.states[0].goal is None                 # its bid lost: it decides afresh
+
+    fl = fleet([0.0, 10.0, -10.0])
+    out = _allocate({0: bid(fl, 0, 30.0), 1: bid(fl, 1, 34.0), 2: bid(fl, 2, -30.0)}, fl, names, [0, 1, 2], 8.0)
+    assert np.allclose(out[1].goal_xy, [30.0, 0.0]) and "(from a)" in out[1].why
+    assert np.allclose(fl.states[1].goal[0], [30.0, 0.0]) and fl.states[1].goal[2] is True
+    assert np.linalg.norm(out[0].goal_xy - [30.0, 0.0]) >= 8.0 and np.allclose(out[2].goal_xy, [-30.0, 0.0])

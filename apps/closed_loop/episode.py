@@ -162,16 +162,25 @@ def _declaration_row(world: World, inst: dict, verdict: str, run: _Run) -> dict:
     the declared ``centroid`` and the TRUE world instance nearest to it (``nearest_class``,
     ``nearest_id``, ``nearest_m``: distance from the centroid to its box, ties — a point
     inside several boxes, e.g. a duck's within the whole site's building — to the smallest
-    box; what a false find really was)."""
+    box; what a false find really was), and what the robot's map said of the instance it
+    declared, where the instance carries it: ``confidence``, ``voxels``, ``observations`` and
+    ``extent_m`` (its box's x, y, z sizes)."""
     c = np.asarray(inst["centroid"], np.float64)
 
     def volume(i) -> float:
         return float(np.prod(np.maximum(np.asarray(i.aabb_max, np.float64) - np.asarray(i.aabb_min, np.float64), 0.0)))
 
     near = min(world.instances, key=lambda i: (box_distance(c, i.aabb_min, i.aabb_max), volume(i)))
-    return {"step": run.steps, "verdict": verdict, "centroid": [round(float(v), 2) for v in c],
-            "nearest_class": world.classes[near.class_id], "nearest_id": int(near.id),
-            "nearest_m": round(float(box_distance(c, near.aabb_min, near.aabb_max)), 2)}
+    row = {"step": run.steps, "verdict": verdict, "centroid": [round(float(v), 2) for v in c],
+           "nearest_class": world.classes[near.class_id], "nearest_id": int(near.id),
+           "nearest_m": round(float(box_distance(c, near.aabb_min, near.aabb_max)), 2)}
+    for key in ("confidence", "voxels", "observations"):
+        if key in inst:
+            row[key] = round(float(inst[key]), 4) if key == "confidence" else int(inst[key])
+    if "box_min" in inst and "box_max" in inst:
+        ext = np.asarray(inst["box_max"], np.float64) - np.asarray(inst["box_min"], np.float64)
+        row["extent_m"] = [round(float(v), 2) for v in ext]
+    return row
 
 
 def _oracle(world: World, mission: Mission, robot: Platform, settings: LoopSettings, run: _Run,

@@ -19,8 +19,10 @@ Policies (:data:`FLEET_POLICIES`):
   bids the goal the single-robot ``rayfronts`` policy would choose for it
   (:func:`apps.closed_loop.policies.explore`, with its own memory), valued by the bid's
   evidence (:func:`planning.fleet_allocation.goal_value` with score 1 for a goal chosen by
-  the rays, else the goal's own), each robot eligible for its own bid only; bids closer than
-  ``footprint_m`` to a better bid lose; (2) the robots whose bids lost share the look-next
+  the rays, else the goal's own); bids closer than ``footprint_m`` (transitively) form one
+  region, and each region goes to the robot with the shortest path to any of its bids, among
+  the robots that bid there (a robot nearer another robot's bid takes that bid over and holds
+  it as its own goal); the others lose; (2) the robots whose bids lost share the look-next
   goals of all robots that lie at least ``footprint_m`` from the kept bids, by gain per metre
   of their own path (:func:`planning.fleet_allocation.goal_value` /
   (1 + path)). With one robot its bid always stands: the single-robot ``rayfronts`` episode.
@@ -193,6 +195,21 @@ def _cost_fn(fl: _Fleet, names: list[str]):
     return path_m
 
 
+def _bid_clusters(points: list, footprint: float) -> list[int]:
+    """Cluster label per point: points closer than ``footprint`` (m), transitively, share one."""
+    label = list(range(len(points)))
+
+    def root(k: int) -> int:
+        while label[k] != k:
+            k = label[k]
+        return k
+    for a in range(len(points)):
+        for b in range(a):
+            if np.linalg.norm(np.asarray(points[a]) - np.asarray(points[b])) < footprint:
+                label[root(a)] = root(b)
+    return [root(k) for k in range(len(points))]
+
+
 def _allocate(bids: dict[int, tuple[Decision, bool]], fl: _Fleet, names: list[str], explorers: list[int],
               footprint: float) -> dict[int, Decision]:
     """The two allocation rounds of the module docstring; returns robot index -> decision."""
@@ -213,18 +230,37 @@ def _allocate(bids: dict[int, tuple[Decision, bool]], fl: _Fleet, names: list[st
                  float(near.get("gain_m3", 0.0)) if near is not None else 0.0, 0.0, None, np.zeros(3))
         owner[id(g)] = i
         props.append(g)
-    def bid_path(robot: str, p: np.ndarray) -> float:     # a bid's own path (explore's choice has progress)
+    cluster = _bid_clusters([g.position for g in props], footprint)
+    mine = {names[owner[id(g)]]: cluster[k] for k, g in enumerate(props)}
+    index = {id(g): k for k, g in enumerate(props)}
+
+    def bid_path(robot: str, p: np.ndarray) -> float | None:
+        """A robot's path to a bid of its cluster: its own bid's path (explore's choice has
+        progress), else its path to the reachable cell nearest that bid plus the gap."""
         i = names.index(robot)
-        return float(fl.navs[i].dist_m[tuple(int(v) for v in bids[i][0].goal_cell)])  # type: ignore[union-attr]
+        own = bids[i][0].goal_xy
+        if own is not None and np.allclose(np.asarray(own[:2], np.float64), p[:2]):
+            return float(fl.navs[i].dist_m[tuple(int(v) for v in bids[i][0].goal_cell)])  # type: ignore[union-attr]
+        return path_m(robot, p)
 
     first = allocate_goals(slots, props, footprint_m=footprint, path_m=bid_path,
-                           eligible=lambda r, g: names[owner[id(g)]] == r)
+                           eligible=lambda r, g: mine.get(r) == cluster[index[id(g)]])
     out: dict[int, Decision] = {}
     kept = []
     for i in explorers:
-        if first.goals[names[i]] is not None:
+        won = first.goals[names[i]]
+        if won is None:
+            continue
+        kept.append(won.position)
+        j = owner[id(won)]
+        if j == i:
             out[i] = bids[i][0]
-            kept.append(first.goals[names[i]].position)  # type: ignore[union-attr]
+            continue
+        cell, _, _ = fl.navs[i].nearest_reachable(won.position)     # a nearer robot takes over the bid
+        d = bids[j][0]
+        out[i] = Decision(goal_cell=cell, goal_xy=won.position[:2].copy(), why=f"{d.why} (from {names[j]})",
+                          score=d.score)
+        fl.states[i].goal = (won.position[:2].copy(), d.score, bids[j][1])
     losers = [i for i in explorers if i not in out]
     if not losers:
         return out
