@@ -357,6 +357,40 @@ def test_a_found_object_the_robot_can_get_no_nearer_is_declared_from_there():
             assert d is None and len(state.stalled[7]) == 1, (d, state.stalled)
 
 
+def test_a_found_instance_is_declared_only_once_found_at_enough_map_updates():
+    """Within reach of a found instance, the robot stays (its own cell, no path) and looks
+    again until the instance was found at MIN_OBSERVATIONS map updates, then declares it; a
+    look-alike found at one update whose fused views then drop it is never declared; beyond
+    reach, one found once is approached as before; an instance without the field (an older
+    mapper) is trusted."""
+    from apps.closed_loop.navigation import NavField
+    from apps.closed_loop.policies import MIN_OBSERVATIONS, PolicyState, confirm
+    from apps.closed_loop.world_model import Observation
+
+    assert MIN_OBSERVATIONS >= 2
+    states = np.full((80, 80), FREE, np.int8)
+    at = np.array([10.25, 10.25, 1.5])
+    nav = NavField(states, np.zeros(2), 0.5, at, 0.4)
+
+    def inst(x: float, seen: int | None) -> dict:
+        d = dict(id=4, target="statue", box_min=[x, 10.0, 0.0], box_max=[x + 0.5, 10.5, 0.5])
+        return d if seen is None else d | {"observations": seen}
+
+    state = PolicyState()
+    for seen in range(1, MIN_OBSERVATIONS + 1):
+        d = confirm(Observation([inst(13.0, seen)], [], states, np.zeros(2), 0.5), nav, at, state, reach_m=5.0)
+        assert d is not None
+        if seen < MIN_OBSERVATIONS:
+            assert d.declare is None and tuple(d.goal_cell) == nav.start and d.why.startswith("look again"), d
+        else:
+            assert d.declare is not None and d.declare["id"] == 4, d
+    assert confirm(Observation([], [], states, np.zeros(2), 0.5), nav, at, PolicyState(), reach_m=5.0) is None
+    d = confirm(Observation([inst(30.0, 1)], [], states, np.zeros(2), 0.5), nav, at, PolicyState(), reach_m=5.0)
+    assert d is not None and d.why.startswith("approach") and tuple(d.goal_cell) != nav.start, d
+    d = confirm(Observation([inst(13.0, None)], [], states, np.zeros(2), 0.5), nav, at, PolicyState(), reach_m=5.0)
+    assert d is not None and d.declare is not None, d
+
+
 def test_ray_policy_does_not_follow_a_ray_crossing_back_behind_it():
     """Rays cast close together and nearly parallel cross near where they were cast: such an
     estimate behind the robot (along its evidence's heading) is not driven back to; one

@@ -199,7 +199,8 @@ def test_single_robot_runs_keep_their_json_and_csv_columns():
 
 def test_robots_side_by_side_declare_what_they_all_see_once(car):
     """Three robots start next to the car, each within reach: in the same step every one of
-    them decides to declare it. The fleet declares it once (the first robot's), not three
+    them decides to declare it once it was found at ``MIN_OBSERVATIONS`` map updates (they
+    stay and look until then). The fleet declares it once (the first robot's), not three
     times — a false instance would otherwise count three false finds."""
     from apps.closed_loop.episode import LoopSettings
     from apps.closed_loop.fleet_episode import FleetSettings, fleet_starts, run_fleet_episode
@@ -223,8 +224,10 @@ def test_robots_side_by_side_declare_what_they_all_see_once(car):
                 break
     assert near is not None, "no start by the car where three robots fit within reach"
     mission = dataclasses.replace(m, start=near)
+    from apps.closed_loop.policies import MIN_OBSERVATIONS
+
     row = run_fleet_episode(w, mission, "uncoordinated", LoopSettings(), FleetSettings(3), chain)
-    assert row["success"] and row["steps"] == 1, row
+    assert row["success"] and row["steps"] == MIN_OBSERVATIONS and row["path_m"] == 0.0, row
     assert len(row["declarations"]) == 1 and row["declarations"][0]["verdict"] == "find", row["declarations"]
 
 
