@@ -113,8 +113,8 @@ MAX_STALLS = 32
 #: ``observations``: the distinct map versions the tracker saw it in); within reach of one
 #: found less often the robot stays and looks again. The noisy views of a small look-alike
 #: pass the identity threshold at one or two updates and the fused views drop it (pybullet
-#: development seeds 0-2: the false teddy bears at 1-2, the statue at 4-7;
-#: docs/results/closed_loop_robot.md)
+#: development seeds 0-5: all seven false declarations, small teddy bears, at 1-2; the
+#: statue at 6-7; docs/results/closed_loop_robot.md)
 MIN_OBSERVATIONS = 3
 #: a found instance the robot can get no nearer to is declared within this many ``reach_m``
 #: of its mapped box (not tuned: half a reach more)
