@@ -196,18 +196,15 @@ def _cost_fn(fl: _Fleet, names: list[str]):
 
 
 def _bid_clusters(points: list, footprint: float) -> list[int]:
-    """Cluster label per point: points closer than ``footprint`` (m), transitively, share one."""
-    label = list(range(len(points)))
+    """Cluster label per point: points closer than ``footprint`` (m), transitively, share one
+    (the connected components of the closer-than graph)."""
+    from scipy.sparse.csgraph import connected_components
 
-    def root(k: int) -> int:
-        while label[k] != k:
-            k = label[k]
-        return k
-    for a in range(len(points)):
-        for b in range(a):
-            if np.linalg.norm(np.asarray(points[a]) - np.asarray(points[b])) < footprint:
-                label[root(a)] = root(b)
-    return [root(k) for k in range(len(points))]
+    if not points:
+        return []
+    xyz = np.asarray(points, np.float64)
+    near = np.linalg.norm(xyz[:, None, :] - xyz[None], axis=2) < footprint
+    return [int(c) for c in connected_components(near, directed=False)[1]]
 
 
 def _allocate(bids: dict[int, tuple[Decision, bool]], fl: _Fleet, names: list[str], explorers: list[int],

@@ -160,9 +160,9 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
         aim = np.clip(at[:2], lo[:2], hi[:2])
         cell, path_m, gap = nav.nearest_reachable(aim)
         if not _progress(nav, cell):
-            if not trusted and here_m <= STALL_DECLARE * reach_m:
-                return _look_again(nav, at, inst)
             if here_m <= STALL_DECLARE * reach_m:     # as near as the map lets it: declare from here
+                if not trusted:
+                    return _look_again(nav, at, inst)
                 state.bearing = None
                 return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']} (no nearer)")
             _stall(state, inst["id"], at, here_m)
