@@ -36,6 +36,7 @@ ap = argparse.ArgumentParser()
 ap.add_argument("--steps", type=int, default=60)
 ap.add_argument("--ray-evidence", default="distinct")
 ap.add_argument("--out", default="town_tower_rays")
+ap.add_argument("--angle-bin", type=float, default=None, help="ray angle bin (deg; default: the loop's)")
 a = ap.parse_args()
 out = Path(a.out)
 out.mkdir(parents=True, exist_ok=True)
@@ -69,7 +70,9 @@ print("radio tower", [(i, c.round(1).tolist(), lo[2], hi[2]) for i, c, lo, hi in
 method, semantic, poses = POLICIES["rayfronts"]
 mcfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
                      settings.background_phrases(world), settings.ray_evidence, settings.distinct_phrases())
-print("search cfg:", mcfg.search.ray_evidence, "distinct_phrases", mcfg.search.distinct_phrases,
+if a.angle_bin is not None:
+    mcfg = dataclasses.replace(mcfg, map=dataclasses.replace(mcfg.map, angle_bin_size=a.angle_bin).validate())
+print("angle bin", mcfg.map.angle_bin_size, "search cfg:", mcfg.search.ray_evidence, "distinct_phrases", mcfg.search.distinct_phrases,
       "n background", len(mcfg.search.background), flush=True)
 
 records: list[dict] = []
