@@ -61,6 +61,10 @@ def test_refusals_name_what_is_wrong():
     other["settings"]["depth_limits"] = [20.0]
     with pytest.raises(ValueError, match="depth_limits"):
         merge_documents([one, other])
+    finer = copy.deepcopy(two)
+    finer["settings"]["angle_bin_deg"] = 3.0                 # --angle-bin 3 beside a run at the preset's bins
+    with pytest.raises(ValueError, match="angle_bin_deg"):
+        merge_documents([one, finer])
     with pytest.raises(ValueError, match="seed 18 .* more than one part"):
         merge_documents([one, copy.deepcopy(one)])
     half = dict(copy.deepcopy(two), partial=True)

@@ -70,6 +70,19 @@ class LoopSettings:
     background: str = "world"
     #: what the ray policies' ``ray_z`` z-scores (``search.ray_evidence``): "distinct" or "margin"
     ray_evidence: str = "distinct"
+    #: the ray policies' ray angle bin psi (degrees; ``MapConfig.angle_bin_size``); None: the
+    #: preset's (30 in ``online``, the paper's). Finer bins keep a far, narrow target's few
+    #: rays from being averaged with the sky around it (docs/results/closed_loop_robot.md)
+    angle_bin_deg: float | None = None
+
+    def map_config(self, method: str, world: World, width_px: int):
+        """The mapper config of ``method``'s map in these settings
+        (:func:`apps.closed_loop.world_model.mapper_config`)."""
+        from apps.closed_loop.world_model import mapper_config
+
+        return mapper_config(method, self.depth_limit_m, self.vox_m, width_px, self.preset,
+                             self.background_phrases(world), self.ray_evidence, self.distinct_phrases(),
+                             self.angle_bin_deg)
 
     def distinct_phrases(self) -> int:
         """``search.distinct_phrases`` of the searches: the target's 8 nearest phrases with the
@@ -294,11 +307,9 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
         if chain is None:
             raise ValueError(f"policy {policy!r} maps what the robot sees: pass the edge chain")
         if mapper is None:
-            from apps.closed_loop.world_model import LocalMapper, mapper_config
+            from apps.closed_loop.world_model import LocalMapper
 
-            cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                                settings.background_phrases(world), settings.ray_evidence,
-                                settings.distinct_phrases())
+            cfg = settings.map_config(method, world, chain.cfg.resolution)
             mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m,
                                  score_poses=poses)
         _searching(world, mission, policy, robot, settings, chain, mapper, run, trace)

@@ -101,6 +101,7 @@ class SearchEvalConfig:
     pca_fit: str = "first_views"   # where the PCA basis comes from (SensorConfig.pca_fit)
     ray_evidence: str = "distinct"  # what ray_z z-scores (LoopSettings.ray_evidence, search.ray_evidence)
     sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
+    angle_bin_deg: float | None = None     # ray angle bin (None: the preset's; LoopSettings.angle_bin_deg)
     robots: int = 1                # the fleet's size (fleet policies: apps.closed_loop.fleet_episode)
     start: str = "together"        # the fleet's starts (fleet_episode.START_MODES)
     footprint_m: float = 8.0       # least distance between two robots' goals (coordinated, frontier-only)
@@ -134,6 +135,8 @@ class SearchEvalConfig:
         Platform.make(self.platform)
         if self.background not in BACKGROUNDS:
             raise ValueError(f"--background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
+        if self.angle_bin_deg is not None and not 0 < self.angle_bin_deg <= 360:
+            raise ValueError(f"--angle-bin must be in (0, 360] degrees, not {self.angle_bin_deg}")
         if self.ray_evidence not in ("distinct", "margin"):
             raise ValueError(f"--ray-evidence must be distinct or margin, not {self.ray_evidence!r}")
         if self.distributed and self.ray_evidence != "distinct":
@@ -195,11 +198,8 @@ def _episode(cfg: SearchEvalConfig, world, seed: int, mission, policy: str, sett
     import tempfile
 
     from apps.closed_loop.distributed import LiveMapper
-    from apps.closed_loop.world_model import mapper_config
 
-    mcfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                         settings.background_phrases(world), settings.ray_evidence,
-                         settings.distinct_phrases())
+    mcfg = settings.map_config(method, world, chain.cfg.resolution)
     robot = Platform.make(settings.platform)
     with tempfile.TemporaryDirectory(dir=cfg.work_dir or None) as work, \
             LiveMapper(seed, "default", chain, mcfg, robot.costmap_band(settings.vox_m), settings.window_m,
@@ -244,7 +244,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
     cfg.validate()
     settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background,
                              ray_evidence=cfg.ray_evidence,
-                             sem_poses_min_z=cfg.sem_poses_min_z)
+                             sem_poses_min_z=cfg.sem_poses_min_z, angle_bin_deg=cfg.angle_bin_deg)
     robot = Platform.make(cfg.platform)
     rows: list[dict] = []
     t0, c0 = time.perf_counter(), time.process_time()
@@ -323,8 +323,11 @@ def _document(cfg: SearchEvalConfig, rows: list[dict], settings0: LoopSettings, 
 
 def _settings_fields(cfg: SearchEvalConfig) -> dict:
     """The run's config for the JSON; the fleet's fields only when a fleet policy ran (a
-    single-robot run's JSON stays as it was before fleets)."""
+    single-robot run's JSON stays as it was before fleets), ``angle_bin_deg`` only when set
+    (a run at the preset's bin stays as it was before the option)."""
     d = dataclasses.asdict(cfg)
+    if d.get("angle_bin_deg") is None:
+        d.pop("angle_bin_deg", None)
     if not any(p in FLEET_POLICIES for p in cfg.policies):
         for k in ("robots", "start", "footprint_m"):
             d.pop(k)

@@ -374,16 +374,14 @@ def run_fleet_episode(world: World, mission: Mission, policy: str, settings: Loo
     robot). ``trace``: a list that gets each step's robot positions ((N, 3) arrays);
     ``routes``: a list that gets, at the end, each robot's driven points ((K, 3): its start,
     then every route point passed)."""
-    from apps.closed_loop.world_model import LocalMapper, mapper_config
+    from apps.closed_loop.world_model import LocalMapper
 
     if policy not in FLEET_POLICIES:
         raise ValueError(f"unknown fleet policy {policy!r}; one of {', '.join(FLEET_POLICIES)}")
     fleet.validate()
     robot = Platform.make(settings.platform)
     method, semantic, _, _ = FLEET_POLICIES[policy]
-    cfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                        settings.background_phrases(world), settings.ray_evidence,
-                        settings.distinct_phrases())
+    cfg = settings.map_config(method, world, chain.cfg.resolution)
     mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m)
     names = [robot_name(i) for i in range(fleet.robots)]
     starts = fleet_starts(world, robot, mission.start, fleet.robots, fleet.start, fleet.spread_m)

@@ -44,12 +44,15 @@ POINT_BUDGETS = dict(max_pts_per_frame=12000, max_empty_pts_per_frame=8000)
 
 
 def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int, preset: str = "online",
-                  background: list[str] | None = None, ray_evidence: str = "distinct", distinct_phrases: int = 0):
+                  background: list[str] | None = None, ray_evidence: str = "distinct", distinct_phrases: int = 0,
+                  angle_bin_deg: float | None = None):
     """The mapper config of one policy's map: ``preset`` with ``method``'s overrides
     (semantic_map.config.METHODS), voxel size, depth limit and :data:`POINT_BUDGETS`; ray
     erosion scaled to the image width as the search-volume benchmark scales it;
     ``background``: the search's background phrases (None: the mapper's default);
-    ``ray_evidence``, ``distinct_phrases``: ``search.ray_evidence``, ``search.distinct_phrases``."""
+    ``ray_evidence``, ``distinct_phrases``: ``search.ray_evidence``, ``search.distinct_phrases``;
+    ``angle_bin_deg``: the map's ``angle_bin_size`` (None: the preset's; a baseline with one
+    bin per frontier keeps its 360)."""
     from mapper.service_config import load_mapper_config
     from semantic_map.config import map_config
 
@@ -57,6 +60,8 @@ def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int
     erosion = 1   # a far landmark is a few pixels wide at 224 px: erode the beyond-range mask by 1 px only
     mc = map_config(preset, dict(POINT_BUDGETS, vox_size=vox_m, depth_limit=depth_limit_m, ray_erosion=erosion),
                     method)
+    if angle_bin_deg is not None and mc.angle_bin_size < 360:
+        mc = dataclasses.replace(mc, angle_bin_size=float(angle_bin_deg))
     if background is not None:
         cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, background=list(background)))
     cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, ray_evidence=ray_evidence,

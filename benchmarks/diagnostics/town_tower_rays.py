@@ -30,7 +30,7 @@ from apps.closed_loop.policies import MIN_RAY_Z, POLICIES
 from apps.closed_loop.policies import decide as real_decide
 from apps.closed_loop.robot import Platform
 from apps.closed_loop.sensing import EdgeChain
-from apps.closed_loop.world_model import LocalMapper, mapper_config
+from apps.closed_loop.world_model import LocalMapper
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--steps", type=int, default=60)
@@ -54,7 +54,7 @@ kind, e, mission = missions[0]
 assert kind == "landmark" and mission.target == "water tower", (kind, mission.target)
 full_budget = mission.budget_steps
 chain = EdgeChain(world, cfg.sensor_config(0), fit_at=missions[0][2].start)
-settings = dataclasses.replace(settings0, depth_limit_m=20.0)
+settings = dataclasses.replace(settings0, depth_limit_m=20.0, angle_bin_deg=a.angle_bin)
 print(f"setup {time.perf_counter() - T0:.1f}s; start {mission.start}, shortest {mission.shortest_m:.1f} m, "
       f"budget {full_budget}; capped at {a.steps}", flush=True)
 
@@ -68,12 +68,9 @@ print("radio tower", [(i, c.round(1).tolist(), lo[2], hi[2]) for i, c, lo, hi in
 
 # --- the mapper, exactly as run_episode builds it ---
 method, semantic, poses = POLICIES["rayfronts"]
-mcfg = mapper_config(method, settings.depth_limit_m, settings.vox_m, chain.cfg.resolution, settings.preset,
-                     settings.background_phrases(world), settings.ray_evidence, settings.distinct_phrases())
-if a.angle_bin is not None:
-    mcfg = dataclasses.replace(mcfg, map=dataclasses.replace(mcfg.map, angle_bin_size=a.angle_bin).validate())
-print("angle bin", mcfg.map.angle_bin_size, "search cfg:", mcfg.search.ray_evidence, "distinct_phrases", mcfg.search.distinct_phrases,
-      "n background", len(mcfg.search.background), flush=True)
+mcfg = settings.map_config(method, world, chain.cfg.resolution)
+print("angle bin", mcfg.map.angle_bin_size, "search cfg:", mcfg.search.ray_evidence,
+      "distinct_phrases", mcfg.search.distinct_phrases, "n background", len(mcfg.search.background), flush=True)
 
 records: list[dict] = []
 
