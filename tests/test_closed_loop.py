@@ -927,7 +927,8 @@ def test_the_angle_bin_option_sets_the_ray_maps_bins_and_the_json_says_so():
     cfg = _search_config(parser.parse_args(["search", "--json", "x.json", "--angle-bin", "5"]))
     assert cfg.angle_bin_deg == 5.0 and _settings_fields(cfg)["angle_bin_deg"] == 5.0
     assert "angle_bin_deg" not in _settings_fields(SearchEvalConfig())     # older runs' settings, unchanged
-    s = LoopSettings(background="generic", angle_bin_deg=cfg.angle_bin_deg)
+    s = cfg.loop_settings()                                            # what every episode of the run gets
+    assert s.angle_bin_deg == 5.0 and s.background == "generic"
     assert s.map_config("rayfronts", None, 224).map.angle_bin_size == 5.0
     assert s.map_config("spherical_semfronts", None, 224).map.angle_bin_size == 360.0   # one bin per frontier
     assert LoopSettings(background="generic").map_config("rayfronts", None, 224).map.angle_bin_size == 30.0

@@ -111,6 +111,12 @@ class SearchEvalConfig:
         return SensorConfig(resolution=self.resolution, encoder=self.encoder, sensor=self.sensor,
                             pca_fit=self.pca_fit, sensor_seed=int(seed))
 
+    def loop_settings(self) -> LoopSettings:
+        """The settings every episode of this run shares (the depth limit set per episode)."""
+        return LoopSettings(platform=self.platform, step_m=self.step_m, background=self.background,
+                            ray_evidence=self.ray_evidence, sem_poses_min_z=self.sem_poses_min_z,
+                            angle_bin_deg=self.angle_bin_deg)
+
     def fleet(self) -> FleetSettings:
         """The fleet of the run's fleet policies."""
         return FleetSettings(self.robots, self.start, self.footprint_m)
@@ -242,9 +248,7 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
     from apps.bench.meta import git_commit, run_meta
 
     cfg.validate()
-    settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background,
-                             ray_evidence=cfg.ray_evidence,
-                             sem_poses_min_z=cfg.sem_poses_min_z, angle_bin_deg=cfg.angle_bin_deg)
+    settings0 = cfg.loop_settings()
     robot = Platform.make(cfg.platform)
     rows: list[dict] = []
     t0, c0 = time.perf_counter(), time.process_time()

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository r
 
 import apps.closed_loop.episode as episode_mod
 import apps.closed_loop.policies as pol
-from apps.closed_loop.episode import LoopSettings, run_episode
+from apps.closed_loop.episode import run_episode
 from apps.closed_loop.evaluate import SearchEvalConfig, make_world, seed_missions
 from apps.closed_loop.policies import MIN_RAY_Z, POLICIES
 from apps.closed_loop.policies import decide as real_decide
@@ -44,9 +44,8 @@ out.mkdir(parents=True, exist_ok=True)
 T0 = time.perf_counter()
 cfg = SearchEvalConfig(platform="ground", depth_limits=[20.0], seeds=[0], episodes=1, policies=["rayfronts"],
                        missions=["landmark"], background="vocabulary", world="synthetic", sensor="realistic",
-                       encoder="sim", pca_fit="vocabulary", ray_evidence=a.ray_evidence).validate()
-settings0 = LoopSettings(platform=cfg.platform, step_m=cfg.step_m, background=cfg.background,
-                         ray_evidence=cfg.ray_evidence, sem_poses_min_z=cfg.sem_poses_min_z)
+                       encoder="sim", pca_fit="vocabulary", ray_evidence=a.ray_evidence,
+                       angle_bin_deg=a.angle_bin).validate()
 robot = Platform.make(cfg.platform)
 world = make_world(cfg.world, 0)
 missions = seed_missions(cfg, world, robot, 0)
@@ -54,7 +53,7 @@ kind, e, mission = missions[0]
 assert kind == "landmark" and mission.target == "water tower", (kind, mission.target)
 full_budget = mission.budget_steps
 chain = EdgeChain(world, cfg.sensor_config(0), fit_at=missions[0][2].start)
-settings = dataclasses.replace(settings0, depth_limit_m=20.0, angle_bin_deg=a.angle_bin)
+settings = dataclasses.replace(cfg.loop_settings(), depth_limit_m=20.0)
 print(f"setup {time.perf_counter() - T0:.1f}s; start {mission.start}, shortest {mission.shortest_m:.1f} m, "
       f"budget {full_budget}; capped at {a.steps}", flush=True)
 
