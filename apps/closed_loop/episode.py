@@ -74,6 +74,16 @@ class LoopSettings:
     #: preset's (30 in ``online``, the paper's). Finer bins keep a far, narrow target's few
     #: rays from being averaged with the sky around it (docs/results/closed_loop_robot.md)
     angle_bin_deg: float | None = None
+    #: the ray policies forget their remembered bearing after this many steps in a row with no
+    #: fresh outlier ray agreeing with it (``PolicyState.bearing_forget_steps``); None: never
+    bearing_forget_steps: int | None = None
+
+    def policy_state(self) -> PolicyState:
+        """A new episode's policy memory in these settings."""
+        state = PolicyState(bearing_forget_steps=self.bearing_forget_steps)
+        if self.sem_poses_min_z is not None:
+            state.pose_min_z = float(self.sem_poses_min_z)
+        return state
 
     def map_config(self, method: str, world: World, width_px: int):
         """The mapper config of ``method``'s map in these settings
@@ -231,9 +241,7 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
     semantic = POLICIES[policy][1]
     if hasattr(chain, "start_episode"):
         chain.start_episode()
-    state = PolicyState()
-    if settings.sem_poses_min_z is not None:
-        state.pose_min_z = float(settings.sem_poses_min_z)
+    state = settings.policy_state()
     stuck = 0
     for step in range(mission.budget_steps):
         c0 = run.start_step(step, trace)

@@ -53,7 +53,7 @@ from apps.closed_loop.episode import LoopSettings, _check_declaration, _declarat
 from apps.closed_loop.metrics import spl
 from apps.closed_loop.missions import Mission
 from apps.closed_loop.navigation import NavField
-from apps.closed_loop.policies import Decision, PolicyState, confirm, decide, explore
+from apps.closed_loop.policies import Decision, confirm, decide, explore
 from apps.closed_loop.robot import Platform
 from apps.closed_loop.sensing import EdgeChain
 from apps.closed_loop.world_model import Observation
@@ -385,11 +385,8 @@ def run_fleet_episode(world: World, mission: Mission, policy: str, settings: Loo
     mapper = LocalMapper(chain.space, cfg, robot.costmap_band(settings.vox_m), settings.window_m)
     names = [robot_name(i) for i in range(fleet.robots)]
     starts = fleet_starts(world, robot, mission.start, fleet.robots, fleet.start, fleet.spread_m)
-    fl = _Fleet([_Run(p.copy()) for p in starts], [PolicyState() for _ in names])
+    fl = _Fleet([_Run(p.copy()) for p in starts], [settings.policy_state() for _ in names])
     fl.seen, fl.stuck = [set() for _ in names], [0] * len(names)
-    for st in fl.states:
-        if settings.sem_poses_min_z is not None:
-            st.pose_min_z = float(settings.sem_poses_min_z)
     chain.start_episode()
     tally = _Tally()
     cpu: list[float] = []
