@@ -34,6 +34,8 @@ DESCRIPTION = """Benchmarks of the paper, run on this machine:
   merge    one search table from runs split by seed or policy.
   fleet-compare  fleets of N robots against one robot on the same missions (steps, path,
            the fewest steps any fleet could take, issue 44's aim); writes --json FILE.
+  landmarks  where each far-landmark episode started and ended against the target and its
+           look-alike (distances, bearings, finds when the look-alike was nearer).
 
 srchvol/semseg take --config FILE and trailing key=value overrides of their config (keys
 listed with 'rayfronts eval srchvol --help')."""
@@ -129,6 +131,13 @@ def _search_parser(sub) -> None:
     fc.add_argument("runs", nargs="+", metavar="RUN.json",
                     help="eval search JSON files: the --robots 1 rayfronts run and the fleet runs")
     fc.add_argument("--json", required=True, metavar="FILE", help="the comparison (.md beside)")
+    lm = sub.add_parser("landmarks", help="landmark episodes' starts and ends against the target and its look-alike",
+                        formatter_class=argparse.RawDescriptionHelpFormatter,
+                        description=__import__("apps.closed_loop.landmark_report", fromlist=["x"]).__doc__)
+    lm.add_argument("runs", nargs="+", metavar="RUN.json", help="eval search JSON files (merged or not)")
+    lm.add_argument("--near", type=float, default=30.0, metavar="M",
+                    help="a failure ending within M m of a look-alike counts as ended by it (default 30)")
+    lm.add_argument("--json", default=None, metavar="FILE", help="also write the report (.md beside)")
     tu = sub.add_parser("tune-sem-poses", help="choose sem-poses' margin z cut on the development seeds",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.tuning", fromlist=["x"]).__doc__)
@@ -295,6 +304,30 @@ def _run_fleet_compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_landmarks(args: argparse.Namespace) -> int:
+    import json
+
+    from apps.closed_loop.landmark_report import landmark_report, report_markdown
+
+    docs = _read_documents(args.runs, "landmarks")
+    if docs is None:
+        return 2
+    try:
+        rep = landmark_report(docs, near_m=args.near)
+    except (ValueError, KeyError, TypeError) as e:
+        print(f"rayfronts eval landmarks: {e}", file=sys.stderr)
+        return 2
+    md = report_markdown(rep)
+    print(md, end="")
+    if args.json:
+        out = Path(args.json)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(rep, indent=2))
+        out.with_suffix(".md").write_text(md)
+        print(f"wrote {out}, {out.with_suffix('.md')}")
+    return 0
+
+
 def _run_tune(args: argparse.Namespace) -> int:
     import json
 
@@ -380,6 +413,8 @@ def run(args: argparse.Namespace) -> int:
             return _run_fleet_compare(args)
         if args.action == "tune-sem-poses":
             return _run_tune(args)
+        if args.action == "landmarks":
+            return _run_landmarks(args)
         cfg = build_config(args)
         if args.action == "srchvol":
             from apps.evaluation.srchvol import SrchvolConfig, run_srchvol
