@@ -814,6 +814,42 @@ def test_eval_search_outputs(tmp_path):
     assert cli.run(bad) == 2
 
 
+def test_eval_search_trace_files(tmp_path):
+    """``--trace DIR``: one file per map-based episode (none for the oracle), a step per step
+    the row counts, starting at the row's start, each step's move no longer than the step
+    length, the strongest rays first, and a "ray z" decision never stronger than the
+    strongest ray the trace kept."""
+    import json
+    import re
+
+    from apps.evaluation import cli
+
+    p = argparse.ArgumentParser()
+    cli.add_arguments(p)
+    out, tr = tmp_path / "es.json", tmp_path / "trace"
+    args = p.parse_args(["search", "--seeds", "3", "--missions", "object", "--policies", "oracle,rayfronts",
+                         "--budget-scale", "0.1", "--resolution", "64", "--json", str(out), "--trace", str(tr)])
+    assert cli.run(args) == 0
+    rows = {r["policy"]: r for r in json.loads(out.read_text())["episodes"]}
+    assert sorted(f.name for f in tr.iterdir()) == ["s3_object0_d20_rayfronts.json"]
+    doc = json.loads((tr / "s3_object0_d20_rayfronts.json").read_text())
+    row = rows["rayfronts"]
+    assert (doc["policy"], doc["seed"], doc["steps"], doc["end"]) == ("rayfronts", 3, row["steps"], row["end"])
+    steps = doc["trace"]
+    assert [s["step"] for s in steps] == list(range(row["steps"]))
+    assert np.allclose(steps[0]["position"], row["start"], atol=1e-3)
+    pos = np.array([s["position"] for s in steps] + [row["end"]])
+    assert np.all(np.linalg.norm(np.diff(pos, axis=0), axis=1) <= 2.0 + 1e-3)
+    assert any(s["rays"] for s in steps)
+    for s in steps:
+        z = [r["ray_z"] for r in s["rays"]]
+        assert z == sorted(z, reverse=True) and len(z) <= 5
+        assert all(-180.0 <= r["heading_deg"] <= 180.0 for r in s["rays"])
+        m = re.match(r"ray z (-?[0-9.]+)", s["why"])
+        if m:
+            assert float(m.group(1)) <= max(z) + 0.06, s
+
+
 def test_rayfronts_finds_the_far_water_tower_where_frontier_exploration_does_not(loop):
     """The far-landmark regression, small: world 3's water tower, the robot starting 40 m from
     its centre on the town's side (36 m from its box), beyond the 15 m depth limit, at the

@@ -109,16 +109,52 @@ class LoopSettings:
         return list(world.classes) if self.background == "world" else None
 
 
+#: how many of a step's look-next goals a trace keeps (the strongest rays first)
+TRACE_RAYS = 5
+
+
 @dataclass
 class Trace:
-    """What happened, step by step (for recordings): robot positions, goals, found boxes."""
+    """What happened, step by step (for recordings and ``eval search --trace``): robot
+    positions, goals, found boxes, the decision's reason, the strongest ray goals and (with
+    ``keep_voxels``) a subsample of the map's voxels."""
 
     positions: list = field(default_factory=list)
     goals: list = field(default_factory=list)
     found: list = field(default_factory=list)
     why: list = field(default_factory=list)
+    rays: list = field(default_factory=list)        # per step: up to TRACE_RAYS look-next goals with rays
     voxels: list = field(default_factory=list)      # (N, 3) map voxel centres, subsampled, per step
     driven: list = field(default_factory=list)      # every point passed: the start, then each route point
+    keep_voxels: bool = True
+
+    def steps(self) -> list[dict]:
+        """One dict per step: ``step`` (0-based), ``position`` (camera centre, m, world frame
+        z up, at the step's start), ``why`` (the decision), ``goal`` (xy, m; None when none),
+        ``rays`` (:func:`strongest_rays`) and ``found`` (the target instances the search
+        returned: id, centroid, confidence)."""
+        out = []
+        for i, why in enumerate(self.why):
+            g = self.goals[i]
+            out.append({"step": i, "position": [round(float(v), 3) for v in self.positions[i]], "why": why,
+                        "goal": None if g is None else [round(float(v), 3) for v in g[:2]],
+                        "rays": self.rays[i] if i < len(self.rays) else [],
+                        "found": [{"id": int(f["id"]), "centroid": [round(float(v), 2) for v in f["centroid"]],
+                                   "confidence": f.get("confidence")}
+                                  for f in self.found[i] if "id" in f and "centroid" in f]})
+        return out
+
+
+def strongest_rays(look_next: list[dict], n: int = TRACE_RAYS) -> list[dict]:
+    """The ``n`` look-next goals with rays (``heading_rad`` set), highest ``ray_z`` first:
+    ``position`` (xy, m), ``heading_deg`` (the rays' yaw, degrees counter-clockwise from +x),
+    ``ray_z`` and ``score``."""
+    rays = [g for g in look_next if g.get("heading_rad") is not None]
+    rays.sort(key=lambda g: -float(g.get("ray_z", 0.0)))
+    return [{"position": [round(float(v), 2) for v in g["position"][:2]],
+             "heading_deg": round(float(np.degrees(g["heading_rad"])), 1),
+             "ray_z": round(float(g.get("ray_z", 0.0)), 2), "score": float(f"{float(g.get('score', 0.0)):.4g}")}
+            for g in rays[:n]]
 
 
 def _check_declaration(inst: dict, mission: Mission, at: np.ndarray, counted: set, vox: float) -> str:
@@ -226,8 +262,9 @@ def _record(trace: Trace | None, obs, d, mapper, step: int) -> None:
     trace.found.append(list(obs.found))
     trace.goals.append(None if d.goal_xy is None else np.asarray(d.goal_xy, np.float64))
     trace.why.append(d.why)
+    trace.rays.append(strongest_rays(obs.look_next))
     m = getattr(mapper, "map", None)
-    if m is not None:
+    if m is not None and trace.keep_voxels:
         xyz = m.voxel_xyz().cpu().numpy()
         trace.voxels.append(xyz[np.random.default_rng(step).permutation(len(xyz))[:20000]])
 

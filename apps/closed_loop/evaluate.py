@@ -240,11 +240,13 @@ def seed_missions(cfg: SearchEvalConfig, world, robot: Platform, seed: int) -> l
 
 
 def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: list[str] | None = None,
-                    partial_path: str | Path | None = None) -> dict:
+                    partial_path: str | Path | None = None, trace_dir: str | Path | None = None) -> dict:
     """Run every episode (module docstring); returns the JSON document. ``argv``: the command
     line to record (``meta.argv``). ``partial_path``: after every episode the document so far
     is written there (``"partial": true``, ``meta`` of the run so far: commit, command line,
-    machine, load), so a run cut off keeps its finished episodes; removed at the end."""
+    machine, load), so a run cut off keeps its finished episodes; removed at the end.
+    ``trace_dir``: every single-robot map-based episode's steps are written there as
+    :func:`trace_name` (:func:`trace_document`)."""
     from apps.bench.meta import git_commit, run_meta
 
     cfg.validate()
@@ -266,18 +268,21 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
                 for depth in cfg.depth_limits:
                     settings = dataclasses.replace(settings0, depth_limit_m=float(depth))
                     for p in cfg.policies:
-                        trace = Trace() if rerun_path and not recorded and p == "rayfronts" else None
+                        rec = bool(rerun_path) and not recorded and p == "rayfronts"
+                        trace = Trace(keep_voxels=rec) if rec or trace_dir else None
                         r = _episode(cfg, world, seed, mission, p, settings, chain, trace)
                         r.update(seed=seed, episode=e, depth_limit_m=float(depth), platform=cfg.platform,
                                  world=cfg.world)
                         rows.append(r)
+                        if trace_dir is not None and trace is not None and trace.why:
+                            _write_json(Path(trace_dir) / trace_name(r), trace_document(r, trace), indent=None)
                         log.info("seed %d %s %-12s d=%g %-14s success=%s spl=%.2f path=%.0f m steps=%d",
                                  seed, kind, mission.target, depth, p, r["success"], r["spl"], r["path_m"],
                                  r["steps"])
                         if partial_path is not None:
                             _write_json(partial_path, {**_document(cfg, rows, settings0, load0, t0, c0),
                                                        "partial": True, "meta": _meta_so_far(head, argv, load0)})
-                        if trace is not None and rerun_path:     # a trace is kept only with a rerun path
+                        if rec and trace is not None and rerun_path:
                             from apps.closed_loop.recording import record_episode
 
                             record_episode(rerun_path, world, mission, trace, r)
@@ -285,6 +290,20 @@ def run_search_eval(cfg: SearchEvalConfig, rerun_path: str | None = None, argv: 
     if partial_path is not None:
         Path(partial_path).unlink(missing_ok=True)
     return {**_document(cfg, rows, settings0, load0, t0, c0), "meta": meta}
+
+
+def trace_name(row: dict) -> str:
+    """The file name of an episode's trace: ``s{seed}_{kind}{episode}_d{depth}_{policy}.json``."""
+    return f"s{row['seed']}_{row['kind']}{row['episode']}_d{row['depth_limit_m']:g}_{row['policy']}.json"
+
+
+def trace_document(row: dict, trace: Trace) -> dict:
+    """An episode's trace file: the row's identity and outcome (seed, episode, kind, target,
+    depth limit, platform, world, policy, start, success, SPL, path, end) and ``steps``
+    (:meth:`apps.closed_loop.episode.Trace.steps`)."""
+    keys = ("seed", "episode", "kind", "target", "depth_limit_m", "platform", "world", "policy", "start",
+            "success", "spl", "path_m", "steps", "end")
+    return {**{k: row[k] for k in keys if k in row}, "trace": trace.steps()}
 
 
 def _meta_so_far(head: dict, argv: list[str] | None, load0: tuple) -> dict:
@@ -296,11 +315,11 @@ def _meta_so_far(head: dict, argv: list[str] | None, load0: tuple) -> dict:
             "load_now": loadavg(), "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 
-def _write_json(path: str | Path, doc: dict) -> None:
+def _write_json(path: str | Path, doc: dict, indent: int | None = 2) -> None:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(doc, indent=2, default=float))
+    tmp.write_text(json.dumps(doc, indent=indent, default=float))
     tmp.replace(p)
 
 

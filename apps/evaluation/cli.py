@@ -106,6 +106,9 @@ def _search_parser(sub) -> None:
     _loop_options(se, "0", "object,landmark")
     se.add_argument("--json", required=True, metavar="FILE", help="summary + episode rows (.md/.csv/.png beside)")
     se.add_argument("--rerun", default=None, metavar="FILE.rrd", help="record the first rayfronts episode")
+    se.add_argument("--trace", default=None, metavar="DIR",
+                    help="write each single-robot map-based episode's steps (position, decision, goal, strongest "
+                         "rays, found instances) to DIR/s<seed>_<kind><episode>_d<depth>_<policy>.json")
     se.add_argument("--distributed", action="store_true",
                     help="run each map-based episode with real mapper and edge processes over loopback Zenoh (the "
                          "edge renders the robot's views; this process plans through Client.search and the "
@@ -242,7 +245,8 @@ def _run_search(args: argparse.Namespace) -> int:
     from apps.closed_loop.evaluate import run_search_eval, table_markdown, write_outputs
 
     cfg = _search_config(args)
-    doc = run_search_eval(cfg, args.rerun, argv=["rayfronts", *sys.argv[1:]], partial_path=partial_json(args.json))
+    doc = run_search_eval(cfg, args.rerun, argv=["rayfronts", *sys.argv[1:]], partial_path=partial_json(args.json),
+                          trace_dir=args.trace)
     paths = write_outputs(doc, args.json)
     print(table_markdown(doc))
     print("wrote " + ", ".join(str(p) for p in paths) + (f", {args.rerun}" if args.rerun else ""))
