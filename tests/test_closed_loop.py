@@ -274,6 +274,51 @@ def test_ray_policy_keeps_the_strongest_bearing_against_weaker_outliers_elsewher
     assert d is not None and d.declare is car and state.bearing is None
 
 
+def test_bearing_window_lets_a_look_alikes_bearing_go():
+    """With ``bearing_window`` W the bearing is the strongest outlier of the last W exploring
+    steps: a strong ray (+x, the look-alike's) no longer seen for W steps stops overruling a
+    weaker outlier elsewhere (+y, the target's), which then leads; a stronger ray within the
+    window still does, the whole-episode memory (None) still does after any number of steps,
+    and a declaration clears the window."""
+    from apps.closed_loop.episode import LoopSettings
+    from apps.closed_loop.policies import MIN_RAY_Z, confirm, explore
+    from apps.closed_loop.world_model import Observation
+
+    at = np.array([20.0, 20.0, 1.5])
+    states, nav = _open_field(at)
+    goal = _far_target_goal
+
+    def obs(*goals):
+        return Observation([], list(goals), states, np.zeros(2), 0.5)
+
+    strong = goal(60.0, 21.0, 1e3, 0.0)
+    target = goal(20.0, 40.0, MIN_RAY_Z + 10.0, np.pi / 2)
+    ahead = goal(45.0, 18.0, 0.0)
+    quiet = goal(30.0, 5.0, 0.0)                    # no rays: nothing to remember
+    for window, leads in ((3, "ray z"), (None, "bearing")):
+        state = LoopSettings(bearing_window_steps=window).policy_state()
+        assert state.bearing_window == window
+        explore("rayfronts", obs(strong, ahead), nav, state)
+        for _ in range(3):
+            state.goal = None
+            explore("rayfronts", obs(quiet, ahead), nav, state)
+        state.goal = None
+        d = explore("rayfronts", obs(target, ahead), nav, state)
+        want = target if leads == "ray z" else ahead
+        assert np.allclose(d.goal_xy, want["position"][:2]) and d.why.startswith(leads), (window, d)
+    state = LoopSettings(bearing_window_steps=3).policy_state()
+    explore("rayfronts", obs(strong, ahead), nav, state)
+    for _ in range(1):        # strong, quiet, target: the last 3 steps hold the strong bearing
+        state.goal = None
+        explore("rayfronts", obs(quiet, ahead), nav, state)
+    state.goal = None
+    d = explore("rayfronts", obs(target, ahead), nav, state)
+    assert d.why.startswith("bearing") and state.bearing == (0.0, 1e3), d
+    car = dict(id=1, target="car", box_min=[20.5, 20.5, 0.0], box_max=[21.0, 21.0, 1.5])
+    d = confirm(Observation([car], [], states, np.zeros(2), 0.5), nav, at, state, reach_m=3.0)
+    assert d is not None and d.declare is car and state.bearing is None and state.recent == []
+
+
 def test_ray_policy_goes_on_past_its_bearing_rather_than_after_a_weaker_outlier_elsewhere():
     """The robot has passed every goal whose strong rays set the bearing (+x), and no goal
     lies ahead of it along +x; a weak outlier pointing elsewhere is left. It drives on past

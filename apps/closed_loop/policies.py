@@ -28,7 +28,8 @@ stays and looks again. They differ in how they explore until then:
   known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); an
   outlier weaker than the episode's strongest and pointing elsewhere is passed over for
   those agreeing with it — or for a goal on past them when the robot has passed them
-  (:func:`_remember_bearing`); without either like ``frontier``;
+  (:func:`_remember_bearing`; with ``PolicyState.bearing_window`` the strongest of the last
+  steps only); without either like ``frontier``;
 * ``unidirectional`` / ``spherical``: the same rule on the maps of the paper's semantic
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
@@ -96,6 +97,10 @@ class PolicyState:
     stalled: dict = field(default_factory=dict)       # instance id -> [(xy, m from its box)]: approach stalled
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
     bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
+    #: remember the strongest outlier of only this many last exploring steps (None: of the
+    #: whole episode); ``recent``: each such step's strongest outlier (heading_rad, ray_z) or None
+    bearing_window: int | None = None
+    recent: list = field(default_factory=list)
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
 
 
@@ -155,7 +160,7 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
         if here_m <= reach_m - 0.5:
             if not trusted:             # seen at too few map updates: stay and look again
                 return _look_again(nav, at, inst)
-            state.bearing = None        # the rays that led here were this instance's
+            forget_bearing(state)       # the rays that led here were this instance's
             return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']}")
         aim = np.clip(at[:2], lo[:2], hi[:2])
         cell, path_m, gap = nav.nearest_reachable(aim)
@@ -163,7 +168,7 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
             if here_m <= STALL_DECLARE * reach_m:     # as near as the map lets it: declare from here
                 if not trusted:
                     return _look_again(nav, at, inst)
-                state.bearing = None
+                forget_bearing(state)
                 return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']} (no nearer)")
             _stall(state, inst["id"], at, here_m)
             continue
@@ -432,13 +437,31 @@ def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: f
 
 def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float) -> None:
     """Keep the heading and ``ray_z`` of the strongest outlier ray (``ray_z`` ≥ ``min_ray_z``)
-    any look-next goal has carried this episode. A far target's rays keep their bearing from
-    step to step and grow stronger as the robot nears it; outliers of noise jump about and
-    stay weak. Forgotten when an instance is declared (the next target's rays are other)."""
+    any look-next goal has carried this episode — with ``state.bearing_window`` = W, of the
+    last W exploring steps only. A far target's rays keep their bearing from step to step and
+    grow stronger as the robot nears it; outliers of noise jump about and stay weak. Forgotten
+    when an instance is declared (the next target's rays are other: :func:`forget_bearing`).
+    The window lets a look-alike's strong rays go once they are no longer seen (the robot has
+    reached it), so a weaker target's rays elsewhere lead again."""
+    best = None
     for g in obs.look_next:
         z = float(g.get("ray_z", 0.0))
-        if g.get("heading_rad") is not None and z >= min_ray_z and (state.bearing is None or z > state.bearing[1]):
-            state.bearing = (float(g["heading_rad"]), z)
+        if g.get("heading_rad") is not None and z >= min_ray_z and (best is None or z > best[1]):
+            best = (float(g["heading_rad"]), z)
+    if state.bearing_window is None:
+        if best is not None and (state.bearing is None or best[1] > state.bearing[1]):
+            state.bearing = best
+        return
+    state.recent.append(best)
+    del state.recent[:-state.bearing_window]
+    kept = [b for b in state.recent if b is not None]
+    state.bearing = max(kept, key=lambda b: b[1]) if kept else None
+
+
+def forget_bearing(state: PolicyState) -> None:
+    """Forget the remembered bearing and the recent outliers (an instance was declared)."""
+    state.bearing = None
+    state.recent.clear()
 
 
 def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:
