@@ -319,6 +319,35 @@ def test_bearing_window_lets_a_look_alikes_bearing_go():
     assert d is not None and d.declare is car and state.bearing is None and state.recent == []
 
 
+def test_set_aside_rays_lead_on_along_them():
+    """A goal the robot could get no nearer to (set aside: a frontier at a statue's foot)
+    carries rays (+x) stronger than every reachable goal's, weaker than the remembered
+    bearing (+y, a look-alike's). With ``set_aside_rays`` the robot goes on along them, to the
+    goal ahead beyond it; without, the bearing leads (pybullet drone development seed 0: 73 of
+    80 steps the strongest rays pointed at the target from goals by the look-alike, while the
+    robot followed the look-alike's bearing and rays of ray_z 4-6)."""
+    from apps.closed_loop.episode import LoopSettings
+    from apps.closed_loop.policies import MIN_RAY_Z, explore
+    from apps.closed_loop.world_model import Observation
+
+    at = np.array([20.0, 20.0, 1.5])
+    states, nav = _open_field(at)
+    goal = _far_target_goal
+    aside = goal(30.0, 20.0, 1e3, 0.0)                    # rays along +x
+    beyond = goal(45.0, 22.0, 0.0)                        # 15 m on along them
+    weak = goal(5.0, 20.0, MIN_RAY_Z + 1.0, np.pi)        # reachable, weaker, along -x
+    north = goal(20.0, 45.0, 0.0)                         # ahead along the bearing
+    obs = Observation([], [aside, beyond, weak, north], states, np.zeros(2), 0.5)
+    for on, put_aside, want, why in ((True, True, beyond, "beyond set-aside"), (False, True, north, "bearing"),
+                                     (True, False, north, "bearing")):
+        state = LoopSettings(set_aside_rays=on).policy_state()
+        state.bearing = (np.pi / 2, 2e3)
+        if put_aside:
+            state.set_aside.append(np.array([30.0, 20.0]))
+        d = explore("rayfronts", obs, nav, state)
+        assert np.allclose(d.goal_xy, want["position"][:2]) and d.why.startswith(why), (on, put_aside, d)
+
+
 def test_ray_policy_goes_on_past_its_bearing_rather_than_after_a_weaker_outlier_elsewhere():
     """The robot has passed every goal whose strong rays set the bearing (+x), and no goal
     lies ahead of it along +x; a weak outlier pointing elsewhere is left. It drives on past

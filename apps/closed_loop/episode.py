@@ -28,7 +28,7 @@ from apps.closed_loop.metrics import spl
 from apps.closed_loop.missions import Mission, box_distance, xy_box_distance
 from apps.closed_loop.navigation import NavField
 from apps.closed_loop.planner import follow
-from apps.closed_loop.policies import POLICIES, PolicyState, decide
+from apps.closed_loop.policies import POLICIES, PolicyState, decide, is_set_aside
 from apps.closed_loop.robot import Platform
 from apps.closed_loop.sensing import EdgeChain
 from synthetic_world import World
@@ -77,10 +77,12 @@ class LoopSettings:
     #: the ray policies remember the strongest outlier bearing of only this many last exploring
     #: steps (``PolicyState.bearing_window``); None: of the whole episode
     bearing_window_steps: int | None = None
+    #: the ray policies follow set-aside goals' outlier rays on along them (``PolicyState.set_aside_rays``)
+    set_aside_rays: bool = False
 
     def policy_state(self) -> PolicyState:
         """A new episode's policy memory in these settings."""
-        state = PolicyState(bearing_window=self.bearing_window_steps)
+        state = PolicyState(bearing_window=self.bearing_window_steps, set_aside_rays=self.set_aside_rays)
         if self.sem_poses_min_z is not None:
             state.pose_min_z = float(self.sem_poses_min_z)
         return state
@@ -148,15 +150,17 @@ class Trace:
         return out
 
 
-def strongest_rays(look_next: list[dict], n: int = TRACE_RAYS) -> list[dict]:
+def strongest_rays(look_next: list[dict], state: PolicyState | None = None, n: int = TRACE_RAYS) -> list[dict]:
     """The ``n`` look-next goals with rays (``heading_rad`` set), highest ``ray_z`` first:
     ``position`` (xy, m), ``heading_deg`` (the rays' yaw, degrees counter-clockwise from +x),
-    ``ray_z`` and ``score``."""
+    ``ray_z``, ``score`` and ``set_aside`` (after the step's decision the policy of ``state``
+    has set the goal aside for the episode: it no longer leads)."""
     rays = [g for g in look_next if g.get("heading_rad") is not None]
     rays.sort(key=lambda g: -float(g.get("ray_z", 0.0)))
     return [{"position": [round(float(v), 2) for v in g["position"][:2]],
              "heading_deg": round(float(np.degrees(g["heading_rad"])), 1),
-             "ray_z": round(float(g.get("ray_z", 0.0)), 2), "score": float(f"{float(g.get('score', 0.0)):.4g}")}
+             "ray_z": round(float(g.get("ray_z", 0.0)), 2), "score": float(f"{float(g.get('score', 0.0)):.4g}"),
+             "set_aside": bool(state is not None and is_set_aside(state, np.asarray(g["position"][:2])))}
             for g in rays[:n]]
 
 
@@ -259,13 +263,13 @@ def _oracle(world: World, mission: Mission, robot: Platform, settings: LoopSetti
             return
 
 
-def _record(trace: Trace | None, obs, d, mapper, step: int) -> None:
+def _record(trace: Trace | None, obs, d, mapper, step: int, state: PolicyState | None = None) -> None:
     if trace is None:
         return
     trace.found.append(list(obs.found))
     trace.goals.append(None if d.goal_xy is None else np.asarray(d.goal_xy, np.float64))
     trace.why.append(d.why)
-    trace.rays.append(strongest_rays(obs.look_next))
+    trace.rays.append(strongest_rays(obs.look_next, state))
     m = getattr(mapper, "map", None)
     if m is not None and trace.keep_voxels:
         xyz = m.voxel_xyz().cpu().numpy()
@@ -313,7 +317,7 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
         if render_ms is not None:
             run.stage_ms["render"].append(render_ms)
             run.stage_ms["robot_step"].append(run.stage_ms["step"][-1] - render_ms)
-        _record(trace, obs, d, mapper, step)
+        _record(trace, obs, d, mapper, step, state)
         if d.declare is not None:
             state.declared.add(d.declare["id"])
             verdict = _check_declaration(d.declare, mission, run.pos, run.counted, settings.vox_m)

@@ -103,6 +103,7 @@ class SearchEvalConfig:
     sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
     angle_bin_deg: float | None = None     # ray angle bin (None: the preset's; LoopSettings.angle_bin_deg)
     bearing_window_steps: int | None = None  # LoopSettings.bearing_window_steps (None: the whole episode)
+    set_aside_rays: bool = False           # LoopSettings.set_aside_rays
     robots: int = 1                # the fleet's size (fleet policies: apps.closed_loop.fleet_episode)
     start: str = "together"        # the fleet's starts (fleet_episode.START_MODES)
     footprint_m: float = 8.0       # least distance between two robots' goals (coordinated, frontier-only)
@@ -116,7 +117,8 @@ class SearchEvalConfig:
         """The settings every episode of this run shares (the depth limit set per episode)."""
         return LoopSettings(platform=self.platform, step_m=self.step_m, background=self.background,
                             ray_evidence=self.ray_evidence, sem_poses_min_z=self.sem_poses_min_z,
-                            angle_bin_deg=self.angle_bin_deg, bearing_window_steps=self.bearing_window_steps)
+                            angle_bin_deg=self.angle_bin_deg, bearing_window_steps=self.bearing_window_steps,
+                            set_aside_rays=self.set_aside_rays)
 
     def fleet(self) -> FleetSettings:
         """The fleet of the run's fleet policies."""
@@ -355,11 +357,11 @@ def _document(cfg: SearchEvalConfig, rows: list[dict], settings0: LoopSettings, 
 def _settings_fields(cfg: SearchEvalConfig) -> dict:
     """The run's config for the JSON; the fleet's fields only when a fleet policy ran (a
     single-robot run's JSON stays as it was before fleets), ``angle_bin_deg`` and
-    ``bearing_window_steps`` only when set (a run without them stays as it was before the
-    options; runs can still be merged with ``eval merge``)."""
+    ``bearing_window_steps`` and ``set_aside_rays`` only when set (a run without them stays as
+    it was before the options; runs can still be merged with ``eval merge``)."""
     d = dataclasses.asdict(cfg)
-    for k in ("angle_bin_deg", "bearing_window_steps"):
-        if d.get(k) is None:
+    for k in ("angle_bin_deg", "bearing_window_steps", "set_aside_rays"):
+        if d.get(k) in (None, False):
             d.pop(k, None)
     if not any(p in FLEET_POLICIES for p in cfg.policies):
         for k in ("robots", "start", "footprint_m"):

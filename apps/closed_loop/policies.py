@@ -101,6 +101,9 @@ class PolicyState:
     #: whole episode); ``recent``: each such step's strongest outlier (heading_rad, ray_z) or None
     bearing_window: int | None = None
     recent: list = field(default_factory=list)
+    #: the outlier rays of goals set aside (the robot can get no nearer to where they were
+    #: cast: a frontier by a statue's foot) still lead, on along them (:func:`_follow_outlier`)
+    set_aside_rays: bool = False
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
 
 
@@ -109,7 +112,13 @@ def _progress(nav: NavField, cell: np.ndarray) -> bool:
 
 
 def _set_aside(state: PolicyState, xy: np.ndarray, radius: float = 1.5) -> bool:
+    """Whether a goal at ``xy`` (m) lies within ``radius`` of a goal set aside this episode."""
     return any(np.linalg.norm(np.asarray(xy[:2]) - a) < radius for a in state.set_aside)
+
+
+def is_set_aside(state: PolicyState, xy: np.ndarray) -> bool:
+    """Whether the policy has set aside a goal at ``xy`` (m) for the rest of the episode."""
+    return _set_aside(state, xy)
 
 
 #: at most this many stall points per instance (the oldest go first)
@@ -232,7 +241,8 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     far = [x for x in goals if x[2] >= min_goal_m] or goals
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
     passed = _passed(goals, at) if _semantic(name) else []
-    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z)
+    aside = _set_aside_outliers(obs, state, min_ray_z) if _semantic(name) and state.set_aside_rays else []
+    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z, aside)
     evidence = not d.why.startswith("frontier")
     held = _held(state, nav, _without(far, passed) or far, evidence)
     if held is not None:
@@ -267,11 +277,12 @@ def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False
 
 def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_z: float = MIN_RAY_Z,
             every: list | None = None, at: np.ndarray | None = None, passed: list | None = None,
-            bearing: tuple | None = None, pose_min_z: float = SEM_POSES_MIN_Z) -> Decision:
+            bearing: tuple | None = None, pose_min_z: float = SEM_POSES_MIN_Z, aside: list | None = None
+            ) -> Decision:
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
     outlier ray may be attached next to the robot; ``passed``: those of them the robot has
     passed, :func:`_passed`; ``bearing``: the episode's strongest outlier ray,
-    :func:`_remember_bearing`)."""
+    :func:`_remember_bearing`; ``aside``: outlier goals set aside, :func:`_set_aside_outliers`)."""
     if _semantic(name):
         every = every or goals
         passed = passed or []
@@ -287,7 +298,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
         d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z, at=at, bearing=bearing,
-                            passed=passed)
+                            passed=passed, aside=aside)
         if d is not None:
             return d
         top, pool = _best_by(passed, "score")
@@ -464,6 +475,14 @@ def forget_bearing(state: PolicyState) -> None:
     state.recent.clear()
 
 
+def _set_aside_outliers(obs: Observation, state: PolicyState, min_ray_z: float) -> list:
+    """The look-next goals set aside this episode whose rays stand out (``ray_z`` ≥
+    ``min_ray_z``), as ``(goal, None, inf)`` entries like reachable goals'."""
+    return [(g, None, float("inf")) for g in obs.look_next
+            if g.get("heading_rad") is not None and float(g.get("ray_z", 0.0)) >= min_ray_z
+            and _set_aside(state, np.asarray(g["position"][:2]))]
+
+
 def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:
     """Whether a goal's rays point within ``acos(min_cos)`` of ``heading_rad`` (60°: the
     ray bins are 30° wide, and a far target's rays fall in one bin or the next)."""
@@ -477,7 +496,8 @@ def _outliers_agreeing(goals: list, heading_rad: float, min_ray_z: float) -> lis
 
 
 def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0.8, at: np.ndarray | None = None,
-                    bearing: tuple | None = None, passed: list | None = None) -> Decision | None:
+                    bearing: tuple | None = None, passed: list | None = None, aside: list | None = None
+                    ) -> Decision | None:
     """Toward the rays that stand out (``ray_z`` ≥ ``min_ray_z``): the best such goal (nearest
     by path within 10 % of the best ``ray_z``) when it is among the ``far`` goals; else (its
     frontier is next to the robot, where the rays left the known space) the nearest far goal
@@ -487,8 +507,18 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     (:func:`_agrees`) is noise until shown otherwise: the outliers that agree with that
     bearing are followed instead, else the nearest far goal ahead of the robot (``at``) along
     it, else on past the ``passed`` outliers that agree with it (:func:`_beyond_evidence`);
-    only when there is none of these is the outlier followed."""
+    only when there is none of these is the outlier followed.
+
+    Outlier goals set aside (``aside``) whose rays stand out more than every reachable one's
+    lead first: on along their rays (:func:`_beyond_evidence`)."""
     top, pool = _best_by(every, "ray_z")
+    if aside:
+        a_top, a_pool = _best_by(aside, "ray_z")
+        if a_top >= max(top, min_ray_z):
+            d = _beyond_evidence(a_pool, far, 0.0)
+            if d is not None:
+                d.why = f"beyond set-aside z {a_top:.1f}"
+                return d
     if top < min_ray_z:
         return None
     g, cell, _ = min(pool, key=_cost)
