@@ -274,80 +274,6 @@ def test_ray_policy_keeps_the_strongest_bearing_against_weaker_outliers_elsewher
     assert d is not None and d.declare is car and state.bearing is None
 
 
-def test_bearing_window_lets_a_look_alikes_bearing_go():
-    """With ``bearing_window`` W the bearing is the strongest outlier of the last W exploring
-    steps: a strong ray (+x, the look-alike's) no longer seen for W steps stops overruling a
-    weaker outlier elsewhere (+y, the target's), which then leads; a stronger ray within the
-    window still does, the whole-episode memory (None) still does after any number of steps,
-    and a declaration clears the window."""
-    from apps.closed_loop.episode import LoopSettings
-    from apps.closed_loop.policies import MIN_RAY_Z, confirm, explore
-    from apps.closed_loop.world_model import Observation
-
-    at = np.array([20.0, 20.0, 1.5])
-    states, nav = _open_field(at)
-    goal = _far_target_goal
-
-    def obs(*goals):
-        return Observation([], list(goals), states, np.zeros(2), 0.5)
-
-    strong = goal(60.0, 21.0, 1e3, 0.0)
-    target = goal(20.0, 40.0, MIN_RAY_Z + 10.0, np.pi / 2)
-    ahead = goal(45.0, 18.0, 0.0)
-    quiet = goal(30.0, 5.0, 0.0)                    # no rays: nothing to remember
-    for window, leads in ((3, "ray z"), (None, "bearing")):
-        state = LoopSettings(bearing_window_steps=window).policy_state()
-        assert state.bearing_window == window
-        explore("rayfronts", obs(strong, ahead), nav, state)
-        for _ in range(3):
-            state.goal = None
-            explore("rayfronts", obs(quiet, ahead), nav, state)
-        state.goal = None
-        d = explore("rayfronts", obs(target, ahead), nav, state)
-        want = target if leads == "ray z" else ahead
-        assert np.allclose(d.goal_xy, want["position"][:2]) and d.why.startswith(leads), (window, d)
-    state = LoopSettings(bearing_window_steps=3).policy_state()
-    explore("rayfronts", obs(strong, ahead), nav, state)
-    for _ in range(1):        # strong, quiet, target: the last 3 steps hold the strong bearing
-        state.goal = None
-        explore("rayfronts", obs(quiet, ahead), nav, state)
-    state.goal = None
-    d = explore("rayfronts", obs(target, ahead), nav, state)
-    assert d.why.startswith("bearing") and state.bearing == (0.0, 1e3), d
-    car = dict(id=1, target="car", box_min=[20.5, 20.5, 0.0], box_max=[21.0, 21.0, 1.5])
-    d = confirm(Observation([car], [], states, np.zeros(2), 0.5), nav, at, state, reach_m=3.0)
-    assert d is not None and d.declare is car and state.bearing is None and state.recent == []
-
-
-def test_set_aside_rays_lead_on_along_them():
-    """A goal the robot could get no nearer to (set aside: a frontier at a statue's foot)
-    carries rays (+x) stronger than every reachable goal's, weaker than the remembered
-    bearing (+y, a look-alike's). With ``set_aside_rays`` the robot goes on along them, to the
-    goal ahead beyond it; without, the bearing leads (pybullet drone development seed 0: 73 of
-    80 steps the strongest rays pointed at the target from goals by the look-alike, while the
-    robot followed the look-alike's bearing and rays of ray_z 4-6)."""
-    from apps.closed_loop.episode import LoopSettings
-    from apps.closed_loop.policies import MIN_RAY_Z, explore
-    from apps.closed_loop.world_model import Observation
-
-    at = np.array([20.0, 20.0, 1.5])
-    states, nav = _open_field(at)
-    goal = _far_target_goal
-    aside = goal(30.0, 20.0, 1e3, 0.0)                    # rays along +x
-    beyond = goal(45.0, 22.0, 0.0)                        # 15 m on along them
-    weak = goal(5.0, 20.0, MIN_RAY_Z + 1.0, np.pi)        # reachable, weaker, along -x
-    north = goal(20.0, 45.0, 0.0)                         # ahead along the bearing
-    obs = Observation([], [aside, beyond, weak, north], states, np.zeros(2), 0.5)
-    for on, put_aside, want, why in ((True, True, beyond, "beyond set-aside"), (False, True, north, "bearing"),
-                                     (True, False, north, "bearing")):
-        state = LoopSettings(set_aside_rays=on).policy_state()
-        state.bearing = (np.pi / 2, 2e3)
-        if put_aside:
-            state.set_aside.append(np.array([30.0, 20.0]))
-        d = explore("rayfronts", obs, nav, state)
-        assert np.allclose(d.goal_xy, want["position"][:2]) and d.why.startswith(why), (on, put_aside, d)
-
-
 def test_ray_policy_goes_on_past_its_bearing_rather_than_after_a_weaker_outlier_elsewhere():
     """The robot has passed every goal whose strong rays set the bearing (+x), and no goal
     lies ahead of it along +x; a weak outlier pointing elsewhere is left. It drives on past
@@ -922,6 +848,15 @@ def test_eval_search_trace_files(tmp_path):
         m = re.match(r"ray z (-?[0-9.]+)", s["why"])
         if m:
             assert float(m.group(1)) <= max(z) + 0.06, s
+    # a ray goal the policy set aside is marked so (within 1.5 m of a set-aside goal)
+    from apps.closed_loop.episode import strongest_rays
+    from apps.closed_loop.policies import PolicyState
+
+    state = PolicyState(set_aside=[np.array([10.0, 0.0])])
+    rays = strongest_rays([dict(position=[10.5, 0.5, 1.5], heading_rad=0.0, ray_z=5.0, score=0.1),
+                           dict(position=[30.0, 0.0, 1.5], heading_rad=np.pi, ray_z=9.0, score=0.2),
+                           dict(position=[0.0, 0.0, 1.5], heading_rad=None, ray_z=99.0)], state)
+    assert [(r["ray_z"], r["heading_deg"], r["set_aside"]) for r in rays] == [(9.0, 180.0, False), (5.0, 0.0, True)]
 
 
 def test_rayfronts_finds_the_far_water_tower_where_frontier_exploration_does_not(loop):

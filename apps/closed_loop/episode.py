@@ -74,15 +74,10 @@ class LoopSettings:
     #: preset's (30 in ``online``, the paper's). Finer bins keep a far, narrow target's few
     #: rays from being averaged with the sky around it (docs/results/closed_loop_robot.md)
     angle_bin_deg: float | None = None
-    #: the ray policies remember the strongest outlier bearing of only this many last exploring
-    #: steps (``PolicyState.bearing_window``); None: of the whole episode
-    bearing_window_steps: int | None = None
-    #: the ray policies follow set-aside goals' outlier rays on along them (``PolicyState.set_aside_rays``)
-    set_aside_rays: bool = False
 
     def policy_state(self) -> PolicyState:
         """A new episode's policy memory in these settings."""
-        state = PolicyState(bearing_window=self.bearing_window_steps, set_aside_rays=self.set_aside_rays)
+        state = PolicyState()
         if self.sem_poses_min_z is not None:
             state.pose_min_z = float(self.sem_poses_min_z)
         return state

@@ -28,8 +28,7 @@ stays and looks again. They differ in how they explore until then:
   known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); an
   outlier weaker than the episode's strongest and pointing elsewhere is passed over for
   those agreeing with it — or for a goal on past them when the robot has passed them
-  (:func:`_remember_bearing`; with ``PolicyState.bearing_window`` the strongest of the last
-  steps only); without either like ``frontier``;
+  (:func:`_remember_bearing`); without either like ``frontier``;
 * ``unidirectional`` / ``spherical``: the same rule on the maps of the paper's semantic
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
@@ -97,13 +96,6 @@ class PolicyState:
     stalled: dict = field(default_factory=dict)       # instance id -> [(xy, m from its box)]: approach stalled
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
     bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
-    #: remember the strongest outlier of only this many last exploring steps (None: of the
-    #: whole episode); ``recent``: each such step's strongest outlier (heading_rad, ray_z) or None
-    bearing_window: int | None = None
-    recent: list = field(default_factory=list)
-    #: the outlier rays of goals set aside (the robot can get no nearer to where they were
-    #: cast: a frontier by a statue's foot) still lead, on along them (:func:`_follow_outlier`)
-    set_aside_rays: bool = False
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
 
 
@@ -169,7 +161,7 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
         if here_m <= reach_m - 0.5:
             if not trusted:             # seen at too few map updates: stay and look again
                 return _look_again(nav, at, inst)
-            forget_bearing(state)       # the rays that led here were this instance's
+            state.bearing = None        # the rays that led here were this instance's
             return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']}")
         aim = np.clip(at[:2], lo[:2], hi[:2])
         cell, path_m, gap = nav.nearest_reachable(aim)
@@ -177,7 +169,7 @@ def confirm(obs: Observation, nav: NavField, at: np.ndarray, state: PolicyState,
             if here_m <= STALL_DECLARE * reach_m:     # as near as the map lets it: declare from here
                 if not trusted:
                     return _look_again(nav, at, inst)
-                forget_bearing(state)
+                state.bearing = None
                 return Decision(declare=inst, why=f"declare {inst['target']} #{inst['id']} (no nearer)")
             _stall(state, inst["id"], at, here_m)
             continue
@@ -241,8 +233,7 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     far = [x for x in goals if x[2] >= min_goal_m] or goals
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
     passed = _passed(goals, at) if _semantic(name) else []
-    aside = _set_aside_outliers(obs, state, min_ray_z) if _semantic(name) and state.set_aside_rays else []
-    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z, aside)
+    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z)
     evidence = not d.why.startswith("frontier")
     held = _held(state, nav, _without(far, passed) or far, evidence)
     if held is not None:
@@ -277,12 +268,11 @@ def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False
 
 def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_z: float = MIN_RAY_Z,
             every: list | None = None, at: np.ndarray | None = None, passed: list | None = None,
-            bearing: tuple | None = None, pose_min_z: float = SEM_POSES_MIN_Z, aside: list | None = None
-            ) -> Decision:
+            bearing: tuple | None = None, pose_min_z: float = SEM_POSES_MIN_Z) -> Decision:
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
     outlier ray may be attached next to the robot; ``passed``: those of them the robot has
     passed, :func:`_passed`; ``bearing``: the episode's strongest outlier ray,
-    :func:`_remember_bearing`; ``aside``: outlier goals set aside, :func:`_set_aside_outliers`)."""
+    :func:`_remember_bearing`)."""
     if _semantic(name):
         every = every or goals
         passed = passed or []
@@ -298,7 +288,7 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=f"rays {g['score']:.2f}",
                             score=float(g["score"]))
         d = _follow_outlier(_without(every, passed) or every, live or goals, min_ray_z, at=at, bearing=bearing,
-                            passed=passed, aside=aside)
+                            passed=passed)
         if d is not None:
             return d
         top, pool = _best_by(passed, "score")
@@ -448,39 +438,13 @@ def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: f
 
 def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float) -> None:
     """Keep the heading and ``ray_z`` of the strongest outlier ray (``ray_z`` ≥ ``min_ray_z``)
-    any look-next goal has carried this episode — with ``state.bearing_window`` = W, of the
-    last W exploring steps only. A far target's rays keep their bearing from step to step and
-    grow stronger as the robot nears it; outliers of noise jump about and stay weak. Forgotten
-    when an instance is declared (the next target's rays are other: :func:`forget_bearing`).
-    The window lets a look-alike's strong rays go once they are no longer seen (the robot has
-    reached it), so a weaker target's rays elsewhere lead again."""
-    best = None
+    any look-next goal has carried this episode. A far target's rays keep their bearing from
+    step to step and grow stronger as the robot nears it; outliers of noise jump about and
+    stay weak. Forgotten when an instance is declared (the next target's rays are other)."""
     for g in obs.look_next:
         z = float(g.get("ray_z", 0.0))
-        if g.get("heading_rad") is not None and z >= min_ray_z and (best is None or z > best[1]):
-            best = (float(g["heading_rad"]), z)
-    if state.bearing_window is None:
-        if best is not None and (state.bearing is None or best[1] > state.bearing[1]):
-            state.bearing = best
-        return
-    state.recent.append(best)
-    del state.recent[:-state.bearing_window]
-    kept = [b for b in state.recent if b is not None]
-    state.bearing = max(kept, key=lambda b: b[1]) if kept else None
-
-
-def forget_bearing(state: PolicyState) -> None:
-    """Forget the remembered bearing and the recent outliers (an instance was declared)."""
-    state.bearing = None
-    state.recent.clear()
-
-
-def _set_aside_outliers(obs: Observation, state: PolicyState, min_ray_z: float) -> list:
-    """The look-next goals set aside this episode whose rays stand out (``ray_z`` ≥
-    ``min_ray_z``), as ``(goal, None, inf)`` entries like reachable goals'."""
-    return [(g, None, float("inf")) for g in obs.look_next
-            if g.get("heading_rad") is not None and float(g.get("ray_z", 0.0)) >= min_ray_z
-            and _set_aside(state, np.asarray(g["position"][:2]))]
+        if g.get("heading_rad") is not None and z >= min_ray_z and (state.bearing is None or z > state.bearing[1]):
+            state.bearing = (float(g["heading_rad"]), z)
 
 
 def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:
@@ -496,8 +460,7 @@ def _outliers_agreeing(goals: list, heading_rad: float, min_ray_z: float) -> lis
 
 
 def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0.8, at: np.ndarray | None = None,
-                    bearing: tuple | None = None, passed: list | None = None, aside: list | None = None
-                    ) -> Decision | None:
+                    bearing: tuple | None = None, passed: list | None = None) -> Decision | None:
     """Toward the rays that stand out (``ray_z`` ≥ ``min_ray_z``): the best such goal (nearest
     by path within 10 % of the best ``ray_z``) when it is among the ``far`` goals; else (its
     frontier is next to the robot, where the rays left the known space) the nearest far goal
@@ -507,18 +470,8 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     (:func:`_agrees`) is noise until shown otherwise: the outliers that agree with that
     bearing are followed instead, else the nearest far goal ahead of the robot (``at``) along
     it, else on past the ``passed`` outliers that agree with it (:func:`_beyond_evidence`);
-    only when there is none of these is the outlier followed.
-
-    Outlier goals set aside (``aside``) whose rays stand out more than every reachable one's
-    lead first: on along their rays (:func:`_beyond_evidence`)."""
+    only when there is none of these is the outlier followed."""
     top, pool = _best_by(every, "ray_z")
-    if aside:
-        a_top, a_pool = _best_by(aside, "ray_z")
-        if a_top >= max(top, min_ray_z):
-            d = _beyond_evidence(a_pool, far, 0.0)
-            if d is not None:
-                d.why = f"beyond set-aside z {a_top:.1f}"
-                return d
     if top < min_ray_z:
         return None
     g, cell, _ = min(pool, key=_cost)

@@ -188,13 +188,6 @@ def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> Non
     se.add_argument("--angle-bin", type=float, default=None, metavar="DEG",
                     help="the ray policies' ray angle bin in degrees (default: the online preset's 30, the paper's; "
                          "one bin per frontier stays one bin)")
-    se.add_argument("--bearing-window", type=int, default=None, metavar="N",
-                    help="the ray policies remember the strongest outlier bearing of the last N exploring steps only "
-                         "(default: of the whole episode)")
-    se.add_argument("--set-aside-rays", action="store_true",
-                    help="the ray policies follow the outlier rays of goals they set aside (could get no nearer to) "
-                         "on along them, when stronger than every reachable goal's (default: set-aside goals lead "
-                         "nowhere)")
     se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
     se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
 
@@ -237,9 +230,7 @@ def _search_config(args: argparse.Namespace):
                             distributed=distributed, work_dir=getattr(args, "work_dir", ""),
                             background=args.background, world=args.world, sensor=args.sensor,
                             encoder=args.encoder, pca_fit=args.pca_fit, ray_evidence=args.ray_evidence,
-                            sem_poses_min_z=args.sem_poses_min_z, angle_bin_deg=args.angle_bin,
-                            bearing_window_steps=args.bearing_window, set_aside_rays=args.set_aside_rays,
-                            robots=robots,
+                            sem_poses_min_z=args.sem_poses_min_z, angle_bin_deg=args.angle_bin, robots=robots,
                             start=getattr(args, "start", "together"),
                             footprint_m=float(getattr(args, "footprint", 8.0))).validate()
 
