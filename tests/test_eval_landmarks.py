@@ -64,6 +64,31 @@ def test_town_start_by_the_look_alike(town):
     assert s["spherical"]["look_alike_nearer"]["found"] == 1 and s["spherical"]["target_nearer"]["episodes"] == 0
     md = report_markdown(rep)
     assert "water tower (look-alike nearer)" in md and "| rayfronts | 0/0 | 0/1 | 1 |" in md
+    # with traces: the steps whose strongest ray points at each tower (within 15°)
+    import tempfile
+
+    from apps.closed_loop.evaluate import trace_name
+
+    def ray_at(frm, to, turn_deg=0.0):
+        h = math.degrees(math.atan2(to[1] - frm[1], to[0] - frm[0])) + turn_deg
+        return {"position": [float(frm[0]), float(frm[1])], "heading_deg": h, "ray_z": 9.0}
+
+    p0 = np.asarray(start, np.float64) + [0.0, 30.0]
+    steps = [{"rays": [ray_at(p0, water.center)]}, {"rays": [ray_at(p0, water.center, 14.0)]},
+             {"rays": [ray_at(p0, radio.center), ray_at(p0, water.center)]}, {"rays": [ray_at(p0, water.center, 40.0)]},
+             {"rays": []}]
+    with tempfile.TemporaryDirectory() as tdir:
+        ep = doc["episodes"][0]
+        (Path(tdir) / trace_name({**ep, "kind": "landmark"})).write_text(json.dumps({"trace": steps}))
+        rep3 = landmark_report([doc], near_m=30.0, make=lambda w, s: town, traces=tdir)
+    by3 = {p["policy"]: p for p in rep3["episodes"][0]["policies"]}
+    assert by3["rayfronts"]["traced_steps"] == 5
+    assert len(town.instances_of(town.classes.index("water tower"))) == 1     # one of each in town 0
+    assert len(town.instances_of(town.classes.index("radio tower"))) == 1
+    # at the water tower: steps 0 and 1 (14° off); at the radio tower: step 2 (its first ray)
+    assert by3["rayfronts"]["rays_at"] == {"water tower": 2, "radio tower": 1}
+    assert "rays_at" not in by3["spherical"]           # no trace file for it
+    assert "strongest ray at water tower" in report_markdown(rep3)
     # the same start with the water tower as target one metre away: the target is nearer
     near_water = np.asarray(water.center[:2]) + [1.0, 0.0]
     rep2 = landmark_report([{"settings": {"world": "synthetic"}, "episodes": [

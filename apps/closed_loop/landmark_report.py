@@ -17,11 +17,18 @@ needs nothing but its JSON. Per episode (seed, mission, depth limit):
 
 ``summary`` per policy: episodes and finds where the target was the nearer landmark and where a
 look-alike was, and how many failures ended by a look-alike.
+
+With the episodes' traces (``eval search --trace DIR``; ``traces``: the directory) each policy
+row adds ``traced_steps`` and ``rays_at``: per landmark class, the steps whose strongest ray
+(the first of the step's ``rays``) points within :data:`RAY_AT_DEG` of the horizontal bearing
+from the ray's goal to that class's nearest instance centre.
 """
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,6 +38,9 @@ from apps.closed_loop.missions import TARGETS
 #: default: a failed episode ending this close (m, horizontal, to the box centre) to a
 #: look-alike counts as ended by it
 NEAR_M = 30.0
+#: a ray points at a landmark when its heading is within this many degrees of the bearing
+#: from its goal to the landmark's centre (horizontal)
+RAY_AT_DEG = 15.0
 
 
 def _landmarks(world, classes: list[str]) -> list[tuple[str, int, np.ndarray]]:
@@ -40,6 +50,21 @@ def _landmarks(world, classes: list[str]) -> list[tuple[str, int, np.ndarray]]:
         cid = world.classes.index(name)
         out += [(name, int(i.id), np.asarray(i.aabb_min[:2] + i.aabb_max[:2], np.float64) / 2.0)
                 for i in world.instances_of(cid)]
+    return out
+
+
+def _rays_at(trace: list[dict], marks: list) -> dict[str, int]:
+    """Per landmark class: the steps of ``trace`` whose strongest ray points at it."""
+    out = {name: 0 for name, _, _ in marks}
+    for s in trace:
+        if not s.get("rays"):
+            continue
+        r = s["rays"][0]
+        p = np.asarray(r["position"][:2], np.float64)
+        for name in out:
+            off = min(abs((math.degrees(math.atan2(c[1] - p[1], c[0] - p[0])) - r["heading_deg"] + 180.0) % 360.0
+                          - 180.0) for n, _, c in marks if n == name)
+            out[name] += off <= RAY_AT_DEG
     return out
 
 
@@ -56,10 +81,12 @@ def _policy_row(e: dict, marks: list, target: str, near_m: float) -> dict:
 
 
 def landmark_report(docs: list[dict], near_m: float = NEAR_M,
-                    make: Callable[[str, int], Any] | None = None) -> dict:
+                    make: Callable[[str, int], Any] | None = None, traces: str | Path | None = None) -> dict:
     """The report of the landmark episodes of ``docs`` (``eval search`` documents; module
-    docstring). ``make(world, seed)`` builds a world (default ``make_world``). ``ValueError``
-    when the documents hold no landmark episode or a landmark class is not in its world."""
+    docstring). ``make(world, seed)`` builds a world (default ``make_world``); ``traces``: the
+    ``--trace`` directory of the runs (an episode without a file there has no trace fields).
+    ``ValueError`` when the documents hold no landmark episode or a landmark class is not in
+    its world."""
     if make is None:
         from apps.closed_loop.evaluate import make_world
 
@@ -98,10 +125,23 @@ def landmark_report(docs: list[dict], near_m: float = NEAR_M,
         rows.append({"world": family, "seed": seed, "episode": episode, "depth_limit_m": depth,
                      "platform": platform, "target": target, "start": [float(v) for v in start],
                      "landmarks": listed, "target_nearer": bool(own < other),
-                     "policies": [_policy_row(e, marks, target, near_m) for e in eps]})
+                     "policies": [_traced(_policy_row(e, marks, target, near_m), e, marks, traces) for e in eps]})
     return {"near_m": near_m, "episodes": rows, "summary": _summary(rows),
             "sources": [{"commit": d.get("meta", {}).get("commit"), "argv": d.get("meta", {}).get("argv")}
                         for d in docs]}
+
+
+def _traced(row: dict, e: dict, marks: list, traces: str | Path | None) -> dict:
+    """``row`` with ``traced_steps`` and ``rays_at`` when ``traces`` holds the episode's trace."""
+    if traces is None:
+        return row
+    from apps.closed_loop.evaluate import trace_name
+
+    f = Path(traces) / trace_name(e)
+    if not f.is_file():
+        return row
+    steps = json.loads(f.read_text())["trace"]
+    return {**row, "traced_steps": len(steps), "rays_at": _rays_at(steps, marks)}
 
 
 def _summary(rows: list[dict]) -> dict:
@@ -139,6 +179,9 @@ def report_markdown(rep: dict) -> str:
                 cell = f"ended {p['end_m'][nearest]:.0f} m from the {nearest}"
             if p["false_finds"]:
                 cell += f"; {p['false_finds']} false"
+            if "rays_at" in p:
+                cell += "; strongest ray at " + ", ".join(f"{k} {v}" for k, v in p["rays_at"].items()) + \
+                    f" of {p['traced_steps']} steps"
             cells.append(cell)
         lines.append(f"| {r['world']} | {r['platform']} | {r['depth_limit_m']:g} | {r['seed']} | "
                      f"({r['start'][0]:.0f}, {r['start'][1]:.0f}) | {r['target']}"

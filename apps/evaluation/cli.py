@@ -141,6 +141,8 @@ def _search_parser(sub) -> None:
     lm.add_argument("--near", type=float, default=30.0, metavar="M",
                     help="a failure ending within M m of a look-alike counts as ended by it (default 30)")
     lm.add_argument("--json", default=None, metavar="FILE", help="also write the report (.md beside)")
+    lm.add_argument("--traces", default=None, metavar="DIR",
+                    help="the runs' --trace directory: count the steps whose strongest ray points at each landmark")
     tu = sub.add_parser("tune-sem-poses", help="choose sem-poses' margin z cut on the development seeds",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.tuning", fromlist=["x"]).__doc__)
@@ -317,7 +319,7 @@ def _run_landmarks(args: argparse.Namespace) -> int:
     if docs is None:
         return 2
     try:
-        rep = landmark_report(docs, near_m=args.near)
+        rep = landmark_report(docs, near_m=args.near, traces=args.traces)
     except (ValueError, KeyError, TypeError) as e:
         print(f"rayfronts eval landmarks: {e}", file=sys.stderr)
         return 2
