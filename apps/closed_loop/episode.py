@@ -138,7 +138,7 @@ class Trace:
             g = self.goals[i]
             out.append({"step": i, "position": [round(float(v), 3) for v in self.positions[i]], "why": why,
                         "goal": None if g is None else [round(float(v), 3) for v in g[:2]],
-                        "rays": self.rays[i] if i < len(self.rays) else [],
+                        "rays": self.rays[i],
                         "found": [{"id": int(f["id"]), "centroid": [round(float(v), 2) for v in f["centroid"]],
                                    "confidence": f.get("confidence")}
                                   for f in self.found[i] if "id" in f and "centroid" in f]})

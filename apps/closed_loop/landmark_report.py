@@ -48,8 +48,7 @@ def _landmarks(world, classes: list[str]) -> list[tuple[str, int, np.ndarray]]:
     out = []
     for name in classes:
         cid = world.classes.index(name)
-        out += [(name, int(i.id), np.asarray(i.aabb_min[:2] + i.aabb_max[:2], np.float64) / 2.0)
-                for i in world.instances_of(cid)]
+        out += [(name, int(i.id), np.asarray(i.center[:2], np.float64)) for i in world.instances_of(cid)]
     return out
 
 

@@ -103,14 +103,9 @@ def _progress(nav: NavField, cell: np.ndarray) -> bool:
     return tuple(int(v) for v in cell) != nav.start
 
 
-def _set_aside(state: PolicyState, xy: np.ndarray, radius: float = 1.5) -> bool:
+def is_set_aside(state: PolicyState, xy: np.ndarray, radius: float = 1.5) -> bool:
     """Whether a goal at ``xy`` (m) lies within ``radius`` of a goal set aside this episode."""
     return any(np.linalg.norm(np.asarray(xy[:2]) - a) < radius for a in state.set_aside)
-
-
-def is_set_aside(state: PolicyState, xy: np.ndarray) -> bool:
-    """Whether the policy has set aside a goal at ``xy`` (m) for the rest of the episode."""
-    return _set_aside(state, xy)
 
 
 #: at most this many stall points per instance (the oldest go first)
@@ -193,7 +188,7 @@ def _reachable_goals(obs: Observation, nav: NavField, state: PolicyState) -> lis
     out = []
     for g in obs.look_next:
         xy = np.asarray(g["position"][:2])
-        if _set_aside(state, xy):
+        if is_set_aside(state, xy):
             continue
         cell, path_m, gap = nav.nearest_reachable(xy)
         if not _progress(nav, cell):
@@ -257,7 +252,7 @@ def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False
     xy, score, semantic = state.goal
     cell, path_m, gap = nav.nearest_reachable(xy)
     top = max(g["score"] for g, _, _ in goals)
-    if not _progress(nav, cell) or _set_aside(state, xy) or (semantic and top > score + 0.2) \
+    if not _progress(nav, cell) or is_set_aside(state, xy) or (semantic and top > score + 0.2) \
             or (evidence and not semantic):
         if not _progress(nav, cell):
             state.set_aside.append(np.asarray(xy))
