@@ -74,6 +74,9 @@ class LoopSettings:
     #: preset's (30 in ``online``, the paper's). Finer bins keep a far, narrow target's few
     #: rays from being averaged with the sky around it (docs/results/closed_loop_robot.md)
     angle_bin_deg: float | None = None
+    #: the ray policies' searches spend the rays whose line meets a voxel mapped occupied
+    #: within this many metres (``search.explained_rays_m``; 0: off)
+    explained_rays_m: float = 0.0
 
     def policy_state(self) -> PolicyState:
         """A new episode's policy memory in these settings."""
@@ -89,7 +92,7 @@ class LoopSettings:
 
         return mapper_config(method, self.depth_limit_m, self.vox_m, width_px, self.preset,
                              self.background_phrases(world), self.ray_evidence, self.distinct_phrases(),
-                             self.angle_bin_deg)
+                             self.angle_bin_deg, self.explained_rays_m)
 
     def distinct_phrases(self) -> int:
         """``search.distinct_phrases`` of the searches: the target's 8 nearest phrases with the
