@@ -75,7 +75,8 @@ class LoopSettings:
     #: rays from being averaged with the sky around it (docs/results/closed_loop_robot.md)
     angle_bin_deg: float | None = None
     #: the ray policies' searches spend the rays whose line meets a voxel mapped occupied
-    #: within this many metres (``search.explained_rays_m``; 0: off)
+    #: within this many metres (``search.explained_rays_m``; 0: off), and their remembered
+    #: bearing lasts only while rays agree with it (``PolicyState.bearing_while_supported``)
     explained_rays_m: float = 0.0
 
     def policy_state(self) -> PolicyState:
@@ -83,6 +84,7 @@ class LoopSettings:
         state = PolicyState()
         if self.sem_poses_min_z is not None:
             state.pose_min_z = float(self.sem_poses_min_z)
+        state.bearing_while_supported = self.explained_rays_m > 0
         return state
 
     def map_config(self, method: str, world: World, width_px: int):
