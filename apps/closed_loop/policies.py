@@ -437,11 +437,13 @@ def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float) ->
     any look-next goal has carried this episode. A far target's rays keep their bearing from
     step to step and grow stronger as the robot nears it; outliers of noise jump about and
     stay weak. Forgotten when an instance is declared (the next target's rays are other) and,
-    with ``state.bearing_while_supported``, when no look-next goal carries an outlier ray
-    agreeing with it (:func:`_agrees`): the rays it came from are explored or spent (the map
-    explained them, ``search.explained_rays_m``)."""
+    with ``state.bearing_while_supported``, when no look-next goal carries a ray agreeing with
+    it (:func:`_agrees`) at least half as strong (and an outlier): the rays it came from are
+    explored or spent (the map explained them, ``search.explained_rays_m``), and weak outliers
+    that happen to point the same way are not the same evidence."""
     if state.bearing_while_supported and state.bearing is not None and not any(
-            float(g.get("ray_z", 0.0)) >= min_ray_z and _agrees(g, state.bearing[0]) for g in obs.look_next):
+            float(g.get("ray_z", 0.0)) >= max(min_ray_z, 0.5 * state.bearing[1]) and _agrees(g, state.bearing[0])
+            for g in obs.look_next):
         state.bearing = None
     for g in obs.look_next:
         z = float(g.get("ray_z", 0.0))
