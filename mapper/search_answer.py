@@ -43,7 +43,6 @@ from common.cones import cone_union_volume
 from common.conventions import voxel_index
 from common.search_messages import SearchReply, SearchRequest
 from planning.beyond import triangulate
-from planning.explained_rays import explained_rays
 from planning.instances import (
     InstanceTracker,
     InstanceViews,
@@ -603,29 +602,6 @@ def _beyond(snap: QueryCopy, rs: np.ndarray, targets: list[str], scfg: SearchSec
     return dict(rays=rays[:max(10, 2 * len(targets))], estimates=ests[:10], search_volume_m3=vol)
 
 
-#: a ray carries evidence worth walking (search.explained_rays_m) when its score or ray_z
-#: reaches these for some target: a score rounding to 0 at three decimals, as look-next ranks
-#: them, and a z below 1 tell nothing apart
-EVIDENCE_SCORE, EVIDENCE_Z = 0.0005, 1.0
-
-
-def _unexplained(m: RayFrontsMap, origins: np.ndarray, dirs: np.ndarray, rs: np.ndarray, rz: np.ndarray,
-                 max_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ray scores ``rs`` and z-scores ``rz`` (T, R) with those of the rays the map has
-    explained (:func:`planning.explained_rays.explained_rays` within ``max_m``; 0 = off)
-    set to 0. Only the rays carrying evidence are walked."""
-    if max_m <= 0 or rs.shape[1] == 0:
-        return rs, rz
-    walk = np.flatnonzero((rs >= EVIDENCE_SCORE).any(axis=0) | (rz >= EVIDENCE_Z).any(axis=0))
-    if len(walk) == 0:
-        return rs, rz
-    hit = walk[explained_rays(m.occupancy_view(), float(m.cfg.vox_size), origins[walk], dirs[walk], max_m)]
-    rs, rz = np.array(rs, copy=True), np.array(rz, copy=True)
-    rs[:, hit] = 0.0
-    rz[:, hit] = 0.0
-    return rs, rz
-
-
 def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: MapperConfig, trackers: TrackerStore,
                   read_map: Callable[[Callable[[RayFrontsMap], list[Goal]]], list[Goal] | None] | None,
                   map_version: int = 0) -> SearchReply:
@@ -671,11 +647,9 @@ def answer_search(snap: QueryCopy, fs: FeatureSpace, req: SearchRequest, cfg: Ma
                 if req.polygon() is not None or req.z_band is not None:
                     f = f[_in_area(f, req.polygon(), req.z_band)]
                 radius = scfg.ray_radius_m if scfg.ray_radius_m > 0 else float(m.cfg.beta)
-                ks, kz = _unexplained(m, snap.ray_origins[rkeep], snap.ray_dirs[rkeep], rs[:, rkeep], rz,
-                                      scfg.explained_rays_m)
                 return look_next(m.occupancy_view(), float(m.cfg.vox_size), f, snap.ray_origins[rkeep],
-                                 snap.ray_dirs[rkeep], ks.T, list(req.targets), req.from_xyz,
-                                 ray_z=kz.T, ray_radius_m=radius, standoff_m=scfg.standoff_m,
+                                 snap.ray_dirs[rkeep], rs[:, rkeep].T, list(req.targets), req.from_xyz,
+                                 ray_z=rz.T, ray_radius_m=radius, standoff_m=scfg.standoff_m,
                                  sensing_radius_m=scfg.sensing_radius_m, max_goals=req.max_goals,
                                  cache=look_next_cache(m))
         got = read_map(run)

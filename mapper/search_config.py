@@ -44,9 +44,6 @@ class SearchSection(StandingLimits):
                                            "apart from its search.distinct_phrases nearest other phrases, or 'margin', "
                                            "its cosine to the target less its best cosine to those phrases (a ray "
                                            "toward a similar class reads below the sky's)")
-    explained_rays_m: float = field_(0.0, "a ray whose line meets a voxel the map holds as occupied within this "
-                                          "distance past its origin has seen that surface and carries no evidence "
-                                          "(planning.explained_rays; only rays with evidence are walked); 0 = off")
     beyond_rays: int = field_(20, "best rays per target considered for triangulation")
     max_gap_m: float = field_(2.0, "two rays triangulate when they pass within this distance")
     angle_err_deg: float = field_(0.0, "direction uncertainty of a ray (estimate radius); 0 = half the map's "
@@ -78,7 +75,7 @@ class SearchSection(StandingLimits):
             raise ConfigError(f"search.identity_threshold={self.identity_threshold}: must be a probability in (0, 1)")
         if self.instance_grace < 0:
             raise ConfigError(f"search.instance_grace={self.instance_grace}: must be >= 0 (map updates)")
-        for k in ("fleet_footprint_m", "fleet_unreachable_tol_m", "explained_rays_m"):
+        for k in ("fleet_footprint_m", "fleet_unreachable_tol_m"):
             if not getattr(self, k) >= 0.0:
                 raise ConfigError(f"search.{k}={getattr(self, k)}: must be >= 0 (metres)")
         for k in ("fleet_unreachable_max", "fleet_unreachable_ttl_s"):

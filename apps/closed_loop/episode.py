@@ -74,17 +74,12 @@ class LoopSettings:
     #: preset's (30 in ``online``, the paper's). Finer bins keep a far, narrow target's few
     #: rays from being averaged with the sky around it (docs/results/closed_loop_robot.md)
     angle_bin_deg: float | None = None
-    #: the ray policies' searches spend the rays whose line meets a voxel mapped occupied
-    #: within this many metres (``search.explained_rays_m``; 0: off), and their remembered
-    #: bearing lasts only while rays agree with it (``PolicyState.bearing_while_supported``)
-    explained_rays_m: float = 0.0
 
     def policy_state(self) -> PolicyState:
         """A new episode's policy memory in these settings."""
         state = PolicyState()
         if self.sem_poses_min_z is not None:
             state.pose_min_z = float(self.sem_poses_min_z)
-        state.bearing_while_supported = self.explained_rays_m > 0
         return state
 
     def map_config(self, method: str, world: World, width_px: int):
@@ -94,7 +89,7 @@ class LoopSettings:
 
         return mapper_config(method, self.depth_limit_m, self.vox_m, width_px, self.preset,
                              self.background_phrases(world), self.ray_evidence, self.distinct_phrases(),
-                             self.angle_bin_deg, self.explained_rays_m)
+                             self.angle_bin_deg)
 
     def distinct_phrases(self) -> int:
         """``search.distinct_phrases`` of the searches: the target's 8 nearest phrases with the

@@ -102,7 +102,6 @@ class SearchEvalConfig:
     ray_evidence: str = "distinct"  # what ray_z z-scores (LoopSettings.ray_evidence, search.ray_evidence)
     sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
     angle_bin_deg: float | None = None     # ray angle bin (None: the preset's; LoopSettings.angle_bin_deg)
-    explained_rays_m: float = 0.0  # spend rays the map explains within this (LoopSettings.explained_rays_m)
     robots: int = 1                # the fleet's size (fleet policies: apps.closed_loop.fleet_episode)
     start: str = "together"        # the fleet's starts (fleet_episode.START_MODES)
     footprint_m: float = 8.0       # least distance between two robots' goals (coordinated, frontier-only)
@@ -116,7 +115,7 @@ class SearchEvalConfig:
         """The settings every episode of this run shares (the depth limit set per episode)."""
         return LoopSettings(platform=self.platform, step_m=self.step_m, background=self.background,
                             ray_evidence=self.ray_evidence, sem_poses_min_z=self.sem_poses_min_z,
-                            angle_bin_deg=self.angle_bin_deg, explained_rays_m=self.explained_rays_m)
+                            angle_bin_deg=self.angle_bin_deg)
 
     def fleet(self) -> FleetSettings:
         """The fleet of the run's fleet policies."""
@@ -144,7 +143,11 @@ class SearchEvalConfig:
             raise ValueError(f"--background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
         if self.angle_bin_deg is not None and not 0 < self.angle_bin_deg <= 360:
             raise ValueError(f"--angle-bin must be in (0, 360] degrees, not {self.angle_bin_deg}")
-        self._validate_search()
+        if self.ray_evidence not in ("distinct", "margin"):
+            raise ValueError(f"--ray-evidence must be distinct or margin, not {self.ray_evidence!r}")
+        if self.distributed and self.ray_evidence != "distinct":
+            raise ValueError("--distributed: the mapper process keeps its own search.ray_evidence; "
+                             "run --ray-evidence margin in process")
         if self.world not in WORLDS:
             raise ValueError(f"--world must be one of {', '.join(WORLDS)}, not {self.world!r}")
         if self.sensor not in SENSORS or self.pca_fit not in PCA_FITS or self.encoder not in ("sim", "label"):
@@ -159,16 +162,6 @@ class SearchEvalConfig:
             raise ValueError("--distributed: sem-poses scores the robot's camera poses in process (the mapper serves "
                              "no pose scores); leave it out with --policies")
         return self
-
-    def _validate_search(self) -> None:
-        """Refuses search options the run cannot use (one line naming the option)."""
-        if not self.explained_rays_m >= 0:
-            raise ValueError(f"--explained-rays must be >= 0 metres (0: off), not {self.explained_rays_m}")
-        if self.ray_evidence not in ("distinct", "margin"):
-            raise ValueError(f"--ray-evidence must be distinct or margin, not {self.ray_evidence!r}")
-        if self.distributed and (self.ray_evidence != "distinct" or self.explained_rays_m):
-            raise ValueError("--distributed: the mapper process keeps its own search.ray_evidence and "
-                             "search.explained_rays_m; run --ray-evidence margin or --explained-rays in process")
 
 
 def _summary(rows: list[dict]) -> dict:
@@ -353,13 +346,11 @@ def _document(cfg: SearchEvalConfig, rows: list[dict], settings0: LoopSettings, 
 
 def _settings_fields(cfg: SearchEvalConfig) -> dict:
     """The run's config for the JSON; the fleet's fields only when a fleet policy ran (a
-    single-robot run's JSON stays as it was before fleets), ``angle_bin_deg`` and
-    ``explained_rays_m`` only when set (a run without them stays as it was before the options)."""
+    single-robot run's JSON stays as it was before fleets), ``angle_bin_deg`` only when set
+    (a run at the preset's bin stays as it was before the option)."""
     d = dataclasses.asdict(cfg)
     if d.get("angle_bin_deg") is None:
         d.pop("angle_bin_deg", None)
-    if not d.get("explained_rays_m"):
-        d.pop("explained_rays_m", None)
     if not any(p in FLEET_POLICIES for p in cfg.policies):
         for k in ("robots", "start", "footprint_m"):
             d.pop(k)

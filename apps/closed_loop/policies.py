@@ -97,7 +97,6 @@ class PolicyState:
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
     bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
-    bearing_while_supported: bool = False             # forget the bearing once no goal's rays agree with it
 
 
 def _progress(nav: NavField, cell: np.ndarray) -> bool:
@@ -436,15 +435,7 @@ def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float) ->
     """Keep the heading and ``ray_z`` of the strongest outlier ray (``ray_z`` ≥ ``min_ray_z``)
     any look-next goal has carried this episode. A far target's rays keep their bearing from
     step to step and grow stronger as the robot nears it; outliers of noise jump about and
-    stay weak. Forgotten when an instance is declared (the next target's rays are other) and,
-    with ``state.bearing_while_supported``, when no look-next goal carries a ray agreeing with
-    it (:func:`_agrees`) at least half as strong (and an outlier): the rays it came from are
-    explored or spent (the map explained them, ``search.explained_rays_m``), and weak outliers
-    that happen to point the same way are not the same evidence."""
-    if state.bearing_while_supported and state.bearing is not None and not any(
-            float(g.get("ray_z", 0.0)) >= max(min_ray_z, 0.5 * state.bearing[1]) and _agrees(g, state.bearing[0])
-            for g in obs.look_next):
-        state.bearing = None
+    stay weak. Forgotten when an instance is declared (the next target's rays are other)."""
     for g in obs.look_next:
         z = float(g.get("ray_z", 0.0))
         if g.get("heading_rad") is not None and z >= min_ray_z and (state.bearing is None or z > state.bearing[1]):

@@ -45,14 +45,14 @@ POINT_BUDGETS = dict(max_pts_per_frame=12000, max_empty_pts_per_frame=8000)
 
 def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int, preset: str = "online",
                   background: list[str] | None = None, ray_evidence: str = "distinct", distinct_phrases: int = 0,
-                  angle_bin_deg: float | None = None, explained_rays_m: float = 0.0):
+                  angle_bin_deg: float | None = None):
     """The mapper config of one policy's map: ``preset`` with ``method``'s overrides
     (semantic_map.config.METHODS), voxel size, depth limit and :data:`POINT_BUDGETS`; ray
     erosion scaled to the image width as the search-volume benchmark scales it;
     ``background``: the search's background phrases (None: the mapper's default);
     ``ray_evidence``, ``distinct_phrases``: ``search.ray_evidence``, ``search.distinct_phrases``;
     ``angle_bin_deg``: the map's ``angle_bin_size`` (None: the preset's; a baseline with one
-    bin per frontier keeps its 360); ``explained_rays_m``: ``search.explained_rays_m``."""
+    bin per frontier keeps its 360)."""
     from mapper.service_config import load_mapper_config
     from semantic_map.config import map_config
 
@@ -65,8 +65,7 @@ def mapper_config(method: str, depth_limit_m: float, vox_m: float, width_px: int
     if background is not None:
         cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, background=list(background)))
     cfg = dataclasses.replace(cfg, search=dataclasses.replace(cfg.search, ray_evidence=ray_evidence,
-                                                              distinct_phrases=int(distinct_phrases),
-                                                              explained_rays_m=float(explained_rays_m)).validate())
+                                                              distinct_phrases=int(distinct_phrases)).validate())
     return dataclasses.replace(cfg, map=mc.validate())
 
 

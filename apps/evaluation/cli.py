@@ -190,10 +190,6 @@ def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> Non
     se.add_argument("--angle-bin", type=float, default=None, metavar="DEG",
                     help="the ray policies' ray angle bin in degrees (default: the online preset's 30, the paper's; "
                          "one bin per frontier stays one bin)")
-    se.add_argument("--explained-rays", type=float, default=0.0, metavar="M",
-                    help="the ray policies' searches spend a ray whose line meets a voxel the map holds as occupied "
-                         "within M metres past its origin: it saw that surface (search.explained_rays_m; default 0, "
-                         "off)")
     se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
     se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
 
@@ -236,8 +232,7 @@ def _search_config(args: argparse.Namespace):
                             distributed=distributed, work_dir=getattr(args, "work_dir", ""),
                             background=args.background, world=args.world, sensor=args.sensor,
                             encoder=args.encoder, pca_fit=args.pca_fit, ray_evidence=args.ray_evidence,
-                            sem_poses_min_z=args.sem_poses_min_z, angle_bin_deg=args.angle_bin,
-                            explained_rays_m=args.explained_rays, robots=robots,
+                            sem_poses_min_z=args.sem_poses_min_z, angle_bin_deg=args.angle_bin, robots=robots,
                             start=getattr(args, "start", "together"),
                             footprint_m=float(getattr(args, "footprint", 8.0))).validate()
 
