@@ -107,8 +107,14 @@ def test_mapper_ros_outputs_decode_with_rclpy(tmp_path, procs, pca_file):
             cl = _cloud(pc)
             xyz = np.stack([cl["x"], cl["y"], cl["z"]], 1)
             np.testing.assert_array_equal(xyz[np.lexsort(xyz.T)], vox_l["xyz"][np.lexsort(vox_l["xyz"].T)])
-            ma = deserialize_message(rec.last("rayfronts/rays")[1], MarkerArray)
-            assert ma.markers[0].action == 3 and len(ma.markers) - 1 == len(rays_l["origin"])
+            def final_rays():
+                # the rays go out in their own message, which can trail the cloud by a tick
+                last = rec.last("rayfronts/rays")
+                ma = deserialize_message(last[1], MarkerArray) if last else None
+                return ma if ma and len(ma.markers) - 1 == len(rays_l["origin"]) else None
+
+            ma = wait_for(final_rays, 60, what="the final ray markers")
+            assert ma.markers[0].action == 3
             o = np.array([[m.points[0].x, m.points[0].y, m.points[0].z] for m in ma.markers[1:]])
             np.testing.assert_allclose(o, rays_l["origin"], atol=1e-6)
 
