@@ -13,6 +13,9 @@ EXTRAS  ?= all,test
 DEMO_EXTRAS ?= all
 OUT     ?= out/demo
 PYTEST_ARGS ?=
+# test files spread over this many pytest-xdist workers (a file stays on one worker: its
+# module fixtures are shared); 0 runs them in this process, one after another
+TEST_WORKERS ?= 2
 SETUP_DEPS := pyproject.toml CMakeLists.txt $(wildcard semantic_map/csrc/*) deploy/setup_dev.sh
 STAMP      := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(EXTRAS))
 DEMO_STAMP := $(VENV)/.rayfronts-setup-$(subst $(comma),-,$(DEMO_EXTRAS))
@@ -29,7 +32,7 @@ demo: $(DEMO_STAMP)
 	$(VENV)/bin/rayfronts demo --out $(OUT)
 
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q -rs -p no:cacheprovider --durations=30 $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q -rs -p no:cacheprovider --durations=30 -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 # ruff with the rule set in pyproject.toml ([tool.ruff]; ruff comes with the test extra)
 lint: $(STAMP)

@@ -161,6 +161,11 @@ def _exit_if_threads_linger(code: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``rayfronts ARGV...`` and return its exit code. As the process's entry point
+    (``argv`` None: the command line) an error leaves at once when threads linger
+    (:func:`_exit_if_threads_linger`); called with ``argv`` (tests, other programs) it only
+    returns the code, never ends the caller's process."""
+    entry_point = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     # Load only the requested subcommand's module (fast start, and a broken optional part
     # does not break the others); none at all for the overview.
@@ -185,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
         line, code = error_line(prog, e)
         print(line, file=sys.stderr)
-        _exit_if_threads_linger(code)
+        if entry_point:
+            _exit_if_threads_linger(code)
         return code
 
 

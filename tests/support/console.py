@@ -162,7 +162,9 @@ class ConsoleWorld:
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
         self.procs: list[Proc] = []
-        self.mapper = self.start("mapper", mapper_args(self.ep, ["queues.idle_flush_s=0.5",
+        # the world is shared by the session's console tests, which may run many minutes after
+        # its edge ended: keep the gone robots listed (no eviction after fleet.gone_evict_s)
+        self.mapper = self.start("mapper", mapper_args(self.ep, ["queues.idle_flush_s=0.5", "fleet.gone_evict_s=-1",
                                                                   f"snapshots.dir={logdir / 'snaps'}"]))
         self.pca = pca
         self.edge = self.start("edge", edge_args(self.ep, pca, frames=FRAMES, rate=RATE_HZ))
