@@ -17,8 +17,9 @@ def _bearing_deg(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(math.atan2(d[1], d[0]))
 
 
-def test_sem_poses_heads_for_a_target_seen_from_afar_where_frontier_does_not():
-    from apps.closed_loop.episode import LoopSettings, Trace, run_episode
+def _tower_case():
+    """(world, mission, edge chain, loop settings) of the constructed case (module docstring)."""
+    from apps.closed_loop.episode import LoopSettings
     from apps.closed_loop.evaluate import SearchEvalConfig
     from apps.closed_loop.missions import Mission
     from apps.closed_loop.sensing import EdgeChain
@@ -34,7 +35,13 @@ def test_sem_poses_heads_for_a_target_seen_from_afar_where_frontier_does_not():
     mission = Mission("landmark", "water tower", tower, 1, start, 10.0, 5.0, 8, 12.0)
     cfg = SearchEvalConfig(resolution=96)            # the evaluation's defaults: sim encoder, realistic sensor
     chain = EdgeChain(w, cfg.sensor_config(0), fit_at=start)
-    settings = LoopSettings(background=cfg.background, depth_limit_m=10.0)
+    return w, mission, chain, LoopSettings(background=cfg.background, depth_limit_m=10.0)
+
+
+def test_sem_poses_heads_for_a_target_seen_from_afar_where_frontier_does_not():
+    from apps.closed_loop.episode import Trace, run_episode
+
+    w, mission, chain, settings = _tower_case()
     runs = {}
     for policy in ("frontier", "sem-poses"):
         trace = Trace()
@@ -76,3 +83,76 @@ def test_pose_goal_takes_probability_then_margin_outliers():
     d = _pose_goal(obs([(o, east, 0.1, 1.0), (o, north, 0.1, 4.0)]), goals, 0.3, 3.5)
     assert d is not None and list(d.goal_xy) == [0.0, 10.0] and d.why == "pose z 4.0"
     assert _pose_goal(obs([(o, east, 0.1, 1.0), (o, north, 0.1, 3.0)]), goals, 0.3, 3.5) is None
+
+
+#: what an episode row says of the run itself (the rest is timing)
+_RUN_FIELDS = ("success", "spl", "path_m", "steps", "false_finds", "finds", "declarations", "end", "pose_z")
+
+
+def test_a_cut_no_recorded_z_separates_replays_the_episode_and_one_that_does_not_is_run():
+    """The tuning's shortcut (:func:`apps.closed_loop.tuning.same_episodes`) against running:
+    at a cut that no z-score of the cut-5 episode separates from 5 the episode is the same,
+    field for field; at a cut below a recorded z-score (which the shortcut refuses to copy)
+    the episode really differs — the poses lead earlier."""
+    import dataclasses
+
+    from apps.closed_loop.episode import run_episode
+    from apps.closed_loop.tuning import reusable_cut, same_episodes
+
+    w, mission, chain, settings = _tower_case()
+
+    def run(cut: float) -> dict:
+        return run_episode(w, mission, "sem-poses", dataclasses.replace(settings, sem_poses_min_z=cut), chain=chain)
+
+    at5 = run(5.0)
+    zs = at5["pose_z"]
+    above, below = [z for z in zs if z >= 5.0 + 1e-4], [z for z in zs if z < 5.0 - 1e-4]
+    assert above and below, zs                    # the poses stood out past 5 and short of it
+    quiet = 5.0 + (min(above) - 5.0) / 2          # between 5 and the next recorded z: no z separates them
+    loud = max(below) - 0.05                      # the strongest z short of 5 now passes the cut
+    assert same_episodes([at5], 5.0, quiet) and not same_episodes([at5], 5.0, loud)
+    assert reusable_cut({5.0: [at5]}, quiet) == 5.0 and reusable_cut({5.0: [at5]}, loud) is None
+    same, other = run(quiet), run(loud)
+    assert {k: same[k] for k in _RUN_FIELDS} == {k: at5[k] for k in _RUN_FIELDS}
+    assert (other["path_m"], other["end"]) != (at5["path_m"], at5["end"])
+
+
+def test_same_episodes_reads_every_row_and_refuses_rows_without_a_record():
+    from apps.closed_loop.tuning import reusable_cut, same_episodes
+
+    rows = [{"pose_z": [1.0, 4.2]}, {"pose_z": [2.7]}]
+    assert same_episodes(rows, 5.0, 4.5) and same_episodes(rows, 3.0, 4.0)
+    assert not same_episodes(rows, 5.0, 4.0)           # 4.2 lies between
+    assert not same_episodes(rows, 2.5, 3.0)           # 2.7, in the second row
+    assert not same_episodes(rows, 3.0, 2.7)           # a z at a cut counts as between
+    assert not same_episodes([{}], 5.0, 4.5) and same_episodes([{}], 5.0, 5.0)
+    # the nearest cut run that gives the same episodes
+    assert reusable_cut({5.0: rows, 3.0: rows}, 4.5) == 5.0
+    assert reusable_cut({5.0: rows, 3.5: rows}, 4.0) == 3.5 and reusable_cut({5.0: rows}, 4.0) is None
+    assert reusable_cut({5.0: rows, 3.0: rows}, 3.5) == 3.0
+
+
+def test_tune_sem_poses_copies_a_seed_no_z_separates_and_chooses_the_higher_cut_on_a_tie(tmp_path):
+    """``tune_sem_poses`` end to end on one development seed (a short object mission): cut 60
+    lies above every margin z-score, so cut 50's episodes are copied from it (one run, not
+    two), the two cuts' summaries are equal and the tie goes to the higher cut; held-out
+    seeds are refused."""
+    import pytest
+
+    from apps.closed_loop.evaluate import SearchEvalConfig
+    from apps.closed_loop.seeds import HELD_OUT_SEEDS
+    from apps.closed_loop.tuning import tune_sem_poses
+
+    cfg = SearchEvalConfig(seeds=[0], missions=["object"], budget_scale=0.1, resolution=64, depth_limits=[10.0])
+    partial = tmp_path / "tune.partial.json"
+    doc = tune_sem_poses(cfg, [60.0, 50.0], partial_path=str(partial))
+    assert not partial.exists()
+    first, copied = doc["episodes"]
+    assert first["pose_z"] and max(first["pose_z"]) < 50.0      # z-scores were compared, all below both cuts
+    assert (doc["episodes_run"], doc["episodes_reused"]) == (1, 1)
+    assert (first["cut"], copied["cut"], copied["reused_from_cut"]) == (60.0, 50.0, 60.0)
+    assert {k: copied[k] for k in _RUN_FIELDS} == {k: first[k] for k in _RUN_FIELDS}
+    assert doc["cuts"]["60.0"]["spl"] == doc["cuts"]["50.0"]["spl"] and doc["chosen"] == 60.0
+    assert doc["seeds"]["set"] == "development" and doc["meta"]["commit"]
+    with pytest.raises(ValueError, match="held-out"):
+        tune_sem_poses(SearchEvalConfig(seeds=[HELD_OUT_SEEDS["synthetic"][0]]), [5.0])

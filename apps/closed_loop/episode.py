@@ -189,6 +189,7 @@ class _Run:
     stage_ms: dict = field(default_factory=lambda: {"sense": [], "map": [], "search": [], "plan": [], "step": [],
                                                     "render": [], "robot_step": []})
     driven: list = field(default_factory=list)     # every point passed, from the first move's start
+    pose_z: list = field(default_factory=list)     # sem-poses: the z-scores its cut was compared with
 
     def start_step(self, step: int, trace: Trace | None) -> float:
         """Count step ``step`` (0-based) and record the position in ``trace``; returns the
@@ -278,6 +279,7 @@ def _searching(world: World, mission: Mission, policy: str, robot: Platform, set
     if hasattr(chain, "start_episode"):
         chain.start_episode()
     state = settings.policy_state()
+    run.pose_z = state.pose_z_seen
     stuck = 0
     for step in range(mission.budget_steps):
         c0 = run.start_step(step, trace)
@@ -337,7 +339,8 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
     """Run ``policy`` on ``mission``; returns the episode row (``success``, ``spl``, ``path_m``,
     ``steps``, ``false_finds``, ``finds`` [(step, path_m)], ``declarations`` (one row per
     declaration: :func:`_declaration_row`), ``collided``, ``cpu_ms_per_step``,
-    ``search_ms_p50``, ...). ``mapper``: an object with ``integrate(frames)`` (or, with
+    ``search_ms_p50``, ``pose_z`` (sem-poses: the distinct z-scores its cut was compared with,
+    rounded to 1e-6), ...). ``mapper``: an object with ``integrate(frames)`` (or, with
     ``renders_remotely``, ``sense(poses)``) and ``observe(targets, at, semantic=..., z_band=...)``
     (default: a new LocalMapper for the policy)."""
     if policy not in POLICIES:
@@ -368,4 +371,5 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
             "collided": run.collided, "cpu_ms_per_step": float(np.mean(run.cpu)) if run.cpu else 0.0,
             "search_ms_p50": float(np.median(run.search_ms)) if run.search_ms else 0.0,
             "step_ms_p50": {k: float(np.median(v)) if v else 0.0 for k, v in run.stage_ms.items()},
-            "end": [float(v) for v in run.pos], **mission.describe()}
+            "end": [float(v) for v in run.pos], **mission.describe(),
+            **({"pose_z": sorted({round(z, 6) for z in run.pose_z})} if policy == "sem-poses" else {})}

@@ -97,6 +97,7 @@ class PolicyState:
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
     bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
+    pose_z_seen: list = field(default_factory=list)   # sem-poses: every margin z-score compared with pose_min_z
 
 
 def _progress(nav: NavField, cell: np.ndarray) -> bool:
@@ -228,7 +229,8 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     far = [x for x in goals if x[2] >= min_goal_m] or goals
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
     passed = _passed(goals, at) if _semantic(name) else []
-    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z)
+    d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z,
+                state.pose_z_seen)
     evidence = not d.why.startswith("frontier")
     held = _held(state, nav, _without(far, passed) or far, evidence)
     if held is not None:
@@ -263,11 +265,13 @@ def _held(state: PolicyState, nav: NavField, goals: list, evidence: bool = False
 
 def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_z: float = MIN_RAY_Z,
             every: list | None = None, at: np.ndarray | None = None, passed: list | None = None,
-            bearing: tuple | None = None, pose_min_z: float = SEM_POSES_MIN_Z) -> Decision:
+            bearing: tuple | None = None, pose_min_z: float = SEM_POSES_MIN_Z,
+            pose_z_seen: list | None = None) -> Decision:
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
     outlier ray may be attached next to the robot; ``passed``: those of them the robot has
     passed, :func:`_passed`; ``bearing``: the episode's strongest outlier ray,
-    :func:`_remember_bearing`)."""
+    :func:`_remember_bearing`; ``pose_z_seen``: sem-poses appends the z-score it compares
+    with ``pose_min_z``)."""
     if _semantic(name):
         every = every or goals
         passed = passed or []
@@ -292,21 +296,25 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
             if d is not None:
                 return d
     if name == "sem-poses" and obs.poses:
-        d = _pose_goal(obs, goals, min_score, pose_min_z)
+        d = _pose_goal(obs, goals, min_score, pose_min_z, pose_z_seen)
         if d is not None:
             return d
     g, cell, _ = max(goals, key=lambda x: (x[0].get("gain_m3", 0.0) / (1.0 + x[2]), -x[2]))
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="frontier gain/path")
 
 
-def _pose_goal(obs: Observation, goals: list, min_score: float, min_z: float) -> Decision | None:
+def _pose_goal(obs: Observation, goals: list, min_score: float, min_z: float, z_seen: list | None = None
+               ) -> Decision | None:
     """Semantic Poses' goal (module docstring): toward the heading of the best pose by
-    probability (≥ ``min_score``), else by margin z-score (≥ ``min_z``); None without one."""
+    probability (≥ ``min_score``), else by margin z-score (≥ ``min_z``; the z-score compared
+    is appended to ``z_seen``: the only place the cut enters an episode); None without one."""
     o, d, s, z = max(obs.poses, key=lambda p: p[2])
     why = f"pose {s:.2f}"
     if s < min_score:
         o, d, s, z = max(obs.poses, key=lambda p: p[3])
         why = f"pose z {z:.1f}"
+        if z_seen is not None:
+            z_seen.append(float(z))
         if z < min_z:
             return None
     h = np.asarray(d[:2], np.float64)

@@ -8,17 +8,28 @@ with ``sem-poses`` alone once per candidate cut of the pose margin's z-score
 episodes — object episodes are the check that a low cut does not buy far targets with false
 finds — ties going to the higher (more conservative) cut. Held-out seeds are refused: a
 threshold chosen on them would make their table a development table. Output: one summary
-per cut (overall and per mission kind), the choice and its SPL, the run's ``meta`` and
-``seeds`` as in ``rayfronts eval search``.
+per cut (overall and per mission kind), the choice and its SPL, every episode (with its
+``cut``), the run's ``meta`` and ``seeds`` as in ``rayfronts eval search``.
+
+Episodes are not run twice when the answer is known: the cut enters an episode only where
+sem-poses compares a pose's margin z-score with it (each episode row lists those z-scores,
+``pose_z``), and everything else is deterministic for a seed. So a seed's episodes at cut
+``a`` are exactly its episodes at cut ``b`` when no z-score recorded in the ``b`` run lies
+between the two (every comparison comes out the same, step by step); such a seed is
+copied (``reused_from_cut``) instead of run. Cuts run in the order given, seed by seed.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
-import json
+import time
 from pathlib import Path
 
-from apps.closed_loop.evaluate import SearchEvalConfig, run_search_eval
-from apps.closed_loop.seeds import HELD_OUT_SEEDS
+from apps.closed_loop.evaluate import SearchEvalConfig, _write_json, run_search_eval, summarize_policies
+from apps.closed_loop.seeds import HELD_OUT_SEEDS, seed_sets
+
+#: a z-score this close to either cut counts as between them (the rows round z to 1e-6)
+Z_TOLERANCE = 1e-5
 
 
 def choose_cut(per_cut: dict[float, dict]) -> tuple[float, float]:
@@ -31,27 +42,82 @@ def choose_cut(per_cut: dict[float, dict]) -> tuple[float, float]:
     return best, far_spl(per_cut[best])
 
 
+def same_episodes(rows: list[dict], ran_at: float, cut: float) -> bool:
+    """Whether ``rows`` (one seed's sem-poses episodes, run at cut ``ran_at``) are also that
+    seed's episodes at ``cut``: no recorded ``pose_z`` lies in ``[min, max)`` of the two
+    cuts (within :data:`Z_TOLERANCE`, so a z at a cut counts as between)."""
+    lo, hi = min(ran_at, cut), max(ran_at, cut)
+    if lo == hi:
+        return True
+    for r in rows:
+        if "pose_z" not in r:          # a row without the record proves nothing
+            return False
+        if any(lo - Z_TOLERANCE <= z < hi + Z_TOLERANCE for z in r["pose_z"]):
+            return False
+    return True
+
+
+def reusable_cut(runs: dict[float, list[dict]], cut: float) -> float | None:
+    """A cut already run for a seed (``runs``: cut → that seed's rows, as run or copied)
+    whose episodes are the seed's episodes at ``cut`` (:func:`same_episodes`), the nearest
+    first; None when the seed must be run."""
+    for c in sorted(runs, key=lambda c: (abs(c - cut), c)):
+        if same_episodes(runs[c], c, cut):
+            return c
+    return None
+
+
 def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | None = None,
                    partial_path: str | None = None) -> dict:
     """Run the procedure (module docstring) on ``cfg``'s seeds and missions; returns the JSON.
-    ``partial_path``: the cut being run writes its finished episodes there as it goes
-    (:func:`run_search_eval`), and each finished cut's summary is kept beside it
-    (``<partial_path>.cut<C>.json``), so a run cut off keeps what it did."""
+    ``partial_path``: the document so far (``"partial": true``) is written there after every
+    seed of every cut, so a run cut off keeps what it did."""
     held = set(HELD_OUT_SEEDS.get(cfg.world, [])) & set(cfg.seeds)
     if held:
         raise ValueError(f"seeds {sorted(held)} are held-out seeds; tune on development seeds "
                          f"(--seeds dev)")
     if not cuts:
         raise ValueError("give at least one cut with --cuts")
-    per_cut, docs = {}, {}
+    cuts = [float(c) for c in dict.fromkeys(cuts)]
+    by_seed: dict[int, dict[float, list[dict]]] = {s: {} for s in cfg.seeds}
+    last: dict = {}
+    t0, cpu_s, ran, reused = time.perf_counter(), 0.0, 0, 0
     for c in cuts:
-        doc = run_search_eval(dataclasses.replace(cfg, policies=["sem-poses"], sem_poses_min_z=float(c)), argv=argv,
-                              partial_path=partial_path)
-        if partial_path is not None:
-            Path(f"{partial_path}.cut{float(c)}.json").write_text(json.dumps(doc, indent=2, default=float))
-        per_cut[float(c)] = doc["policies"]["sem-poses"]
-        docs[float(c)] = doc
-    chosen, spl = choose_cut(per_cut)
-    last = docs[float(cuts[-1])]
-    return {"procedure": __doc__, "cuts": {str(c): s for c, s in per_cut.items()}, "chosen": chosen,
-            "chosen_spl": spl, "settings": last["settings"], "seeds": last["seeds"], "meta": last["meta"]}
+        for seed in cfg.seeds:
+            src = reusable_cut(by_seed[seed], c)
+            if src is not None:
+                rows = [dict(copy.deepcopy(r), reused_from_cut=src) for r in by_seed[seed][src]]
+                reused += len(rows)
+            else:
+                last = run_search_eval(dataclasses.replace(cfg, seeds=[seed], policies=["sem-poses"],
+                                                           sem_poses_min_z=c), argv=argv)
+                rows = [{k: v for k, v in r.items() if k != "reused_from_cut"} for r in last["episodes"]]
+                cpu_s += float(last["cpu_s"])
+                ran += len(rows)
+            by_seed[seed][c] = [dict(r, cut=c) for r in rows]
+            if partial_path is not None:
+                doc = _document(cfg.world, by_seed, cuts, last, ran, reused, t0, cpu_s)
+                _write_json(partial_path, {**doc, "partial": True})
+    if partial_path is not None:
+        Path(partial_path).unlink(missing_ok=True)
+    return _document(cfg.world, by_seed, cuts, last, ran, reused, t0, cpu_s)
+
+
+def _document(world: str, by_seed: dict[int, dict[float, list[dict]]], cuts: list[float], last: dict, ran: int,
+              reused: int, t0: float, cpu_s: float) -> dict:
+    """The JSON of the cuts run so far (a cut counts once every seed has its episodes;
+    ``meta`` is the last run's, ``cpu_s`` the runs' total)."""
+    per_cut = {}
+    for c in cuts:
+        if all(c in runs for runs in by_seed.values()):
+            rows = [r for runs in by_seed.values() for r in runs[c]]
+            per_cut[c] = summarize_policies(rows, ["sem-poses"])["sem-poses"]
+    out: dict = {"procedure": __doc__, "cuts": {str(c): s for c, s in per_cut.items()},
+                 "episodes": [r for runs in by_seed.values() for c in cuts if c in runs for r in runs[c]],
+                 "episodes_run": ran, "episodes_reused": reused,
+                 "wall_s": time.perf_counter() - t0, "cpu_s": cpu_s}
+    if per_cut:
+        out["chosen"], out["chosen_spl"] = choose_cut(per_cut)
+    if last:
+        out.update(settings=last["settings"], seeds=seed_sets(world, list(by_seed)), meta=last["meta"])
+    return out
