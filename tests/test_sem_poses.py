@@ -153,6 +153,6 @@ def test_tune_sem_poses_copies_a_seed_no_z_separates_and_chooses_the_higher_cut_
     assert (first["cut"], copied["cut"], copied["reused_from_cut"]) == (60.0, 50.0, 60.0)
     assert {k: copied[k] for k in _RUN_FIELDS} == {k: first[k] for k in _RUN_FIELDS}
     assert doc["cuts"]["60.0"]["spl"] == doc["cuts"]["50.0"]["spl"] and doc["chosen"] == 60.0
-    assert doc["seeds"]["set"] == "development" and doc["meta"]["commit"]
+    assert doc["seeds"]["set"] == "development" and doc["seeds_complete"] == [0] and doc["meta"]["commit"]
     with pytest.raises(ValueError, match="held-out"):
         tune_sem_poses(SearchEvalConfig(seeds=[HELD_OUT_SEEDS["synthetic"][0]]), [5.0])

@@ -16,7 +16,9 @@ sem-poses compares a pose's margin z-score with it (each episode row lists those
 ``pose_z``), and everything else is deterministic for a seed. So a seed's episodes at cut
 ``a`` are exactly its episodes at cut ``b`` when no z-score recorded in the ``b`` run lies
 between the two (every comparison comes out the same, step by step); such a seed is
-copied (``reused_from_cut``) instead of run. Cuts run in the order given, seed by seed.
+copied (``reused_from_cut``) instead of run. Seeds run one after another, each through
+every cut in the order given (highest first fires least), so a run cut off holds whole
+seeds.
 """
 from __future__ import annotations
 
@@ -71,7 +73,7 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
                    partial_path: str | None = None) -> dict:
     """Run the procedure (module docstring) on ``cfg``'s seeds and missions; returns the JSON.
     ``partial_path``: the document so far (``"partial": true``) is written there after every
-    seed of every cut, so a run cut off keeps what it did."""
+    cut of every seed, so a run cut off keeps what it did."""
     held = set(HELD_OUT_SEEDS.get(cfg.world, [])) & set(cfg.seeds)
     if held:
         raise ValueError(f"seeds {sorted(held)} are held-out seeds; tune on development seeds "
@@ -82,8 +84,8 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
     by_seed: dict[int, dict[float, list[dict]]] = {s: {} for s in cfg.seeds}
     last: dict = {}
     t0, cpu_s, ran, reused = time.perf_counter(), 0.0, 0, 0
-    for c in cuts:
-        for seed in cfg.seeds:
+    for seed in cfg.seeds:
+        for c in cuts:
             src = reusable_cut(by_seed[seed], c)
             if src is not None:
                 rows = [dict(copy.deepcopy(r), reused_from_cut=src) for r in by_seed[seed][src]]
@@ -91,7 +93,7 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
             else:
                 last = run_search_eval(dataclasses.replace(cfg, seeds=[seed], policies=["sem-poses"],
                                                            sem_poses_min_z=c), argv=argv)
-                rows = [{k: v for k, v in r.items() if k != "reused_from_cut"} for r in last["episodes"]]
+                rows = last["episodes"]
                 cpu_s += float(last["cpu_s"])
                 ran += len(rows)
             by_seed[seed][c] = [dict(r, cut=c) for r in rows]
@@ -105,14 +107,12 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
 
 def _document(world: str, by_seed: dict[int, dict[float, list[dict]]], cuts: list[float], last: dict, ran: int,
               reused: int, t0: float, cpu_s: float) -> dict:
-    """The JSON of the cuts run so far (a cut counts once every seed has its episodes;
-    ``meta`` is the last run's, ``cpu_s`` the runs' total)."""
-    per_cut = {}
-    for c in cuts:
-        if all(c in runs for runs in by_seed.values()):
-            rows = [r for runs in by_seed.values() for r in runs[c]]
-            per_cut[c] = summarize_policies(rows, ["sem-poses"])["sem-poses"]
-    out: dict = {"procedure": __doc__, "cuts": {str(c): s for c, s in per_cut.items()},
+    """The JSON of the seeds run so far: the cuts' summaries over the seeds that went through
+    every cut (``seeds_complete``); ``meta`` is the last run's, ``cpu_s`` the runs' total."""
+    complete = [s for s, runs in by_seed.items() if all(c in runs for c in cuts)]
+    per_cut = {c: summarize_policies([r for s in complete for r in by_seed[s][c]], ["sem-poses"])["sem-poses"]
+               for c in cuts} if complete else {}
+    out: dict = {"procedure": __doc__, "cuts": {str(c): s for c, s in per_cut.items()}, "seeds_complete": complete,
                  "episodes": [r for runs in by_seed.values() for c in cuts if c in runs for r in runs[c]],
                  "episodes_run": ran, "episodes_reused": reused,
                  "wall_s": time.perf_counter() - t0, "cpu_s": cpu_s}

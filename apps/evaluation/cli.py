@@ -147,7 +147,8 @@ def _search_parser(sub) -> None:
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.tuning", fromlist=["x"]).__doc__)
     _loop_options(tu, "dev", "landmark,object")
-    tu.add_argument("--cuts", default="2,2.5,3,3.5,4,5", help="candidate z cuts, comma list (default 2,2.5,3,3.5,4,5)")
+    tu.add_argument("--cuts", default="5,4,3.5,3,2.5,2",
+                    help="candidate z cuts, comma list, run in this order (default 5,4,3.5,3,2.5,2)")
     tu.add_argument("--json", required=True, metavar="FILE", help="per-cut summaries and the choice")
 
 
