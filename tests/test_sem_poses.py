@@ -136,12 +136,16 @@ def test_tune_sem_poses_copies_a_seed_no_z_separates_and_chooses_the_higher_cut_
     """``tune_sem_poses`` end to end on one development seed (a short object mission): cut 60
     lies above every margin z-score, so cut 50's episodes are copied from it (one run, not
     two), the two cuts' summaries are equal and the tie goes to the higher cut; held-out
-    seeds are refused."""
+    seeds are refused; runs split by seed merge into one tuning."""
+    import copy
+    import json
+
     import pytest
 
+    from apps.cli import main
     from apps.closed_loop.evaluate import SearchEvalConfig
     from apps.closed_loop.seeds import HELD_OUT_SEEDS
-    from apps.closed_loop.tuning import tune_sem_poses
+    from apps.closed_loop.tuning import merge_tunings, tune_sem_poses
 
     cfg = SearchEvalConfig(seeds=[0], missions=["object"], budget_scale=0.1, resolution=64, depth_limits=[10.0])
     partial = tmp_path / "tune.partial.json"
@@ -156,3 +160,23 @@ def test_tune_sem_poses_copies_a_seed_no_z_separates_and_chooses_the_higher_cut_
     assert doc["seeds"]["set"] == "development" and doc["seeds_complete"] == [0] and doc["meta"]["commit"]
     with pytest.raises(ValueError, match="held-out"):
         tune_sem_poses(SearchEvalConfig(seeds=[HELD_OUT_SEEDS["synthetic"][0]]), [5.0])
+    # runs split by seed join into one tuning (seed 1 here: seed 0's rows relabelled)
+    other = copy.deepcopy(doc)
+    for r in other["episodes"]:
+        r["seed"] = 1
+    both = merge_tunings([doc, other])
+    assert both["seeds_complete"] == [0, 1] and (both["episodes_run"], both["episodes_reused"]) == (2, 2)
+    assert {c: s["spl"] for c, s in both["cuts"].items()} == {c: s["spl"] for c, s in doc["cuts"].items()}
+    assert [s["episodes"] for s in both["cuts"].values()] == [2, 2] and both["chosen"] == 60.0
+    assert [p["seeds"] for p in both["merged_from"]] == [[0], [1]] and both["settings"]["seeds"] == [0, 1]
+    with pytest.raises(ValueError, match="seed 0 at cut 50 is in an earlier part"):
+        merge_tunings([doc, doc])
+    # ... and so does `rayfronts eval merge` given tune-sem-poses files
+    parts = [tmp_path / "a.json", tmp_path / "b.json"]
+    for f, d in zip(parts, (doc, other), strict=True):
+        f.write_text(json.dumps(d, default=float))
+    assert main(["eval", "merge", *map(str, parts), "--json", str(tmp_path / "both.json")]) == 0
+    assert json.loads((tmp_path / "both.json").read_text())["cuts"] == json.loads(json.dumps(both["cuts"]))
+    other["settings"]["resolution"] = 96
+    with pytest.raises(ValueError, match="resolution"):
+        merge_tunings([doc, other])

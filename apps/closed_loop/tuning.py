@@ -98,15 +98,55 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
                 ran += len(rows)
             by_seed[seed][c] = [dict(r, cut=c) for r in rows]
             if partial_path is not None:
-                doc = _document(cfg.world, by_seed, cuts, last, ran, reused, t0, cpu_s)
+                doc = _document(cfg.world, by_seed, cuts, last, ran, reused, time.perf_counter() - t0, cpu_s)
                 _write_json(partial_path, {**doc, "partial": True})
     if partial_path is not None:
         Path(partial_path).unlink(missing_ok=True)
-    return _document(cfg.world, by_seed, cuts, last, ran, reused, t0, cpu_s)
+    return _document(cfg.world, by_seed, cuts, last, ran, reused, time.perf_counter() - t0, cpu_s)
+
+
+def merge_tunings(docs: list[dict]) -> dict:
+    """One ``tune-sem-poses`` document from runs split by seed (processes side by side; a
+    partial run counts with the seeds it finished): the cuts' summaries and the choice
+    recomputed over every seed that went through every cut, the parts' ``meta`` under
+    ``merged_from``. Refused (ValueError): settings that differ in anything but the seeds,
+    a seed's cut in two parts."""
+    from apps.closed_loop.merge import settings_differences
+
+    if not docs:
+        raise ValueError("nothing to merge: give at least one tune-sem-poses JSON")
+    for i, d in enumerate(docs, 1):
+        if not isinstance(d, dict) or not {"procedure", "episodes", "settings"} <= set(d):
+            raise ValueError(f"part {i}: not a tune-sem-poses document (no procedure / episodes / settings)")
+        diff = settings_differences(docs[0]["settings"], d["settings"], ("seeds", "sem_poses_min_z"))
+        if diff:
+            raise ValueError(f"part {i}: settings differ from part 1 in {', '.join(diff)} (only the seeds may)")
+    cuts = list(dict.fromkeys(float(r["cut"]) for d in docs for r in d["episodes"]))
+    by_seed: dict[int, dict[float, list[dict]]] = {}
+    for i, d in enumerate(docs, 1):
+        mine: dict[int, dict[float, list[dict]]] = {}
+        for r in d["episodes"]:
+            mine.setdefault(int(r["seed"]), {}).setdefault(float(r["cut"]), []).append(r)
+        for seed, runs in mine.items():
+            twice = sorted(set(runs) & set(by_seed.get(seed, {})))
+            if twice:
+                raise ValueError(f"part {i}: seed {seed} at cut {twice[0]:g} is in an earlier part too")
+            by_seed.setdefault(seed, {}).update(runs)
+    by_seed = dict(sorted(by_seed.items()))
+    out = _document(str(docs[0]["settings"].get("world", "synthetic")), by_seed, cuts, docs[-1],
+                    sum(int(d["episodes_run"]) for d in docs), sum(int(d["episodes_reused"]) for d in docs),
+                    sum(float(d["wall_s"]) for d in docs), sum(float(d["cpu_s"]) for d in docs))
+    out.pop("meta", None)
+    out["merged_from"] = [{"seeds": sorted({int(r["seed"]) for r in d["episodes"]}), "meta": d.get("meta"),
+                           "partial": bool(d.get("partial")), "wall_s": d["wall_s"], "cpu_s": d["cpu_s"]}
+                          for d in docs]
+    if any(d.get("partial") for d in docs):
+        out["partial"] = True
+    return out
 
 
 def _document(world: str, by_seed: dict[int, dict[float, list[dict]]], cuts: list[float], last: dict, ran: int,
-              reused: int, t0: float, cpu_s: float) -> dict:
+              reused: int, wall_s: float, cpu_s: float) -> dict:
     """The JSON of the seeds run so far: the cuts' summaries over the seeds that went through
     every cut (``seeds_complete``); ``meta`` is the last run's, ``cpu_s`` the runs' total."""
     complete = [s for s, runs in by_seed.items() if all(c in runs for c in cuts)]
@@ -115,9 +155,11 @@ def _document(world: str, by_seed: dict[int, dict[float, list[dict]]], cuts: lis
     out: dict = {"procedure": __doc__, "cuts": {str(c): s for c, s in per_cut.items()}, "seeds_complete": complete,
                  "episodes": [r for runs in by_seed.values() for c in cuts if c in runs for r in runs[c]],
                  "episodes_run": ran, "episodes_reused": reused,
-                 "wall_s": time.perf_counter() - t0, "cpu_s": cpu_s}
+                 "wall_s": wall_s, "cpu_s": cpu_s}
     if per_cut:
         out["chosen"], out["chosen_spl"] = choose_cut(per_cut)
     if last:
-        out.update(settings=last["settings"], seeds=seed_sets(world, list(by_seed)), meta=last["meta"])
+        settings = {k: v for k, v in last["settings"].items() if k != "sem_poses_min_z"}    # the cuts are above
+        out.update(settings={**settings, "seeds": list(by_seed)}, seeds=seed_sets(world, list(by_seed)),
+                   meta=last.get("meta"))
     return out

@@ -31,7 +31,7 @@ DESCRIPTION = """Benchmarks of the paper, run on this machine:
            SPL, path, false finds; writes --json FILE plus .md, .csv and plots beside it.
   tune-sem-poses  choose sem-poses' margin z cut on the development seeds (best far-target
            SPL); writes --json FILE.
-  merge    one search table from runs split by seed or policy.
+  merge    one search table (or tune-sem-poses result) from runs split by seed or policy.
   fleet-compare  fleets of N robots against one robot on the same missions (steps, path,
            the fewest steps any fleet could take, issue 44's aim); writes --json FILE.
   landmarks  where each far-landmark episode started and ended against the target and its
@@ -125,7 +125,8 @@ def _search_parser(sub) -> None:
     mg = sub.add_parser("merge", help="one eval search table from runs split by seed or policy",
                         formatter_class=argparse.RawDescriptionHelpFormatter,
                         description=__import__("apps.closed_loop.merge", fromlist=["x"]).__doc__)
-    mg.add_argument("parts", nargs="+", metavar="PART.json", help="eval search JSON files of the same settings")
+    mg.add_argument("parts", nargs="+", metavar="PART.json",
+                    help="eval search JSON files of the same settings (or tune-sem-poses files: one tuning)")
     mg.add_argument("--json", required=True, metavar="FILE", help="the merged document (.md/.csv/.png beside)")
     mg.add_argument("--allow-partial", action="store_true", help="accept FILE.partial.json parts (marked partial)")
     fc = sub.add_parser("fleet-compare", help="fleets of N robots against one robot on the same missions",
@@ -278,6 +279,8 @@ def _run_merge(args: argparse.Namespace) -> int:
     docs = _read_documents(args.parts, "merge")
     if docs is None:
         return 2
+    if all(isinstance(d, dict) and "procedure" in d for d in docs):
+        return _merge_tunings(docs, args.json)
     try:
         doc = merge_documents(docs, allow_partial=args.allow_partial)
     except ValueError as e:
@@ -286,6 +289,25 @@ def _run_merge(args: argparse.Namespace) -> int:
     paths = write_outputs(doc, args.json)
     print(table_markdown(doc))
     print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+def _merge_tunings(docs: list[dict], out: str) -> int:
+    import json
+
+    from apps.closed_loop.tuning import merge_tunings
+
+    try:
+        doc = merge_tunings(docs)
+    except ValueError as e:
+        print(f"rayfronts eval merge: {e}", file=sys.stderr)
+        return 2
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(doc, indent=2, default=float))
+    for c, s in doc["cuts"].items():
+        far = s.get("by_kind", {}).get("landmark", s)
+        print(f"cut {c}: far-target SPL {far['spl']:.3f}, success {far['success']:.2f}")
+    print(f"seeds through every cut: {doc['seeds_complete']}; chosen cut {doc.get('chosen')}; wrote {out}")
     return 0
 
 
