@@ -83,6 +83,13 @@ def test_pose_goal_takes_probability_then_margin_outliers():
     d = _pose_goal(obs([(o, east, 0.1, 1.0), (o, north, 0.1, 4.0)]), goals, 0.3, 3.5)
     assert d is not None and list(d.goal_xy) == [0.0, 10.0] and d.why == "pose z 4.0"
     assert _pose_goal(obs([(o, east, 0.1, 1.0), (o, north, 0.1, 3.0)]), goals, 0.3, 3.5) is None
+    # the z-scores where the cut decides are recorded: the best pose by z heads toward a goal
+    seen: list = []
+    assert _pose_goal(obs([(o, east, 0.1, 1.0), (o, north, 0.1, 3.0)]), goals, 0.3, 3.5, seen) is None
+    assert _pose_goal(obs([(o, east, 0.1, 1.0), (o, -east, 0.1, 7.0)]), goals, 0.3, 3.5, seen) is None  # none west
+    assert _pose_goal(obs([(o, east, 0.5, 0.0), (o, north, 0.1, 9.0)]), goals, 0.3, 3.5, seen) is not None
+    assert _pose_goal(obs([(o, east, 0.1, 4.0)]), goals, 0.3, 3.5, seen) is not None
+    assert seen == [3.0, 4.0]           # not the westward 7.0, not the probability branch's pose
 
 
 #: what an episode row says of the run itself (the rest is timing)

@@ -189,7 +189,7 @@ class _Run:
     stage_ms: dict = field(default_factory=lambda: {"sense": [], "map": [], "search": [], "plan": [], "step": [],
                                                     "render": [], "robot_step": []})
     driven: list = field(default_factory=list)     # every point passed, from the first move's start
-    pose_z: list = field(default_factory=list)     # sem-poses: the z-scores its cut was compared with
+    pose_z: list = field(default_factory=list)     # sem-poses: the z-scores where its cut decided
 
     def start_step(self, step: int, trace: Trace | None) -> float:
         """Count step ``step`` (0-based) and record the position in ``trace``; returns the
@@ -339,8 +339,8 @@ def run_episode(world: World, mission: Mission, policy: str, settings: LoopSetti
     """Run ``policy`` on ``mission``; returns the episode row (``success``, ``spl``, ``path_m``,
     ``steps``, ``false_finds``, ``finds`` [(step, path_m)], ``declarations`` (one row per
     declaration: :func:`_declaration_row`), ``collided``, ``cpu_ms_per_step``,
-    ``search_ms_p50``, ``pose_z`` (sem-poses: the distinct z-scores its cut was compared with,
-    rounded to 1e-6), ...). ``mapper``: an object with ``integrate(frames)`` (or, with
+    ``search_ms_p50``, ``pose_z`` (sem-poses: the distinct z-scores of the steps where its cut
+    decided, rounded to 1e-6), ...). ``mapper``: an object with ``integrate(frames)`` (or, with
     ``renders_remotely``, ``sense(poses)``) and ``observe(targets, at, semantic=..., z_band=...)``
     (default: a new LocalMapper for the policy)."""
     if policy not in POLICIES:

@@ -97,7 +97,7 @@ class PolicyState:
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
     bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
-    pose_z_seen: list = field(default_factory=list)   # sem-poses: every margin z-score compared with pose_min_z
+    pose_z_seen: list = field(default_factory=list)   # sem-poses: the z-scores where pose_min_z decided
 
 
 def _progress(nav: NavField, cell: np.ndarray) -> bool:
@@ -270,8 +270,8 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
     """The goal among ``goals`` (those far enough; ``every``: all reachable ones, where an
     outlier ray may be attached next to the robot; ``passed``: those of them the robot has
     passed, :func:`_passed`; ``bearing``: the episode's strongest outlier ray,
-    :func:`_remember_bearing`; ``pose_z_seen``: sem-poses appends the z-score it compares
-    with ``pose_min_z``)."""
+    :func:`_remember_bearing`; ``pose_z_seen``: sem-poses appends the z-scores where
+    ``pose_min_z`` decides, :func:`_pose_goal`)."""
     if _semantic(name):
         every = every or goals
         passed = passed or []
@@ -306,25 +306,30 @@ def _choose(name: str, obs: Observation, goals: list, min_score: float, min_ray_
 def _pose_goal(obs: Observation, goals: list, min_score: float, min_z: float, z_seen: list | None = None
                ) -> Decision | None:
     """Semantic Poses' goal (module docstring): toward the heading of the best pose by
-    probability (≥ ``min_score``), else by margin z-score (≥ ``min_z``; the z-score compared
-    is appended to ``z_seen``: the only place the cut enters an episode); None without one."""
+    probability (≥ ``min_score``), else by margin z-score (≥ ``min_z``); None without one.
+    ``z_seen``: where the cut decides — the best pose by z-score heads toward a reachable
+    goal — its z-score is appended (the only place the cut enters an episode)."""
     o, d, s, z = max(obs.poses, key=lambda p: p[2])
-    why = f"pose {s:.2f}"
-    if s < min_score:
-        o, d, s, z = max(obs.poses, key=lambda p: p[3])
-        why = f"pose z {z:.1f}"
-        if z_seen is not None:
-            z_seen.append(float(z))
-        if z < min_z:
-            return None
-    h = np.asarray(d[:2], np.float64)
+    if s >= min_score:
+        return _toward_pose(goals, o, d, f"pose {s:.2f}", s)
+    o, d, s, z = max(obs.poses, key=lambda p: p[3])
+    goal = _toward_pose(goals, o, d, f"pose z {z:.1f}", s)
+    if goal is not None and z_seen is not None:
+        z_seen.append(float(z))
+    return goal if z >= min_z else None
+
+
+def _toward_pose(goals: list, origin: np.ndarray, heading: np.ndarray, why: str, score: float) -> Decision | None:
+    """The nearest (by path) of ``goals`` within 37° of a pose's ``heading`` from its
+    ``origin``; None when the heading is vertical or no goal lies that way."""
+    h = np.asarray(heading[:2], np.float64)
     if np.linalg.norm(h) <= 1e-6:
         return None
-    pool = _ahead(goals, o, h / np.linalg.norm(h), 0.8)
+    pool = _ahead(goals, origin, h / np.linalg.norm(h), 0.8)
     if not pool:
         return None
     g, cell, _ = min(pool, key=lambda x: x[2])
-    return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=why, score=float(s))
+    return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why=why, score=float(score))
 
 
 def _best_by(goals: list, key: str) -> tuple[float, list]:

@@ -11,9 +11,10 @@ threshold chosen on them would make their table a development table. Output: one
 per cut (overall and per mission kind), the choice and its SPL, every episode (with its
 ``cut``), the run's ``meta`` and ``seeds`` as in ``rayfronts eval search``.
 
-Episodes are not run twice when the answer is known: the cut enters an episode only where
-sem-poses compares a pose's margin z-score with it (each episode row lists those z-scores,
-``pose_z``), and everything else is deterministic for a seed. So a seed's episodes at cut
+Episodes are not run twice when the answer is known: the cut enters an episode only at the
+steps where sem-poses' best pose by margin z-score heads toward a reachable goal (the cut
+then decides between that goal and frontier exploration; each episode row lists those
+steps' z-scores, ``pose_z``), and everything else is deterministic for a seed. So a seed's episodes at cut
 ``a`` are exactly its episodes at cut ``b`` when no z-score recorded in the ``b`` run lies
 between the two (every comparison comes out the same, step by step); such a seed is
 copied (``reused_from_cut``) instead of run. Seeds run one after another, each through
