@@ -35,14 +35,17 @@ from apps.closed_loop.seeds import HELD_OUT_SEEDS, seed_sets
 Z_TOLERANCE = 1e-5
 
 
-def choose_cut(per_cut: dict[float, dict]) -> tuple[float, float]:
-    """(cut, its far-target SPL): the best mean ``landmark`` SPL (else overall SPL when no
-    landmark episode ran), ties to the higher cut. ``per_cut``: cut → ``policies["sem-poses"]``."""
-    def far_spl(s: dict) -> float:
-        return float(s.get("by_kind", {}).get("landmark", s)["spl"])
+def far_target(summary: dict) -> dict:
+    """A cut's summary over its far-target (``landmark``) episodes; the whole summary when no
+    landmark episode ran."""
+    return summary.get("by_kind", {}).get("landmark", summary)
 
-    best = max(per_cut, key=lambda c: (round(far_spl(per_cut[c]), 9), c))
-    return best, far_spl(per_cut[best])
+
+def choose_cut(per_cut: dict[float, dict]) -> tuple[float, float]:
+    """(cut, its far-target SPL): the best mean :func:`far_target` SPL, ties to the higher
+    cut. ``per_cut``: cut → ``policies["sem-poses"]``."""
+    best = max(per_cut, key=lambda c: (round(float(far_target(per_cut[c])["spl"]), 9), c))
+    return best, float(far_target(per_cut[best])["spl"])
 
 
 def same_episodes(rows: list[dict], ran_at: float, cut: float) -> bool:

@@ -293,19 +293,17 @@ def _run_merge(args: argparse.Namespace) -> int:
 
 
 def _merge_tunings(docs: list[dict], out: str) -> int:
-    import json
-
-    from apps.closed_loop.tuning import merge_tunings
+    from apps.closed_loop.evaluate import _write_json
+    from apps.closed_loop.tuning import far_target, merge_tunings
 
     try:
         doc = merge_tunings(docs)
     except ValueError as e:
         print(f"rayfronts eval merge: {e}", file=sys.stderr)
         return 2
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    Path(out).write_text(json.dumps(doc, indent=2, default=float))
+    _write_json(out, doc)
     for c, s in doc["cuts"].items():
-        far = s.get("by_kind", {}).get("landmark", s)
+        far = far_target(s)
         print(f"cut {c}: far-target SPL {far['spl']:.3f}, success {far['success']:.2f}")
     print(f"seeds through every cut: {doc['seeds_complete']}; chosen cut {doc.get('chosen')}; wrote {out}")
     return 0
@@ -358,15 +356,13 @@ def _run_landmarks(args: argparse.Namespace) -> int:
 
 
 def _run_tune(args: argparse.Namespace) -> int:
-    import json
-
+    from apps.closed_loop.evaluate import _write_json
     from apps.closed_loop.tuning import tune_sem_poses
 
     cfg = _search_config(args)
     cuts = [float(x) for x in args.cuts.split(",") if x.strip()]
     doc = tune_sem_poses(cfg, cuts, argv=["rayfronts", *sys.argv[1:]], partial_path=partial_json(args.json))
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(doc, indent=2, default=float))
+    _write_json(args.json, doc)
     print(f"chosen sem-poses cut: {doc['chosen']} (far-target SPL {doc['chosen_spl']:.3f}); wrote {args.json}")
     return 0
 
