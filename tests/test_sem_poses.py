@@ -176,8 +176,15 @@ def test_tune_sem_poses_copies_a_seed_no_z_separates_and_chooses_the_higher_cut_
     assert {c: s["spl"] for c, s in both["cuts"].items()} == {c: s["spl"] for c, s in doc["cuts"].items()}
     assert [s["episodes"] for s in both["cuts"].values()] == [2, 2] and both["chosen"] == 60.0
     assert [p["seeds"] for p in both["merged_from"]] == [[0], [1]] and both["settings"]["seeds"] == [0, 1]
-    with pytest.raises(ValueError, match="seed 0 at cut 50 is in an earlier part"):
-        merge_tunings([doc, doc])
+    # a seed run again (a cut-off run's seed) is kept once when it reproduces, refused when not
+    again = merge_tunings([doc, both])
+    assert again["seeds_complete"] == [0, 1] and again["episodes"] == both["episodes"]
+    assert again["reproduced"] == [{"seed": 0, "cut": 60.0, "part": 2}, {"seed": 0, "cut": 50.0, "part": 2}]
+    assert again["cuts"] == both["cuts"]
+    moved = copy.deepcopy(doc)
+    moved["episodes"][1]["path_m"] += 1.0
+    with pytest.raises(ValueError, match=r"seed 0 at cut 50 is in an earlier part with another outcome \(path_m\)"):
+        merge_tunings([doc, moved])
     # ... and so does `rayfronts eval merge` given tune-sem-poses files
     parts = [tmp_path / "a.json", tmp_path / "b.json"]
     for f, d in zip(parts, (doc, other), strict=True):

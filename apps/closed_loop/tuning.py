@@ -34,6 +34,10 @@ from apps.closed_loop.seeds import HELD_OUT_SEEDS, seed_sets
 #: a z-score this close to either cut counts as between them (the rows round z to 1e-6)
 Z_TOLERANCE = 1e-5
 
+#: an episode row's outcome: what a rerun of the seed at the same cut must reproduce
+#: (timings and the ``reused_from_cut`` mark aside)
+OUTCOME_FIELDS = ("success", "spl", "path_m", "steps", "false_finds", "finds", "declarations", "end", "pose_z")
+
 
 def far_target(summary: dict) -> dict:
     """A cut's summary over its far-target (``landmark``) episodes; the whole summary when no
@@ -113,8 +117,10 @@ def merge_tunings(docs: list[dict]) -> dict:
     """One ``tune-sem-poses`` document from runs split by seed (processes side by side; a
     partial run counts with the seeds it finished): the cuts' summaries and the choice
     recomputed over every seed that went through every cut, the parts' ``meta`` under
-    ``merged_from``. Refused (ValueError): settings that differ in anything but the seeds,
-    a seed's cut in two parts."""
+    ``merged_from``. A seed's cut in two parts (a cut-off run's seed run again) is kept
+    once, from the earlier part, when both give the same :data:`OUTCOME_FIELDS` (listed in
+    ``reproduced``). Refused (ValueError): settings that differ in anything but the seeds,
+    a seed's cut whose parts disagree."""
     from apps.closed_loop.merge import settings_differences
 
     if not docs:
@@ -127,15 +133,22 @@ def merge_tunings(docs: list[dict]) -> dict:
             raise ValueError(f"part {i}: settings differ from part 1 in {', '.join(diff)} (only the seeds may)")
     cuts = list(dict.fromkeys(float(r["cut"]) for d in docs for r in d["episodes"]))
     by_seed: dict[int, dict[float, list[dict]]] = {}
+    reproduced: list[dict] = []
     for i, d in enumerate(docs, 1):
         mine: dict[int, dict[float, list[dict]]] = {}
         for r in d["episodes"]:
             mine.setdefault(int(r["seed"]), {}).setdefault(float(r["cut"]), []).append(r)
         for seed, runs in mine.items():
-            twice = sorted(set(runs) & set(by_seed.get(seed, {})))
-            if twice:
-                raise ValueError(f"part {i}: seed {seed} at cut {twice[0]:g} is in an earlier part too")
-            by_seed.setdefault(seed, {}).update(runs)
+            known = by_seed.setdefault(seed, {})
+            for c, rows in runs.items():
+                if c not in known:
+                    known[c] = rows
+                    continue
+                diff = outcome_differences(known[c], rows)
+                if diff:
+                    raise ValueError(f"part {i}: seed {seed} at cut {c:g} is in an earlier part with another "
+                                     f"outcome ({', '.join(diff)}); a rerun must reproduce it")
+                reproduced.append({"seed": seed, "cut": c, "part": i})
     by_seed = dict(sorted(by_seed.items()))
     out = _document(str(docs[0]["settings"].get("world", "synthetic")), by_seed, cuts, docs[-1],
                     sum(int(d["episodes_run"]) for d in docs), sum(int(d["episodes_reused"]) for d in docs),
@@ -144,9 +157,19 @@ def merge_tunings(docs: list[dict]) -> dict:
     out["merged_from"] = [{"seeds": sorted({int(r["seed"]) for r in d["episodes"]}), "meta": d.get("meta"),
                            "partial": bool(d.get("partial")), "wall_s": d["wall_s"], "cpu_s": d["cpu_s"]}
                           for d in docs]
+    if reproduced:
+        out["reproduced"] = reproduced
     if any(d.get("partial") for d in docs):
         out["partial"] = True
     return out
+
+
+def outcome_differences(a: list[dict], b: list[dict]) -> list[str]:
+    """The :data:`OUTCOME_FIELDS` in which two runs' rows (one seed at one cut) differ;
+    ``["episodes"]`` when they hold different numbers of episodes."""
+    if len(a) != len(b):
+        return ["episodes"]
+    return [k for k in OUTCOME_FIELDS if any(x.get(k) != y.get(k) for x, y in zip(a, b, strict=True))]
 
 
 def _document(world: str, by_seed: dict[int, dict[float, list[dict]]], cuts: list[float], last: dict, ran: int,
