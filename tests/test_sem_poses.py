@@ -145,6 +145,7 @@ def test_tune_sem_poses_copies_a_seed_no_z_separates_and_chooses_the_higher_cut_
     two), the two cuts' summaries are equal and the tie goes to the higher cut; held-out
     seeds are refused; runs split by seed merge into one tuning."""
     import copy
+    import dataclasses
     import json
 
     import pytest
@@ -194,3 +195,28 @@ def test_tune_sem_poses_copies_a_seed_no_z_separates_and_chooses_the_higher_cut_
     other["settings"]["resolution"] = 96
     with pytest.raises(ValueError, match="resolution"):
         merge_tunings([doc, other])
+    # a run cut off after seed 0's first cut goes on with --resume: cut 50 is copied from the
+    # resumed cut 60 (no episode run), and the result is the uncut run's
+    cut_off = json.loads(json.dumps({**doc, "episodes": doc["episodes"][:1], "episodes_reused": 0, "seeds_complete": [],
+                                     "partial": True},
+                                    default=float))
+    resumed = tune_sem_poses(cfg, [60.0, 50.0], resume=cut_off)
+    assert resumed["episodes"] == json.loads(json.dumps(doc["episodes"], default=float))
+    assert (resumed["episodes_run"], resumed["episodes_reused"], resumed["cpu_s"]) == (1, 1, cut_off["cpu_s"])
+    assert resumed["cuts"] == json.loads(json.dumps(doc["cuts"])) and resumed["chosen"] == 60.0
+    assert resumed["resumed_from"] == {"meta": cut_off["meta"], "seeds_complete": [], "episodes": 1}
+    with pytest.raises(ValueError, match="settings differ in resolution"):
+        tune_sem_poses(dataclasses.replace(cfg, resolution=96), [60.0, 50.0], resume=cut_off)
+    with pytest.raises(ValueError, match="cut 60, not in --cuts"):
+        tune_sem_poses(cfg, [50.0], resume=cut_off)
+    with pytest.raises(ValueError, match="seed 0 lacks a cut before its last one"):
+        tune_sem_poses(cfg, [70.0, 60.0], resume=cut_off)
+    # ... from the command line, the partial file as the run left it
+    (tmp_path / "cut_off.partial.json").write_text(json.dumps(cut_off))
+    assert main(["eval", "tune-sem-poses", "--seeds", "0", "--missions", "object", "--budget-scale", "0.1",
+                 "--resolution", "64", "--depth-limit", "10", "--cuts", "60,50",
+                 "--resume", str(tmp_path / "cut_off.partial.json"), "--json", str(tmp_path / "resumed.json")]) == 0
+    assert json.loads((tmp_path / "resumed.json").read_text())["episodes"] == resumed["episodes"]
+    (tmp_path / "bad.json").write_text("{")
+    assert main(["eval", "tune-sem-poses", "--seeds", "0", "--resume", str(tmp_path / "bad.json"),
+                 "--json", str(tmp_path / "x.json")]) == 2

@@ -328,20 +328,26 @@ def _document(cfg: SearchEvalConfig, rows: list[dict], settings0: LoopSettings, 
     """The JSON document of ``rows`` (all but ``meta``)."""
     from apps.closed_loop.seeds import seed_sets
 
-    sensor = cfg.sensor_config()
     return {"policies": summarize_policies(rows, cfg.policies),
-            "settings": {**_settings_fields(cfg), "vox_m": settings0.vox_m, "preset": settings0.preset,
-                         "min_ray_z": MIN_RAY_Z, "background_phrases": _phrases(settings0),
-                         "sensor": dataclasses.asdict(sensor),
-                         "missions_defined": {k: {"targets": TARGETS[cfg.world][k], "budget_steps": v[1], "k": v[2],
-                                                  "budget_vs_oracle": BUDGET_VS_ORACLE.get(k, 0.0)}
-                                              for k, v in MISSIONS.items()}},
+            "settings": run_settings(cfg, settings0),
             "episodes": rows,
             "seeds": seed_sets(cfg.world, list(cfg.seeds)),
             "machine": {"python": _platform.python_version(), "cpu": _platform.processor() or _platform.machine(),
                         "cores": os.cpu_count(), "load_avg_1_5_15_start": [round(x, 2) for x in load0],
                         "load_avg_1_5_15_end": [round(x, 2) for x in os.getloadavg()]},
             "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+
+
+def run_settings(cfg: SearchEvalConfig, settings0: LoopSettings | None = None) -> dict:
+    """The ``settings`` of a run of ``cfg``'s JSON document (``settings0``: its
+    :meth:`SearchEvalConfig.loop_settings`, made when not given)."""
+    settings0 = settings0 or cfg.loop_settings()
+    return {**_settings_fields(cfg), "vox_m": settings0.vox_m, "preset": settings0.preset,
+            "min_ray_z": MIN_RAY_Z, "background_phrases": _phrases(settings0),
+            "sensor": dataclasses.asdict(cfg.sensor_config()),
+            "missions_defined": {k: {"targets": TARGETS[cfg.world][k], "budget_steps": v[1], "k": v[2],
+                                     "budget_vs_oracle": BUDGET_VS_ORACLE.get(k, 0.0)}
+                                 for k, v in MISSIONS.items()}}
 
 
 def _settings_fields(cfg: SearchEvalConfig) -> dict:

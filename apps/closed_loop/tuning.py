@@ -19,7 +19,8 @@ steps' z-scores, ``pose_z``), and everything else is deterministic for a seed. S
 between the two (every comparison comes out the same, step by step); such a seed is
 copied (``reused_from_cut``) instead of run. Seeds run one after another, each through
 every cut in the order given (highest first fires least), so a run cut off holds whole
-seeds.
+seeds, and the seed it was in up to its last finished cut: ``--resume PARTIAL.json`` (the
+same settings) takes those episodes as run and goes on where it stopped.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ import dataclasses
 import time
 from pathlib import Path
 
-from apps.closed_loop.evaluate import SearchEvalConfig, _write_json, run_search_eval, summarize_policies
+from apps.closed_loop.evaluate import SearchEvalConfig, _write_json, run_search_eval, run_settings, summarize_policies
 from apps.closed_loop.seeds import HELD_OUT_SEEDS, seed_sets
 
 #: a z-score this close to either cut counts as between them (the rows round z to 1e-6)
@@ -78,10 +79,12 @@ def reusable_cut(runs: dict[float, list[dict]], cut: float) -> float | None:
 
 
 def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | None = None,
-                   partial_path: str | None = None) -> dict:
+                   partial_path: str | None = None, resume: dict | None = None) -> dict:
     """Run the procedure (module docstring) on ``cfg``'s seeds and missions; returns the JSON.
     ``partial_path``: the document so far (``"partial": true``) is written there after every
-    cut of every seed, so a run cut off keeps what it did."""
+    cut of every seed, so a run cut off keeps what it did. ``resume``: such a document (or a
+    finished one) of the same settings; its episodes of ``cfg``'s seeds count as run (its
+    counts and CPU time are carried on, its ``meta`` kept under ``resumed_from``)."""
     held = set(HELD_OUT_SEEDS.get(cfg.world, [])) & set(cfg.seeds)
     if held:
         raise ValueError(f"seeds {sorted(held)} are held-out seeds; tune on development seeds "
@@ -92,8 +95,14 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
     by_seed: dict[int, dict[float, list[dict]]] = {s: {} for s in cfg.seeds}
     last: dict = {}
     t0, cpu_s, ran, reused = time.perf_counter(), 0.0, 0, 0
+    if resume is not None:
+        resumed_rows(resume, cfg, cuts, by_seed)
+        cpu_s, ran, reused = float(resume["cpu_s"]), int(resume["episodes_run"]), int(resume["episodes_reused"])
+        t0 -= float(resume["wall_s"])
     for seed in cfg.seeds:
         for c in cuts:
+            if c in by_seed[seed]:            # resumed
+                continue
             src = reusable_cut(by_seed[seed], c)
             if src is not None:
                 rows = [dict(copy.deepcopy(r), reused_from_cut=src) for r in by_seed[seed][src]]
@@ -107,10 +116,50 @@ def tune_sem_poses(cfg: SearchEvalConfig, cuts: list[float], argv: list[str] | N
             by_seed[seed][c] = [dict(r, cut=c) for r in rows]
             if partial_path is not None:
                 doc = _document(cfg.world, by_seed, cuts, last, ran, reused, time.perf_counter() - t0, cpu_s)
-                _write_json(partial_path, {**doc, "partial": True})
+                _write_json(partial_path, {**doc, "partial": True, **_resumed(resume)})
     if partial_path is not None:
         Path(partial_path).unlink(missing_ok=True)
-    return _document(cfg.world, by_seed, cuts, last, ran, reused, time.perf_counter() - t0, cpu_s)
+    if not last and resume is not None:         # nothing left to run: the resumed run's record
+        last = {"settings": resume["settings"], "meta": resume.get("meta")}
+    return {**_document(cfg.world, by_seed, cuts, last, ran, reused, time.perf_counter() - t0, cpu_s),
+            **_resumed(resume)}
+
+
+def resumed_rows(doc: dict, cfg: SearchEvalConfig, cuts: list[float], by_seed: dict[int, dict[float, list[dict]]]
+                 ) -> None:
+    """Put a resumed tuning's episodes of ``by_seed``'s seeds into ``by_seed`` (seed → cut →
+    rows). Refused (ValueError): not a tuning document, other settings than ``cfg``'s (the
+    seeds and cuts aside), a cut not in ``cuts``, a seed of this run without every earlier
+    cut (the order of ``cuts``: a seed is run cut by cut)."""
+    import json
+
+    from apps.closed_loop.merge import settings_differences
+
+    if not isinstance(doc, dict) or not {"procedure", "episodes", "settings", "cpu_s", "episodes_run",
+                                         "episodes_reused", "wall_s"} <= set(doc):
+        raise ValueError("--resume: not a tune-sem-poses document (no procedure / episodes / settings)")
+    mine = json.loads(json.dumps(run_settings(dataclasses.replace(cfg, policies=["sem-poses"])), default=float))
+    diff = settings_differences(mine, doc["settings"], ("seeds", "sem_poses_min_z"))
+    if diff:
+        raise ValueError(f"--resume: the resumed run's settings differ in {', '.join(diff)} (only the seeds may)")
+    for r in doc["episodes"]:
+        seed, c = int(r["seed"]), float(r["cut"])
+        if c not in cuts:
+            raise ValueError(f"--resume: the resumed run has cut {c:g}, not in --cuts")
+        if seed in by_seed:
+            by_seed[seed].setdefault(c, []).append(r)
+    for seed, runs in by_seed.items():
+        done = [c in runs for c in cuts]
+        if any(done[i + 1] and not done[i] for i in range(len(cuts) - 1)):
+            raise ValueError(f"--resume: seed {seed} lacks a cut before its last one in --cuts' order")
+
+
+def _resumed(resume: dict | None) -> dict:
+    """The ``resumed_from`` record of a resumed run (empty without one)."""
+    if resume is None:
+        return {}
+    return {"resumed_from": {"meta": resume.get("meta"), "seeds_complete": resume.get("seeds_complete", []),
+                             "episodes": len(resume["episodes"])}}
 
 
 def merge_tunings(docs: list[dict]) -> dict:

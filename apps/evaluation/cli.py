@@ -151,6 +151,8 @@ def _search_parser(sub) -> None:
     tu.add_argument("--cuts", default="5,4,3.5,3,2.5,2",
                     help="candidate z cuts, comma list, run in this order (default 5,4,3.5,3,2.5,2)")
     tu.add_argument("--json", required=True, metavar="FILE", help="per-cut summaries and the choice")
+    tu.add_argument("--resume", default=None, metavar="PARTIAL.json",
+                    help="go on from a run cut off (its FILE.partial.json, same settings): its episodes count as run")
 
 
 def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> None:
@@ -361,7 +363,16 @@ def _run_tune(args: argparse.Namespace) -> int:
 
     cfg = _search_config(args)
     cuts = [float(x) for x in args.cuts.split(",") if x.strip()]
-    doc = tune_sem_poses(cfg, cuts, argv=["rayfronts", *sys.argv[1:]], partial_path=partial_json(args.json))
+    import json
+
+    resume = None
+    if args.resume:
+        try:
+            resume = json.loads(Path(args.resume).read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"--resume {args.resume}: not JSON ({e})") from None
+    doc = tune_sem_poses(cfg, cuts, argv=["rayfronts", *sys.argv[1:]], partial_path=partial_json(args.json),
+                         resume=resume)
     _write_json(args.json, doc)
     print(f"chosen sem-poses cut: {doc['chosen']} (far-target SPL {doc['chosen_spl']:.3f}); wrote {args.json}")
     return 0
