@@ -361,17 +361,24 @@ def install_signal_handlers(stop_event: threading.Event,
                             signals: tuple = (signal.SIGINT, signal.SIGTERM)) -> Callable[[], None]:
     """SIGINT/SIGTERM set ``stop_event`` (clean shutdown); a second SIGINT raises
     KeyboardInterrupt. Returns a function restoring the previous handlers. Outside the main
-    thread it does nothing (Python allows handlers only there)."""
+    thread it does nothing (Python allows handlers only there).
+
+    The event is set from a short-lived thread, not in the handler: the handler runs in the
+    main thread wherever it was, and a main thread inside ``stop_event.wait()`` may hold the
+    event's (non-reentrant) lock at that instant — ``set()`` there would wait on its own
+    thread forever (a router signalled just as it began to wait hung so)."""
     if threading.current_thread() is not threading.main_thread():
         log.debug("install_signal_handlers: not the main thread; skipped")
         return lambda: None
     previous = {}
+    signalled = [False]                 # no lock: the handler may interrupt any code
 
     def handler(signum, frame):
-        if stop_event.is_set() and signum == signal.SIGINT:
+        if signalled[0] and signum == signal.SIGINT:
             raise KeyboardInterrupt
+        signalled[0] = True
         log.info("received %s; shutting down", signal.Signals(signum).name)
-        stop_event.set()
+        threading.Thread(target=stop_event.set, name="signal-stop", daemon=True).start()
 
     for sig in signals:
         previous[sig] = signal.signal(sig, handler)

@@ -87,6 +87,35 @@ def test_router_sigint_exit_code_zero(closer):
     assert rc == 0, out
 
 
+#: a process whose main thread holds its stop event's lock, as inside ``stop.wait()``, when
+#: SIGTERM lands (the instant a router that has just printed its banner begins to wait)
+_SIGNAL_IN_WAIT = """
+import os, signal, threading
+from common.zenoh_session import install_signal_handlers
+stop = threading.Event()
+install_signal_handlers(stop)
+with stop._cond:                      # CPython's Event: wait() holds this lock around its wait
+    os.kill(os.getpid(), signal.SIGTERM)
+    for _ in range(10000):            # the handler runs here, the lock still held
+        pass
+print("stopped" if stop.wait(10) else "not stopped", flush=True)
+"""
+
+
+def test_a_signal_landing_while_the_stop_wait_holds_its_lock_still_stops():
+    """The handler must not set the event itself: set() would wait for a lock its own
+    thread holds, forever (the router's SIGINT test hung so, killed after 15 s)."""
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    try:
+        r = subprocess.run([sys.executable, "-c", _SIGNAL_IN_WAIT], capture_output=True, text=True, env=env,
+                           cwd=str(ROOT), timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the signal handler deadlocked on the stop event's lock")
+    assert (r.returncode, r.stdout.strip()) == (0, "stopped"), r.stderr[-2000:]
+
+
 def test_router_rejects_bad_options():
     env = dict(os.environ, PYTHONPATH=str(ROOT), RUST_LOG="error")
     r = subprocess.run(cli_cmd("router", "--listen", "127.0.0.1:7447"),
