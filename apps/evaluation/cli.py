@@ -358,13 +358,13 @@ def _run_landmarks(args: argparse.Namespace) -> int:
 
 
 def _run_tune(args: argparse.Namespace) -> int:
+    import json
+
     from apps.closed_loop.evaluate import _write_json
     from apps.closed_loop.tuning import tune_sem_poses
 
     cfg = _search_config(args)
     cuts = [float(x) for x in args.cuts.split(",") if x.strip()]
-    import json
-
     resume = None
     if args.resume:
         try:
