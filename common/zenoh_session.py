@@ -374,7 +374,7 @@ def install_signal_handlers(stop_event: threading.Event,
     signalled = [False]                 # no lock: the handler may interrupt any code
 
     def handler(signum, frame):
-        if signalled[0] and signum == signal.SIGINT:
+        if (signalled[0] or stop_event.is_set()) and signum == signal.SIGINT:   # is_set() takes no lock
             raise KeyboardInterrupt
         signalled[0] = True
         log.info("received %s; shutting down", signal.Signals(signum).name)

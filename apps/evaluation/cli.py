@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
@@ -262,8 +263,6 @@ def _run_search(args: argparse.Namespace) -> int:
 def _read_documents(paths: list[str], action: str) -> list[dict] | None:
     """The JSON documents at ``paths``; None (after one line on stderr naming the file) when
     one cannot be read."""
-    import json
-
     docs = []
     for p in paths:
         try:
@@ -312,8 +311,6 @@ def _merge_tunings(docs: list[dict], out: str) -> int:
 
 
 def _run_fleet_compare(args: argparse.Namespace) -> int:
-    import json
-
     from apps.closed_loop.fleet_compare import compare_fleets, compare_markdown
 
     docs = _read_documents(args.runs, "fleet-compare")
@@ -334,8 +331,6 @@ def _run_fleet_compare(args: argparse.Namespace) -> int:
 
 
 def _run_landmarks(args: argparse.Namespace) -> int:
-    import json
-
     from apps.closed_loop.landmark_report import landmark_report, report_markdown
 
     docs = _read_documents(args.runs, "landmarks")
@@ -358,8 +353,6 @@ def _run_landmarks(args: argparse.Namespace) -> int:
 
 
 def _run_tune(args: argparse.Namespace) -> int:
-    import json
-
     from apps.closed_loop.evaluate import _write_json
     from apps.closed_loop.tuning import tune_sem_poses
 
@@ -458,8 +451,6 @@ def run(args: argparse.Namespace) -> int:
             run_srchvol(cfg, args.out)
             print((__import__("pathlib").Path(args.out) / "table.md").read_text())
         else:
-            import json
-
             from apps.evaluation.semseg import SemsegConfig, run_semseg
             assert isinstance(cfg, SemsegConfig)
             s = run_semseg(cfg, args.out)
