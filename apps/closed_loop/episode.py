@@ -74,13 +74,10 @@ class LoopSettings:
     #: preset's (30 in ``online``, the paper's). Finer bins keep a far, narrow target's few
     #: rays from being averaged with the sky around it (docs/results/closed_loop_robot.md)
     angle_bin_deg: float | None = None
-    #: what ranks the ray policies' remembered bearing (``PolicyState.bearing_evidence``):
-    #: "z" or "score"
-    bearing_evidence: str = "z"
 
     def policy_state(self) -> PolicyState:
         """A new episode's policy memory in these settings."""
-        state = PolicyState(bearing_evidence=self.bearing_evidence)
+        state = PolicyState()
         if self.sem_poses_min_z is not None:
             state.pose_min_z = float(self.sem_poses_min_z)
         return state

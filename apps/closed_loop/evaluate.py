@@ -102,7 +102,6 @@ class SearchEvalConfig:
     ray_evidence: str = "distinct"  # what ray_z z-scores (LoopSettings.ray_evidence, search.ray_evidence)
     sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
     angle_bin_deg: float | None = None     # ray angle bin (None: the preset's; LoopSettings.angle_bin_deg)
-    bearing_evidence: str = "z"    # what ranks the remembered bearing (LoopSettings.bearing_evidence)
     robots: int = 1                # the fleet's size (fleet policies: apps.closed_loop.fleet_episode)
     start: str = "together"        # the fleet's starts (fleet_episode.START_MODES)
     footprint_m: float = 8.0       # least distance between two robots' goals (coordinated, frontier-only)
@@ -116,7 +115,7 @@ class SearchEvalConfig:
         """The settings every episode of this run shares (the depth limit set per episode)."""
         return LoopSettings(platform=self.platform, step_m=self.step_m, background=self.background,
                             ray_evidence=self.ray_evidence, sem_poses_min_z=self.sem_poses_min_z,
-                            angle_bin_deg=self.angle_bin_deg, bearing_evidence=self.bearing_evidence)
+                            angle_bin_deg=self.angle_bin_deg)
 
     def fleet(self) -> FleetSettings:
         """The fleet of the run's fleet policies."""
@@ -144,9 +143,8 @@ class SearchEvalConfig:
             raise ValueError(f"--background must be one of {', '.join(BACKGROUNDS)}, not {self.background!r}")
         if self.angle_bin_deg is not None and not 0 < self.angle_bin_deg <= 360:
             raise ValueError(f"--angle-bin must be in (0, 360] degrees, not {self.angle_bin_deg}")
-        if self.ray_evidence not in ("distinct", "margin") or self.bearing_evidence not in ("z", "score"):
-            raise ValueError(f"--ray-evidence must be distinct or margin and --bearing-evidence z or score, "
-                             f"not {self.ray_evidence!r} and {self.bearing_evidence!r}")
+        if self.ray_evidence not in ("distinct", "margin"):
+            raise ValueError(f"--ray-evidence must be distinct or margin, not {self.ray_evidence!r}")
         if self.distributed and self.ray_evidence != "distinct":
             raise ValueError("--distributed: the mapper process keeps its own search.ray_evidence; "
                              "run --ray-evidence margin in process")
@@ -355,13 +353,10 @@ def run_settings(cfg: SearchEvalConfig, settings0: LoopSettings | None = None) -
 def _settings_fields(cfg: SearchEvalConfig) -> dict:
     """The run's config for the JSON; the fleet's fields only when a fleet policy ran (a
     single-robot run's JSON stays as it was before fleets), ``angle_bin_deg`` only when set
-    and ``bearing_evidence`` only when not "z" (a run without the option stays as it was
-    before it)."""
+    (a run at the preset's bin stays as it was before the option)."""
     d = dataclasses.asdict(cfg)
     if d.get("angle_bin_deg") is None:
         d.pop("angle_bin_deg", None)
-    if d.get("bearing_evidence") == "z":
-        d.pop("bearing_evidence", None)
     if not any(p in FLEET_POLICIES for p in cfg.policies):
         for k in ("robots", "start", "footprint_m"):
             d.pop(k)

@@ -96,10 +96,7 @@ class PolicyState:
     set_aside: list = field(default_factory=list)     # xy of goals that gave no progress
     stalled: dict = field(default_factory=dict)       # instance id -> [(xy, m from its box)]: approach stalled
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
-    bearing: tuple | None = None                      # (heading_rad, ray_z, score or None): _remember_bearing
-    #: what ranks the remembered bearing (:func:`_remember_bearing`): "z" (ray_z only) or
-    #: "score" (a ray whose score reaches min_score first, by score; then ray_z)
-    bearing_evidence: str = "z"
+    bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
     pose_z_seen: list = field(default_factory=list)   # sem-poses: the z-scores where pose_min_z decided
 
@@ -225,7 +222,7 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
             min_goal_m: float = 4.0, min_ray_z: float = MIN_RAY_Z) -> Decision:
     """The exploration goal of policy ``name`` (module docstring). Goals closer than
     ``min_goal_m`` by path are being seen already; they are taken only when nothing else is."""
-    _remember_bearing(state, obs, min_ray_z, min_score)
+    _remember_bearing(state, obs, min_ray_z)
     goals = _reachable_goals(obs, nav, state)
     if not goals:
         state.goal = None
@@ -448,34 +445,15 @@ def _toward_estimate(obs: Observation, goals: list, at: np.ndarray, min_score: f
     return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]), why="toward estimate", score=float(score))
 
 
-def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float, min_score: float = 0.3) -> None:
-    """Keep the heading, ``ray_z`` and score of the strongest ray any look-next goal has
-    carried this episode, as ``state.bearing`` = (heading_rad, ray_z, score or None). A far
-    target's rays keep their bearing from step to step and grow stronger as the robot nears
-    it; outliers of noise jump about and stay weak. Forgotten when an instance is declared
-    (the next target's rays are other).
-
-    ``state.bearing_evidence`` "z": the strongest outlier (``ray_z`` ≥ ``min_ray_z``) by
-    ``ray_z``; its score is None. "score": a ray whose score reaches ``min_score`` outranks
-    every outlier by ``ray_z`` alone, and among such rays the best score leads (score kept);
-    without one, as "z". The sim encoder's noise makes outliers of ``ray_z`` 6-9 pointing
-    nowhere, while a far target's first rays with a probability of 0.6 stood at ``ray_z``
-    5 (town drone development seeds 2 and 4, docs/results/closed_loop_robot.md)."""
-    by_score = state.bearing_evidence == "score"
+def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float) -> None:
+    """Keep the heading and ``ray_z`` of the strongest outlier ray (``ray_z`` ≥ ``min_ray_z``)
+    any look-next goal has carried this episode. A far target's rays keep their bearing from
+    step to step and grow stronger as the robot nears it; outliers of noise jump about and
+    stay weak. Forgotten when an instance is declared (the next target's rays are other)."""
     for g in obs.look_next:
-        if g.get("heading_rad") is None:
-            continue
-        z, s = float(g.get("ray_z", 0.0)), float(g.get("score", 0.0))
-        if by_score and s >= min_score:
-            if state.bearing is None or state.bearing[2] is None or s > state.bearing[2]:
-                state.bearing = (float(g["heading_rad"]), z, s)
-        elif z >= min_ray_z and (state.bearing is None or (state.bearing[2] is None and z > state.bearing[1])):
-            state.bearing = (float(g["heading_rad"]), z, None)
-
-
-def _bearing_why(bearing: tuple) -> str:
-    """How a decision by the remembered ``bearing`` reads in logs and traces."""
-    return f"bearing z {bearing[1]:.1f}" if bearing[2] is None else f"bearing {bearing[2]:.2f}"
+        z = float(g.get("ray_z", 0.0))
+        if g.get("heading_rad") is not None and z >= min_ray_z and (state.bearing is None or z > state.bearing[1]):
+            state.bearing = (float(g["heading_rad"]), z)
 
 
 def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:
@@ -506,8 +484,7 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
     if top < min_ray_z:
         return None
     g, cell, _ = min(pool, key=_cost)
-    # a bearing kept for its score outranks every outlier (none reaches min_score here)
-    if bearing is not None and (bearing[2] is not None or top < bearing[1]) and not _agrees(g, bearing[0]):
+    if bearing is not None and top < bearing[1] and not _agrees(g, bearing[0]):
         agreeing = _outliers_agreeing(every, bearing[0], min_ray_z)
         if agreeing:
             g, cell, _ = min(_best_by(agreeing, "ray_z")[1], key=_cost)
@@ -516,11 +493,11 @@ def _follow_outlier(every: list, far: list, min_ray_z: float, min_cos: float = 0
             if ahead:
                 g, cell, _ = min(ahead, key=_cost)
                 return Decision(goal_cell=cell, goal_xy=np.asarray(g["position"][:2]),
-                                why=_bearing_why(bearing), score=float(g["score"]))
+                                why=f"bearing z {bearing[1]:.1f}", score=float(g["score"]))
             spent = _outliers_agreeing(passed or [], bearing[0], min_ray_z)
             d = _beyond_evidence(_best_by(spent, "ray_z")[1], far, 0.0) if spent else None
             if d is not None:
-                d.why = f"beyond {_bearing_why(bearing)}"
+                d.why = f"beyond bearing z {bearing[1]:.1f}"
                 return d
     why = f"ray z {g.get('ray_z', 0.0):.1f}"
     if not any(x[0] is g for x in far):
