@@ -295,71 +295,14 @@ def test_ray_policy_goes_on_past_its_bearing_rather_than_after_a_weaker_outlier_
         assert np.allclose(d.goal_xy, side["position"][:2]) and d.why.startswith("beyond bearing"), (name, d)
 
 
-def test_a_spent_bearing_is_forgotten_and_the_weaker_target_rays_lead():
-    """A nearer look-alike (a statue, a radio tower) gave the episode's strongest rays (+x);
-    the robot has reached it: its rays are gone but for the goal it passed, and no fresh
-    outlier agrees with +x. With ``bearing_forget_steps`` K the robot goes on past it for K - 1
-    steps, then forgets the bearing and follows the target's weaker rays (+y); the spent
-    heading is not remembered again. Without the option it goes on past for good (pybullet
-    drone, held-out seeds 102-104: to the robot statue and on; docs/results/closed_loop_robot.md)."""
-    from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, explore
-    from apps.closed_loop.world_model import Observation
-
-    states, nav = _open_field(np.array([20.0, 20.0, 1.5]))
-    goal = _far_target_goal
-    spent = goal(10.0, 20.0, 1e3, 0.0)                      # passed: 10 m behind, rays along +x
-    target = goal(20.0, 40.0, MIN_RAY_Z + 10.0, np.pi / 2)  # the target's weaker rays, along +y
-    side = goal(26.0, 29.0, 0.0)                            # ahead along the spent rays
-    obs = Observation([], [spent, target, side], states, np.zeros(2), 0.5)
-    forgetful, keeping = PolicyState(bearing_forget_steps=3), PolicyState()
-    for step in range(1, 6):
-        forgetful.goal = keeping.goal = None                # each step's goal reached
-        d = explore("rayfronts", obs, nav, forgetful)
-        assert explore("rayfronts", obs, nav, keeping).why.startswith("beyond bearing")
-        if step < 3:
-            assert d.why.startswith("beyond bearing") and forgetful.bearing == (0.0, 1e3), (step, d)
-        else:
-            assert np.allclose(d.goal_xy, target["position"][:2]) and d.why.startswith("ray z"), (step, d)
-            assert forgetful.spent_headings == [0.0]
-        if step > 3:                                        # the target's rays are the bearing now
-            assert forgetful.bearing == (np.pi / 2, MIN_RAY_Z + 10.0)
-
-
-def test_a_bearing_with_fresh_rays_ahead_is_kept():
-    """A far target casts fresh rays at the frontier ahead each step: its bearing is never
-    forgotten, however small ``bearing_forget_steps``, and a weaker outlier elsewhere never leads."""
-    from apps.closed_loop.policies import MIN_RAY_Z, PolicyState, explore
-    from apps.closed_loop.world_model import Observation
-
-    states, nav = _open_field(np.array([20.0, 20.0, 1.5]))
-    goal = _far_target_goal
-    fresh = goal(60.0, 21.0, 1e3, 0.0)                      # 40 m ahead along +x, not passed
-    noise = goal(20.0, 40.0, MIN_RAY_Z + 10.0, np.pi / 2)
-    state = PolicyState(bearing_forget_steps=1)
-    for _ in range(5):
-        state.goal = None
-        d = explore("rayfronts", Observation([], [fresh, noise], states, np.zeros(2), 0.5), nav, state)
-        assert np.allclose(d.goal_xy, fresh["position"][:2]) and state.bearing == (0.0, 1e3), d
-    assert state.spent_headings == [] and state.bearing_quiet == 0
-
-
-def test_the_bearing_forget_option_reaches_every_episode_and_the_json():
-    from apps.closed_loop.evaluate import SearchEvalConfig, _settings_fields
-    from apps.evaluation.cli import _search_config, add_arguments
-
-    parser = argparse.ArgumentParser()
-    add_arguments(parser)
-    cfg = _search_config(parser.parse_args(["search", "--json", "x.json", "--bearing-forget-steps", "4"]))
-    assert cfg.bearing_forget_steps == 4 and _settings_fields(cfg)["bearing_forget_steps"] == 4
-    assert "bearing_forget_steps" not in _settings_fields(SearchEvalConfig())   # older runs' settings
-    state = cfg.loop_settings().policy_state()
+def test_every_episode_gets_the_runs_sem_poses_cut():
+    """``LoopSettings.policy_state`` (the one place single-robot and fleet episodes build a
+    policy's memory) carries the run's ``--sem-poses-min-z``, else the module default."""
+    from apps.closed_loop.evaluate import SearchEvalConfig
     from apps.closed_loop.policies import SEM_POSES_MIN_Z
 
-    assert state.bearing_forget_steps == 4 and state.pose_min_z == SEM_POSES_MIN_Z
     assert SearchEvalConfig(sem_poses_min_z=2.5).loop_settings().policy_state().pose_min_z == 2.5
-    assert SearchEvalConfig().loop_settings().policy_state().bearing_forget_steps is None
-    with pytest.raises(ValueError, match="--bearing-forget-steps"):
-        SearchEvalConfig(bearing_forget_steps=0).validate()
+    assert SearchEvalConfig().loop_settings().policy_state().pose_min_z == SEM_POSES_MIN_Z != 2.5
 
 
 def test_an_approach_that_stalled_is_not_driven_back_to():

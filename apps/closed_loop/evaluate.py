@@ -102,7 +102,6 @@ class SearchEvalConfig:
     ray_evidence: str = "distinct"  # what ray_z z-scores (LoopSettings.ray_evidence, search.ray_evidence)
     sem_poses_min_z: float | None = None   # sem-poses' margin z cut (None: policies.SEM_POSES_MIN_Z)
     angle_bin_deg: float | None = None     # ray angle bin (None: the preset's; LoopSettings.angle_bin_deg)
-    bearing_forget_steps: int | None = None  # LoopSettings.bearing_forget_steps (None: never)
     robots: int = 1                # the fleet's size (fleet policies: apps.closed_loop.fleet_episode)
     start: str = "together"        # the fleet's starts (fleet_episode.START_MODES)
     footprint_m: float = 8.0       # least distance between two robots' goals (coordinated, frontier-only)
@@ -116,14 +115,13 @@ class SearchEvalConfig:
         """The settings every episode of this run shares (the depth limit set per episode)."""
         return LoopSettings(platform=self.platform, step_m=self.step_m, background=self.background,
                             ray_evidence=self.ray_evidence, sem_poses_min_z=self.sem_poses_min_z,
-                            angle_bin_deg=self.angle_bin_deg, bearing_forget_steps=self.bearing_forget_steps)
+                            angle_bin_deg=self.angle_bin_deg)
 
     def fleet(self) -> FleetSettings:
         """The fleet of the run's fleet policies."""
         return FleetSettings(self.robots, self.start, self.footprint_m)
 
-    def _validate_policies(self) -> None:
-        """Raise ``ValueError`` for unknown policies, a fleet that does not fit them, or a bad policy option."""
+    def validate(self) -> "SearchEvalConfig":
         bad = [p for p in self.policies if p not in POLICIES and p not in FLEET_POLICIES]
         if bad:
             raise ValueError(f"unknown policies {bad}; choose from {', '.join([*POLICIES, *FLEET_POLICIES])}")
@@ -134,11 +132,6 @@ class SearchEvalConfig:
                              f"{', '.join(FLEET_POLICIES)} (or --robots 1)")
         if self.distributed and any(p in FLEET_POLICIES for p in self.policies):
             raise ValueError("--distributed runs one robot per episode; leave the fleet policies out")
-        if self.bearing_forget_steps is not None and self.bearing_forget_steps < 1:
-            raise ValueError(f"--bearing-forget-steps must be at least 1, not {self.bearing_forget_steps}")
-
-    def validate(self) -> "SearchEvalConfig":
-        self._validate_policies()
         bad = [m for m in self.missions if m not in MISSIONS]
         if bad:
             raise ValueError(f"unknown missions {bad}; choose from {', '.join(MISSIONS)}")
@@ -360,12 +353,10 @@ def run_settings(cfg: SearchEvalConfig, settings0: LoopSettings | None = None) -
 def _settings_fields(cfg: SearchEvalConfig) -> dict:
     """The run's config for the JSON; the fleet's fields only when a fleet policy ran (a
     single-robot run's JSON stays as it was before fleets), ``angle_bin_deg`` only when set
-    (a run at the preset's bin stays as it was before the option), ``bearing_forget_steps``
-    likewise."""
+    (a run at the preset's bin stays as it was before the option)."""
     d = dataclasses.asdict(cfg)
-    for k in ("angle_bin_deg", "bearing_forget_steps"):
-        if d.get(k) is None:
-            d.pop(k, None)
+    if d.get("angle_bin_deg") is None:
+        d.pop("angle_bin_deg", None)
     if not any(p in FLEET_POLICIES for p in cfg.policies):
         for k in ("robots", "start", "footprint_m"):
             d.pop(k)

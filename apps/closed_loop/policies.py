@@ -28,8 +28,7 @@ stays and looks again. They differ in how they explore until then:
   known space), the nearest goal ahead along those rays (:func:`_follow_outlier`); an
   outlier weaker than the episode's strongest and pointing elsewhere is passed over for
   those agreeing with it — or for a goal on past them when the robot has passed them
-  (:func:`_remember_bearing`; with ``bearing_forget_steps`` the memory is spent once no
-  fresh outlier agrees with it, :func:`_spend_bearing`); without either like ``frontier``;
+  (:func:`_remember_bearing`); without either like ``frontier``;
 * ``unidirectional`` / ``spherical``: the same rule on the maps of the paper's semantic
   frontier baselines (one 360° bin per frontier, direction inferred or none);
 * ``frontier``: the frontier viewpoint with the best unknown volume per path length,
@@ -98,11 +97,6 @@ class PolicyState:
     stalled: dict = field(default_factory=dict)       # instance id -> [(xy, m from its box)]: approach stalled
     goal: tuple | None = None                         # (xy, score, semantic) of the exploration goal held
     bearing: tuple | None = None                      # (heading_rad, ray_z) of the strongest outlier ray seen
-    #: forget ``bearing`` after this many steps in a row with no outlier ray agreeing with it
-    #: that the robot has not passed (:func:`_spend_bearing`); None: kept until a declaration
-    bearing_forget_steps: int | None = None
-    bearing_quiet: int = 0                            # such steps in a row so far
-    spent_headings: list = field(default_factory=list)  # heading_rad of forgotten bearings
     pose_min_z: float = SEM_POSES_MIN_Z               # sem-poses: SEM_POSES_MIN_Z unless the run sets it
     pose_z_seen: list = field(default_factory=list)   # sem-poses: the z-scores where pose_min_z decided
 
@@ -236,8 +230,6 @@ def explore(name: str, obs: Observation, nav: NavField, state: PolicyState, min_
     far = [x for x in goals if x[2] >= min_goal_m] or goals
     at = nav.origin + (np.asarray(nav.start, np.float64) + 0.5) * nav.cell     # the robot's cell centre
     passed = _passed(goals, at) if _semantic(name) else []
-    if _semantic(name) and state.bearing_forget_steps is not None:
-        passed = _spend_bearing(state, goals, passed, min_ray_z)
     d = _choose(name, obs, far, min_score, min_ray_z, goals, at, passed, state.bearing, state.pose_min_z,
                 state.pose_z_seen)
     evidence = not d.why.startswith("frontier")
@@ -457,36 +449,11 @@ def _remember_bearing(state: PolicyState, obs: Observation, min_ray_z: float) ->
     """Keep the heading and ``ray_z`` of the strongest outlier ray (``ray_z`` ≥ ``min_ray_z``)
     any look-next goal has carried this episode. A far target's rays keep their bearing from
     step to step and grow stronger as the robot nears it; outliers of noise jump about and
-    stay weak. Forgotten when an instance is declared (the next target's rays are other), and,
-    with ``bearing_forget_steps``, once its evidence is spent (:func:`_spend_bearing`); rays
-    agreeing with a spent heading are not remembered again."""
+    stay weak. Forgotten when an instance is declared (the next target's rays are other)."""
     for g in obs.look_next:
         z = float(g.get("ray_z", 0.0))
-        if g.get("heading_rad") is not None and z >= min_ray_z and (state.bearing is None or z > state.bearing[1]) \
-                and not any(_agrees(g, h) for h in state.spent_headings):
+        if g.get("heading_rad") is not None and z >= min_ray_z and (state.bearing is None or z > state.bearing[1]):
             state.bearing = (float(g["heading_rad"]), z)
-
-
-def _spend_bearing(state: PolicyState, goals: list, passed: list, min_ray_z: float) -> list:
-    """Forget the remembered bearing once no outlier ray agreeing with it (:func:`_agrees`)
-    has been carried by a reachable goal the robot has not passed for
-    ``state.bearing_forget_steps`` steps in a row, and return ``passed`` plus the outlier goals
-    agreeing with a forgotten heading (their evidence is spent too).
-
-    A far target keeps casting fresh rays at the frontiers ahead of the robot until it is in
-    depth range, where the voxel search finds it; a look-alike that led the robot (a nearer
-    statue or tower, whose rays were the episode's strongest) casts none once it is in depth
-    range and the search does not name it the target, and its bearing would otherwise send the
-    robot on past it for the rest of the episode."""
-    if state.bearing is not None:
-        fresh = _outliers_agreeing(_without(goals, passed), state.bearing[0], min_ray_z)
-        state.bearing_quiet = 0 if fresh else state.bearing_quiet + 1
-        if state.bearing_forget_steps is not None and state.bearing_quiet >= state.bearing_forget_steps:
-            state.spent_headings.append(state.bearing[0])
-            state.bearing, state.bearing_quiet = None, 0
-    spent = [x for x in _without(goals, passed) if x[0].get("ray_z", 0.0) >= min_ray_z
-             and any(_agrees(x[0], h) for h in state.spent_headings)]
-    return passed + spent
 
 
 def _agrees(goal: dict, heading_rad: float, min_cos: float = 0.5) -> bool:

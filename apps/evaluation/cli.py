@@ -195,9 +195,6 @@ def _loop_options(se: argparse.ArgumentParser, seeds: str, missions: str) -> Non
     se.add_argument("--angle-bin", type=float, default=None, metavar="DEG",
                     help="the ray policies' ray angle bin in degrees (default: the online preset's 30, the paper's; "
                          "one bin per frontier stays one bin)")
-    se.add_argument("--bearing-forget-steps", type=int, default=None, metavar="N",
-                    help="the ray policies forget the episode's strongest outlier bearing after N steps in a row "
-                         "with no fresh outlier ray agreeing with it (default: never)")
     se.add_argument("--resolution", type=int, default=224, help="square image size in pixels (default 224)")
     se.add_argument("--step", type=float, default=2.0, help="metres the robot moves per step at most (default 2)")
 
@@ -240,8 +237,7 @@ def _search_config(args: argparse.Namespace):
                             distributed=distributed, work_dir=getattr(args, "work_dir", ""),
                             background=args.background, world=args.world, sensor=args.sensor,
                             encoder=args.encoder, pca_fit=args.pca_fit, ray_evidence=args.ray_evidence,
-                            sem_poses_min_z=args.sem_poses_min_z, angle_bin_deg=args.angle_bin,
-                            bearing_forget_steps=args.bearing_forget_steps, robots=robots,
+                            sem_poses_min_z=args.sem_poses_min_z, angle_bin_deg=args.angle_bin, robots=robots,
                             start=getattr(args, "start", "together"),
                             footprint_m=float(getattr(args, "footprint", 8.0))).validate()
 
